@@ -1,0 +1,30 @@
+"""One error tree for the whole project, rooted at :class:`CrtkBridgeError`.
+
+Messages name the robot, joint, register or profile key involved. Foreign exceptions (serial,
+SDK, OS) are re-raised as one of these, chained with ``raise ... from exc``.
+"""
+
+
+class CrtkBridgeError(Exception):
+    """Root of every error crtk-bridge raises on purpose."""
+
+
+class ProfileError(CrtkBridgeError):
+    """A robot profile is missing, unreadable or invalid (message names file and key path)."""
+
+
+class BackendError(CrtkBridgeError):
+    """A backend failed on its lifecycle path (open, configure, enable, disable, close)."""
+
+
+class BackendUnavailableError(BackendError):
+    """A backend's vendor SDK is not installed; the message names the pip extra to install."""
+
+
+class CommandError(CrtkBridgeError):
+    """The daemon refused a command. ``code`` is one of the protocol's error codes."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+        self.message = message

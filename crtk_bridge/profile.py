@@ -1,0 +1,221 @@
+"""Robot profiles: YAML -> typed, validated model.
+
+A profile describes one robot: its backend and bus, its joints (with calibration and limits),
+how joints group into CRTK namespaces, the loop rate and the safety thresholds.
+``profiles/example.yaml`` documents every key.
+
+Validation is strict: an unknown key, a wrong type or an inconsistent value is a
+:class:`~crtk_bridge.errors.ProfileError` whose message names the file, the key path and what
+was expected. The ``backend`` section is validated in two steps: the common keys here, the
+backend's own keys by the backend's ``Config`` struct (see ``backends/``), so a backend's options
+live beside its code.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import yaml
+
+from .errors import ProfileError
+
+_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*(/[A-Za-z_][A-Za-z0-9_\-]*)*$")
+
+
+class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
+    pass
+
+
+class Calibration(_Strict, kw_only=True):
+    """Device-unit calibration of one joint, applied inside its backend.
+
+    ``joint = direction * (raw - offset) * scale`` where ``scale`` is the backend's SI units per
+    raw unit (for the STS3215, 2*pi/4096 rad per tick).
+    """
+
+    offset: int = 0  # raw value at joint zero (e.g. 2048 = middle of an STS3215's turn)
+    direction: int = 1  # +1 or -1
+    range: tuple[int, int] | None = None  # valid raw range [min, max]; commands are clamped to it
+
+
+class JointLimits(_Strict, kw_only=True):
+    """Joint limits in SI units (rad, rad/s, rad/s^2, rad/s^3, N*m)."""
+
+    position_min: float
+    position_max: float
+    velocity_max: float
+    acceleration_max: float
+    jerk_max: float
+    effort_max: float | None = None
+
+
+class Joint(_Strict, kw_only=True):
+    name: str
+    id: int | None = None  # bus id (servo id, CANopen node id); backend-specific meaning
+    model: str | None = None  # device model, e.g. "sts3215"
+    calibration: Calibration = Calibration()
+    limits: JointLimits
+    home: float = 0.0  # rad: the position `home` moves to
+    effort_per_amp: float | None = None  # N*m per A, to report effort from current; None = no effort
+
+
+class Namespace(_Strict, kw_only=True):
+    name: str  # CRTK namespace, e.g. "so101" or "so101/gripper"
+    joints: list[str]
+
+
+class Loop(_Strict, kw_only=True):
+    rate_hz: float = 100.0
+    realtime_priority: int = 80  # SCHED_FIFO priority asked for (1-99)
+    cpu: int | None = None  # pin the control process to this CPU
+
+
+class Safety(_Strict, kw_only=True):
+    servo_timeout_s: float = 0.5  # servo stream watchdog
+    servo_step_max: float = 0.35  # rad: largest servo_jp step from the last setpoint
+    tracking_error_max: float = 0.6  # rad: measured vs setpoint before FAULT
+    bus_errors_max: int = 5  # consecutive failed cycles before FAULT
+
+
+class Server(_Strict, kw_only=True):
+    socket: str | None = None  # default: $XDG_RUNTIME_DIR/crtk-bridge/<name>.sock
+
+
+class Profile(_Strict, kw_only=True):
+    name: str
+    description: str = ""
+    backend: dict[str, Any]
+    loop: Loop = Loop()
+    safety: Safety = Safety()
+    server: Server = Server()
+    joints: list[Joint]
+    namespaces: list[Namespace]
+
+    # --- derived helpers (no state of their own) ---
+    @property
+    def backend_type(self) -> str:
+        return str(self.backend["type"])
+
+    @property
+    def joint_names(self) -> list[str]:
+        return [j.name for j in self.joints]
+
+    def joint_index(self, name: str) -> int:
+        return self.joint_names.index(name)
+
+    def namespace(self, name: str) -> Namespace:
+        for ns in self.namespaces:
+            if ns.name == name:
+                return ns
+        raise KeyError(name)
+
+
+def _format_msgspec_error(exc: msgspec.ValidationError) -> str:
+    msg = str(exc)
+    # msgspec says "... - at `$.joints[0].limits`"; turn the path into the profile's key path.
+    m = re.search(r" - at `\$\.?(.*)`$", msg)
+    if m:
+        path = m.group(1) or "(top level)"
+        return f"{path}: {msg[: m.start()]}"
+    return msg
+
+
+def _check(profile: Profile) -> list[str]:
+    """Cross-field checks msgspec cannot express. Returns problems as 'key: message'."""
+    problems = []
+    if not _NAME_RE.match(profile.name) or "/" in profile.name:
+        problems.append(f"name: {profile.name!r} is not a valid robot name (letters, digits, _ -)")
+    if "type" not in profile.backend or not isinstance(profile.backend["type"], str):
+        problems.append("backend.type: required, a backend name such as 'feetech'")
+    if not (0 < profile.loop.rate_hz <= 10000):
+        problems.append(f"loop.rate_hz: {profile.loop.rate_hz} is not in (0, 10000]")
+    seen: dict[str, int] = {}
+    ids: dict[int, str] = {}
+    for i, j in enumerate(profile.joints):
+        key = f"joints[{i}] ({j.name})"
+        if j.name in seen:
+            problems.append(f"{key}.name: duplicate joint name (also joints[{seen[j.name]}])")
+        seen[j.name] = i
+        if j.id is not None:
+            if j.id in ids:
+                problems.append(f"{key}.id: bus id {j.id} is also used by joint {ids[j.id]!r}")
+            ids[j.id] = j.name
+        lim = j.limits
+        if not lim.position_min < lim.position_max:
+            problems.append(f"{key}.limits: position_min must be < position_max")
+        for field in ("velocity_max", "acceleration_max", "jerk_max"):
+            v = getattr(lim, field)
+            if not (v > 0 and math.isfinite(v)):
+                problems.append(f"{key}.limits.{field}: must be a finite number > 0, got {v}")
+        if not lim.position_min <= j.home <= lim.position_max:
+            problems.append(f"{key}.home: {j.home} is outside the position limits")
+        if j.calibration.direction not in (1, -1):
+            problems.append(f"{key}.calibration.direction: must be 1 or -1")
+        r = j.calibration.range
+        if r is not None and not r[0] < r[1]:
+            problems.append(f"{key}.calibration.range: min must be < max")
+    used: dict[str, str] = {}
+    ns_names = set()
+    if not profile.namespaces:
+        problems.append("namespaces: at least one namespace is required")
+    for i, ns in enumerate(profile.namespaces):
+        key = f"namespaces[{i}] ({ns.name})"
+        if not _NAME_RE.match(ns.name):
+            problems.append(f"{key}.name: not a valid CRTK namespace")
+        if ns.name in ns_names:
+            problems.append(f"{key}.name: duplicate namespace")
+        ns_names.add(ns.name)
+        if not ns.joints:
+            problems.append(f"{key}.joints: a namespace needs at least one joint")
+        for jn in ns.joints:
+            if jn not in seen:
+                problems.append(f"{key}.joints: unknown joint {jn!r} (known: {', '.join(seen)})")
+            elif jn in used:
+                problems.append(f"{key}.joints: joint {jn!r} is already in namespace {used[jn]!r}")
+            else:
+                used[jn] = ns.name
+    for jn in seen:
+        if jn not in used:
+            problems.append(f"namespaces: joint {jn!r} belongs to no namespace")
+    return problems
+
+
+def parse_profile(data: Any, source: str = "<profile>") -> Profile:
+    """Validate already-parsed YAML data. Raises ProfileError naming ``source`` and the key."""
+    if not isinstance(data, dict):
+        raise ProfileError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
+    try:
+        profile = msgspec.convert(data, Profile)
+    except msgspec.ValidationError as exc:
+        raise ProfileError(f"{source}: {_format_msgspec_error(exc)}") from exc
+    problems = _check(profile)
+    if problems:
+        raise ProfileError(f"{source}: " + "; ".join(problems))
+    return profile
+
+
+def load_profile(path: str | Path) -> Profile:
+    """Read and validate a profile file. Blocks on file I/O. Raises ProfileError."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ProfileError(f"{path}: cannot read profile: {exc.strerror or exc}") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ProfileError(f"{path}: not valid YAML: {exc}") from exc
+    return parse_profile(data, str(path))
+
+
+def backend_config(profile: Profile, config_type: type, source: str = "<profile>") -> Any:
+    """Convert the profile's ``backend`` section into a backend's own ``Config`` struct."""
+    data = {k: v for k, v in profile.backend.items() if k != "type"}
+    try:
+        return msgspec.convert(data, config_type)
+    except msgspec.ValidationError as exc:
+        raise ProfileError(f"{source}: backend.{_format_msgspec_error(exc)}") from exc
