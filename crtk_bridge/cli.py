@@ -1,0 +1,64 @@
+"""``crtk-bridge``: run the daemon, or check a profile.
+
+    crtk-bridge --profile FILE [--sim] [--socket PATH] [--log-level L] [--no-realtime]
+    crtk-bridge check --profile FILE
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from . import __version__
+from .errors import CrtkBridgeError
+
+
+def _run_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="crtk-bridge", description="Serve the CRTK robot API for the robot a profile describes.")
+    p.add_argument("--profile", required=True, help="robot profile (YAML), e.g. profiles/so101.yaml")
+    p.add_argument("--sim", action="store_true", help="run on the built-in simulator instead of hardware")
+    p.add_argument("--socket", help="Unix socket path (default: $XDG_RUNTIME_DIR/crtk-bridge/<robot>.sock)")
+    p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO / mlockall")
+    p.add_argument("--version", action="version", version=f"crtk-bridge {__version__}")
+    return p
+
+
+def _check(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(prog="crtk-bridge check", description="Validate a robot profile; exit 0 if valid.")
+    p.add_argument("--profile", required=True)
+    args = p.parse_args(argv)
+    from .backends import create_backend
+    from .profile import load_profile
+
+    try:
+        profile = load_profile(args.profile)
+        create_backend(profile, source=args.profile)
+    except CrtkBridgeError as exc:
+        print(f"crtk-bridge: {exc}", file=sys.stderr)
+        return 1
+    print(f"{args.profile}: valid profile for robot {profile.name!r} ({profile.backend_type}, "
+          f"{len(profile.joints)} joints, namespaces {', '.join(ns.name for ns in profile.namespaces)})")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "check":
+        return _check(argv[1:])
+    args = _run_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from .daemon import run
+
+    try:
+        return run(args.profile, sim=args.sim, socket_path=args.socket, realtime=not args.no_realtime)
+    except CrtkBridgeError as exc:
+        print(f"crtk-bridge: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,265 @@
+"""The control process: the real-time loop around the backend and the controller.
+
+Each cycle, at the profile's rate: read -> requests + state machine -> motion -> limits -> write
+-> publish snapshot -> send replies and events. It asks for SCHED_FIFO and mlockall (and says once,
+with a ``realtime_unavailable`` warning, when it cannot), freezes the GC after start-up, and keeps
+logging, allocation-heavy work and blocking I/O out of the cycle.
+
+It talks to the front process over one SOCK_SEQPACKET socketpair (msgpack messages, never the
+network) and publishes state through :class:`~crtk_bridge.core.snapshot.SnapshotBuffer`.
+If the front process goes away (EOF on the pair), the loop stops safely: torque off, exit.
+SIGTERM / SIGINT do the same.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import gc
+import os
+import signal
+import socket
+import time
+from collections import deque
+from typing import Any, Callable
+
+import msgspec
+
+from ..errors import CrtkBridgeError
+from ..profile import Profile
+from .actuator import Actuator
+from .controller import Controller
+from .snapshot import RING, SnapshotBuffer
+
+_encode = msgspec.msgpack.Encoder().encode
+_decode = msgspec.msgpack.Decoder().decode
+MAX_REQUESTS_PER_CYCLE = 64
+
+
+def request_realtime(priority: int, cpu: int | None) -> list[str]:
+    """Ask for SCHED_FIFO and locked memory. Returns what could not be had (empty = all good)."""
+    problems = []
+    if cpu is not None:
+        try:
+            os.sched_setaffinity(0, {cpu})
+        except OSError as exc:
+            problems.append(f"CPU affinity {cpu}: {exc.strerror}")
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, AttributeError) as exc:
+        problems.append(f"SCHED_FIFO priority {priority}: {getattr(exc, 'strerror', exc)} "
+                        "(grant CAP_SYS_NICE or LimitRTPRIO, see systemd/README.md)")
+    libc_name = ctypes.util.find_library("c")
+    if libc_name:
+        libc = ctypes.CDLL(libc_name, use_errno=True)
+        MCL_CURRENT, MCL_FUTURE = 1, 2
+        if libc.mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+            err = ctypes.get_errno()
+            problems.append(f"mlockall: {os.strerror(err)} (raise LimitMEMLOCK)")
+    return problems
+
+
+class ControlLoop:
+    """Owns the backend, the controller and the loop. Runs in the control process."""
+
+    def __init__(self, profile: Profile, actuator: Actuator, chan: socket.socket, snapshot: SnapshotBuffer,
+                 realtime: bool = True):
+        self.profile = profile
+        self.actuator = actuator
+        self.chan = chan
+        self.snap = snapshot
+        self.realtime = realtime
+        self.period = 1.0 / profile.loop.rate_hz
+        self.controller = Controller(profile, actuator, time.time)
+        self.feedback = actuator.new_feedback()
+        self.pending: deque[bytes] = deque()  # messages the pair could not take yet
+        self.running = True
+        self.front_alive = True
+        ns = list(self.controller.namespaces.values())
+        self._ns = ns
+        v = snapshot.views
+        self._v = v
+
+    # ---------------------------------------------------------------- messaging
+    def _send(self, msg: dict) -> None:
+        data = _encode(msg)
+        if self.pending:
+            self.pending.append(data)
+            return
+        try:
+            self.chan.send(data, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            self.pending.append(data)
+        except OSError:
+            self.front_alive = False
+
+    def _flush(self) -> None:
+        out = self.controller.outbox
+        if out:
+            for msg in out:
+                self._send(msg)
+            out.clear()
+        while self.pending and self.front_alive:
+            try:
+                self.chan.send(self.pending[0], socket.MSG_DONTWAIT)
+                self.pending.popleft()
+            except BlockingIOError:
+                break
+            except OSError:
+                self.front_alive = False
+
+    def _receive(self) -> None:
+        for _ in range(MAX_REQUESTS_PER_CYCLE):
+            try:
+                data = self.chan.recv(1 << 16, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                return
+            except OSError:
+                self.front_alive = False
+                return
+            if not data:  # EOF: the front process is gone
+                self.front_alive = False
+                return
+            msg = _decode(data)
+            if msg.get("cmd") == "_shutdown":
+                self.running = False
+                return
+            self.controller.handle(msg)
+
+    # ---------------------------------------------------------------- snapshot
+    def _publish(self) -> None:
+        c, v, fb = self.controller, self._v, self.controller.feedback
+        self.snap.begin()
+        v["measured_stamp"][0] = fb.stamp if c._consecutive_bus_errors == 0 else 0.0
+        v["measured_p"][:] = fb.position
+        v["measured_v"][:] = fb.velocity
+        v["measured_f"][:] = fb.effort
+        for k, m in enumerate(self._ns):
+            v["setpoint_p"][m.idx] = m.setpoint_p
+            v["setpoint_v"][m.idx] = m.setpoint_v
+            v["goal_p"][m.idx] = m.goal_p
+            has_p, has_v, has_f = c.setpoint_fields(m)
+            v["ns_setpoint_stamp"][k] = m.setpoint_stamp if has_p else 0.0
+            v["ns_has_p"][k] = has_p
+            v["ns_has_v"][k] = has_v
+            v["ns_has_f"][k] = has_f
+            v["ns_goal_stamp"][k] = m.goal_stamp
+        self.snap.end()
+
+    # ---------------------------------------------------------------- the loop
+    def run(self) -> int:
+        """Run until shutdown or loss of the front process. Returns the exit status."""
+        c = self.controller
+        problems = request_realtime(self.profile.loop.realtime_priority, self.profile.loop.cpu) if self.realtime else ["disabled by --no-realtime"]
+        if problems:
+            c._event("warning", "realtime_unavailable",
+                     f"{self.profile.name}: running without full real-time guarantees: " + "; ".join(problems))
+        # prime the measured state before anyone can enable
+        fault = self.actuator.read(self.feedback)
+        c.on_read(self.feedback, fault)
+        c._push_state()
+        self._publish()
+        self._flush()
+        gc.collect()
+        gc.freeze()
+
+        v = self._v
+        cycles = v["cycles"]
+        overruns = v["overruns"]
+        ring_index = v["ring_index"]
+        lateness = v["lateness"]
+        compute = v["compute"]
+        period = self.period
+        clock = time.perf_counter
+        next_t = clock() + period
+        i = 0
+        while self.running and self.front_alive:
+            now = clock()
+            delay = next_t - now
+            if delay > 0:
+                time.sleep(delay)
+            t0 = clock()
+            late = t0 - next_t
+            # -- the cycle --
+            fault = self.actuator.read(self.feedback)
+            c.on_read(self.feedback, fault)
+            self._receive()
+            if c.step():
+                wfault = self.actuator.write(c.command)
+                if wfault is not None:
+                    c.on_read(self.feedback, wfault)
+            # stats go in before the snapshot is published, so the same seqlock covers them
+            i += 1
+            slot = i % RING
+            lateness[slot] = late
+            compute[slot] = clock() - t0
+            cycles[0] = i
+            ring_index[0] = slot
+            self._publish()
+            self._flush()
+            # -- schedule the next cycle; after an overrun, skip ahead instead of bursting --
+            next_t += period
+            if clock() > next_t:
+                overruns[0] += 1
+                missed = int((clock() - next_t) / period) + 1
+                next_t += missed * period
+        self.shutdown()
+        return 0
+
+    def shutdown(self) -> None:
+        """Stop motion and switch torque off. Never raises."""
+        try:
+            self.actuator.disable()
+        except Exception:
+            pass
+        self.actuator.close()
+        c = self.controller
+        c._abort_motion()
+        c.state = c.state.__class__.DISABLED
+        c._push_state()
+        self._publish()
+        self._flush()
+
+
+def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: socket.socket,
+                 snapshot: SnapshotBuffer, realtime: bool = True) -> int:
+    """Entry point of the control process (forked by the daemon). Returns its exit status.
+
+    Opens and configures the backend (lifecycle path, may block), tells the front process it is
+    ready (or why not), then runs the loop.
+    """
+    stop = {"flag": False}
+    loop_ref: dict[str, Any] = {}
+
+    def on_signal(signum: int, frame: Any) -> None:
+        stop["flag"] = True
+        if "loop" in loop_ref:
+            loop_ref["loop"].running = False
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+
+    try:
+        actuator = make_actuator()  # the entry layer's choice of backend
+        actuator.open()
+        actuator.configure()
+    except CrtkBridgeError as exc:
+        chan.send(_encode({"event": "_startup_failed", "data": {"message": str(exc)}}))
+        return 1
+    except Exception as exc:
+        chan.send(_encode({"event": "_startup_failed", "data": {"message": f"{profile.name}: {exc!r}"}}))
+        return 1
+    caps = actuator.capabilities
+    loop = ControlLoop(profile, actuator, chan, snapshot, realtime=realtime)
+    loop_ref["loop"] = loop
+    chan.send(_encode({"event": "_ready", "data": {
+        "commands": loop.controller.supported_commands(),
+        "capabilities": {k: getattr(caps, k) for k in caps.__dataclass_fields__},
+    }}))
+    if stop["flag"]:
+        loop.running = False
+    try:
+        return loop.run()
+    except Exception:
+        loop.shutdown()
+        raise

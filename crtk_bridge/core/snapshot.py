@@ -1,0 +1,96 @@
+"""The state snapshot the control process publishes every cycle, in shared memory, under a seqlock.
+
+One writer (the control loop), any number of readers (the front process). The writer bumps the
+sequence number to odd, writes, bumps it to even; a reader copies the block and retries if the
+sequence was odd or changed meanwhile. Nothing is allocated on the writer's side per cycle.
+
+Layout (float64 unless said): ``seq`` (int64) | measured stamp, p[n], v[n], f[n] |
+setpoint p[n], v[n], f[n] | goal p[n] | per namespace: setpoint stamp, has_p, has_v, has_f,
+goal stamp | cycle count, overrun count, lateness ring [RING], compute ring [RING].
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from multiprocessing import shared_memory
+
+import numpy as np
+
+RING = 1024  # samples of loop lateness / compute time kept for period_statistics
+
+
+@dataclass
+class Layout:
+    n: int  # joints
+    k: int  # namespaces
+
+    def __post_init__(self) -> None:
+        n, k = self.n, self.k
+        fields = [
+            ("measured_stamp", 1), ("measured_p", n), ("measured_v", n), ("measured_f", n),
+            ("setpoint_p", n), ("setpoint_v", n), ("setpoint_f", n), ("goal_p", n),
+            ("ns_setpoint_stamp", k), ("ns_has_p", k), ("ns_has_v", k), ("ns_has_f", k), ("ns_goal_stamp", k),
+            ("cycles", 1), ("overruns", 1), ("ring_index", 1), ("lateness", RING), ("compute", RING),
+        ]
+        self.slices: dict[str, slice] = {}
+        off = 0
+        for name, size in fields:
+            self.slices[name] = slice(off, off + size)
+            off += size
+        self.size = off
+
+    @property
+    def nbytes(self) -> int:
+        return 8 + 8 * self.size
+
+
+class SnapshotBuffer:
+    """Shared-memory block. ``create=True`` in the daemon before forking the control process."""
+
+    def __init__(self, layout: Layout, name: str | None = None, create: bool = False):
+        self.layout = layout
+        self.shm = shared_memory.SharedMemory(name=name, create=create, size=layout.nbytes)
+        self.seq = np.ndarray((1,), dtype=np.int64, buffer=self.shm.buf, offset=0)
+        self.data = np.ndarray((layout.size,), dtype=np.float64, buffer=self.shm.buf, offset=8)
+        self.views = {name: self.data[s] for name, s in layout.slices.items()}
+        if create:
+            self.seq[0] = 0
+            self.data[:] = 0.0
+
+    @property
+    def name(self) -> str:
+        return self.shm.name
+
+    # ---- writer side (control process) ----
+    def begin(self) -> None:
+        self.seq[0] += 1  # odd: write in progress
+
+    def end(self) -> None:
+        self.seq[0] += 1  # even: consistent
+
+    # ---- reader side (front process) ----
+    def read(self, out: np.ndarray | None = None, timeout_s: float = 0.05) -> tuple[np.ndarray, int]:
+        """Consistent copy of the data block and its sequence number. Never blocks long."""
+        if out is None:
+            out = np.empty_like(self.data)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            s1 = int(self.seq[0])
+            if not s1 & 1:
+                np.copyto(out, self.data)
+                if int(self.seq[0]) == s1:
+                    return out, s1
+            if time.monotonic() > deadline:  # writer died mid-write: return what is there
+                np.copyto(out, self.data)
+                return out, int(self.seq[0])
+
+    def close(self, unlink: bool = False) -> None:
+        self.views.clear()
+        del self.seq, self.data
+        self.shm.close()
+        if unlink:
+            try:
+                self.shm.unlink()
+            except FileNotFoundError:
+                pass

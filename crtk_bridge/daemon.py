@@ -1,0 +1,195 @@
+"""Process wiring: the front process (this one, asyncio) and the control process (forked).
+
+``run(profile_path, ...)`` loads the profile, starts the simulator when asked (``--sim``), forks
+the control process with a command pair and a shared-memory snapshot, serves the socket API, and
+shuts everything down in order on SIGTERM / SIGINT: motion stops and torque goes off in the
+control process first, then the socket is removed and the simulator stopped. Exit status 0 on a
+requested shutdown, 1 when start-up fails or the control process dies.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import multiprocessing
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import msgspec
+
+from . import systemd
+from .backends import create_backend
+from .client.paths import default_socket_path
+from .core.loop import control_main
+from .core.snapshot import Layout, SnapshotBuffer
+from .errors import CrtkBridgeError
+from .profile import Profile, load_profile
+from .server.link import ControlLink
+from .server.server import Server
+
+log = logging.getLogger("crtk_bridge.daemon")
+
+#: backend type -> simulator name understood by ``crtk-sim``
+SIMULATORS = {"feetech": "feetech"}
+STARTUP_TIMEOUT_S = 20.0
+SHUTDOWN_TIMEOUT_S = 5.0
+
+
+class SimulatorProcess:
+    """``crtk-sim`` as a child process, serving a pty linked at ``link``."""
+
+    def __init__(self, profile_path: str, backend_type: str, workdir: str):
+        if backend_type not in SIMULATORS:
+            raise CrtkBridgeError(f"--sim: no simulator for backend {backend_type!r} "
+                                  f"(simulated backends: {', '.join(SIMULATORS)})")
+        self.link = os.path.join(workdir, "tty")
+        self.control = os.path.join(workdir, "sim.sock")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "crtk_bridge.sim.cli", SIMULATORS[backend_type], "--profile", profile_path,
+             "--link", self.link, "--control", self.control],
+            stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
+            start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
+        )
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while not (os.path.exists(self.link) and os.path.exists(self.control)):
+            if self.proc.poll() is not None:
+                raise CrtkBridgeError(f"--sim: the simulator exited with status {self.proc.returncode}")
+            if time.monotonic() > deadline:
+                self.stop()
+                raise CrtkBridgeError("--sim: the simulator did not start")
+            time.sleep(0.02)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(SHUTDOWN_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def _control_process(profile: Profile, source: str, chan: socket.socket, snap: SnapshotBuffer, realtime: bool) -> None:
+    code = control_main(profile, lambda: create_backend(profile, source=source), chan, snap, realtime=realtime)
+    sys.exit(code)
+
+
+async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Process) -> int:
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    link.attach(loop, server.on_control_lost)
+    await server.start()
+    print(f"crtk-bridge: {server.robot} ({server.profile.backend_type}, {len(server.profile.joints)} joints) "
+          f"serving CRTK on {server.socket_path}", flush=True)
+    systemd.ready(f"serving {server.socket_path}")
+    watchdog = systemd.watchdog_period()
+    watchdog_task = loop.create_task(_watchdog(link, watchdog)) if watchdog else None
+
+    stop_wait = loop.create_task(stop.wait())
+    lost_wait = loop.create_task(server.control_lost.wait())
+    await asyncio.wait({stop_wait, lost_wait}, return_when=asyncio.FIRST_COMPLETED)
+    status = 1 if server.control_lost.is_set() else 0
+    systemd.stopping()
+    if watchdog_task:
+        watchdog_task.cancel()
+    # control process first: motion stops, torque off; then the socket goes
+    link.send_nowait("_shutdown")
+    await loop.run_in_executor(None, proc.join, SHUTDOWN_TIMEOUT_S)
+    if proc.is_alive():
+        log.error("%s: the control process did not stop in %s s; killing it", server.robot, SHUTDOWN_TIMEOUT_S)
+        proc.kill()
+        proc.join()
+        status = 1
+    elif proc.exitcode not in (0, None) and status == 0:
+        status = 1
+    await server.close()
+    for t in (stop_wait, lost_wait):
+        t.cancel()
+    return status
+
+
+async def _watchdog(link: ControlLink, period: float) -> None:
+    """Ping systemd's watchdog only while the control loop is cycling."""
+    last = -1
+    while True:
+        await asyncio.sleep(period / 2)
+        cycles = link.cycles()
+        if cycles != last:
+            systemd.watchdog_ping()
+            last = cycles
+
+
+def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None, realtime: bool = True) -> int:
+    """Run the daemon in the foreground until SIGTERM / SIGINT. Returns the exit status."""
+    profile = load_profile(profile_path)
+    source = str(profile_path)
+    # validate the backend section (and that its SDK is installed) before anything starts
+    create_backend(profile, source=source)
+    socket_path = socket_path or profile.server.socket or default_socket_path(profile.name)
+
+    simulator = None
+    workdir = None
+    if sim:
+        workdir = tempfile.mkdtemp(prefix=f"crtk-bridge-{profile.name}-sim-")
+        simulator = SimulatorProcess(str(profile_path), profile.backend_type, workdir)
+        profile = msgspec.structs.replace(profile, backend={**profile.backend, "port": simulator.link})
+        print(f"crtk-bridge: simulated {profile.backend_type} bus on {simulator.link} "
+              f"(simulator control socket {simulator.control})", flush=True)
+
+    snap = SnapshotBuffer(Layout(len(profile.joints), len(profile.namespaces)), create=True)
+    front, back = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    ctx = multiprocessing.get_context("fork")  # forked before any thread or event loop exists
+    proc = ctx.Process(target=_control_process, args=(profile, source, back, snap, realtime),
+                       name=f"crtk-bridge-{profile.name}-control")
+    try:
+        proc.start()
+        back.close()
+        server: Server | None = None
+        holder: dict = {}
+
+        def on_event(msg: dict) -> None:
+            if "server" in holder:
+                holder["server"].on_event(msg)
+            else:
+                early.append(msg)
+
+        early: list[dict] = []
+        link = ControlLink(profile, front, snap, on_event)
+        try:
+            ready = link.wait_ready(STARTUP_TIMEOUT_S)
+        except RuntimeError as exc:
+            proc.join(SHUTDOWN_TIMEOUT_S)
+            if proc.is_alive():
+                proc.kill()
+            raise CrtkBridgeError(str(exc)) from None
+        server = Server(link, ready["commands"], socket_path)
+        holder["server"] = server
+        for msg in early:
+            server.on_event(msg)
+        return asyncio.run(_serve(server, link, proc))
+    finally:
+        if proc.is_alive():
+            proc.terminate()
+            proc.join(SHUTDOWN_TIMEOUT_S)
+        front.close()
+        snap.close(unlink=True)
+        if simulator:
+            simulator.stop()
+        if workdir:
+            for name in os.listdir(workdir):
+                try:
+                    os.unlink(os.path.join(workdir, name))
+                except OSError:
+                    pass
+            try:
+                os.rmdir(workdir)
+            except OSError:
+                pass

@@ -1,0 +1,189 @@
+"""The front process's side of the control process: the command pair and the snapshot.
+
+Requests go to the control process over the SOCK_SEQPACKET pair (msgpack); each gets exactly one
+reply, matched by an internal id. Events (operating_state, warnings, ...) come back on the same
+pair, in order with the replies they precede. Joint state is read from the shared-memory snapshot
+without a round trip through the loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import socket
+from typing import Any, Callable
+
+import msgspec
+import numpy as np
+
+from ..core.snapshot import RING, SnapshotBuffer
+from ..profile import Profile
+
+_encode = msgspec.msgpack.Encoder().encode
+_decode = msgspec.msgpack.Decoder().decode
+
+
+class ControlLost(Exception):
+    """The control process is gone."""
+
+
+class ControlLink:
+    def __init__(self, profile: Profile, chan: socket.socket, snapshot: SnapshotBuffer,
+                 on_event: Callable[[dict], None]):
+        self.profile = profile
+        self.chan = chan
+        self.snap = snapshot
+        self.on_event = on_event
+        self._ids = itertools.count(1)
+        self._pending: dict[int, asyncio.Future] = {}
+        self.lost = False
+        self._buf = np.empty_like(snapshot.data)
+        self._slices = snapshot.layout.slices
+        self.ns_index = {ns.name: k for k, ns in enumerate(profile.namespaces)}
+        self.ns_joints = {ns.name: np.array([profile.joint_index(j) for j in ns.joints]) for ns in profile.namespaces}
+        self.ns_names = {ns.name: list(ns.joints) for ns in profile.namespaces}
+        self.measures_velocity = True
+        self.measures_effort = False
+
+    # ---------------------------------------------------------------- start-up
+    def wait_ready(self, timeout_s: float) -> dict:
+        """Block until the control process says it is ready. Raises RuntimeError with its reason."""
+        self.chan.settimeout(timeout_s)
+        try:
+            while True:
+                data = self.chan.recv(1 << 16)
+                if not data:
+                    raise RuntimeError("the control process exited during start-up")
+                msg = _decode(data)
+                ev = msg.get("event")
+                if ev == "_ready":
+                    caps = msg["data"]["capabilities"]
+                    self.measures_velocity = caps["measures_velocity"]
+                    self.measures_effort = caps["measures_effort"]
+                    return msg["data"]
+                if ev == "_startup_failed":
+                    raise RuntimeError(msg["data"]["message"])
+                self.on_event(msg)  # e.g. the realtime warning, the first operating_state
+        except socket.timeout:
+            raise RuntimeError(f"the control process did not start within {timeout_s} s") from None
+        finally:
+            self.chan.settimeout(None)
+
+    def attach(self, loop: asyncio.AbstractEventLoop, on_lost: Callable[[], None]) -> None:
+        self.chan.setblocking(False)
+        self._on_lost = on_lost
+        loop.add_reader(self.chan.fileno(), self._readable)
+
+    def _readable(self) -> None:
+        while True:
+            try:
+                data = self.chan.recv(1 << 16)
+            except BlockingIOError:
+                return
+            except OSError:
+                data = b""
+            if not data:
+                self._lose()
+                return
+            msg = _decode(data)
+            rid = msg.get("id")
+            if rid is not None and "ok" in msg:
+                fut = self._pending.pop(rid, None)
+                if fut is not None and not fut.done():
+                    fut.set_result(msg)
+            else:
+                self.on_event(msg)
+
+    def _lose(self) -> None:
+        if self.lost:
+            return
+        self.lost = True
+        try:
+            asyncio.get_running_loop().remove_reader(self.chan.fileno())
+        except (RuntimeError, ValueError):
+            pass
+        for fut in self._pending.values():
+            if not fut.done():
+                fut.set_exception(ControlLost("control process is gone"))
+        self._pending.clear()
+        self._on_lost()
+
+    # ---------------------------------------------------------------- requests
+    async def request(self, cmd: str, ns: str | None, data: Any, timeout_s: float = 10.0) -> dict:
+        """Send one request to the control loop; returns its reply message."""
+        if self.lost:
+            raise ControlLost("control process is gone")
+        rid = next(self._ids)
+        fut = asyncio.get_running_loop().create_future()
+        self._pending[rid] = fut
+        try:
+            self.chan.send(_encode({"id": rid, "cmd": cmd, "ns": ns, "data": data}))
+        except OSError as exc:
+            self._pending.pop(rid, None)
+            raise ControlLost(str(exc)) from exc
+        try:
+            return await asyncio.wait_for(fut, timeout_s)
+        finally:
+            self._pending.pop(rid, None)
+
+    def send_nowait(self, cmd: str) -> None:
+        if not self.lost:
+            try:
+                self.chan.send(_encode({"id": None, "cmd": cmd}))
+            except OSError:
+                pass
+
+    # ---------------------------------------------------------------- snapshot views
+    def read(self) -> np.ndarray:
+        buf, _ = self.snap.read(self._buf)
+        return buf
+
+    def cycles(self) -> int:
+        return int(self.snap.data[self._slices["cycles"]][0])
+
+    def joint_state(self, topic: str, ns: str) -> dict:
+        """measured_js / setpoint_js / goal_js of one namespace as a JointState payload."""
+        buf = self.read()
+        s = self._slices
+        idx = self.ns_joints[ns]
+        k = self.ns_index[ns]
+        names = self.ns_names[ns]
+        if topic == "measured_js":
+            return {
+                "stamp": float(buf[s["measured_stamp"]][0]), "frame_id": ns, "name": names,
+                "position": buf[s["measured_p"]][idx].tolist(),
+                "velocity": buf[s["measured_v"]][idx].tolist() if self.measures_velocity else [],
+                "effort": buf[s["measured_f"]][idx].tolist() if self.measures_effort else [],
+            }
+        if topic == "setpoint_js":
+            has_p, has_v, has_f = (bool(buf[s[f]][k]) for f in ("ns_has_p", "ns_has_v", "ns_has_f"))
+            return {
+                "stamp": float(buf[s["ns_setpoint_stamp"]][k]), "frame_id": ns, "name": names,
+                "position": buf[s["setpoint_p"]][idx].tolist() if has_p else [],
+                "velocity": buf[s["setpoint_v"]][idx].tolist() if has_v else [],
+                "effort": buf[s["setpoint_f"]][idx].tolist() if has_f else [],
+            }
+        # goal_js
+        stamp = float(buf[s["ns_goal_stamp"]][k])
+        return {
+            "stamp": stamp, "frame_id": ns, "name": names,
+            "position": buf[s["goal_p"]][idx].tolist() if stamp else [], "velocity": [], "effort": [],
+        }
+
+    def period_statistics(self) -> dict:
+        buf = self.read()
+        s = self._slices
+        cycles = int(buf[s["cycles"]][0])
+        n = min(cycles, RING)
+        late = buf[s["lateness"]][:RING]
+        comp = buf[s["compute"]][:RING]
+        if n < RING:  # ring slots 1..n hold samples
+            late, comp = late[1 : n + 1], comp[1 : n + 1]
+        stats = {"rate_hz": self.profile.loop.rate_hz, "period_s": 1.0 / self.profile.loop.rate_hz,
+                 "cycles": cycles, "overruns": int(buf[s["overruns"]][0]), "samples": int(n)}
+        if n:
+            p = np.percentile(late, [50, 99])
+            c = np.percentile(comp, [50, 99])
+            stats.update(lateness_p50_s=float(p[0]), lateness_p99_s=float(p[1]), lateness_max_s=float(late.max()),
+                         compute_p50_s=float(c[0]), compute_p99_s=float(c[1]))
+        return stats

@@ -1,0 +1,278 @@
+"""The socket server: sessions, control ownership, queries, subscriptions, event fan-out.
+
+Runs in the front process (asyncio). See docs/protocol.md for the wire protocol.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+from .. import __version__
+from .link import ControlLink, ControlLost
+from .protocol import (
+    JOINT_QUERIES, PROTOCOL_VERSION, ROBOT_QUERIES, STATE_COMMANDS, TOPICS, ProtocolError, decode_request,
+    encode, error, ok,
+)
+
+log = logging.getLogger("crtk_bridge.server")
+
+#: a session's unsent bytes above which stream frames are dropped (replies and events never are)
+SEND_BUFFER_LIMIT = 256 * 1024
+MAX_LINE = 1 << 20
+
+
+class Session:
+    def __init__(self, sid: int, writer: asyncio.StreamWriter):
+        self.id = sid
+        self.writer = writer
+        self.subs: dict[int, asyncio.Task] = {}
+        self.dropped = 0
+        self.closed = False
+
+    def send(self, msg: Any) -> None:
+        if not self.closed:
+            self.writer.write(encode(msg))
+
+    def send_frame(self, msg: Any) -> None:
+        """A stream frame: dropped while the client is not reading fast enough."""
+        if self.closed:
+            return
+        if self.writer.transport.get_write_buffer_size() > SEND_BUFFER_LIMIT:
+            self.dropped += 1
+            return
+        self.writer.write(encode(msg))
+
+
+class Server:
+    def __init__(self, link: ControlLink, commands: list[str], socket_path: str):
+        self.link = link
+        self.profile = link.profile
+        self.robot = self.profile.name
+        self.commands = commands  # motion and state commands the control process supports
+        self.socket_path = socket_path
+        self.sessions: dict[int, Session] = {}
+        self.controller: Session | None = None
+        self.state: dict = {"state": "DISABLED", "is_homed": False, "is_busy": False, "busy_seq": 0, "stamp": 0.0}
+        self._sids = itertools.count(1)
+        self._subids = itertools.count(1)
+        self._server: asyncio.base_events.Server | None = None
+        self.control_lost = asyncio.Event()
+
+    # ---------------------------------------------------------------- events from the loop
+    def on_event(self, msg: dict) -> None:
+        ev = msg.get("event")
+        if ev == "operating_state":
+            self.state = msg["data"]
+        elif ev in ("error", "warning", "status"):
+            d = msg["data"]
+            level = {"error": logging.ERROR, "warning": logging.WARNING}.get(ev, logging.INFO)
+            log.log(level, "%s [%s] %s", ev, d.get("code"), d.get("message"))
+        for s in list(self.sessions.values()):
+            s.send(msg)
+
+    def on_control_lost(self) -> None:
+        """The control process died: every client learns FAULT; the daemon exits non-zero."""
+        self.state = dict(self.state, state="FAULT", is_busy=False)
+        msg = {"event": "error", "data": {"stamp": 0.0, "ns": self.robot, "code": "control_process_died",
+                                          "message": f"{self.robot}: the control process stopped; daemon exiting"}}
+        self.on_event({"event": "operating_state", "data": self.state})
+        self.on_event(msg)
+        self.control_lost.set()
+
+    # ---------------------------------------------------------------- serving
+    async def start(self) -> None:
+        path = Path(self.socket_path)
+        path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
+        if path.exists() or path.is_symlink():
+            # a stale socket from a crashed daemon, unless one still answers there
+            try:
+                r, w = await asyncio.open_unix_connection(str(path))
+                w.close()
+                raise RuntimeError(f"{self.robot}: another daemon is already serving {path}")
+            except (ConnectionRefusedError, FileNotFoundError):
+                path.unlink()
+        old = os.umask(0o117)  # socket file mode 0660
+        try:
+            self._server = await asyncio.start_unix_server(self._session, path=str(path), limit=MAX_LINE)
+        finally:
+            os.umask(old)
+        os.chmod(path, 0o660)
+
+    async def close(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            for s in list(self.sessions.values()):
+                s.closed = True
+                s.writer.close()
+            try:
+                await asyncio.wait_for(self._server.wait_closed(), 1.0)
+            except (asyncio.TimeoutError, Exception):
+                pass
+        try:
+            os.unlink(self.socket_path)
+        except FileNotFoundError:
+            pass
+
+    async def _session(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        s = Session(next(self._sids), writer)
+        self.sessions[s.id] = s
+        s.send({"event": "operating_state", "data": self.state})
+        try:
+            while True:
+                try:
+                    line = await reader.readline()
+                except (asyncio.LimitOverrunError, ValueError):
+                    s.send(error(None, "bad_request", f"request longer than {MAX_LINE} bytes"))
+                    break
+                except ConnectionError:
+                    break
+                if not line:
+                    break
+                if line.strip():
+                    await self._handle(s, line)
+                if writer.transport.get_write_buffer_size() > 4 * SEND_BUFFER_LIMIT:
+                    await writer.drain()  # replies pile up: the client is not reading
+        finally:
+            s.closed = True
+            for t in s.subs.values():
+                t.cancel()
+            del self.sessions[s.id]
+            if self.controller is s:
+                self.controller = None
+                self.link.send_nowait("_client_lost")
+            writer.close()
+
+    async def _handle(self, s: Session, line: bytes) -> None:
+        try:
+            req = decode_request(line)
+            s.send(ok(req.id, await self._dispatch(s, req.cmd, req.ns, req.data if req.data is not None else {})))
+        except ProtocolError as exc:
+            s.send(error(exc.rid if exc.rid is not None else _rid(line), exc.code, str(exc)))
+        except ControlLost:
+            s.send(error(_rid(line), "internal", f"{self.robot}: the control process is not running"))
+        except asyncio.TimeoutError:
+            s.send(error(_rid(line), "internal", f"{self.robot}: the control process did not answer"))
+
+    def _check_ns(self, cmd: str, ns: str | None, required: bool) -> str | None:
+        if ns is None:
+            if required:
+                raise ProtocolError("bad_request", f"{self.robot}: {cmd} needs a namespace 'ns' "
+                                    f"(one of: {', '.join(self.link.ns_index)})")
+            return None
+        if ns not in self.link.ns_index:
+            raise ProtocolError("unknown_namespace",
+                                f"{self.robot}: unknown namespace {ns!r} (have: {', '.join(self.link.ns_index)})")
+        return ns
+
+    async def _dispatch(self, s: Session, cmd: str, ns: str | None, data: Any) -> Any:
+        if cmd in JOINT_QUERIES:
+            return self.link.joint_state(cmd, self._check_ns(cmd, ns, True))
+        if cmd == "operating_state":
+            return self.state
+        if cmd == "period_statistics":
+            return self.link.period_statistics()
+        if cmd == "list":
+            return self.describe()
+        if cmd == "subscribe":
+            return self._subscribe(s, ns, data)
+        if cmd == "unsubscribe":
+            sub = data.get("sub") if isinstance(data, dict) else None
+            task = s.subs.pop(sub, None)
+            if task is None:
+                raise ProtocolError("bad_request", f"no subscription {sub!r} in this session")
+            task.cancel()
+            return None
+        if cmd == "acquire":
+            self._take_control(s, cmd)
+            return None
+        if cmd == "release":
+            if self.controller is s:
+                self.controller = None
+            return None
+        if cmd not in self.commands:
+            known = set(self.commands) | set(TOPICS) | {"list", "subscribe", "unsubscribe", "acquire", "release"}
+            if _is_crtk_command(cmd) and cmd not in known:
+                raise ProtocolError("unsupported", f"{ns or self.robot}: {cmd} is not supported by this robot")
+            raise ProtocolError("unknown_command", f"{self.robot}: unknown command {cmd!r}")
+        self._check_ns(cmd, ns, cmd not in STATE_COMMANDS)
+        self._take_control(s, cmd)
+        reply = await self.link.request(cmd, ns, data)
+        if not reply["ok"]:
+            e = reply["error"]
+            raise ProtocolError(e["code"], e["message"])
+        return reply["data"]
+
+    def _take_control(self, s: Session, cmd: str) -> None:
+        if self.controller is None or self.controller.closed:
+            self.controller = s
+        elif self.controller is not s:
+            raise ProtocolError("read_only", f"{self.robot}: {cmd} refused: another session holds control "
+                                "(it must release or disconnect)")
+
+    def _subscribe(self, s: Session, ns: str | None, data: Any) -> dict:
+        if not isinstance(data, dict):
+            raise ProtocolError("bad_request", "subscribe needs data {\"topic\": ..., \"rate_hz\": ...}")
+        topic = data.get("topic")
+        if topic not in TOPICS:
+            raise ProtocolError("bad_request", f"unknown topic {topic!r} (topics: {', '.join(TOPICS)})")
+        ns = self._check_ns("subscribe", ns, topic in JOINT_QUERIES)
+        rate = data.get("rate_hz", 10.0)
+        if not isinstance(rate, (int, float)) or not rate > 0:
+            raise ProtocolError("bad_request", f"rate_hz must be a number > 0, got {rate!r}")
+        rate = min(float(rate), self.profile.loop.rate_hz)
+        sub = next(self._subids)
+        s.subs[sub] = asyncio.get_running_loop().create_task(self._stream(s, sub, topic, ns, 1.0 / rate))
+        return {"sub": sub, "rate_hz": rate}
+
+    async def _stream(self, s: Session, sub: int, topic: str, ns: str | None, period: float) -> None:
+        loop = asyncio.get_running_loop()
+        next_t = loop.time()
+        while not s.closed:
+            if topic in JOINT_QUERIES:
+                data = self.link.joint_state(topic, ns)
+            elif topic == "operating_state":
+                data = self.state
+            else:
+                data = self.link.period_statistics()
+            s.send_frame({"topic": topic, "ns": ns, "sub": sub, "data": data})
+            next_t += period
+            delay = next_t - loop.time()
+            if delay < 0:  # fell behind: skip frames rather than burst
+                next_t = loop.time()
+                delay = 0
+            await asyncio.sleep(delay)
+
+    def describe(self) -> dict:
+        namespaces = []
+        for ns in self.profile.namespaces:
+            namespaces.append({
+                "name": ns.name,
+                "joints": list(ns.joints),
+                "commands": list(self.commands),
+                "queries": list(JOINT_QUERIES + ROBOT_QUERIES),
+                "topics": list(TOPICS),
+            })
+        return {"robot": self.robot, "protocol_version": PROTOCOL_VERSION, "daemon_version": __version__,
+                "backend": self.profile.backend_type, "rate_hz": self.profile.loop.rate_hz, "namespaces": namespaces}
+
+
+_CRTK_PREFIXES = ("servo_", "interpolate_", "move_", "measured_", "setpoint_", "goal_")
+
+
+def _is_crtk_command(cmd: str) -> bool:
+    return cmd.startswith(_CRTK_PREFIXES) or cmd in ("hold", "free")
+
+
+def _rid(line: bytes) -> Any:
+    try:
+        import json
+
+        obj = json.loads(line)
+        return obj.get("id") if isinstance(obj, dict) else None
+    except ValueError:
+        return None

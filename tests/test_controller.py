@@ -1,0 +1,352 @@
+"""The controller (state machine + motion) driven directly with a fake actuator, cycle by cycle."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from crtk_bridge.core.actuator import Actuator, Capabilities, CommandMode, Fault
+from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.state import TRANSITIONS, OperatingState, StateCommand
+from crtk_bridge.errors import BackendError
+from crtk_bridge.profile import load_profile
+
+PROFILE = load_profile("profiles/so101.yaml")
+
+
+class FakeActuator(Actuator):
+    """A perfect position-controlled robot: measured = last commanded."""
+
+    capabilities = Capabilities(position=True, measures_velocity=True)
+
+    def __init__(self, profile):
+        super().__init__(profile)
+        self.torque = False
+        self.pos = np.zeros(self.n)
+        self.fail_enable = False
+        self.calls: list[str] = []
+
+    def _open_hook(self):
+        pass
+
+    def _enable_hook(self, feedback):
+        self.calls.append("enable")
+        if self.fail_enable:
+            raise BackendError("so101: joint 'gripper' (id 6) did not confirm Torque_Enable")
+        self.torque = True
+
+    def _disable_hook(self):
+        self.calls.append("disable")
+        self.torque = False
+
+    def _close_hook(self):
+        pass
+
+    def _read(self, fb):
+        fb.position[:] = self.pos
+        fb.stamp = 1.0
+        return None
+
+    def _write(self, cmd):
+        if self.torque:
+            sel = cmd.mode == CommandMode.POSITION
+            self.pos[sel] = cmd.position[sel]
+        return None
+
+
+class Clock:
+    def __init__(self):
+        self.t = 1000.0
+
+    def __call__(self):
+        return self.t
+
+
+@pytest.fixture
+def rig():
+    act = FakeActuator(PROFILE)
+    clock = Clock()
+    c = Controller(PROFILE, act, clock)
+    ids = itertools.count(1)
+    fb = act.new_feedback()
+
+    def cycle(n=1):
+        for _ in range(n):
+            clock.t += c.dt
+            c.on_read(fb, act.read(fb))
+            if c.step():
+                act.write(c.command)
+
+    def req(cmd, ns=None, **data):
+        rid = next(ids)
+        c.handle({"id": rid, "cmd": cmd, "ns": ns, "data": data})
+        replies = [m for m in c.outbox if m.get("id") == rid]
+        assert len(replies) == 1, "exactly one reply per request"
+        return replies[0]
+
+    cycle()
+    return c, act, clock, cycle, req
+
+
+def states(c):
+    return [m["data"] for m in c.outbox if m.get("event") == "operating_state"]
+
+
+def test_starts_disabled_and_never_enables_itself(rig):
+    c, act, clock, cycle, req = rig
+    cycle(50)
+    assert c.state is OperatingState.DISABLED
+    assert act.calls == [] and not act.torque
+    assert c.is_homed  # absolute encoders: no homing needed
+
+
+def _drive_to(state, c, act, cycle, req):
+    if state is OperatingState.ENABLED:
+        assert req("enable")["ok"]
+    elif state is OperatingState.PAUSED:
+        assert req("enable")["ok"] and req("pause")["ok"]
+    elif state is OperatingState.FAULT:
+        assert req("enable")["ok"]
+        c.on_read(act.new_feedback(), Fault("bus_timeout", "so101: no reply from id 3", joint="elbow_flex", transient=False))
+    assert c.state is state
+
+
+@pytest.mark.parametrize("start,command", sorted(TRANSITIONS, key=lambda k: (k[0].value, k[1].value)))
+def test_every_cell_of_the_transition_table(rig, start, command):
+    c, act, clock, cycle, req = rig
+    _drive_to(start, c, act, cycle, req)
+    expected = TRANSITIONS[(start, command)]
+    reply = req(command.value)
+    if expected.target is None:
+        assert not reply["ok"] and reply["error"]["code"] == "invalid_state"
+        assert start.value in reply["error"]["message"] and command.value in reply["error"]["message"]
+        assert c.state is start
+    else:
+        assert reply["ok"], reply
+        assert c.state is expected.target
+        assert reply["data"]["state"] == expected.target.value
+    if command is StateCommand.UNHOME:
+        assert not c.is_homed
+
+
+def test_spec_table_matches_crtk_3_3():
+    S = OperatingState
+    spec = {  # crtk-spec 3.3, rows DISABLED / ENABLED / PAUSED / FAULT; columns enable disable pause resume
+        S.DISABLED: (S.ENABLED, S.DISABLED, None, None),
+        S.ENABLED: (S.ENABLED, S.DISABLED, S.PAUSED, None),
+        S.PAUSED: (None, S.DISABLED, S.PAUSED, S.ENABLED),
+        S.FAULT: (S.ENABLED, S.DISABLED, None, None),
+    }
+    cols = (StateCommand.ENABLE, StateCommand.DISABLE, StateCommand.PAUSE, StateCommand.RESUME)
+    for state, row in spec.items():
+        for cmd, target in zip(cols, row):
+            assert TRANSITIONS[(state, cmd)].target is target, (state, cmd)
+    assert TRANSITIONS[(S.FAULT, StateCommand.ENABLE)].retry and TRANSITIONS[(S.FAULT, StateCommand.DISABLE)].retry
+
+
+def test_enable_holds_where_the_arm_is(rig):
+    c, act, clock, cycle, req = rig
+    act.pos[:] = [0.1, -0.2, 0.3, 0.0, 0.5, 0.2]
+    cycle()
+    assert req("enable")["ok"]
+    cycle(10)
+    np.testing.assert_allclose(act.pos, [0.1, -0.2, 0.3, 0.0, 0.5, 0.2])
+    assert act.torque
+
+
+def test_motion_refused_while_disabled_paused_or_unhomed(rig):
+    c, act, clock, cycle, req = rig
+    r = req("move_jp", "so101", position=[0.1] * 5)
+    assert r["error"]["code"] == "invalid_state" and "DISABLED" in r["error"]["message"]
+    assert req("enable")["ok"] and req("pause")["ok"]
+    r = req("servo_jp", "so101", position=[0.0] * 5)
+    assert r["error"]["code"] == "invalid_state" and "PAUSED" in r["error"]["message"]
+    assert req("resume")["ok"] and req("unhome")["ok"]
+    r = req("move_jp", "so101", position=[0.1] * 5)
+    assert r["error"]["code"] == "not_homed"
+    assert not any(s["is_busy"] for s in states(c))  # no busy edge for refused moves
+
+
+def test_move_reaches_goal_with_busy_edges(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    c.outbox.clear()
+    r = req("move_jp", "so101", position=[0.5, -0.3, 0.2, 0.1, -0.4])
+    assert r["ok"] and r["data"]["busy_seq"] == 1
+    # the busy=True edge precedes the reply
+    first_busy = next(i for i, m in enumerate(c.outbox) if m.get("event") == "operating_state")
+    assert c.outbox[first_busy]["data"]["is_busy"] and first_busy < c.outbox.index(r)
+    cycle(2000)
+    np.testing.assert_allclose(act.pos[:5], [0.5, -0.3, 0.2, 0.1, -0.4], atol=1e-9)
+    busy = [s["is_busy"] for s in states(c)]
+    assert busy == [True, False]
+    goal = c.namespaces["so101"]
+    assert goal.goal_stamp > 0 and goal.level == "move_jp"
+
+
+def test_instantaneous_move_still_has_both_edges(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    c.outbox.clear()
+    assert req("move_jp", "so101/gripper", position=[0.0])["ok"]
+    cycle(3)
+    assert [s["is_busy"] for s in states(c)] == [True, False]
+
+
+def test_move_is_jerk_limited_and_respects_velocity_limit(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("move_jp", "so101", position=[1.5, 0, 0, 0, 0])["ok"]
+    prev, vmax = act.pos[0], 0.0
+    for _ in range(1000):
+        cycle()
+        vmax = max(vmax, abs(act.pos[0] - prev) / c.dt)
+        prev = act.pos[0]
+    assert vmax <= PROFILE.joints[0].limits.velocity_max + 1e-6
+    assert vmax > 0.5 * PROFILE.joints[0].limits.velocity_max
+
+
+def test_new_move_replans_mid_motion_and_move_jr_is_relative_to_goal(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("move_jp", "so101", position=[1.0, 0, 0, 0, 0])["ok"]
+    cycle(40)
+    mid = act.pos[0]
+    assert 0 < mid < 1.0
+    assert req("move_jr", "so101", position=[-0.5, 0, 0, 0, 0])["ok"]  # goal 1.0 - 0.5
+    np.testing.assert_allclose(c.namespaces["so101"].goal_p[0], 0.5)
+    steps = []
+    for _ in range(1500):
+        before = act.pos[0]
+        cycle()
+        steps.append(act.pos[0] - before)
+    assert act.pos[0] == pytest.approx(0.5, abs=1e-9)
+    # continuous: no step bigger than v_max * dt (re-planned from the current state)
+    assert max(abs(s) for s in steps) <= PROFILE.joints[0].limits.velocity_max * c.dt + 1e-9
+
+
+def test_move_out_of_limits_names_joint_and_limit(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    r = req("move_jp", "so101", position=[0, 0, 3.0, 0, 0])
+    assert r["error"]["code"] == "out_of_limits"
+    assert "elbow_flex" in r["error"]["message"] and "1.69" in r["error"]["message"]
+
+
+def test_wrong_vector_length_is_bad_request(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    r = req("servo_jp", "so101", position=[0.0] * 6)
+    assert r["error"]["code"] == "bad_request" and "5 values" in r["error"]["message"]
+
+
+def test_servo_jp_latest_wins_step_limit_and_clipping(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    for k in range(1, 11):
+        assert req("servo_jp", "so101", position=[0.01 * k, 0, 0, 0, 0])["ok"]
+    cycle()
+    assert act.pos[0] == pytest.approx(0.10)
+    assert not c.is_busy
+    r = req("servo_jp", "so101", position=[1.0, 0, 0, 0, 0])
+    assert r["error"]["code"] == "step_too_large" and "shoulder_pan" in r["error"]["message"]
+    # walk near the limit, then beyond: clipped with one warning
+    c.outbox.clear()
+    for k in range(1, 40):
+        req("servo_jp", "so101/gripper", position=[min(0.1 * k, 1.9)])
+        cycle()
+    assert act.pos[5] == pytest.approx(PROFILE.joints[5].limits.position_max)
+    warnings = [m for m in c.outbox if m.get("event") == "warning" and m["data"]["code"] == "limit_clipped"]
+    assert len(warnings) == 1 and "gripper" in warnings[0]["data"]["message"]
+
+
+def test_servo_jr_adds_to_setpoint_and_setpoint_fields(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    m = c.namespaces["so101"]
+    assert c.setpoint_fields(m) == (False, False, False)  # no command yet: invalid
+    assert req("servo_jr", "so101", position=[0.05, 0.05, 0, 0, 0])["ok"]
+    assert req("servo_jr", "so101", position=[0.05, 0, 0, 0, 0])["ok"]
+    cycle()
+    np.testing.assert_allclose(act.pos[:2], [0.10, 0.05])
+    assert c.setpoint_fields(m) == (True, False, False)  # servo_jp: position only
+    assert req("servo_jp", "so101", position=[0.1, 0.05, 0, 0, 0], velocity=[0.2, 0, 0, 0, 0])["ok"]
+    assert c.setpoint_fields(m) == (True, True, False)  # with feed-forward
+    assert req("move_jp", "so101", position=[0, 0, 0, 0, 0])["ok"]
+    cycle()
+    assert c.setpoint_fields(m) == (True, True, False)  # move: p(t), v(t)
+
+
+def test_servo_watchdog_holds_and_warns(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("servo_jp", "so101", position=[0.1, 0, 0, 0, 0])["ok"]
+    c.outbox.clear()
+    cycle(int(PROFILE.safety.servo_timeout_s / c.dt) + 5)
+    w = [m for m in c.outbox if m.get("event") == "warning"]
+    assert [m["data"]["code"] for m in w] == ["servo_timeout"]
+    assert act.pos[0] == pytest.approx(0.1)
+
+
+def test_pause_decelerates_a_move_and_ends_busy(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("move_jp", "so101", position=[1.5, 0, 0, 0, 0])["ok"]
+    cycle(30)
+    assert c.is_busy
+    c.outbox.clear()
+    assert req("pause")["ok"]
+    assert not c.is_busy
+    positions = []
+    for _ in range(300):
+        cycle()
+        positions.append(act.pos[0])
+    assert positions[-1] == positions[-2]  # at rest
+    assert positions[-1] < 1.5  # did not continue to the goal
+    steps = np.diff(positions)
+    assert np.all(steps >= -1e-12)  # decelerated forward, no jump back
+
+
+def test_home_moves_to_home_and_sets_homed(rig):
+    c, act, clock, cycle, req = rig
+    act.pos[:] = [0.3, 0.3, 0.3, 0.3, 0.3, 0.3]
+    cycle()
+    assert req("enable")["ok"] and req("unhome")["ok"]
+    assert not c.is_homed
+    c.outbox.clear()
+    r = req("home")
+    assert r["ok"] and r["data"]["is_busy"]
+    cycle(1000)
+    np.testing.assert_allclose(act.pos, [j.home for j in PROFILE.joints], atol=1e-9)
+    s = states(c)
+    assert [x["is_busy"] for x in s] == [True, False] and s[-1]["is_homed"]
+
+
+def test_fault_turns_torque_off_and_enable_retries(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    c.outbox.clear()
+    for _ in range(PROFILE.safety.bus_errors_max - 1):
+        c.on_read(act.new_feedback(), Fault("bus_timeout", "so101: no reply", transient=True))
+    assert c.state is OperatingState.ENABLED  # transient errors are tolerated a few times
+    c.on_read(act.new_feedback(), Fault("bus_timeout", "so101: joint 'elbow_flex' (id 3) did not answer", joint="elbow_flex"))
+    assert c.state is OperatingState.FAULT and not act.torque
+    err = [m["data"] for m in c.outbox if m.get("event") == "error"]
+    assert err and err[0]["code"] == "bus_timeout" and "elbow_flex" in err[0]["message"]
+    act.fail_enable = True
+    r = req("enable")
+    assert not r["ok"] and r["error"]["code"] == "fault" and c.state is OperatingState.FAULT
+    act.fail_enable = False
+    assert req("enable")["ok"] and c.state is OperatingState.ENABLED
+
+
+def test_client_lost_stops_motion(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("servo_jp", "so101", position=[0.1, 0, 0, 0, 0])["ok"]
+    c.outbox.clear()
+    c.handle({"id": None, "cmd": "_client_lost"})
+    assert any(m.get("event") == "warning" and m["data"]["code"] == "control_released" for m in c.outbox)
+    assert c.namespaces["so101"].mode.name == "HOLD"
