@@ -1,0 +1,506 @@
+"""Feetech STS/SMS servo bus backend (SO-101: six STS3215 on one half-duplex bus).
+
+Uses the vendor SDK (``scservo_sdk``, pip ``feetech-servo-sdk``) for packet framing, with the
+port fixes of :mod:`.port`. One cycle is exactly two bus transactions:
+
+* ``read``: ONE sync read (0x82) of the present-state block, registers 56..70 (15 bytes per
+  servo: position, velocity, load, voltage, temperature, status, moving, current);
+* ``write``: ONE sync write (0x83) of Goal_Position (2 bytes per servo), no reply.
+
+Units (raw units never leave this module), per joint with the profile's ``calibration``:
+
+* position  rad   = direction * (ticks - offset) * 2*pi / resolution
+* velocity  rad/s = direction * Present_Velocity(ticks/s) * 2*pi / resolution
+* effort    N*m   = direction * sign(Present_Load) * Present_Current * 6.5 mA * effort_per_amp.
+  An ESTIMATE: current is not torque (friction, gearbox losses, back-EMF), and the STS reports
+  its current magnitude only; the sign is the load's. Reported only when every joint has
+  ``effort_per_amp``; otherwise ``effort`` stays 0 and ``measures_effort`` is False.
+* commands: position rad -> ticks, rounded, clamped to ``calibration.range`` and to 0..4095.
+
+The STS3215 in position mode has no effort or velocity command, so only position commands are
+advertised. Register configuration (Return_Delay_Time, Acceleration, P/I/D...) is written to the
+servos' RAM on every ``configure``; the EEPROM Lock is left alone, so nothing is persisted to
+flash (no wear, and a power cycle restores the servo's own settings).
+
+Endianness: ``PacketHandler(0)`` sets the SDK's module-GLOBAL byte order to little-endian
+(STS/SMS). An SCS-series (big-endian) bus in the same process would break this one.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Annotated
+
+import msgspec
+import numpy as np
+from scservo_sdk import (
+    COMM_RX_CORRUPT,
+    COMM_RX_TIMEOUT,
+    COMM_SUCCESS,
+    GroupSyncRead,
+    GroupSyncWrite,
+    PacketHandler,
+)
+
+from ...core.actuator import (
+    Actuator,
+    ActuatorInfo,
+    Capabilities,
+    CommandMode,
+    Fault,
+    JointCommand,
+    JointFeedback,
+)
+from ...errors import BackendError, ProfileError
+from ...profile import Profile, backend_config
+from . import tables
+from .port import DEFAULT_MARGIN_MS, FastPortHandler
+
+Byte = Annotated[int, msgspec.Meta(ge=0, le=254)]
+
+# Bauds both the servo (register 6 codes) and the SDK's PortHandler.getCFlagBaud accept.
+_SDK_BAUDS = {4800, 9600, 14400, 19200, 38400, 57600, 115200, 128000, 250000, 500000, 1000000}
+SUPPORTED_BAUDS = sorted(set(tables.BAUD_CODES) & _SDK_BAUDS)
+
+_FAULT_MASK = 0
+for _bit in tables.ERROR_BITS:
+    _FAULT_MASK |= _bit
+
+_POSITION = int(CommandMode.POSITION)
+_BLOCK = tables.PRESENT_BLOCK_START
+_BLOCK_LEN = tables.PRESENT_BLOCK_LEN
+
+
+def _offset(name: str) -> int:
+    """Byte offset of register ``name`` inside the present-state block."""
+    reg = tables.STS_CONTROL_TABLE[name]
+    assert _BLOCK <= reg.address and reg.address + reg.size <= _BLOCK + _BLOCK_LEN, name
+    return reg.address - _BLOCK
+
+
+_O_POS = _offset("Present_Position")
+_O_VEL = _offset("Present_Velocity")
+_O_LOAD = _offset("Present_Load")
+_O_STATUS = _offset("Status")
+_O_CUR = _offset("Present_Current")
+_LOAD_SIGN = 1 << tables.SIGN_BITS["Present_Load"]
+
+
+class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
+    """The ``backend:`` section of a profile with ``type: feetech``."""
+
+    port: str  # serial device, e.g. /dev/ttyACM0 (or a simulator's pty)
+    baudrate: int = 1_000_000  # must match the servos' Baud_Rate register
+    # Allowance in ms beyond the wire time of the expected reply bytes before a reply counts as
+    # missing (USB latency + servo turnaround). None = 10 ms. The SDK's own is ~34 ms.
+    timeout_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] | None = None
+    # Immediate re-sends of a failed sync read within one cycle (also used for lifecycle
+    # transactions). Each failed attempt costs up to wire time + timeout_ms.
+    read_retries: Annotated[int, msgspec.Meta(ge=0, le=10)] = 1
+    # Registers written in configure() (servo RAM; LeRobot's SO-101 follower values):
+    return_delay: Byte = 0  # Return_Delay_Time, x2 us
+    acceleration: Byte = 254  # Acceleration, x100 ticks/s^2 (0 = unlimited)
+    max_acceleration: Byte = 254  # Maximum_Acceleration
+    p_coefficient: Byte = 16  # position loop P (factory 32)
+    i_coefficient: Byte = 0
+    d_coefficient: Byte = 32
+
+
+class FeetechBackend(Actuator):
+    """Feetech STS servos on one serial bus, position control. See the module docstring.
+
+    Constructing validates the profile (raises ProfileError naming ``backend.<key>`` or the joint
+    key); nothing touches the bus before :meth:`open`.
+    """
+
+    capabilities = Capabilities(
+        position=True, velocity=False, effort=False, measures_velocity=True,
+        measures_effort=False, needs_homing=False, can_free=True,
+    )
+    extra = "feetech"
+
+    def __init__(self, profile: Profile, *, source: str = "<profile>"):
+        super().__init__(profile, source=source)
+        self.config: Config = backend_config(profile, Config, source)
+        cfg = self.config
+        if cfg.baudrate not in SUPPORTED_BAUDS:
+            raise ProfileError(
+                f"{source}: backend.baudrate: {cfg.baudrate} is not supported; "
+                f"valid: {', '.join(map(str, SUPPORTED_BAUDS))}"
+            )
+        problems = []
+        for i, j in enumerate(profile.joints):
+            key = f"joints[{i}] ({j.name})"
+            if j.id is None:
+                problems.append(f"{key}.id: required by the feetech backend (servo id 0-253)")
+            elif not 0 <= j.id <= 253:
+                problems.append(f"{key}.id: {j.id} is not a servo id (0-253)")
+            if j.model is None:
+                problems.append(f"{key}.model: required by the feetech backend "
+                                f"(one of {', '.join(tables.MODEL_NUMBERS)})")
+            elif j.model not in tables.MODEL_NUMBERS:
+                problems.append(f"{key}.model: unknown model {j.model!r} for the feetech backend "
+                                f"(known: {', '.join(tables.MODEL_NUMBERS)})")
+            else:
+                res = tables.RESOLUTION[j.model]
+                r = j.calibration.range
+                if r is not None and not (0 <= r[0] and r[1] <= res - 1):
+                    problems.append(f"{key}.calibration.range: {list(r)} is outside 0..{res - 1}")
+                if not 0 <= j.calibration.offset <= res - 1:
+                    problems.append(f"{key}.calibration.offset: {j.calibration.offset} is outside "
+                                    f"0..{res - 1}")
+        if problems:
+            raise ProfileError(f"{source}: " + "; ".join(problems))
+
+        joints = profile.joints
+        self._ids = [int(j.id) for j in joints]
+        self._label = [f"joint {j.name!r} (id {j.id})" for j in joints]
+        res = np.array([tables.RESOLUTION[j.model] for j in joints], dtype=float)
+        direction = np.array([j.calibration.direction for j in joints], dtype=float)
+        self._offset_ticks = np.array([j.calibration.offset for j in joints], dtype=float)
+        self._rad_per_tick = direction * 2.0 * math.pi / res  # signed: includes direction
+        self._tick_per_rad = 1.0 / self._rad_per_tick
+        lo = [max(0, j.calibration.range[0]) if j.calibration.range else 0 for j in joints]
+        hi = [min(int(r) - 1, j.calibration.range[1]) if j.calibration.range else int(r) - 1
+              for j, r in zip(joints, res)]
+        self._goal_min = np.array(lo, dtype=float)
+        self._goal_max = np.array(hi, dtype=float)
+        epa = [j.effort_per_amp for j in joints]
+        self._measures_effort = all(e is not None for e in epa)
+        self._nm_per_unit = (
+            direction * tables.CURRENT_UNIT_A * np.array(epa, dtype=float)
+            if self._measures_effort else np.zeros(self.n)
+        )
+        self.capabilities = Capabilities(
+            position=True, velocity=False, effort=False, measures_velocity=True,
+            measures_effort=self._measures_effort, needs_homing=False, can_free=True,
+        )
+        # pre-allocated real-time buffers
+        self._raw_pos = np.zeros(self.n)
+        self._raw_vel = np.zeros(self.n)
+        self._raw_cur = np.zeros(self.n)
+        self._tmp = np.zeros(self.n)
+        self._goal = np.zeros(self.n)  # goal ticks computed this cycle (float)
+        self._last_goal = [0] * self.n  # ticks last sent / written at enable (int)
+        self._attempts = 1 + cfg.read_retries
+        self._port: FastPortHandler | None = None
+        self._ph = None
+        self._sync_read: GroupSyncRead | None = None
+        self._sync_write: GroupSyncWrite | None = None
+        self._details: dict = {}
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def _where(self) -> str:
+        return self.config.port
+
+    def _result_text(self, result: int) -> str:
+        text = self._ph.getTxRxResult(result) if self._ph else str(result)
+        err = self._port.last_os_error if self._port else None
+        if err is not None:
+            text += f" (port error: {err})"
+        return text
+
+    def _txrx(self, fn, *args):
+        """Call an SDK ``...TxRx`` function, retrying comm failures. Returns (value, result, error)."""
+        if self._port is not None:
+            self._port.last_os_error = None
+        for _ in range(self._attempts):
+            out = fn(self._port, *args)
+            result = out[-2]
+            if result == COMM_SUCCESS:
+                break
+        return out
+
+    def _write_register(self, i: int, name: str, value: int, check_error: bool = False) -> None:
+        """Write one register of joint ``i`` and wait for its ack. Raises BackendError."""
+        reg = tables.STS_CONTROL_TABLE[name]
+        if name in tables.SIGN_BITS:
+            value = tables.encode_sign_magnitude(value, tables.SIGN_BITS[name])
+        fn = {1: self._ph.write1ByteTxRx, 2: self._ph.write2ByteTxRx}[reg.size]
+        result, error = self._txrx(fn, self._ids[i], reg.address, value)
+        if result != COMM_SUCCESS:
+            raise BackendError(
+                f"{self.robot}: {self._label[i]}: writing {name} = {value} on {self._where} "
+                f"got no acknowledgement: {self._result_text(result)}"
+            )
+        if check_error and error & _FAULT_MASK:
+            raise BackendError(
+                f"{self.robot}: {self._label[i]} reports {_describe(error)} "
+                f"(status error 0x{error:02X}) when writing {name}"
+            )
+
+    def _read_register(self, i: int, name: str) -> int:
+        """Read one register of joint ``i`` (decoded, signed where the table says). Raises."""
+        reg = tables.STS_CONTROL_TABLE[name]
+        fn = {1: self._ph.read1ByteTxRx, 2: self._ph.read2ByteTxRx}[reg.size]
+        value, result, _ = self._txrx(fn, self._ids[i], reg.address)
+        if result != COMM_SUCCESS:
+            raise BackendError(
+                f"{self.robot}: {self._label[i]}: reading {name} on {self._where} failed: "
+                f"{self._result_text(result)}"
+            )
+        if name in tables.SIGN_BITS:
+            value = tables.decode_sign_magnitude(value, tables.SIGN_BITS[name])
+        return value
+
+    def info(self) -> ActuatorInfo:
+        return ActuatorInfo(list(self.joint_names), self.capabilities, dict(self._details))
+
+    # ------------------------------------------------------------------ lifecycle
+    def _open_hook(self) -> None:
+        """Open the port, ping every servo and check its model. Blocks. Raises BackendError."""
+        cfg = self.config
+        margin = DEFAULT_MARGIN_MS if cfg.timeout_ms is None else cfg.timeout_ms
+        port = FastPortHandler(cfg.port, margin_ms=margin)
+        port.baudrate = cfg.baudrate
+        try:
+            ok = port.openPort()
+        except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
+            raise BackendError(f"{self.robot}: cannot open port {cfg.port}: {exc}") from exc
+        if not ok:
+            raise BackendError(f"{self.robot}: cannot open port {cfg.port} at {cfg.baudrate} baud")
+        self._port = port
+        self._ph = PacketHandler(0)  # sets the SDK's global byte order: little-endian (STS)
+        try:
+            self._check_servos()
+        except BaseException:
+            port.closePort()
+            self._port = None
+            raise
+        self._sync_read = GroupSyncRead(port, self._ph, _BLOCK, _BLOCK_LEN)
+        self._sync_write = GroupSyncWrite(
+            port, self._ph, tables.STS_CONTROL_TABLE["Goal_Position"].address, 2
+        )
+        for sid in self._ids:
+            self._sync_read.addParam(sid)
+            self._sync_write.addParam(sid, [0, 0])
+        self._details = {
+            "port": cfg.port, "baudrate": cfg.baudrate, "ids": list(self._ids),
+            "models": {j.name: j.model for j in self.profile.joints},
+            "packet_margin_ms": margin,
+        }
+
+    def _check_servos(self) -> None:
+        problems = []
+        for i, j in enumerate(self.profile.joints):
+            model, result, _ = self._txrx(self._ph.ping, self._ids[i])
+            if result != COMM_SUCCESS:
+                problems.append(f"{self._label[i]} did not answer ping on {self._where}: "
+                                f"{self._result_text(result)}")
+            elif model != tables.MODEL_NUMBERS[j.model]:
+                problems.append(f"{self._label[i]} on {self._where} is model number {model}, "
+                                f"expected {tables.MODEL_NUMBERS[j.model]} ({j.model})")
+        if problems:
+            raise BackendError(f"{self.robot}: " + "; ".join(problems))
+
+    def _require_open(self, what: str) -> None:
+        if self._port is None:
+            raise BackendError(f"{self.robot}: {what} needs an open bus; call open() first")
+
+    def _configure_hook(self) -> None:
+        """Torque off, then write the configuration registers to every servo. Blocks. Raises."""
+        self._require_open("configure")
+        cfg = self.config
+        registers = (
+            ("Return_Delay_Time", cfg.return_delay),
+            ("Operating_Mode", 0),  # position mode: the only one this backend drives
+            ("Acceleration", cfg.acceleration),
+            ("Maximum_Acceleration", cfg.max_acceleration),
+            ("P_Coefficient", cfg.p_coefficient),
+            ("I_Coefficient", cfg.i_coefficient),
+            ("D_Coefficient", cfg.d_coefficient),
+        )
+        self._disable_hook()
+        for i in range(self.n):
+            for name, value in registers:
+                self._write_register(i, name, value)
+
+    def _enable_hook(self, feedback: JointFeedback) -> None:
+        """Hold every servo where it is, then torque on. Blocks. Raises BackendError.
+
+        Goal_Position is set to a fresh read of Present_Position (not ``feedback``, which may be
+        a cycle old) on every servo BEFORE any torque goes on, each write acknowledged; so
+        enabling never moves the arm. A servo reporting an error bit refuses the enable. If a
+        torque-on fails midway, the servos already on are switched off again (best effort).
+        """
+        self._require_open("enable")
+        for i in range(self.n):
+            present = self._read_register(i, "Present_Position")
+            self._write_register(i, "Goal_Position", present, check_error=True)
+            self._last_goal[i] = present
+            raw = tables.encode_sign_magnitude(present, tables.SIGN_BITS["Goal_Position"])
+            self._sync_write.changeParam(self._ids[i], [raw & 0xFF, raw >> 8])
+        try:
+            for i in range(self.n):
+                self._write_register(i, "Torque_Enable", 1, check_error=True)
+        except BackendError:
+            try:
+                self._disable_hook()
+            except BackendError:
+                pass
+            raise
+
+    def _disable_hook(self) -> None:
+        """Torque_Enable = 0 on every servo, each acknowledged. Blocks.
+
+        Tries every servo even if one fails, then raises BackendError naming those that did not
+        confirm. Status error bits do not count as failure here (torque off is what we want).
+        """
+        if self._port is None:
+            return
+        failed = []
+        for i in range(self.n):
+            try:
+                self._write_register(i, "Torque_Enable", 0)
+            except BackendError as exc:
+                failed.append(str(exc).removeprefix(f"{self.robot}: "))
+        if failed:
+            raise BackendError(f"{self.robot}: torque off not confirmed: " + "; ".join(failed))
+
+    def _close_hook(self) -> None:
+        if self._port is not None:
+            self._port.closePort()
+        self._port = None
+        self._sync_read = None
+        self._sync_write = None
+
+    # ------------------------------------------------------------------ real-time path
+    def _read(self, feedback: JointFeedback) -> Fault | None:
+        """ONE sync read of registers 56..70 of every servo (retried ``read_retries`` times at
+        once on failure), decoded into ``feedback`` in place. Never sleeps beyond the packet
+        deadline. ``stamp`` = time.time() when the request went out.
+
+        Returns a transient ``bus_timeout`` / ``bus_corrupt`` Fault (``feedback`` untouched: the
+        SDK keeps stale data for servos after a failed one, so nothing of a failed read is used),
+        or a non-transient ``servo_error`` Fault when a servo's Status register has an error bit
+        (``feedback`` filled: the data is valid).
+        """
+        gsr = self._sync_read
+        if gsr is None:
+            return Fault("bus_timeout", f"{self.robot}: read on a closed bus", transient=False)
+        port = self._port
+        if port.last_os_error is not None:
+            port.last_os_error = None
+        result = COMM_SUCCESS
+        for _ in range(self._attempts):
+            stamp = time.time()
+            result = gsr.txRxPacket()
+            if result == COMM_SUCCESS:
+                break
+        if result != COMM_SUCCESS:
+            return self._bus_fault(result)
+
+        data = gsr.data_dict
+        raw_pos, raw_vel, raw_cur = self._raw_pos, self._raw_vel, self._raw_cur
+        status_any = 0
+        i = 0
+        for sid in self._ids:
+            b = data[sid]
+            if len(b) < _BLOCK_LEN:
+                return Fault("bus_corrupt",
+                             f"{self.robot}: {self._label[i]} sent {len(b)} of {_BLOCK_LEN} bytes "
+                             f"on {self._where}", joint=self.joint_names[i], transient=True)
+            v = b[_O_POS] | (b[_O_POS + 1] << 8)
+            raw_pos[i] = -(v & 0x7FFF) if v & 0x8000 else v
+            v = b[_O_VEL] | (b[_O_VEL + 1] << 8)
+            raw_vel[i] = -(v & 0x7FFF) if v & 0x8000 else v
+            v = (b[_O_CUR] | (b[_O_CUR + 1] << 8)) & 0x7FFF
+            raw_cur[i] = -v if (b[_O_LOAD] | (b[_O_LOAD + 1] << 8)) & _LOAD_SIGN else v
+            status_any |= b[_O_STATUS]
+            i += 1
+        np.subtract(raw_pos, self._offset_ticks, out=self._tmp)
+        np.multiply(self._tmp, self._rad_per_tick, out=feedback.position)
+        np.multiply(raw_vel, self._rad_per_tick, out=feedback.velocity)
+        if self._measures_effort:
+            np.multiply(raw_cur, self._nm_per_unit, out=feedback.effort)
+        feedback.stamp = stamp
+        if status_any & _FAULT_MASK:
+            return self._status_fault(data)
+        return None
+
+    def _bus_fault(self, result: int) -> Fault:
+        # GroupSyncRead.rxPacket fills ids in request order and stores [] for the one it gave up
+        # on; the first empty entry is the first servo that did not answer (in full).
+        joint = None
+        who = ""
+        if result in (COMM_RX_TIMEOUT, COMM_RX_CORRUPT):
+            data = self._sync_read.data_dict
+            for i, sid in enumerate(self._ids):
+                if len(data.get(sid) or ()) < _BLOCK_LEN:
+                    joint = self.joint_names[i]
+                    who = f" from {self._label[i]}"
+                    break
+        code = "bus_corrupt" if result == COMM_RX_CORRUPT else "bus_timeout"
+        what = "bad reply" if code == "bus_corrupt" else "no reply"
+        return Fault(
+            code,
+            f"{self.robot}: {what}{who} to the sync read of ids "
+            f"{','.join(map(str, self._ids))} on {self._where} ({self._attempts} attempt"
+            f"{'s' if self._attempts > 1 else ''}): {self._result_text(result)}",
+            joint=joint, transient=True,
+        )
+
+    def _status_fault(self, data: dict) -> Fault:
+        bad = []
+        for i, sid in enumerate(self._ids):
+            bits = data[sid][_O_STATUS] & _FAULT_MASK
+            if bits:
+                bad.append((i, bits))
+        i, bits = bad[0]
+        msg = f"{self.robot}: {self._label[i]} reports {_describe(bits)} (Status=0x{bits:02X})"
+        for k, other in bad[1:]:
+            msg += f"; {self._label[k]} reports {_describe(other)} (Status=0x{other:02X})"
+        return Fault("servo_error", msg, joint=self.joint_names[i], register="Status",
+                     value=bits, transient=False)
+
+    def _write(self, command: JointCommand) -> Fault | None:
+        """ONE sync write of Goal_Position to every servo, no reply. Never sleeps.
+
+        Joints in mode POSITION get ``command.position`` (rad) converted to ticks, clamped to
+        ``calibration.range`` and 0..4095. Joints in mode NONE get their last goal re-sent (the
+        servo holds it anyway; re-sending keeps one fixed packet and repairs a lost one). When
+        no joint is in POSITION mode nothing is sent. Nothing is sent while disabled: an STS
+        takes a goal even with torque off, and enable sets fresh goals itself. A non-finite
+        position is not sent (that joint keeps its last goal) and returns a non-transient
+        ``invalid_command`` Fault.
+        """
+        if not self._enabled or self._sync_write is None:
+            return None
+        mode = command.mode
+        goal = self._goal
+        np.multiply(command.position, self._tick_per_rad, out=goal)
+        np.add(goal, self._offset_ticks, out=goal)
+        np.rint(goal, out=goal)
+        np.clip(goal, self._goal_min, self._goal_max, out=goal)
+        gsw = self._sync_write
+        last = self._last_goal
+        fault = None
+        send = False
+        for i in range(self.n):
+            if mode[i] == _POSITION:
+                send = True
+                g = goal[i]
+                if g != g:  # NaN (inf is clipped to the range)
+                    if fault is None:
+                        fault = Fault("invalid_command",
+                                      f"{self.robot}: joint {self.joint_names[i]!r}: position "
+                                      f"command {command.position[i]} is not a number; not sent",
+                                      joint=self.joint_names[i], transient=False)
+                    continue
+                t = int(g)
+                if t != last[i]:
+                    last[i] = t
+                    gsw.changeParam(self._ids[i], [t & 0xFF, t >> 8])
+        if send:
+            result = gsw.txPacket()
+            if result != COMM_SUCCESS:
+                return Fault("bus_timeout",
+                             f"{self.robot}: sync write of Goal_Position on {self._where} "
+                             f"failed: {self._result_text(result)}", transient=True)
+        return fault
+
+
+def _describe(bits: int) -> str:
+    return ", ".join(name for bit, name in tables.ERROR_BITS.items() if bits & bit)
