@@ -38,7 +38,7 @@ log = logging.getLogger("crtk_bridge.daemon")
 #: backend type -> simulator name understood by ``crtk-sim``
 SIMULATORS = {"feetech": "feetech"}
 STARTUP_TIMEOUT_S = 20.0
-SHUTDOWN_TIMEOUT_S = 5.0
+SHUTDOWN_TIMEOUT_S = 3.0  # below the unit's TimeoutStopSec=5, so our own clean-up runs
 
 
 class SimulatorProcess:

@@ -275,8 +275,6 @@ def test_empty_file(tmp_path):
     assert str(path) in str(info.value) and "got NoneType" in str(info.value)
 
 
-@pytest.mark.xfail(strict=True, reason="profile.load_profile lets UnicodeDecodeError escape; "
-                   "it should become a ProfileError naming the file")
 def test_binary_file(tmp_path):
     path = tmp_path / "firmware.bin"
     path.write_bytes(b"\x00\xff\xfe\x80 not text")

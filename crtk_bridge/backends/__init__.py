@@ -15,7 +15,7 @@ BACKENDS: dict[str, tuple[str, str]] = {
 }
 
 
-def backend_class(name: str) -> type:
+def backend_class(name: str, source: str = "<profile>") -> type:
     """Return the Actuator subclass registered as ``name``. Imports it lazily.
 
     Raises ProfileError for an unknown name, BackendUnavailableError when its SDK is missing.
@@ -24,7 +24,7 @@ def backend_class(name: str) -> type:
         module_name, class_name = BACKENDS[name]
     except KeyError:
         raise ProfileError(
-            f"backend.type: unknown backend {name!r}; valid backends: {', '.join(sorted(BACKENDS))}"
+            f"{source}: backend.type: unknown backend {name!r}; valid backends: {', '.join(sorted(BACKENDS))}"
         ) from None
     try:
         module = importlib.import_module(module_name)
@@ -38,4 +38,4 @@ def backend_class(name: str) -> type:
 
 def create_backend(profile, *, source: str = "<profile>"):
     """Construct (not open) the backend a profile names. Validates its ``backend`` section."""
-    return backend_class(profile.backend_type)(profile, source=source)
+    return backend_class(profile.backend_type, source)(profile, source=source)
