@@ -1,0 +1,32 @@
+"""Wire-level simulated devices: product code, not test code (DESIGN.md, "Simulators are product").
+
+Each simulator answers the vendor SDK's real packets on a real OS channel (a pseudo-terminal for
+serial buses), so ``--sim`` and the tests run the same backend code path as hardware.
+
+- :mod:`crtk_bridge.sim.pty`      raw pseudo-terminal pair with an optional stable symlink
+- :mod:`crtk_bridge.sim.feetech`  Feetech STS3215 servo bus (:class:`FeetechSimulator`)
+- :mod:`crtk_bridge.sim.control`  JSON-lines control socket to inspect and change a running sim
+- :mod:`crtk_bridge.sim.cli`      ``crtk-sim`` console script
+
+This layer imports nothing of ``crtk_bridge.core``; only profiles, errors and vendor tables (data).
+"""
+
+from __future__ import annotations
+
+from ..errors import CrtkBridgeError
+
+
+class SimulatorError(CrtkBridgeError):
+    """A simulator could not start or was asked something impossible (message names path/id)."""
+
+
+def __getattr__(name: str):
+    # Lazy re-export: importing the package must stay cheap and free of import cycles.
+    if name == "FeetechSimulator":
+        from .feetech import FeetechSimulator
+
+        return FeetechSimulator
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = ["SimulatorError", "FeetechSimulator"]

@@ -1,0 +1,762 @@
+"""Feetech STS3215 servo bus simulated at the wire level on a pseudo-terminal.
+
+:class:`FeetechSimulator` answers the real FT-SCS packets the ``scservo_sdk`` sends (PING, READ,
+WRITE, REG_WRITE, ACTION, SYNC_READ, SYNC_WRITE; see shared/reference/servos.md sections 1-2),
+byte for byte, from one background thread blocked in poll() on the pty master. Each servo is a
+256-byte control table (layout from :mod:`crtk_bridge.backends.feetech.tables`) plus a little
+physics, advanced lazily from the monotonic clock whenever a packet or a caller touches it:
+
+- position mode (Operating_Mode 0), torque on: Present_Position tracks the goal (clamped into
+  Min/Max_Position_Limit) as a first-order lag (time constant ``TAU_S``) with the speed capped at
+  ``VELOCITY_MAX_TPS`` (STS3215 no-load speed at 7.4 V) or at Goal_Velocity when that is nonzero;
+- constant-speed mode (Operating_Mode 1), torque on: turns at Goal_Velocity (wraps 0..4095);
+- torque off (or any other mode): the joint stays where it is (no gravity);
+- Present_Velocity is the instantaneous rate, Present_Current / Present_Load grow with the
+  tracking error, Moving is 1 while the servo is still closing in; Present = Actual - Homing_Offset.
+
+Bus behaviour modelled: broadcast id 0xFE (no status reply, except PING and SYNC_READ where every
+addressed servo answers in turn), Response_Status_Level 0 (answer only reads and pings), bad
+checksums ignored, garbage skipped (resync on the next ``FF FF``), a half-received packet dropped
+after ``FRAME_TIMEOUT_S`` of silence, unknown ids silent, a servo whose Baud_Rate code differs
+from the bus's deaf and mute, writes to read-only registers ignored (EEPROM writes are kept in
+memory whatever Lock says), the status ERR byte = the Status register (65).
+
+Faults (control socket or :meth:`FeetechSimulator.set_fault`): ``silent`` (servo receives but
+never replies), ``corrupt`` (its replies carry a bad checksum), ``error_bits`` (OR bits into
+Status, hence into every ERR byte), ``freeze`` (the joint stops moving, as if stalled), and
+``unplug`` of the whole bus (nothing is received or answered).
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+import os
+import select
+import threading
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+from ..backends.feetech import tables as T
+from ..profile import Profile
+from . import SimulatorError
+from .control import ControlServer
+from .pty import PtyPort
+
+log = logging.getLogger(__name__)
+
+TAU_S = 0.030  # first-order tracking time constant
+VELOCITY_MAX_TPS = 3400.0  # ticks/s: STS3215 no-load speed at 7.4 V (~5.2 rad/s)
+CURRENT_PER_TICK = 0.6  # Present_Current units (6.5 mA) per tick of tracking error
+CURRENT_MAX = 300  # ~2 A, the STS3215 stall current
+LOAD_PER_TICK = 4.0  # Present_Load units (0.1 % PWM) per tick of tracking error
+MOVING_ERROR_TICKS = 0.5  # Moving = 1 while |goal - present| exceeds this
+FRAME_TIMEOUT_S = 0.010  # a partial packet older than this is dropped (servo inter-byte timeout)
+BITS_PER_BYTE = 10  # 8N1 on the wire
+TICKS_PER_TURN = 4096
+
+# Addresses a bus write must not change: the table's read-only registers, plus the documented
+# read-only bytes the table does not name (64 reg-write flag, 67..68 target position; servos.md §2).
+_READ_ONLY = bytearray(256)
+for _reg in T.STS_CONTROL_TABLE.values():
+    if not _reg.writable:
+        _READ_ONLY[_reg.address : _reg.address + _reg.size] = b"\x01" * _reg.size
+for _addr in (64, 67, 68):
+    _READ_ONLY[_addr] = 1
+_READ_ONLY = bytes(_READ_ONLY)
+
+_NAMES = {name.lower(): name for name in T.STS_CONTROL_TABLE}
+
+_A = {name: reg.address for name, reg in T.STS_CONTROL_TABLE.items()}
+_ID = _A["ID"]
+_BAUD = _A["Baud_Rate"]
+_RETURN_DELAY = _A["Return_Delay_Time"]
+_STATUS_LEVEL = _A["Response_Status_Level"]
+_MIN_POS = _A["Min_Position_Limit"]
+_MAX_POS = _A["Max_Position_Limit"]
+_HOMING = _A["Homing_Offset"]
+_MODE = _A["Operating_Mode"]
+_TORQUE = _A["Torque_Enable"]
+_GOAL_POS = _A["Goal_Position"]
+_GOAL_VEL = _A["Goal_Velocity"]
+_TORQUE_LIMIT = _A["Torque_Limit"]
+_PRESENT_POS = _A["Present_Position"]
+_PRESENT_VEL = _A["Present_Velocity"]
+_PRESENT_LOAD = _A["Present_Load"]
+_STATUS = _A["Status"]
+_MOVING = _A["Moving"]
+_PRESENT_CURRENT = _A["Present_Current"]
+_REG_WRITE_FLAG = 64
+_TARGET_POS = 67
+_TORQUE_SET_MIDDLE = 128  # Torque_Enable value: "current position becomes 2048"
+
+
+class FaultKind(str, enum.Enum):
+    SILENT = "silent"
+    CORRUPT = "corrupt"
+    ERROR_BITS = "error_bits"
+    FREEZE = "freeze"
+
+
+def _sm16(value: float) -> int:
+    """Signed -> sign-magnitude bit 15, saturating (physics must never raise)."""
+    v = int(round(value))
+    if v < 0:
+        return min(-v, 0x7FFF) | 0x8000
+    return min(v, 0x7FFF)
+
+
+def _from_sm(raw: int, sign_bit: int) -> int:
+    if raw & (1 << sign_bit):
+        return -(raw & ((1 << sign_bit) - 1))
+    return raw & ((1 << sign_bit) - 1)
+
+
+class SimServo:
+    """One simulated STS3215: its control table memory and its physical state.
+
+    ``registers`` is the raw control table (little-endian, sign-magnitude where the table says);
+    mutate it directly only if you mean to bypass every side effect. :meth:`read` and :meth:`write`
+    are thread-safe and bring the physics up to date first.
+    """
+
+    def __init__(self, sim: FeetechSimulator, servo_id: int, position: int, model_number: int = 777):
+        self._sim = sim
+        self.registers = bytearray(256)
+        self._pos = float(position)  # actual (un-offset) position, ticks
+        self._t = time.monotonic()
+        self._pending: tuple[int, bytes] | None = None  # REG_WRITE awaiting ACTION
+        self.silent = False
+        self.corrupt = False
+        self.frozen = False
+        r = self.registers
+        r[0], r[1] = 3, 10  # firmware 3.10
+        r[3], r[4] = model_number & 0xFF, model_number >> 8
+        r[_ID] = servo_id
+        r[_BAUD] = T.BAUD_CODES.get(sim.baudrate, 0)
+        r[_RETURN_DELAY] = 0  # LeRobot writes 0; the real turnaround is unverified (servos.md §1)
+        r[_STATUS_LEVEL] = 1
+        self._put(_MIN_POS, 2, 0)
+        self._put(_MAX_POS, 2, 4095)
+        self._put(_A["Max_Temperature_Limit"], 1, 70)
+        self._put(_A["Max_Voltage_Limit"], 1, 140)
+        self._put(_A["Min_Voltage_Limit"], 1, 40)
+        self._put(_A["Max_Torque_Limit"], 2, 1000)
+        self._put(_A["P_Coefficient"], 1, 32)
+        self._put(_A["D_Coefficient"], 1, 32)
+        self._put(_A["Protection_Current"], 2, 511)
+        self._put(_A["Angular_Resolution"], 1, 1)
+        self._put(_A["Protective_Torque"], 1, 20)
+        self._put(_A["Protection_Time"], 1, 200)
+        self._put(_A["Overload_Torque"], 1, 80)
+        self._put(_TORQUE_LIMIT, 2, 1000)
+        self._put(_A["Lock"], 1, 1)
+        self._put(_A["Present_Voltage"], 1, 74)
+        self._put(_A["Present_Temperature"], 1, 30)
+        self._put(_A["Maximum_Acceleration"], 1, 254)
+        self._put(_GOAL_POS, 2, _sm16(position))
+        self._update(self._t)
+
+    # --- public, thread-safe ---
+    @property
+    def id(self) -> int:
+        return self.registers[_ID]
+
+    def read(self, name: str) -> int:
+        """Decoded value of register ``name`` (signed where sign-magnitude). Raises KeyError."""
+        with self._sim._lock:
+            self._update(time.monotonic())
+            return self._read(name)
+
+    def write(self, name: str, value: int) -> None:
+        """Set register ``name`` from outside the bus ("by hand"): any register, read-only ones
+        included. Present_Position moves the joint; derived registers (Present_Velocity, _Load,
+        _Current, Moving) are recomputed on the next update. Raises KeyError / ValueError."""
+        with self._sim._lock:
+            now = time.monotonic()
+            self._update(now)
+            old_id = self.id
+            self._write(name, value)
+            self._update(now)
+            self._sim._rekey(self, old_id)
+
+    # --- internal (caller holds the simulator lock) ---
+    def _put(self, addr: int, size: int, raw: int) -> None:
+        self.registers[addr : addr + size] = raw.to_bytes(size, "little")
+
+    def _read(self, name: str) -> int:
+        reg = T.STS_CONTROL_TABLE[name]
+        raw = int.from_bytes(self.registers[reg.address : reg.address + reg.size], "little")
+        bit = T.SIGN_BITS.get(name)
+        return _from_sm(raw, bit) if bit is not None else raw
+
+    def _write(self, name: str, value: int) -> None:
+        reg = T.STS_CONTROL_TABLE[name]
+        value = int(value)
+        bit = T.SIGN_BITS.get(name)
+        if bit is not None:
+            raw = T.encode_sign_magnitude(value, bit)
+        else:
+            if not 0 <= value < 1 << (8 * reg.size):
+                raise ValueError(f"{name}: value {value} does not fit in {reg.size} byte(s)")
+            raw = value
+        self._put(reg.address, reg.size, raw)
+        if reg.address == _PRESENT_POS:
+            self._pos = float(value + self._offset())
+        self._side_effects(reg.address, reg.address + reg.size)
+
+    def _bus_write(self, addr: int, data: bytes | bytearray) -> None:
+        """A WRITE/SYNC_WRITE/ACTION payload: read-only bytes keep their value."""
+        end = min(addr + len(data), 256)
+        r = self.registers
+        if any(_READ_ONLY[addr:end]):
+            for i in range(addr, end):
+                if not _READ_ONLY[i]:
+                    r[i] = data[i - addr]
+        else:
+            r[addr:end] = data[: end - addr]
+        self._side_effects(addr, end)
+
+    def _side_effects(self, addr: int, end: int) -> None:
+        r = self.registers
+        if addr <= _TORQUE < end and r[_TORQUE] == _TORQUE_SET_MIDDLE:
+            offset = max(-2047, min(2047, round(self._pos) - 2048))
+            self._put(_HOMING, 2, T.encode_sign_magnitude(offset, 11))
+            r[_TORQUE] = 0
+
+    def _offset(self) -> int:
+        r = self.registers
+        return _from_sm(r[_HOMING] | r[_HOMING + 1] << 8, 11)
+
+    def _update(self, now: float) -> None:
+        """Advance the physics to ``now`` and refresh the Present_* registers."""
+        dt = now - self._t
+        if dt < 0:
+            dt = 0.0
+        self._t = now
+        r = self.registers
+        offset = _from_sm(r[_HOMING] | r[_HOMING + 1] << 8, 11)
+        pos = self._pos
+        vel = 0.0
+        err = 0.0
+        target = None
+        if r[_TORQUE] == 1:
+            mode = r[_MODE]
+            gv = _from_sm(r[_GOAL_VEL] | r[_GOAL_VEL + 1] << 8, 15)
+            if mode == 0:
+                goal = _from_sm(r[_GOAL_POS] | r[_GOAL_POS + 1] << 8, 15)
+                lo = r[_MIN_POS] | r[_MIN_POS + 1] << 8
+                hi = r[_MAX_POS] | r[_MAX_POS + 1] << 8
+                if (lo or hi) and lo <= hi:  # 0/0 = multi-turn, no limits
+                    goal = lo if goal < lo else hi if goal > hi else goal
+                target = goal
+                err = goal + offset - pos
+                a = abs(err)
+                if not self.frozen and a > 0.0:
+                    vmax = min(VELOCITY_MAX_TPS, abs(gv)) if gv else VELOCITY_MAX_TPS
+                    knee = vmax * TAU_S  # beyond this error the speed cap binds
+                    if dt > 0.0:
+                        if a > knee:
+                            t1 = (a - knee) / vmax
+                            a = a - vmax * dt if dt <= t1 else knee * math.exp(-(dt - t1) / TAU_S)
+                        else:
+                            a *= math.exp(-dt / TAU_S)
+                        if a < 1e-3:
+                            a = 0.0
+                        err = math.copysign(a, err)
+                        pos = goal + offset - err
+                    if a > MOVING_ERROR_TICKS:
+                        vel = math.copysign(min(a / TAU_S, vmax), err)
+            elif mode == 1 and not self.frozen:
+                vel = max(-VELOCITY_MAX_TPS, min(VELOCITY_MAX_TPS, float(gv)))
+                pos = (pos + vel * dt) % TICKS_PER_TURN
+                err = vel * TAU_S  # the effort a real servo spends to hold that speed
+        self._pos = pos
+        a = abs(err)
+        present = round(pos) - offset
+        raw = min(-present, 0x7FFF) | 0x8000 if present < 0 else min(present, 0x7FFF)
+        r[_PRESENT_POS] = raw & 0xFF
+        r[_PRESENT_POS + 1] = raw >> 8
+        raw = _sm16(vel)
+        r[_PRESENT_VEL] = raw & 0xFF
+        r[_PRESENT_VEL + 1] = raw >> 8
+        if r[_TORQUE] == 1:
+            limit = r[_TORQUE_LIMIT] | r[_TORQUE_LIMIT + 1] << 8
+            load = min(int(a * LOAD_PER_TICK), limit, 1000)
+            if err < 0:
+                load |= 0x400
+            current = min(int(a * CURRENT_PER_TICK) + 2, CURRENT_MAX)  # +2: holding current
+        else:
+            load = current = 0
+        r[_PRESENT_LOAD] = load & 0xFF
+        r[_PRESENT_LOAD + 1] = load >> 8
+        r[_PRESENT_CURRENT] = current & 0xFF
+        r[_PRESENT_CURRENT + 1] = current >> 8
+        r[_MOVING] = 1 if a > MOVING_ERROR_TICKS else 0
+        if target is not None:
+            raw = _sm16(target)
+            r[_TARGET_POS] = raw & 0xFF
+            r[_TARGET_POS + 1] = raw >> 8
+
+    def _status(self, data: bytes | bytearray = b"") -> bytes:
+        """This servo's status packet ``FF FF ID LEN ERR data CHK``."""
+        sid = self.registers[_ID]
+        err = self.registers[_STATUS] & 0x7F
+        length = len(data) + 2
+        chk = ~(sid + length + err + sum(data)) & 0xFF
+        if self.corrupt:
+            chk ^= 0xFF
+        return b"\xff\xff" + bytes((sid, length, err)) + bytes(data) + bytes((chk,))
+
+
+class FeetechSimulator:
+    """A bus of simulated STS3215 servos on a pty; see the module docstring for the model.
+
+    ``start()`` creates the pty (and ``link``, and the ``control`` socket) and the serving thread,
+    and returns once clients may open :attr:`port`. ``stop()`` is idempotent. With
+    ``emulate_baud`` each reply leaves no earlier than the request and reply would have taken on a
+    real wire at ``baudrate`` (10 bits per byte, plus each servo's Return_Delay_Time).
+    """
+
+    def __init__(
+        self,
+        servo_ids: Iterable[int] = (1,),
+        baudrate: int = 1_000_000,
+        link: str | os.PathLike | None = None,
+        control: str | os.PathLike | None = None,
+        emulate_baud: bool = False,
+        initial_positions: dict[int, int] | None = None,
+    ):
+        ids = list(servo_ids)
+        for sid in ids:
+            if not 0 <= sid <= 253:
+                raise SimulatorError(f"servo id {sid} is not a valid Feetech id (0..253)")
+        if len(set(ids)) != len(ids):
+            raise SimulatorError(f"duplicate servo ids in {ids}")
+        if baudrate <= 0:
+            raise SimulatorError(f"baudrate {baudrate} must be > 0")
+        self.baudrate = int(baudrate)
+        self.emulate_baud = bool(emulate_baud)
+        self._byte_s = BITS_PER_BYTE / self.baudrate
+        self._baud_code = T.BAUD_CODES.get(self.baudrate)
+        self._lock = threading.Lock()
+        positions = initial_positions or {}
+        self._servos: dict[int, SimServo] = {
+            sid: SimServo(self, sid, int(positions.get(sid, 2048))) for sid in ids
+        }
+        self.unplugged = False
+        self._pty = PtyPort(link)
+        self._control = ControlServer(control, self.control) if control is not None else None
+        self.control_path = Path(control) if control is not None else None
+        self._thread: threading.Thread | None = None
+        self._wake_r = self._wake_w = -1
+        self._stopping = False
+        self._bus_free_at = 0.0
+
+    @classmethod
+    def from_profile(
+        cls,
+        profile: Profile,
+        link: str | os.PathLike | None = None,
+        control: str | os.PathLike | None = None,
+        emulate_baud: bool = False,
+    ) -> FeetechSimulator:
+        """One servo per joint with an ``id``, resting at its joint zero (calibration.offset)."""
+        if profile.backend_type != "feetech":
+            raise SimulatorError(
+                f"profile {profile.name!r}: backend.type is {profile.backend_type!r}, not 'feetech'"
+            )
+        joints = [j for j in profile.joints if j.id is not None]
+        if not joints:
+            raise SimulatorError(f"profile {profile.name!r}: no joint has a bus id")
+        baud = profile.backend.get("baudrate", 1_000_000)
+        if not isinstance(baud, int) or isinstance(baud, bool):
+            raise SimulatorError(f"profile {profile.name!r}: backend.baudrate must be an integer")
+        sim = cls(
+            servo_ids=[j.id for j in joints],
+            baudrate=baud,
+            link=link,
+            control=control,
+            emulate_baud=emulate_baud,
+            initial_positions={j.id: j.calibration.offset for j in joints},
+        )
+        for j in joints:
+            model = T.MODEL_NUMBERS.get((j.model or "sts3215").lower(), 777)
+            servo = sim._servos[j.id]
+            servo.registers[3], servo.registers[4] = model & 0xFF, model >> 8
+        return sim
+
+    # --- lifecycle ---
+    @property
+    def port(self) -> str:
+        """Path for pyserial / scservo_sdk: the link if given, else the pty slave."""
+        return self._pty.path
+
+    @property
+    def pty_path(self) -> str | None:
+        return self._pty.slave_path
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._pty.open()
+        try:
+            if self._control is not None:
+                self._control.start()
+        except BaseException:
+            self._pty.close()
+            raise
+        self._wake_r, self._wake_w = os.pipe()
+        self._stopping = False
+        self._thread = threading.Thread(target=self._run, name="sim-feetech", daemon=True)
+        self._thread.start()
+        log.info("feetech simulator: %d servo(s) %s on %s", len(self._servos), self.ids, self.port)
+
+    def stop(self) -> None:
+        if self._thread is None:
+            return
+        self._stopping = True
+        try:
+            os.write(self._wake_w, b"x")
+        except OSError:
+            pass
+        self._thread.join()
+        self._thread = None
+        os.close(self._wake_r)
+        os.close(self._wake_w)
+        self._wake_r = self._wake_w = -1
+        if self._control is not None:
+            self._control.stop()
+        self._pty.close()
+
+    def __enter__(self) -> FeetechSimulator:
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # --- state access ---
+    @property
+    def ids(self) -> list[int]:
+        with self._lock:
+            return sorted(self._servos)
+
+    def servo(self, servo_id: int) -> SimServo:
+        try:
+            return self._servos[servo_id]
+        except KeyError:
+            raise SimulatorError(f"no simulated servo with id {servo_id} (ids: {self.ids})") from None
+
+    def set_fault(self, servo_id: int, kind: str | FaultKind, bits: int = 0) -> None:
+        """Inject a fault into one servo (see the module docstring). Raises SimulatorError."""
+        with self._lock:
+            servo = self.servo(servo_id)
+            try:
+                kind = FaultKind(kind)
+            except ValueError:
+                raise SimulatorError(
+                    f"unknown fault kind {kind!r}; valid: {', '.join(k.value for k in FaultKind)}"
+                ) from None
+            servo._update(time.monotonic())
+            if kind is FaultKind.SILENT:
+                servo.silent = True
+            elif kind is FaultKind.CORRUPT:
+                servo.corrupt = True
+            elif kind is FaultKind.FREEZE:
+                servo.frozen = True
+            else:
+                if not 0 < bits <= 0x7F:
+                    raise SimulatorError(f"error_bits: bits {bits} must be in 1..127")
+                servo.registers[_STATUS] |= bits
+
+    def clear_faults(self, servo_id: int | None = None) -> None:
+        """Clear every injected fault (of one servo, or all) and the unplugged state."""
+        with self._lock:
+            servos = [self.servo(servo_id)] if servo_id is not None else list(self._servos.values())
+            now = time.monotonic()
+            for s in servos:
+                s._update(now)
+                s.silent = s.corrupt = s.frozen = False
+                s.registers[_STATUS] = 0
+            if servo_id is None:
+                self.unplugged = False
+
+    def set_unplugged(self, on: bool) -> None:
+        with self._lock:
+            self.unplugged = bool(on)
+
+    def _faults(self, servo: SimServo) -> list[str]:
+        out = [k.value for k, on in ((FaultKind.SILENT, servo.silent), (FaultKind.CORRUPT,
+               servo.corrupt), (FaultKind.FREEZE, servo.frozen)) if on]
+        if servo.registers[_STATUS]:
+            out.append(FaultKind.ERROR_BITS.value)
+        return out
+
+    def _rekey(self, servo: SimServo, old_id: int) -> None:
+        new_id = servo.registers[_ID]
+        if new_id == old_id:
+            return
+        if new_id in self._servos or new_id > 253:
+            log.warning("servo %d: refusing id change to %d (taken or invalid)", old_id, new_id)
+            servo.registers[_ID] = old_id
+            return
+        del self._servos[old_id]
+        self._servos[new_id] = servo
+
+    # --- control socket commands ---
+    def control(self, request: dict) -> dict:
+        """Answer one control request (dict in, dict out). Never raises for a bad request."""
+        cmd = request.get("cmd")
+        try:
+            if cmd == "dump":
+                return {"ok": True, **self._dump()}
+            if cmd in ("read", "write"):
+                servo = self._control_servo(request)
+                name = _NAMES.get(str(request.get("register", "")).lower())
+                if name is None:
+                    return {"ok": False, "error": f"servo {servo.id}: unknown register "
+                            f"{request.get('register')!r}"}
+                if cmd == "read":
+                    return {"ok": True, "value": servo.read(name)}
+                value = request.get("value")
+                if not isinstance(value, int) or isinstance(value, bool):
+                    return {"ok": False, "error": f"{name}: value must be an integer, got {value!r}"}
+                try:
+                    servo.write(name, value)
+                except ValueError as exc:
+                    return {"ok": False, "error": f"servo {servo.id}: {exc}"}
+                return {"ok": True}
+            if cmd == "fault":
+                servo = self._control_servo(request)
+                self.set_fault(servo.id, str(request.get("kind")), int(request.get("bits", 0)))
+                return {"ok": True}
+            if cmd == "clear_faults":
+                sid = request.get("id")
+                self.clear_faults(None if sid is None else self._control_servo(request).id)
+                return {"ok": True}
+            if cmd == "unplug":
+                self.set_unplugged(bool(request.get("on", True)))
+                return {"ok": True}
+        except SimulatorError as exc:
+            return {"ok": False, "error": str(exc)}
+        return {"ok": False, "error": f"unknown cmd {cmd!r}; valid: dump, read, write, fault, "
+                "clear_faults, unplug"}
+
+    def _control_servo(self, request: dict) -> SimServo:
+        sid = request.get("id")
+        if not isinstance(sid, int) or isinstance(sid, bool):
+            raise SimulatorError(f"'id' must be an integer servo id, got {sid!r}")
+        return self.servo(sid)
+
+    def _dump(self) -> dict:
+        with self._lock:
+            now = time.monotonic()
+            servos = {}
+            faults = {}
+            for sid in sorted(self._servos):
+                s = self._servos[sid]
+                s._update(now)
+                servos[str(sid)] = {name.lower(): s._read(name) for name in T.STS_CONTROL_TABLE}
+                f = self._faults(s)
+                if f:
+                    faults[str(sid)] = f
+            return {"servos": servos, "faults": faults, "unplugged": self.unplugged,
+                    "baudrate": self.baudrate}
+
+    # --- the bus ---
+    def _run(self) -> None:
+        master = self._pty.master_fd
+        assert master is not None
+        poller = select.poll()
+        poller.register(master, select.POLLIN)
+        poller.register(self._wake_r, select.POLLIN)
+        buf = bytearray()
+        last_rx = 0.0
+        try:
+            while True:
+                poller.poll()
+                if self._stopping:
+                    return
+                try:
+                    data = os.read(master, 4096)
+                except BlockingIOError:
+                    continue
+                now = time.monotonic()
+                if buf and now - last_rx > FRAME_TIMEOUT_S:
+                    buf.clear()  # a servo forgets a half-received packet after a silence
+                last_rx = now
+                buf += data
+                replies = self._parse(buf, now)
+                if replies:
+                    self._send(master, replies)
+        except Exception:
+            log.exception("feetech simulator thread died")
+            raise
+
+    def _send(self, master: int, replies: list[tuple[float, bytes]]) -> None:
+        if self.emulate_baud:
+            for deadline, pkt in replies:
+                delay = deadline - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                self._write(master, pkt)
+        else:
+            self._write(master, b"".join(p for _, p in replies) if len(replies) > 1 else replies[0][1])
+
+    @staticmethod
+    def _write(master: int, data: bytes) -> None:
+        try:
+            n = os.write(master, data)
+        except BlockingIOError:
+            log.debug("client not reading; dropped %d reply bytes", len(data))
+            return
+        if n < len(data):
+            log.debug("client not reading; dropped %d reply bytes", len(data) - n)
+
+    def _parse(self, buf: bytearray, now: float) -> list[tuple[float, bytes]]:
+        """Consume every complete packet in ``buf``; return (deadline, reply bytes) per packet
+        that got an answer. Leaves an incomplete packet (or a trailing FF) in ``buf``."""
+        replies: list[tuple[float, bytes]] = []
+        n = len(buf)
+        i = 0
+        while True:
+            start = buf.find(b"\xff\xff", i)
+            if start < 0:
+                i = n - 1 if n and buf[-1] == 0xFF else n
+                break
+            if n - start < 4:
+                i = start
+                break
+            sid = buf[start + 2]
+            length = buf[start + 3]
+            if sid == 0xFF:  # FF FF FF: the header starts one byte later
+                i = start + 1
+                continue
+            if length < 2 or length > 250:
+                i = start + 2
+                continue
+            end = start + length + 4
+            if end > n:
+                i = start
+                break
+            if (~sum(buf[start + 2 : end - 1])) & 0xFF != buf[end - 1]:
+                log.debug("ignored packet with a bad checksum: %s", buf[start:end].hex(" "))
+                i = start + 2
+                continue
+            reply = self._dispatch(sid, buf[start + 4], bytes(buf[start + 5 : end - 1]), end - start, now)
+            if reply is not None:
+                replies.append(reply)
+            i = end
+        if i:
+            del buf[:i]
+        return replies
+
+    def _dispatch(self, sid: int, inst: int, params: bytes, req_len: int, now: float):
+        """Execute one valid instruction packet. Returns (deadline, reply) or None."""
+        out: list[bytes] = []
+        delay_s = 0.0
+        with self._lock:
+            if self.unplugged:
+                return None
+            servos = self._servos
+            code = self._baud_code
+            broadcast = sid == T.BROADCAST_ID
+            if broadcast:
+                targets = [s for s in servos.values() if code is None or s.registers[_BAUD] == code]
+            else:
+                s = servos.get(sid)
+                if s is None or (code is not None and s.registers[_BAUD] != code):
+                    return None  # not on this bus (or deaf at this baud): silence
+                targets = [s]
+
+            if inst == T.INST_READ:
+                if not broadcast and len(params) == 2:
+                    addr, ln = params
+                    if ln and addr + ln <= 256:
+                        s = targets[0]
+                        s._update(now)
+                        out.append(s._status(s.registers[addr : addr + ln]))
+            elif inst == T.INST_SYNC_READ:
+                if len(params) >= 2:
+                    addr, ln = params[0], params[1]
+                    if ln and addr + ln <= 256:
+                        targets = []
+                        for tid in params[2:]:  # replies in request order
+                            s = servos.get(tid)
+                            if s is None or (code is not None and s.registers[_BAUD] != code):
+                                continue
+                            s._update(now)
+                            targets.append(s)
+                            out.append(s._status(s.registers[addr : addr + ln]))
+            elif inst == T.INST_SYNC_WRITE:
+                if len(params) >= 2:
+                    addr, ln = params[0], params[1]
+                    step = ln + 1
+                    for k in range(2, len(params) - ln, step):
+                        s = servos.get(params[k])
+                        if s is None or (code is not None and s.registers[_BAUD] != code):
+                            continue
+                        old = s.registers[_ID]
+                        s._update(now)
+                        s._bus_write(addr, params[k + 1 : k + step])
+                        self._rekey(s, old)
+                return self._no_reply(req_len, now)
+            elif inst == T.INST_PING:
+                out = [s._status() for s in targets]  # a broadcast PING is answered by all
+            elif inst in (T.INST_WRITE, T.INST_REG_WRITE, T.INST_ACTION):
+                if inst == T.INST_ACTION:
+                    for s in targets:
+                        if s._pending is not None:
+                            s._update(now)
+                            old = s.registers[_ID]
+                            s._bus_write(*s._pending)
+                            s._pending = None
+                            s.registers[_REG_WRITE_FLAG] = 0
+                            self._rekey(s, old)
+                elif len(params) >= 2:
+                    addr, data = params[0], params[1:]
+                    for s in targets:
+                        s._update(now)
+                        if inst == T.INST_WRITE:
+                            old = s.registers[_ID]
+                            s._bus_write(addr, data)
+                            self._rekey(s, old)
+                        else:
+                            s._pending = (addr, data)
+                            s.registers[_REG_WRITE_FLAG] = 1
+                else:
+                    return None
+                if broadcast:
+                    return self._no_reply(req_len, now)
+                targets = [s for s in targets if s.registers[_STATUS_LEVEL]]
+                out = [s._status() for s in targets]
+            else:
+                return None  # unknown instruction: a real servo stays silent
+            if out and any(s.silent for s in targets):
+                out = [p for p, s in zip(out, targets) if not s.silent]
+                targets = [s for s in targets if not s.silent]
+            if self.emulate_baud:
+                for s in targets:
+                    delay_s += s.registers[_RETURN_DELAY] * 2e-6
+        if not out:
+            return self._no_reply(req_len, now)
+        reply = b"".join(out)
+        if not self.emulate_baud:
+            return (0.0, reply)
+        t0 = max(now, self._bus_free_at)
+        deadline = t0 + (req_len + len(reply)) * self._byte_s + delay_s
+        self._bus_free_at = deadline
+        return (deadline, reply)
+
+    def _no_reply(self, req_len: int, now: float) -> None:
+        # The request still occupied the wire: a reply to the next packet cannot start earlier.
+        if self.emulate_baud:
+            self._bus_free_at = max(now, self._bus_free_at) + req_len * self._byte_s
+        return None

@@ -1,0 +1,123 @@
+"""A raw pseudo-terminal pair standing in for a serial port, with an optional stable symlink.
+
+The simulator owns the master side; clients (pyserial, vendor SDKs) open the slave path, or the
+symlink to it. The simulator also keeps one slave fd open for its whole life: without it, the
+master reads EIO whenever no client has the slave open (between a client's close and reopen).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import stat
+import termios
+import tty
+from pathlib import Path
+
+from . import SimulatorError
+
+
+def _make_raw(fd: int) -> None:
+    """Binary-clean line discipline: no echo, no CR/LF translation, no signals, 8N1."""
+    tty.setraw(fd, termios.TCSANOW)
+    attrs = termios.tcgetattr(fd)
+    attrs[0] &= ~(termios.IXON | termios.IXOFF | termios.ICRNL | termios.INLCR | termios.IGNCR)
+    attrs[1] &= ~termios.OPOST
+    attrs[3] &= ~(termios.ECHO | termios.ECHONL | termios.ICANON | termios.ISIG | termios.IEXTEN)
+    attrs[6][termios.VMIN] = 1
+    attrs[6][termios.VTIME] = 0
+    termios.tcsetattr(fd, termios.TCSANOW, attrs)
+
+
+def _set_nonblocking(fd: int) -> None:
+    fcntl.fcntl(fd, fcntl.F_SETFL, fcntl.fcntl(fd, fcntl.F_GETFL) | os.O_NONBLOCK)
+
+
+class PtyPort:
+    """A pty pair in raw mode. ``open()`` creates it, ``close()`` releases it (idempotent).
+
+    ``master_fd`` is non-blocking: the simulator waits with poll() and must never block on a write
+    when a client stops reading (a real bus would lose those bytes too).
+    ``link``: if given, a symlink ``link -> slave path`` is created (a stale symlink is replaced;
+    an existing regular file, directory or other non-symlink raises :class:`SimulatorError`) and
+    removed on close.
+    """
+
+    def __init__(self, link: str | os.PathLike | None = None):
+        self.link = Path(link) if link is not None else None
+        self.master_fd: int | None = None
+        self._slave_fd: int | None = None
+        self.slave_path: str | None = None
+        self._link_made = False
+
+    @property
+    def path(self) -> str:
+        """The path clients should open: the link if any, else the slave device."""
+        if self.slave_path is None:
+            raise SimulatorError("pty is not open")
+        return str(self.link) if self.link is not None else self.slave_path
+
+    def open(self) -> None:
+        if self.master_fd is not None:
+            return
+        if self.link is not None:
+            self._check_link_free()
+        master, slave = os.openpty()
+        try:
+            _make_raw(slave)
+            _set_nonblocking(master)
+            self.slave_path = os.ttyname(slave)
+            self.master_fd, self._slave_fd = master, slave
+            if self.link is not None:
+                self._make_link()
+        except BaseException:
+            os.close(master)
+            os.close(slave)
+            self.master_fd = self._slave_fd = None
+            raise
+
+    def _check_link_free(self) -> None:
+        assert self.link is not None
+        try:
+            st = os.lstat(self.link)
+        except FileNotFoundError:
+            return
+        if not stat.S_ISLNK(st.st_mode):
+            raise SimulatorError(f"{self.link}: exists and is not a symlink; refusing to replace it")
+
+    def _make_link(self) -> None:
+        assert self.link is not None and self.slave_path is not None
+        self._check_link_free()
+        tmp = self.link.with_name(f".{self.link.name}.{os.getpid()}.tmp")
+        try:
+            tmp.unlink(missing_ok=True)
+            os.symlink(self.slave_path, tmp)
+            os.replace(tmp, self.link)  # atomic: a waiting client never sees the link missing
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise SimulatorError(f"{self.link}: cannot create symlink: {exc.strerror or exc}") from exc
+        self._link_made = True
+
+    def close(self) -> None:
+        if self._link_made and self.link is not None:
+            # Remove only our own link: another simulator may have replaced it since.
+            try:
+                if os.readlink(self.link) == self.slave_path:
+                    self.link.unlink()
+            except OSError:
+                pass
+            self._link_made = False
+        for fd in (self.master_fd, self._slave_fd):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self.master_fd = self._slave_fd = None
+
+    def __enter__(self) -> PtyPort:
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
