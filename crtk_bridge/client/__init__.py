@@ -1,0 +1,52 @@
+"""Python client of the crtk-bridge daemon (docs/protocol.md, version 1).
+
+    from crtk_bridge.client import connect
+    robot = connect(robot="so101")          # or connect(socket="/run/crtk-bridge/so101.sock")
+    arm = robot.device("so101")             # arm.gripper is the "so101/gripper" namespace
+    if arm.enable(5.0):
+        p, ts = arm.measured_jp()
+        arm.move_jp(p + 0.1).wait()
+
+Names and return conventions follow crtk_python_client 1.4. Names are loaded lazily (PEP 562),
+so ``crtk_bridge.client.paths`` imports only the standard library: the daemon uses it for the
+default socket path.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "default_socket_path": "paths",
+    "default_socket_dir": "paths",
+    "find_sockets": "paths",
+    "Connection": "connection",
+    "DaemonConnectionError": "connection",
+    "Event": "connection",
+    "PROTOCOL_VERSION": "connection",
+    "connect": "device",
+    "resolve_socket": "device",
+    "Robot": "device",
+    "Device": "device",
+    "MoveHandle": "device",
+    "Subscription": "device",
+    "joint_state": "device",
+    "CommandError": None,
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    if name == "CommandError":
+        from crtk_bridge.errors import CommandError
+        return CommandError
+    value = getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return __all__

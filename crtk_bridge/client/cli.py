@@ -1,0 +1,321 @@
+"""``crtk-ctl``: command the crtk-bridge daemon from a shell.
+
+    crtk-ctl state                      crtk-ctl enable            crtk-ctl home
+    crtk-ctl get measured_js            crtk-ctl echo measured_js --rate 50 --count 10
+    crtk-ctl move_jp 0 0.5 -0.5 0 0 --wait        crtk-ctl --robot so101 --ns so101/gripper list
+
+Exit status: 0 on success; 1 when the daemon refuses a command (one line on stderr with the
+error code and the daemon's message), a wait times out or a state is not reached; 2 when no
+daemon answers (the line names the socket path) or the arguments are wrong; 130 on Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Sequence
+
+from crtk_bridge.client.connection import DaemonConnectionError
+from crtk_bridge.client.device import JS_TOPICS, Device, Robot, connect
+from crtk_bridge.errors import CommandError, CrtkBridgeError
+
+PROG = "crtk-ctl"
+GET_TOPICS = (*JS_TOPICS, "operating_state", "period_statistics")
+#: Default wait (s) per state command when --timeout is not given.
+WAIT_DEFAULTS = {"enable": 5.0, "disable": 5.0, "pause": 5.0, "resume": 5.0,
+                 "home": 30.0, "unhome": 5.0}
+TARGETS = {"enable": "ENABLED", "disable": "DISABLED", "pause": "PAUSED", "resume": "ENABLED",
+           "home": "homed", "unhome": "not homed"}
+MOVE_WAIT_DEFAULT = 30.0
+
+
+class Failure(Exception):
+    """A command ran but did not achieve its aim (exit 1, one line on stderr)."""
+
+
+def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
+    # The same options on the main parser and on every subparser, so that they are accepted
+    # before or after the subcommand; SUPPRESS on the subparsers keeps a value given before.
+    d = (lambda v: argparse.SUPPRESS) if suppress else (lambda v: v)
+    g = p.add_argument_group("connection and output")
+    g.add_argument("--socket", metavar="PATH", default=d(None),
+                   help="daemon socket path (default: from --robot, else the only socket)")
+    g.add_argument("--robot", metavar="NAME", default=d(None),
+                   help="robot name: use its default socket path")
+    g.add_argument("--ns", metavar="NAMESPACE", default=d(None),
+                   help="CRTK namespace, e.g. so101/gripper (default: the first one)")
+    g.add_argument("--json", action="store_true", default=d(False),
+                   help="print one JSON object per line")
+    g.add_argument("--timeout", metavar="S", type=float, default=d(None),
+                   help="reply timeout, and wait timeout of enable/home/move --wait (s)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=PROG, description="Command a robot served by the crtk-bridge daemon (CRTK API).")
+    _add_globals(parser, suppress=False)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    def add(name, help_):
+        p = sub.add_parser(name, help=help_, description=help_)
+        _add_globals(p, suppress=True)
+        return p
+
+    add("state", "print the operating state, is_homed and is_busy")
+    add("enable", "enable (power) the robot and wait for ENABLED")
+    add("disable", "disable the robot and wait for DISABLED")
+    add("home", "home the robot and wait until homed and not busy")
+    add("unhome", "clear is_homed")
+    add("pause", "pause (ENABLED -> PAUSED)")
+    add("resume", "resume (PAUSED -> ENABLED)")
+    add("list", "print namespaces, joints and commands")
+    p = add("get", "print one sample of a topic")
+    p.add_argument("topic", choices=GET_TOPICS, metavar="TOPIC", help=", ".join(GET_TOPICS))
+    p = add("echo", "stream a topic until Ctrl-C or --count frames")
+    p.add_argument("topic", choices=GET_TOPICS, metavar="TOPIC", help=", ".join(GET_TOPICS))
+    p.add_argument("--rate", metavar="HZ", type=float, default=10.0, help="frames/s (default 10)")
+    p.add_argument("--count", metavar="N", type=int, default=None, help="stop after N frames")
+    for name, what in (("move_jp", "move to joint positions P (rad)"),
+                       ("move_jr", "move by joint offsets P (rad)")):
+        p = add(name, what)
+        p.add_argument("position", nargs="+", type=float, metavar="P")
+        p.add_argument("--wait", action="store_true", help="wait until the move has ended")
+    for name, what in (("servo_jp", "set the joint position setpoint P (rad)"),
+                       ("servo_jr", "move the joint position setpoint by P (rad)")):
+        p = add(name, what)
+        p.add_argument("position", nargs="+", type=float, metavar="P")
+    return parser
+
+
+# -- output -------------------------------------------------------------------------------------
+
+def _emit_json(obj) -> None:
+    print(json.dumps(obj, separators=(",", ":")), flush=True)
+
+
+def _fmt_state(st: dict) -> str:
+    yn = {True: "yes", False: "no"}
+    return (f"{st.get('state')}  homed: {yn[bool(st.get('is_homed'))]}  "
+            f"busy: {yn[bool(st.get('is_busy'))]}  (busy_seq {st.get('busy_seq')})")
+
+
+def _fmt_stamp(stamp) -> str:
+    stamp = float(stamp or 0.0)
+    return "stamp 0 (invalid)" if stamp == 0.0 else f"stamp {stamp:.3f}"
+
+
+def _js_lines(dev: Device, topic: str, data: dict) -> list[str]:
+    names = list(data.get("name") or dev.joint_names)
+    pos, vel, eff = (list(data.get(k) or []) for k in ("position", "velocity", "effort"))
+    n = max(len(names), len(pos), len(vel), len(eff))
+    width = max([len(x) for x in names] + [5])
+    lines = [f"{dev.name} {topic}  {_fmt_stamp(data.get('stamp'))}"]
+    for i in range(n):
+        name = names[i] if i < len(names) else f"joint{i}"
+        cols = []
+        for vec, unit in ((pos, "rad"), (vel, "rad/s"), (eff, "N·m")):
+            if i < len(vec):
+                cols.append(f"{vec[i]:+.4f} {unit}")
+        lines.append(f"  {name:<{width}}  " + "   ".join(cols))
+    return lines
+
+
+def _js_oneline(dev: Device, data: dict) -> str:
+    names = list(data.get("name") or dev.joint_names)
+    pos = list(data.get("position") or [])
+    vals = " ".join(f"{names[i] if i < len(names) else i}={p:+.4f}" for i, p in enumerate(pos))
+    stamp = float(data.get("stamp") or 0.0)
+    return f"{stamp:.3f}  {vals}" if stamp else f"(invalid)  {vals}"
+
+
+def _dict_line(data: dict) -> str:
+    def f(v):
+        return f"{v:.6g}" if isinstance(v, float) else str(v)
+    return "  ".join(f"{k}={f(v)}" for k, v in data.items())
+
+
+# -- commands -----------------------------------------------------------------------------------
+
+def _check_len(dev: Device, cmd: str, values: Sequence[float]) -> None:
+    n = len(dev.joint_names)
+    if n and len(values) != n:
+        raise CommandError("bad_request", f"{dev.name}: {cmd} needs {n} values "
+                           f"({', '.join(dev.joint_names)}), got {len(values)}")
+
+
+def _last_error(robot: Robot, since: int) -> str:
+    evs = list(robot.connection.events)[since:]
+    for ev in reversed(evs):
+        if ev.kind == "error":
+            return f"; {ev.data.get('code')}: {ev.data.get('message')}"
+    return ""
+
+
+def _run(args, robot: Robot) -> int:
+    dev = robot.device(args.ns)
+    cmd = args.command
+    out_json = args.json
+
+    if cmd == "state":
+        st = dev.operating_state_full()
+        _emit_json(st) if out_json else print(f"{robot.name}: {_fmt_state(st)}")
+        return 0
+
+    if cmd in WAIT_DEFAULTS:
+        timeout = args.timeout if args.timeout is not None else WAIT_DEFAULTS[cmd]
+        n_events = len(robot.connection.events)
+        reached = getattr(dev, cmd)(timeout)
+        st = dev.operating_state_full()
+        if out_json:
+            _emit_json({"cmd": cmd, "reached": reached, **st})
+        else:
+            print(f"{robot.name}: {_fmt_state(st)}")
+        if not reached:
+            raise Failure(f"{cmd}: {TARGETS[cmd]} not reached within {timeout:g} s "
+                          f"(state {st.get('state')}){_last_error(robot, n_events)}")
+        return 0
+
+    if cmd == "list":
+        info = robot.list()
+        if out_json:
+            _emit_json(info)
+            return 0
+        print(f"robot {info.get('robot')}  protocol {info.get('protocol_version')}  "
+              f"daemon {info.get('daemon_version')}  socket {robot.connection.path}")
+        for ns in info.get("namespaces", []):
+            print(f"{ns.get('name')}:")
+            print(f"  joints:   {', '.join(ns.get('joints') or []) or '-'}")
+            print(f"  commands: {', '.join(ns.get('commands') or []) or '-'}")
+            if ns.get("queries"):
+                print(f"  queries:  {', '.join(ns['queries'])}")
+            if ns.get("topics"):
+                print(f"  topics:   {', '.join(ns['topics'])}")
+        return 0
+
+    if cmd == "get":
+        topic = args.topic
+        if topic in JS_TOPICS:
+            data = robot.connection.request(topic, dev.name)
+            _emit_json(data) if out_json else print("\n".join(_js_lines(dev, topic, data)))
+        elif topic == "operating_state":
+            data = robot.connection.request("operating_state")
+            _emit_json(data) if out_json else print(f"{robot.name}: {_fmt_state(data)}")
+        else:
+            data = robot.period_statistics()
+            if out_json:
+                _emit_json(data)
+            else:
+                print(f"{robot.name} period_statistics")
+                for k, v in data.items():
+                    print(f"  {k:<16} {v:.6g}" if isinstance(v, float) else f"  {k:<16} {v}")
+        return 0
+
+    if cmd == "echo":
+        topic = args.topic
+        count = 0
+        with dev.subscribe(topic, args.rate) as sub:
+            if args.count is not None and args.count <= 0:
+                return 0
+            for frame in sub:
+                if out_json:
+                    _emit_json(frame)
+                elif topic in JS_TOPICS:
+                    print(_js_oneline(dev, frame), flush=True)
+                elif topic == "operating_state":
+                    print(_fmt_state(frame), flush=True)
+                else:
+                    print(_dict_line(frame), flush=True)
+                count += 1
+                if args.count is not None and count >= args.count:
+                    break
+        return 0
+
+    if cmd in ("move_jp", "move_jr"):
+        _check_len(dev, cmd, args.position)
+        handle = getattr(dev, cmd)(args.position)
+        done = None
+        if args.wait:
+            timeout = args.timeout if args.timeout is not None else MOVE_WAIT_DEFAULT
+            done = handle.wait(timeout=timeout)
+        if out_json:
+            obj = {"cmd": cmd, "ns": dev.name, "busy_seq": handle.busy_seq}
+            if done is not None:
+                obj["done"] = done
+                obj["state"] = dev.operating_state()
+            _emit_json(obj)
+        else:
+            print(f"{dev.name}: {cmd} accepted (busy_seq {handle.busy_seq})")
+        if done is False:
+            raise Failure(f"{cmd}: motion not ended within {timeout:g} s")
+        if done:
+            state = dev.operating_state()
+            if state == "FAULT":
+                raise Failure(f"{cmd}: motion ended with the robot in FAULT")
+            if not out_json:
+                print(f"{dev.name}: {cmd} done ({state})")
+        return 0
+
+    if cmd in ("servo_jp", "servo_jr"):
+        _check_len(dev, cmd, args.position)
+        getattr(dev, cmd)(args.position)
+        _emit_json({"cmd": cmd, "ns": dev.name, "ok": True}) if out_json else print(
+            f"{dev.name}: {cmd} sent")
+        return 0
+
+    raise AssertionError(f"unhandled command {cmd}")  # argparse choices make this unreachable
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _err(text: str) -> None:
+    print(f"{PROG}: {_one_line(text)}", file=sys.stderr, flush=True)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``crtk-ctl`` with ``argv`` (default ``sys.argv[1:]``); return the exit status."""
+    args = build_parser().parse_args(argv)
+    robot = None
+    try:
+        request_timeout = args.timeout if args.timeout is not None else 5.0
+        robot = connect(socket=args.socket, robot=args.robot, timeout=request_timeout)
+        return _run(args, robot)
+    except KeyboardInterrupt:
+        return 130
+    except CommandError as exc:
+        what = getattr(exc, "cmd", None) or args.command
+        _err(f"{what} refused ({exc.code}): {exc.message}")
+        return 1
+    except (DaemonConnectionError, ConnectionError) as exc:
+        _err(str(exc))
+        return 2
+    except TimeoutError as exc:
+        _err(str(exc))
+        return 1
+    except Failure as exc:
+        _err(str(exc))
+        return 1
+    except KeyError as exc:  # unknown --ns
+        _err(exc.args[0] if exc.args else str(exc))
+        return 1
+    except CrtkBridgeError as exc:
+        _err(str(exc))
+        return 1
+    except BrokenPipeError:  # `crtk-ctl echo ... | head`
+        try:
+            sys.stdout = open("/dev/null", "w")  # noqa: SIM115 - silence the flush at exit
+        except OSError:
+            pass
+        return 0
+    finally:
+        if robot is not None:
+            try:
+                robot.close()
+            except KeyboardInterrupt:
+                pass
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,513 @@
+"""The Python client and crtk-ctl against a scripted fake of the daemon's wire (docs/protocol.md).
+
+The fake is a test double of the socket protocol only: a thread on a Unix socket that answers
+requests from a small table and pushes events when a test says so. The end-to-end test against
+the real daemon lives elsewhere.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import tempfile
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from crtk_bridge.client import connect, default_socket_path
+from crtk_bridge.client.cli import main
+from crtk_bridge.client.connection import Connection, DaemonConnectionError
+from crtk_bridge.errors import CommandError
+
+JOINTS = ["shoulder_pan", "elbow"]
+
+
+def wait_until(pred, timeout=3.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.005)
+    return pred()
+
+
+def state(name="DISABLED", homed=True, busy=False, seq=0):
+    return {"state": name, "is_homed": homed, "is_busy": busy, "busy_seq": seq, "stamp": 1.5}
+
+
+def ok(req, data=None):
+    return {"id": req["id"], "ok": True, "data": data}
+
+
+def err(req, code, message):
+    return {"id": req["id"], "ok": False, "error": {"code": code, "message": message}}
+
+
+def os_event(st):
+    return {"event": "operating_state", "data": dict(st)}
+
+
+class FakeDaemon:
+    """Accepts sessions on ``path``; pushes the current operating_state on connect; answers each
+    request with ``handlers[cmd](req, session)`` (which sends any lines it likes, or none)."""
+
+    def __init__(self, path):
+        self.path = path
+        self.robot = "so101"
+        self.state = state()
+        self.requests: list[dict] = []
+        self.sessions: list[socket.socket] = []
+        self.handlers = {
+            "list": lambda r, s: s.send(ok(r, {
+                "robot": self.robot, "protocol_version": 1, "daemon_version": "0.1.0",
+                "namespaces": [
+                    {"name": "so101", "joints": JOINTS, "commands": ["move_jp", "servo_jp"],
+                     "queries": ["measured_js"], "topics": ["measured_js"]},
+                    {"name": "so101/gripper", "joints": ["gripper"], "commands": ["move_jp"],
+                     "queries": ["measured_js"], "topics": ["measured_js"]}]})),
+            "operating_state": lambda r, s: s.send(ok(r, self.state)),
+            "measured_js": lambda r, s: s.send(ok(r, {
+                "stamp": 123.25, "frame_id": "", "name": JOINTS, "position": [0.1, -0.2],
+                "velocity": [0.0, 0.5], "effort": []})),
+        }
+        self._lsock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self._lsock.bind(path)
+        self._lsock.listen()
+        self._lock = threading.Lock()
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self):
+        while True:
+            try:
+                conn, _ = self._lsock.accept()
+            except OSError:
+                return
+            session = _Session(conn, self._lock)
+            self.sessions.append(session)
+            session.send(os_event(self.state))
+            threading.Thread(target=self._serve, args=(session,), daemon=True).start()
+
+    def _serve(self, session):
+        f = session.sock.makefile("rb")
+        try:
+            for line in f:
+                req = json.loads(line)
+                self.requests.append(req)
+                handler = self.handlers.get(req["cmd"])
+                if handler is None:
+                    session.send(err(req, "unknown_command", f"no command {req['cmd']!r}"))
+                else:
+                    handler(req, session)
+        except (OSError, ValueError):
+            pass
+
+    def push(self, msg):
+        for s in list(self.sessions):
+            s.send(msg)
+
+    def set_state(self, **kw):
+        self.state = dict(self.state, **kw)
+        self.push(os_event(self.state))
+
+    def drop_sessions(self):
+        for s in self.sessions:
+            s.close()
+
+    def close(self):
+        self._lsock.close()
+        self.drop_sessions()
+
+
+class _Session:
+    def __init__(self, sock, lock):
+        self.sock = sock
+        self._lock = lock
+
+    def send(self, msg):
+        with self._lock:
+            try:
+                self.sock.sendall((json.dumps(msg) + "\n").encode())
+            except OSError:
+                pass
+
+    def close(self):
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self.sock.close()
+
+
+@pytest.fixture
+def sockdir():
+    d = tempfile.mkdtemp(prefix="crtk", dir="/tmp")  # AF_UNIX paths must stay short
+    yield d
+    shutil.rmtree(d, ignore_errors=True)
+
+
+@pytest.fixture
+def fake(sockdir):
+    daemon = FakeDaemon(os.path.join(sockdir, "so101.sock"))
+    yield daemon
+    daemon.close()
+
+
+@pytest.fixture
+def robot(fake):
+    r = connect(socket=fake.path, timeout=3.0)
+    yield r
+    r.close()
+
+
+# -- paths --------------------------------------------------------------------------------------
+
+def test_default_socket_path_follows_xdg_runtime_dir(monkeypatch):
+    monkeypatch.setenv("XDG_RUNTIME_DIR", "/run/user/1000")
+    assert default_socket_path("so101") == "/run/user/1000/crtk-bridge/so101.sock"
+    monkeypatch.delenv("XDG_RUNTIME_DIR")
+    assert default_socket_path("so101") == f"/tmp/crtk-bridge-{os.getuid()}/so101.sock"
+
+
+# -- connection ---------------------------------------------------------------------------------
+
+def test_replies_matched_by_id_across_interleaved_events_frames_and_reordering(fake, robot):
+    conn = robot.connection
+    warnings = []
+    conn.on_event = warnings.append
+    held = []
+
+    def slow(req, s):  # answered only after the next request's reply
+        held.append(req)
+
+    def fast(req, s):
+        s.send({"event": "warning", "data": {"stamp": 2.0, "ns": "so101", "code": "servo_timeout",
+                                             "message": "servo stream stopped"}})
+        s.send({"topic": "measured_js", "ns": "so101", "sub": 77, "data": {"position": [9.0]}})
+        s.send(os_event(state("ENABLED", seq=3)))
+        s.send(ok(req, {"answer": "fast"}))
+        s.send({"topic": "measured_js", "ns": "so101", "sub": 77, "data": {"position": [8.0]}})
+        s.send(ok(held[0], {"answer": "slow"}))
+
+    fake.handlers["slow"] = slow
+    fake.handlers["fast"] = fast
+    results = {}
+    t = threading.Thread(target=lambda: results.setdefault("slow", conn.request("slow")))
+    t.start()
+    assert wait_until(lambda: held)
+    assert conn.request("fast") == {"answer": "fast"}
+    t.join(3.0)
+    assert results["slow"] == {"answer": "slow"}
+    assert conn.operating_state["state"] == "ENABLED" and conn.operating_state["busy_seq"] == 3
+    assert [e.data["code"] for e in conn.events] == ["servo_timeout"]
+    assert warnings and warnings[0].kind == "warning"
+
+
+def test_error_reply_raises_command_error_with_code_and_message(fake, robot):
+    fake.handlers["move_jp"] = lambda r, s: s.send(err(
+        r, "invalid_state", "so101: move_jp refused: robot is DISABLED (enable it first)"))
+    with pytest.raises(CommandError) as info:
+        robot.device("so101").move_jp([0.1, 0.2])
+    assert info.value.code == "invalid_state"
+    assert info.value.message == "so101: move_jp refused: robot is DISABLED (enable it first)"
+    sent = fake.requests[-1]
+    assert sent["ns"] == "so101" and sent["data"] == {"position": [0.1, 0.2]}
+
+
+def test_vectors_sent_as_plain_floats_and_non_finite_refused_locally(fake, robot):
+    fake.handlers["servo_jp"] = lambda r, s: s.send(ok(r))
+    arm = robot.device()
+    arm.servo_jp(np.array([1, 2], dtype=np.int32), (0.5, np.float32(0.25)))
+    assert fake.requests[-1]["data"] == {"position": [1.0, 2.0], "velocity": [0.5, 0.25]}
+    n = len(fake.requests)
+    with pytest.raises(CommandError) as info:
+        arm.servo_jp([float("nan"), 0.0])
+    assert info.value.code == "bad_request"
+    assert len(fake.requests) == n  # nothing sent
+
+
+def test_pending_request_fails_promptly_when_daemon_closes(fake, robot):
+    conn = robot.connection
+    fake.handlers["hang"] = lambda r, s: threading.Timer(0.2, fake.drop_sessions).start()
+    t0 = time.monotonic()
+    with pytest.raises(ConnectionError) as info:
+        conn.request("hang", timeout=10.0)
+    assert time.monotonic() - t0 < 2.0
+    assert fake.path in str(info.value)
+    with pytest.raises(ConnectionError):
+        conn.request("list")
+    with pytest.raises(ConnectionError):  # waiters fail too
+        conn.wait_for(lambda c: False, timeout=5.0)
+    conn.close()
+    conn.close()  # idempotent
+
+
+def test_request_times_out_when_no_reply(fake, robot):
+    fake.handlers["mute"] = lambda r, s: None
+    t0 = time.monotonic()
+    with pytest.raises(TimeoutError):
+        robot.connection.request("mute", timeout=0.2)
+    assert time.monotonic() - t0 < 2.0
+    assert robot.connection.request("list")["robot"] == "so101"  # the session still works
+
+
+def test_no_daemon_raises_connection_error_naming_the_path(sockdir):
+    path = os.path.join(sockdir, "nobody.sock")
+    with pytest.raises(ConnectionError) as info:
+        Connection(path)
+    assert isinstance(info.value, DaemonConnectionError)
+    assert path in str(info.value) and "not running" in str(info.value)
+
+
+# -- devices ------------------------------------------------------------------------------------
+
+def test_namespaces_as_devices_and_children(robot):
+    arm = robot.device("so101")
+    assert robot.device() is arm and robot["so101"] is arm
+    assert arm.joint_names == JOINTS
+    assert arm.gripper is robot["so101/gripper"]
+    assert arm.gripper.name == "so101/gripper" and arm.gripper.joint_names == ["gripper"]
+    with pytest.raises(AttributeError):
+        arm.wrist
+    with pytest.raises(KeyError):
+        robot.device("ur5")
+
+
+def test_measured_js_returns_numpy_arrays_and_stamp(fake, robot):
+    arm = robot.device()
+    p, v, e, ts = arm.measured_js()
+    assert isinstance(p, np.ndarray) and p.dtype == np.float64
+    np.testing.assert_allclose(p, [0.1, -0.2])
+    np.testing.assert_allclose(v, [0.0, 0.5])
+    assert e.shape == (0,)  # not provided: empty (CRTK 4.1.6)
+    assert ts == 123.25
+    jp, ts2 = arm.measured_jp()
+    np.testing.assert_allclose(jp, [0.1, -0.2])
+    assert ts2 == 123.25
+    assert fake.requests[-1] == {"id": fake.requests[-1]["id"], "cmd": "measured_js", "ns": "so101"}
+
+
+def test_move_handle_ignores_stale_idle_and_waits_for_its_own_busy_seq(fake, robot):
+    fake.set_state(state="ENABLED", busy_seq=4)  # idle, seq 4: stale for the next move
+    assert wait_until(lambda: robot.connection.operating_state["state"] == "ENABLED")
+
+    def move(req, s):  # protocol: busy edge before the reply
+        fake.state = state("ENABLED", busy=True, seq=5)
+        s.send(os_event(fake.state))
+        s.send(ok(req, {"busy_seq": 5}))
+        s.send(os_event(state("ENABLED", busy=False, seq=4)))  # a late stale idle must not count
+
+    fake.handlers["move_jp"] = move
+    handle = robot.device().move_jp([0.3, 0.4])
+    assert handle.busy_seq == 5
+    assert handle.wait(is_busy=True, timeout=1.0)
+    assert handle.wait(timeout=0.3) is False
+    assert handle.is_busy()
+    done = []
+    threading.Thread(target=lambda: done.append(handle.wait(timeout=5.0))).start()
+    time.sleep(0.05)
+    assert not done
+    fake.set_state(is_busy=False, busy_seq=5)
+    assert wait_until(lambda: done)
+    assert done == [True] and not handle.is_busy()
+
+
+def test_instant_move_both_edges_before_wait(fake, robot):
+    fake.set_state(state="ENABLED", busy_seq=1)
+
+    def move(req, s):
+        s.send(os_event(state("ENABLED", busy=True, seq=2)))
+        s.send(ok(req, {"busy_seq": 2}))
+        s.send(os_event(state("ENABLED", busy=False, seq=2)))
+
+    fake.handlers["move_jr"] = move
+    t0 = time.monotonic()
+    assert robot.device().move_jr([0.0, 0.0]).wait(timeout=5.0)
+    assert time.monotonic() - t0 < 2.0
+
+
+def test_enable_true_when_state_reached_false_on_timeout_or_fault(fake, robot):
+    arm = robot.device()
+
+    def enable_async(req, s):  # replies before the control process has switched
+        s.send(ok(req, fake.state))
+        threading.Timer(0.1, fake.set_state, kwargs={"state": "ENABLED"}).start()
+
+    fake.handlers["enable"] = enable_async
+    assert arm.is_disabled()
+    assert arm.enable(timeout=3.0) is True
+    assert arm.is_enabled()
+
+    fake.handlers["disable"] = lambda r, s: s.send(ok(r, fake.state))  # never switches
+    t0 = time.monotonic()
+    assert arm.disable(timeout=0.3) is False
+    assert 0.25 < time.monotonic() - t0 < 2.0
+
+    fake.state = state("DISABLED")
+
+    def enable_faults(req, s):
+        s.send(ok(req, fake.state))
+        fake.push({"event": "error", "data": {"stamp": 3.0, "ns": "so101", "code": "bus_timeout",
+                                              "message": "so101: servo 3 did not answer"}})
+        fake.set_state(state="FAULT")
+
+    fake.handlers["enable"] = enable_faults
+    t0 = time.monotonic()
+    assert arm.enable(timeout=10.0) is False
+    assert time.monotonic() - t0 < 2.0  # a FAULT ends the wait at once
+    assert arm.is_fault()
+
+    fake.handlers["resume"] = lambda r, s: s.send(err(r, "invalid_state", "so101: resume refused"))
+    with pytest.raises(CommandError) as info:
+        arm.resume()
+    assert info.value.code == "invalid_state"
+
+
+def test_home_waits_for_its_own_busy_seq_and_is_homed(fake, robot):
+    fake.set_state(state="ENABLED", is_homed=False, busy_seq=7)
+
+    def home(req, s):
+        fake.state = state("ENABLED", homed=False, busy=True, seq=8)
+        s.send(os_event(fake.state))
+        s.send(ok(req, fake.state))
+        threading.Timer(0.2, fake.set_state, kwargs={"is_busy": False, "is_homed": True}).start()
+
+    fake.handlers["home"] = home
+    t0 = time.monotonic()
+    assert robot.device().home(timeout=5.0) is True
+    assert time.monotonic() - t0 >= 0.15  # did not return on the stale idle state (seq 7)
+    assert robot.device().is_homed() and not robot.device().is_busy()
+
+
+def test_subscription_queue_callback_and_disconnect(fake, robot):
+    arm = robot.device()
+
+    def subscribe(req, s):
+        sub = 40 + len([r for r in fake.requests if r["cmd"] == "subscribe"])
+        s.send(ok(req, {"sub": sub}))
+        for i in range(3):  # frames right after the reply must not be lost
+            s.send({"topic": req["data"]["topic"], "ns": req.get("ns"), "sub": sub,
+                    "data": {"stamp": 10.0 + i, "position": [float(i), 0.0]}})
+
+    fake.handlers["subscribe"] = subscribe
+    fake.handlers["unsubscribe"] = lambda r, s: s.send(ok(r))
+    sub = arm.subscribe("measured_js", 50)
+    frames = [sub.get(timeout=2.0) for _ in range(3)]
+    assert [f["stamp"] for f in frames] == [10.0, 11.0, 12.0]
+    assert fake.requests[-1]["data"] == {"topic": "measured_js", "rate_hz": 50}
+    sub.close()
+    assert wait_until(lambda: fake.requests[-1]["cmd"] == "unsubscribe")
+    assert fake.requests[-1]["data"] == {"sub": sub.sub}
+    assert list(sub) == []  # closed: iteration ends
+
+    got = []
+    cb_sub = robot.device().subscribe("operating_state", 5, callback=got.append)
+    assert "ns" not in [r for r in fake.requests if r["cmd"] == "subscribe"][-1]  # robot-wide
+    assert wait_until(lambda: len(got) == 3)
+
+    sub2 = arm.subscribe("measured_js", 50)
+    fake.drop_sessions()
+    with pytest.raises(ConnectionError):
+        for _ in sub2:
+            pass
+    cb_sub.close()
+
+
+# -- crtk-ctl -----------------------------------------------------------------------------------
+
+def test_cli_refusal_exits_1_with_one_line_reason(fake, capsys):
+    fake.handlers["move_jp"] = lambda r, s: s.send(err(
+        r, "invalid_state", "so101: move_jp refused: robot is DISABLED (enable it first)"))
+    code = main(["move_jp", "0.1", "-0.2", "--socket", fake.path])
+    out = capsys.readouterr()
+    assert code == 1
+    assert out.err == ("crtk-ctl: move_jp refused (invalid_state): so101: move_jp refused: "
+                       "robot is DISABLED (enable it first)\n")
+
+
+def test_cli_no_daemon_exits_2_naming_the_socket(sockdir, capsys, monkeypatch):
+    path = os.path.join(sockdir, "so101.sock")
+    assert main(["--socket", path, "state"]) == 2
+    err_text = capsys.readouterr().err
+    assert err_text.count("\n") == 1 and path in err_text
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", sockdir)  # no socket in the default directory
+    assert main(["state"]) == 2
+    err_text = capsys.readouterr().err
+    assert err_text.count("\n") == 1 and os.path.join(sockdir, "crtk-bridge") in err_text
+
+
+def test_cli_finds_the_only_socket_and_lists_several(sockdir, capsys, monkeypatch):
+    monkeypatch.setenv("XDG_RUNTIME_DIR", sockdir)
+    os.mkdir(os.path.join(sockdir, "crtk-bridge"))
+    daemon = FakeDaemon(os.path.join(sockdir, "crtk-bridge", "so101.sock"))
+    try:
+        assert main(["state", "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["state"] == "DISABLED"
+        assert main(["--robot", "so101", "state"]) == 0
+        assert "DISABLED" in capsys.readouterr().out
+        other = FakeDaemon(os.path.join(sockdir, "crtk-bridge", "koch.sock"))
+        try:
+            assert main(["state"]) == 2
+            err_text = capsys.readouterr().err
+            assert "koch.sock" in err_text and "so101.sock" in err_text
+        finally:
+            other.close()
+    finally:
+        daemon.close()
+
+
+def test_cli_enable_exit_status_follows_the_state_reached(fake, capsys):
+    fake.handlers["enable"] = lambda r, s: s.send(ok(r, fake.state))  # never enables
+    assert main(["--socket", fake.path, "--timeout", "0.3", "enable"]) == 1
+    err_text = capsys.readouterr().err
+    assert err_text.startswith("crtk-ctl: enable: ENABLED not reached") and err_text.count("\n") == 1
+
+    def enable(req, s):
+        fake.state = state("ENABLED")
+        s.send(os_event(fake.state))
+        s.send(ok(req, fake.state))
+
+    fake.handlers["enable"] = enable
+    assert main(["enable", "--socket", fake.path]) == 0
+    assert "ENABLED" in capsys.readouterr().out
+
+
+def test_cli_get_json_and_human(fake, capsys):
+    assert main(["--socket", fake.path, "--json", "get", "measured_js"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["position"] == [0.1, -0.2]
+    assert main(["get", "measured_js", "--socket", fake.path]) == 0
+    out = capsys.readouterr().out
+    assert "shoulder_pan" in out and "+0.1000 rad" in out and "-0.2000 rad" in out
+
+
+def test_cli_move_wait_and_echo_count(fake, capsys):
+    def move(req, s):
+        s.send(os_event(state("ENABLED", busy=True, seq=1)))
+        s.send(ok(req, {"busy_seq": 1}))
+        threading.Timer(0.1, fake.push, args=(os_event(state("ENABLED", seq=1)),)).start()
+
+    fake.handlers["move_jp"] = move
+    assert main(["--socket", fake.path, "move_jp", "0.5", "-0.5", "--wait", "--json"]) == 0
+    obj = json.loads(capsys.readouterr().out)
+    assert obj["busy_seq"] == 1 and obj["done"] is True
+    assert fake.requests[-1]["data"] == {"position": [0.5, -0.5]}
+
+    assert main(["--socket", fake.path, "move_jp", "0.5"]) == 1  # wrong length, caught locally
+    assert "bad_request" in capsys.readouterr().err
+
+    def subscribe(req, s):
+        s.send(ok(req, {"sub": 1}))
+        for i in range(5):
+            s.send({"topic": "measured_js", "ns": "so101", "sub": 1,
+                    "data": {"stamp": 1.0 + i, "name": JOINTS, "position": [i, 0.0]}})
+
+    fake.handlers["subscribe"] = subscribe
+    fake.handlers["unsubscribe"] = lambda r, s: s.send(ok(r))
+    assert main(["--socket", fake.path, "echo", "measured_js", "--count", "3", "--json"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [json.loads(x)["stamp"] for x in lines] == [1.0, 2.0, 3.0]
