@@ -122,6 +122,15 @@ class FeetechBackend(Actuator):
 
     def __init__(self, profile: Profile, *, source: str = "<profile>"):
         super().__init__(profile, source=source)
+        # msgspec reports unknown/missing fields "at $" (no key name); name the key ourselves.
+        given = set(profile.backend) - {"type"}
+        fields = Config.__struct_fields__
+        for key in sorted(given - set(fields)):
+            raise ProfileError(f"{source}: backend.{key}: unknown key for the feetech backend "
+                               f"(valid: {', '.join(fields)})")
+        if "port" not in given:
+            raise ProfileError(f"{source}: backend.port: required, the serial device "
+                               f"(e.g. /dev/ttyACM0)")
         self.config: Config = backend_config(profile, Config, source)
         cfg = self.config
         if cfg.baudrate not in SUPPORTED_BAUDS:
@@ -206,6 +215,7 @@ class FeetechBackend(Actuator):
         """Call an SDK ``...TxRx`` function, retrying comm failures. Returns (value, result, error)."""
         if self._port is not None:
             self._port.last_os_error = None
+            self._port.is_using = False
         for _ in range(self._attempts):
             out = fn(self._port, *args)
             result = out[-2]
@@ -381,8 +391,8 @@ class FeetechBackend(Actuator):
         if gsr is None:
             return Fault("bus_timeout", f"{self.robot}: read on a closed bus", transient=False)
         port = self._port
-        if port.last_os_error is not None:
-            port.last_os_error = None
+        port.last_os_error = None
+        port.is_using = False  # we own the port alone: a leftover flag would mean PORT_BUSY forever
         result = COMM_SUCCESS
         for _ in range(self._attempts):
             stamp = time.time()
@@ -494,6 +504,7 @@ class FeetechBackend(Actuator):
                     last[i] = t
                     gsw.changeParam(self._ids[i], [t & 0xFF, t >> 8])
         if send:
+            self._port.is_using = False
             result = gsw.txPacket()
             if result != COMM_SUCCESS:
                 return Fault("bus_timeout",
