@@ -511,3 +511,48 @@ def test_cli_move_wait_and_echo_count(fake, capsys):
     assert main(["--socket", fake.path, "echo", "measured_js", "--count", "3", "--json"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert [json.loads(x)["stamp"] for x in lines] == [1.0, 2.0, 3.0]
+
+
+def test_cli_ctrl_c_exits_130_quietly(fake, capsys, monkeypatch):
+    import crtk_bridge.client.cli as cli
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "connect", interrupted)
+    assert main(["--socket", fake.path, "state"]) == 130
+    assert capsys.readouterr().err == ""
+
+
+def test_cli_usage_error_returns_2(capsys):
+    assert main(["get", "no_such_topic"]) == 2
+    assert "invalid choice" in capsys.readouterr().err
+
+
+def test_stale_socket_file_is_reported_as_not_running(sockdir):
+    path = os.path.join(sockdir, "stale.sock")
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.bind(path)  # a file left behind by a dead daemon: nobody listens
+    s.close()
+    with pytest.raises(ConnectionError) as info:
+        Connection(path)
+    assert path in str(info.value) and "refused" in str(info.value)
+
+
+def test_request_from_a_callback_is_refused_instead_of_deadlocking(fake, robot):
+    def subscribe(req, s):
+        s.send(ok(req, {"sub": 5}))
+        s.send({"topic": "measured_js", "ns": "so101", "sub": 5, "data": {"stamp": 1.0}})
+
+    fake.handlers["subscribe"] = subscribe
+    seen = []
+
+    def cb(frame):
+        try:
+            robot.connection.request("list")
+        except RuntimeError as exc:
+            seen.append(exc)
+
+    robot.device().subscribe("measured_js", 10, callback=cb)
+    assert wait_until(lambda: seen)
+    assert "callback" in str(seen[0])

@@ -276,7 +276,10 @@ def _err(text: str) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``crtk-ctl`` with ``argv`` (default ``sys.argv[1:]``); return the exit status."""
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a usage error (2, argparse printed why)
+        return exc.code if isinstance(exc.code, int) else 2
     robot = None
     try:
         request_timeout = args.timeout if args.timeout is not None else 5.0

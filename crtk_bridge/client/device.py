@@ -486,6 +486,8 @@ class Robot:
             raise AttributeError(attr)
         if attr in self._ns_info:
             return self.device(attr)
+        if not self.namespaces:
+            raise AttributeError(f"Robot {self.name!r} has no attribute {attr!r} (and no namespace)")
         return getattr(self.device(), attr)
 
     def list(self) -> dict:
