@@ -1,0 +1,78 @@
+"""``crtk-sim``: run a simulated device in the foreground until SIGTERM / SIGINT.
+
+    crtk-sim feetech --profile profiles/so101.yaml --link /tmp/ttySIM [--control /tmp/sim.sock]
+                     [--emulate-baud] [--log-level info]
+
+Prints one line once the port (and control socket) exist, then serves until signalled; exits 0
+after removing the link and the control socket. Exit 2: bad arguments or profile; 1: the
+simulator could not start (e.g. the link path is a regular file) or died.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+
+from ..errors import CrtkBridgeError, ProfileError
+from ..profile import load_profile
+
+_SIGNALS = {signal.SIGTERM, signal.SIGINT}
+_HEALTH_CHECK_S = 0.5
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="crtk-sim", description="Run a wire-level device simulator.")
+    sub = p.add_subparsers(dest="device", required=True, metavar="DEVICE")
+    fe = sub.add_parser("feetech", help="Feetech STS3215 servo bus on a pseudo-terminal")
+    fe.add_argument("--profile", required=True, help="robot profile (YAML); one servo per joint id")
+    fe.add_argument("--link", help="create this symlink to the pty (default: print the pty path)")
+    fe.add_argument("--control", help="serve the JSON-lines control socket at this path")
+    fe.add_argument("--emulate-baud", action="store_true",
+                    help="delay replies by the wire time at the profile's baud rate")
+    fe.add_argument("--log-level", default="warning",
+                    choices=["debug", "info", "warning", "error"], help="default: warning")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="crtk-sim: %(levelname)s %(message)s")
+    try:
+        profile = load_profile(args.profile)
+    except ProfileError as exc:
+        print(f"crtk-sim: {exc}", file=sys.stderr)
+        return 2
+
+    from .feetech import FeetechSimulator
+
+    # Block the signals before any thread exists, so every thread inherits the mask and only
+    # sigtimedwait() below receives them: a clean, race-free shutdown path.
+    signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+    try:
+        sim = FeetechSimulator.from_profile(
+            profile, link=args.link, control=args.control, emulate_baud=args.emulate_baud)
+        sim.start()
+    except CrtkBridgeError as exc:
+        print(f"crtk-sim: {exc}", file=sys.stderr)
+        return 2 if isinstance(exc, ProfileError) else 1
+    except OSError as exc:
+        print(f"crtk-sim: cannot start the simulator: {exc}", file=sys.stderr)
+        return 1
+    try:
+        print(f"crtk-sim: feetech bus ready: port={sim.port} pty={sim.pty_path} "
+              f"control={sim.control_path or '-'} ids={','.join(map(str, sim.ids))} "
+              f"baud={sim.baudrate}{' (emulated)' if sim.emulate_baud else ''}", flush=True)
+        while True:
+            if signal.sigtimedwait(_SIGNALS, _HEALTH_CHECK_S) is not None:
+                return 0
+            if not sim.running:
+                print("crtk-sim: the simulator thread died (see the log above)", file=sys.stderr)
+                return 1
+    finally:
+        sim.stop()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
