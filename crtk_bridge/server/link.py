@@ -88,9 +88,15 @@ class ControlLink:
             msg = _decode(data)
             rid = msg.get("id")
             if rid is not None and "ok" in msg:
-                fut = self._pending.pop(rid, None)
-                if fut is not None and not fut.done():
-                    fut.set_result(msg)
+                entry = self._pending.pop(rid, None)
+                if entry is not None:
+                    fut, deliver = entry
+                    if deliver is not None:
+                        # deliver now, before any event that follows it on the pair: a client
+                        # must see the reply before the events the command caused later
+                        deliver(msg)
+                    if not fut.done():
+                        fut.set_result(msg)
             else:
                 self.on_event(msg)
 
@@ -102,20 +108,25 @@ class ControlLink:
             asyncio.get_running_loop().remove_reader(self.chan.fileno())
         except (RuntimeError, ValueError):
             pass
-        for fut in self._pending.values():
+        for fut, _ in self._pending.values():
             if not fut.done():
                 fut.set_exception(ControlLost("control process is gone"))
         self._pending.clear()
         self._on_lost()
 
     # ---------------------------------------------------------------- requests
-    async def request(self, cmd: str, ns: str | None, data: Any, timeout_s: float = 10.0) -> dict:
-        """Send one request to the control loop; returns its reply message."""
+    async def request(self, cmd: str, ns: str | None, data: Any, timeout_s: float = 10.0,
+                      deliver: Callable[[dict], None] | None = None) -> dict:
+        """Send one request to the control loop; returns its reply message.
+
+        ``deliver``, if given, is called with the reply as soon as it is read, in order with the
+        events around it (the awaiting coroutine may resume only after later events were fanned out).
+        """
         if self.lost:
             raise ControlLost("control process is gone")
         rid = next(self._ids)
         fut = asyncio.get_running_loop().create_future()
-        self._pending[rid] = fut
+        self._pending[rid] = (fut, deliver)
         try:
             self.chan.send(_encode({"id": rid, "cmd": cmd, "ns": ns, "data": data}))
         except OSError as exc:

@@ -150,7 +150,9 @@ class Server:
     async def _handle(self, s: Session, line: bytes) -> None:
         try:
             req = decode_request(line)
-            s.send(ok(req.id, await self._dispatch(s, req.cmd, req.ns, req.data if req.data is not None else {})))
+            result = await self._dispatch(s, req.id, req.cmd, req.ns, req.data if req.data is not None else {})
+            if result is not _SENT:
+                s.send(ok(req.id, result))
         except ProtocolError as exc:
             s.send(error(exc.rid if exc.rid is not None else _rid(line), exc.code, str(exc)))
         except ControlLost:
@@ -169,7 +171,7 @@ class Server:
                                 f"{self.robot}: unknown namespace {ns!r} (have: {', '.join(self.link.ns_index)})")
         return ns
 
-    async def _dispatch(self, s: Session, cmd: str, ns: str | None, data: Any) -> Any:
+    async def _dispatch(self, s: Session, rid: int, cmd: str, ns: str | None, data: Any) -> Any:
         if cmd in JOINT_QUERIES:
             return self.link.joint_state(cmd, self._check_ns(cmd, ns, True))
         if cmd == "operating_state":
@@ -201,11 +203,11 @@ class Server:
             raise ProtocolError("unknown_command", f"{self.robot}: unknown command {cmd!r}")
         self._check_ns(cmd, ns, cmd not in STATE_COMMANDS)
         self._take_control(s, cmd)
-        reply = await self.link.request(cmd, ns, data)
-        if not reply["ok"]:
-            e = reply["error"]
-            raise ProtocolError(e["code"], e["message"])
-        return reply["data"]
+        def deliver(reply: dict) -> None:
+            s.send(dict(reply, id=rid))
+
+        await self.link.request(cmd, ns, data, deliver=deliver)
+        return _SENT
 
     def _take_control(self, s: Session, cmd: str) -> None:
         if self.controller is None or self.controller.closed:
@@ -261,6 +263,7 @@ class Server:
                 "backend": self.profile.backend_type, "rate_hz": self.profile.loop.rate_hz, "namespaces": namespaces}
 
 
+_SENT = object()  # the reply was already delivered, in order with the loop's events
 _CRTK_PREFIXES = ("servo_", "interpolate_", "move_", "measured_", "setpoint_", "goal_")
 
 
