@@ -144,6 +144,9 @@ def test_sync_read_present_block_of_six_servos(sim, bus):
         assert group.getData(sid, 62, 1) == 74 and group.getData(sid, 63, 1) == 30
         assert group.getData(sid, 66, 1) == 0  # not moving
         assert bytes(group.data_dict[sid]) == bytes(sim.servo(sid).registers[56:71])
+    # replies come in request order (the SDK drops packets of ids it is not waiting for)
+    group, res = sync_read(port, ph, [6, 3, 1])
+    assert res == sdk.COMM_SUCCESS and [group.getData(i, 56, 2) for i in (6, 3, 1)] == [1600, 1300, 1100]
 
 
 def test_sync_read_with_missing_id_fails_with_rx_timeout(bus):
@@ -249,6 +252,12 @@ def test_bad_checksum_ignored_and_garbage_resynced(sim):
         reply = ser.read(6)
         assert reply == b"\xff\xff\x01\x02\x00" + bytes((checksum(b"\x01\x02\x00"),))
         assert sim.servo(1).read("Torque_Enable") == 1
+        # broadcast: no status reply to READ or WRITE; every servo answers a broadcast PING
+        ser.write(packet(T.BROADCAST_ID, T.INST_READ, bytes((5, 1))) + packet(T.BROADCAST_ID, T.INST_WRITE, bytes((41, 9))))
+        assert ser.read(6) == b""
+        assert all(sim.servo(i).read("Acceleration") == 9 for i in IDS)
+        ser.write(packet(T.BROADCAST_ID, T.INST_PING))
+        assert [r[2] for r in [ser.read(6) for _ in IDS]] == IDS
         # a packet split across writes still parses
         ping = packet(2, T.INST_PING)
         ser.write(ping[:3])
@@ -259,6 +268,17 @@ def test_bad_checksum_ignored_and_garbage_resynced(sim):
         ser.write(packet(3, T.INST_PING) + packet(4, T.INST_READ, bytes((5, 1))))
         assert ser.read(13) == (b"\xff\xff\x03\x02\x00" + bytes((checksum(b"\x03\x02\x00"),))
                                 + b"\xff\xff\x04\x03\x00\x04" + bytes((checksum(b"\x04\x03\x00\x04"),)))
+
+
+def test_half_packet_is_forgotten_after_a_silence(sim):
+    from crtk_bridge.sim.feetech import FRAME_TIMEOUT_S
+
+    with serial.Serial(sim.port, 1_000_000, timeout=0.2) as ser:
+        ser.write(b"\xff\xff\x01\x09\x03\x2a")  # a WRITE cut short (claims 13 bytes)
+        ser.flush()
+        time.sleep(3 * FRAME_TIMEOUT_S)  # a guaranteed minimum silence, not a wait for a result
+        ser.write(packet(2, T.INST_PING))
+        assert ser.read(6)[:3] == b"\xff\xff\x02"
 
 
 def test_client_can_close_and_reopen_the_port(sim):
