@@ -45,6 +45,8 @@ def test_daemon_end_to_end_on_simulated_so101(sim_daemon):
         assert arm.home(30.0) and arm.is_homed() and not arm.is_busy()
 
         # move_jp reaches the goal; both busy edges seen by a raw session
+        wait_until(lambda: raw.states and raw.states[-1]["busy_seq"] == arm.operating_state_full()["busy_seq"]
+                   and not raw.states[-1]["is_busy"], 5, what="raw session caught up with the home edges")
         edges_before = len(raw.states)
         goal = np.array([0.1, 0.2, 0.3, 0.0, 0.0])
         handle = arm.move_jp(goal)

@@ -96,12 +96,20 @@ class Server:
                 raise RuntimeError(f"{self.robot}: another daemon is already serving {path}")
             except (ConnectionRefusedError, FileNotFoundError):
                 path.unlink()
+        # bind under a temporary name and rename: the socket file appears only once it listens,
+        # so a client that sees the file never gets "connection refused"
+        tmp = path.with_name(f".{path.name}.{os.getpid()}")
+        try:
+            tmp.unlink()
+        except FileNotFoundError:
+            pass
         old = os.umask(0o117)  # socket file mode 0660
         try:
-            self._server = await asyncio.start_unix_server(self._session, path=str(path), limit=MAX_LINE)
+            self._server = await asyncio.start_unix_server(self._session, path=str(tmp), limit=MAX_LINE)
         finally:
             os.umask(old)
-        os.chmod(path, 0o660)
+        os.chmod(tmp, 0o660)
+        os.rename(tmp, path)
 
     async def close(self) -> None:
         if self._server is not None:
