@@ -191,9 +191,11 @@ def main() -> int:
         rtt_d, rtt_e = np.concatenate(rtt_d), np.concatenate(rtt_e)
 
         # -- loop lateness under load, alternating with the bare loop --
-        bare, loaded, overruns = [], [], []
+        bare, loaded, compute, overruns = [], [], [], []
+        stats_start = robot.connection.request("period_statistics")
         load = Load(str(sock), start)
         load.start(robot)
+        load_t0 = time.monotonic()
         time.sleep(0.5)  # let subscriptions start
         for _ in range(args.rounds):
             bare.append(bare_loop(1000, args.window))
@@ -203,7 +205,10 @@ def main() -> int:
                 time.sleep(min(0.9, args.window))  # the daemon's ring holds the last 1024 cycles
                 window.append(robot.connection.request("period_statistics"))
             loaded.append(np.array([w["lateness_p99_s"] for w in window]))
+            compute.append(np.array([w["compute_p99_s"] for w in window]))
             overruns.append(window[-1]["overruns"])
+        stats_end = robot.connection.request("period_statistics")
+        elapsed = time.monotonic() - load_t0
         frames = sum(load.frames)
         sent = load.sent
         load.finish()
@@ -224,6 +229,11 @@ def main() -> int:
           f"{sent} servo_jp sent; overruns so far {overruns[-1]}):")
     print(f"  daemon lateness p99 (median of ~1 s windows): {loaded_p99 * 1e3:.3f} ms")
     print(f"  bare SCHED_FIFO loop lateness p50 {pct(bare_all, 50) * 1e3:.3f} ms, p99 {bare_p99 * 1e3:.3f} ms")
+    cyc = stats_end["cycles"] - stats_start["cycles"]
+    ovr = stats_end["overruns"] - stats_start["overruns"]
+    print(f"  daemon compute p99 (median of windows): {float(np.median(np.concatenate(compute))) * 1e3:.3f} ms; "
+          f"overruns {ovr} of {cyc} cycles ({100.0 * ovr / max(cyc, 1):.2f} %)")
+    print(f"  subscriber frames received: {frames / (8 * elapsed):.0f} Hz per subscriber (asked 1000)")
     print(f"  ratio daemon p99 / bare p99: {loaded_p99 / bare_p99:.2f}  (target <= 2)")
     print("measured_js round trip:")
     print(f"  daemon p50 {pct(rtt_d, 50) * 1e6:.0f} us, p99 {pct(rtt_d, 99) * 1e6:.0f} us")

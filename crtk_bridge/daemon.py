@@ -101,6 +101,7 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
     if watchdog_task:
         watchdog_task.cancel()
     # control process first: motion stops, torque off; then the socket goes
+    server.shutting_down = True
     link.send_nowait("_shutdown")
     await loop.run_in_executor(None, proc.join, SHUTDOWN_TIMEOUT_S)
     if proc.is_alive():

@@ -62,6 +62,7 @@ class Server:
         self._subids = itertools.count(1)
         self._server: asyncio.base_events.Server | None = None
         self.control_lost = asyncio.Event()
+        self.shutting_down = False  # set before the control process is asked to stop
 
     # ---------------------------------------------------------------- events from the loop
     def on_event(self, msg: dict) -> None:
@@ -77,6 +78,8 @@ class Server:
 
     def on_control_lost(self) -> None:
         """The control process died: every client learns FAULT; the daemon exits non-zero."""
+        if self.shutting_down:
+            return
         self.state = dict(self.state, state="FAULT", is_busy=False)
         msg = {"event": "error", "data": {"stamp": 0.0, "ns": self.robot, "code": "control_process_died",
                                           "message": f"{self.robot}: the control process stopped; daemon exiting"}}
