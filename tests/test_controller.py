@@ -9,6 +9,7 @@ import pytest
 
 from crtk_bridge.core.actuator import Actuator, Capabilities, CommandMode, Fault
 from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.motion import Mode
 from crtk_bridge.core.state import TRANSITIONS, OperatingState, StateCommand
 from crtk_bridge.errors import BackendError
 from crtk_bridge.profile import load_profile
@@ -183,7 +184,7 @@ def test_move_reaches_goal_with_busy_edges(rig):
     busy = [s["is_busy"] for s in states(c)]
     assert busy == [True, False]
     goal = c.namespaces["so101"]
-    assert goal.goal_stamp > 0 and goal.level == "move_jp"
+    assert goal.goal_stamp > 0 and goal.level is Mode.MOVE
 
 
 def test_instantaneous_move_still_has_both_edges(rig):
@@ -266,17 +267,17 @@ def test_servo_jr_adds_to_setpoint_and_setpoint_fields(rig):
     c, act, clock, cycle, req = rig
     assert req("enable")["ok"]
     m = c.namespaces["so101"]
-    assert c.setpoint_fields(m) == (False, False, False)  # no command yet: invalid
+    assert m.setpoint_fields() == (False, False, False)  # no command yet: invalid
     assert req("servo_jr", "so101", position=[0.05, 0.05, 0, 0, 0])["ok"]
     assert req("servo_jr", "so101", position=[0.05, 0, 0, 0, 0])["ok"]
     cycle()
     np.testing.assert_allclose(act.pos[:2], [0.10, 0.05])
-    assert c.setpoint_fields(m) == (True, False, False)  # servo_jp: position only
+    assert m.setpoint_fields() == (True, False, False)  # servo_jp: position only
     assert req("servo_jp", "so101", position=[0.1, 0.05, 0, 0, 0], velocity=[0.2, 0, 0, 0, 0])["ok"]
-    assert c.setpoint_fields(m) == (True, True, False)  # with feed-forward
+    assert m.setpoint_fields() == (True, True, False)  # with feed-forward
     assert req("move_jp", "so101", position=[0, 0, 0, 0, 0])["ok"]
     cycle()
-    assert c.setpoint_fields(m) == (True, True, False)  # move: p(t), v(t)
+    assert m.setpoint_fields() == (True, True, False)  # move: p(t), v(t)
 
 
 def test_servo_watchdog_holds_and_warns(rig):

@@ -50,6 +50,7 @@ class CommandMode(enum.IntEnum):
     POSITION = 1
     VELOCITY = 2
     EFFORT = 3
+    FREE = 4  # torque off on this joint while the robot is enabled (`free`)
 
 
 @dataclass

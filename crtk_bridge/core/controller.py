@@ -10,33 +10,46 @@ Messages (dicts, see docs/protocol.md):
 * events appended to ``outbox`` in causal order: ``{"event": "operating_state", "data"}``,
   ``{"event": "warning"|"error"|"status", "data": {"stamp", "ns", "code", "message"}}``.
 
-Motion per namespace (arm and gripper each have their own setpoints and trajectory generator,
-sharing one operating state):
-* ``servo_jp`` / ``servo_jr``: latest wins, applied on this cycle's write; a step larger than
-  ``safety.servo_step_max`` from the last setpoint is refused; setpoints outside the joint limits
-  are clipped with a rate-limited warning; a stream silent for ``safety.servo_timeout_s`` holds.
-* ``move_jp`` / ``move_jr``: ruckig jerk-limited trajectory from the current setpoint state to the
-  goal, ending at rest, re-planned from the current state when a new goal arrives mid-motion. Goals
-  outside the joint limits are refused.
+Motion per namespace lives in ``motion.py``. Safety here:
+* servo and interpolate positions outside the joint limits are clipped with a rate-limited
+  warning; a ``servo_jp`` / ``interpolate_jp`` step larger than ``safety.servo_step_max`` from the
+  last setpoint (or goal) is refused; a stream silent for ``safety.servo_timeout_s`` holds;
+* move goals outside the joint limits are refused naming joint and limit;
+* faults (bus, servo error bits, tracking error beyond ``safety.tracking_error_max``) put the
+  robot in FAULT with the cause in an ``error`` event, torque off.
 """
 
 from __future__ import annotations
 
-import enum
 import math
 from typing import Any, Callable
 
 import numpy as np
-from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig
 
 from ..errors import BackendError
 from ..profile import Profile
-from .actuator import Actuator, CommandMode, Fault, JointCommand, JointFeedback
+from .actuator import Actuator, CommandMode, Fault, JointFeedback
+from .motion import EFFORT_MODES, Mode, NamespaceMotion
 from .state import OperatingState, StateCommand, transition
 
 STATE_COMMANDS = tuple(c.value for c in StateCommand)
-MOTION_COMMANDS = ("servo_jp", "servo_jr", "move_jp", "move_jr")
+#: joint motion commands -> (payload field, capability needed: "position" / "velocity" / "effort" / "free")
+MOTION_COMMANDS: dict[str, tuple[str | None, str]] = {
+    "servo_jp": ("position", "position"),
+    "servo_jr": ("position", "position"),
+    "servo_jv": ("velocity", "velocity"),
+    "servo_jf": ("effort", "effort"),
+    "interpolate_jp": ("position", "position"),
+    "interpolate_jr": ("position", "position"),
+    "interpolate_jv": ("velocity", "velocity"),
+    "interpolate_jf": ("effort", "effort"),
+    "move_jp": ("position", "position"),
+    "move_jr": ("position", "position"),
+    "hold": (None, "position"),
+    "free": (None, "free"),
+}
 _WARN_INTERVAL_S = 1.0  # at most one clipping warning per namespace per second
+TRACKING_CYCLES = 3  # consecutive cycles beyond the bound before FAULT (one glitch is not a fault)
 
 
 class Refused(Exception):
@@ -45,112 +58,6 @@ class Refused(Exception):
     def __init__(self, code: str, message: str):
         super().__init__(message)
         self.code = code
-
-
-class Mode(enum.Enum):
-    HOLD = 0  # keep the last setpoint
-    SERVO = 1  # follow servo_jp / servo_jr
-    MOVE = 2  # follow a ruckig trajectory
-    STOP = 3  # decelerate to rest (pause, client loss), then HOLD
-
-
-class NamespaceMotion:
-    """Setpoint bookkeeping and trajectory generator of one CRTK namespace."""
-
-    def __init__(self, name: str, indices: list[int], profile: Profile, dt: float):
-        self.name = name
-        self.idx = np.asarray(indices, dtype=np.intp)
-        self.joint_names = [profile.joints[i].name for i in indices]
-        joints = [profile.joints[i] for i in indices]
-        self.n = len(indices)
-        self.pos_min = np.array([j.limits.position_min for j in joints])
-        self.pos_max = np.array([j.limits.position_max for j in joints])
-        self.home = np.array([j.home for j in joints])
-        self.mode = Mode.HOLD
-        self.level: str | None = None  # command level that produced the setpoint (spec 4.2.5)
-        self.setpoint_p = np.zeros(self.n)
-        self.setpoint_v = np.zeros(self.n)
-        self.setpoint_stamp = 0.0
-        self.setpoint_has_v = False
-        self.goal_p = np.zeros(self.n)
-        self.goal_stamp = 0.0
-        self.last_servo_time = 0.0
-        self.last_clip_warning = -math.inf
-        self.otg = Ruckig(self.n, dt)
-        self.inp = InputParameter(self.n)
-        self.out = OutputParameter(self.n)
-        self.inp.max_velocity = [j.limits.velocity_max for j in joints]
-        self.inp.max_acceleration = [j.limits.acceleration_max for j in joints]
-        self.inp.max_jerk = [j.limits.jerk_max for j in joints]
-
-    def reset(self, measured_p: np.ndarray) -> None:
-        """Hold where the joints are (on enable): no surprise motion."""
-        self.mode = Mode.HOLD
-        self.level = None
-        self.setpoint_p[:] = measured_p
-        self.setpoint_v[:] = 0.0
-        self.setpoint_has_v = False
-        self.setpoint_stamp = 0.0
-        self.goal_stamp = 0.0
-
-    def invalidate(self) -> None:
-        """Torque off: setpoints and goals become invalid (stamp 0)."""
-        self.mode = Mode.HOLD
-        self.level = None
-        self.setpoint_stamp = 0.0
-        self.goal_stamp = 0.0
-        self.setpoint_v[:] = 0.0
-
-    def start_move(self, goal: np.ndarray, now: float) -> None:
-        inp = self.inp
-        if self.mode is not Mode.MOVE and self.mode is not Mode.STOP:
-            # start from rest at the current setpoint
-            inp.current_position = self.setpoint_p
-            inp.current_velocity = np.zeros(self.n)
-            inp.current_acceleration = np.zeros(self.n)
-        # else: re-plan from the trajectory's current state (already in inp via pass_to_input)
-        inp.control_interface = ControlInterface.Position
-        inp.target_position = goal
-        inp.target_velocity = np.zeros(self.n)
-        inp.target_acceleration = np.zeros(self.n)
-        self.goal_p[:] = goal
-        self.goal_stamp = now
-        self.mode = Mode.MOVE
-        self.level = "move_jp"
-
-    def start_stop(self) -> None:
-        """Decelerate a running trajectory to rest (jerk-limited), then hold."""
-        if self.mode is Mode.MOVE:
-            self.inp.control_interface = ControlInterface.Velocity
-            self.inp.target_velocity = np.zeros(self.n)
-            self.inp.target_acceleration = np.zeros(self.n)
-            self.mode = Mode.STOP
-        elif self.mode is Mode.SERVO:
-            self.mode = Mode.HOLD
-            self.setpoint_v[:] = 0.0
-
-    def step_trajectory(self, now: float) -> bool:
-        """Advance MOVE / STOP by one cycle. Returns True when the trajectory has finished."""
-        result = self.otg.update(self.inp, self.out)
-        if result is Result.Error or result is Result.ErrorInvalidInput:
-            # cannot happen with validated limits; hold rather than move unpredictably
-            self.mode = Mode.HOLD
-            self.setpoint_v[:] = 0.0
-            return True
-        self.setpoint_p[:] = self.out.new_position
-        self.setpoint_v[:] = self.out.new_velocity
-        self.setpoint_has_v = True
-        self.setpoint_stamp = now
-        self.out.pass_to_input(self.inp)
-        if result is Result.Finished:
-            self.mode = Mode.HOLD
-            self.setpoint_v[:] = 0.0
-            return True
-        return False
-
-    @property
-    def busy(self) -> bool:
-        return self.mode is Mode.MOVE
 
 
 class Controller:
@@ -176,13 +83,16 @@ class Controller:
         self.state_stamp = clock()
         self.outbox: list[dict] = []
         self.namespaces: dict[str, NamespaceMotion] = {
-            ns.name: NamespaceMotion(ns.name, [profile.joint_index(j) for j in ns.joints], profile, self.dt)
+            ns.name: NamespaceMotion(ns.name, [profile.joint_index(j) for j in ns.joints], profile, self.dt,
+                                     self.caps)
             for ns in profile.namespaces
         }
         self.command = actuator.new_command()
         self.feedback = actuator.new_feedback()  # latest sample, copied in by step()
         self.fault_cause: Fault | None = None
         self._consecutive_bus_errors = 0
+        self._tracking_cycles = 0
+        self._written = False  # self.command holds what was written last cycle
 
     # ------------------------------------------------------------------ queries
     @property
@@ -198,11 +108,17 @@ class Controller:
             "stamp": self.state_stamp,
         }
 
+    def can(self, need: str) -> bool:
+        c = self.caps
+        return {"position": c.position, "velocity": c.velocity or c.position, "effort": c.effort,
+                "free": c.can_free}[need]
+
     def supported_commands(self) -> list[str]:
-        cmds = list(STATE_COMMANDS)
-        if self.caps.position:
-            cmds += list(MOTION_COMMANDS)
-        return cmds
+        """State commands and the motion commands the backend's capabilities allow.
+
+        Velocity commands exist on position-only hardware too: the loop integrates them into
+        position setpoints (crtk-spec 4.2.5). Effort commands need effort control."""
+        return list(STATE_COMMANDS) + [cmd for cmd, (_, need) in MOTION_COMMANDS.items() if self.can(need)]
 
     # ------------------------------------------------------------------ events
     def _push_state(self) -> None:
@@ -210,10 +126,10 @@ class Controller:
         self._busy_reported = self.is_busy
         self.outbox.append({"event": "operating_state", "data": self.operating_state()})
 
-    def _event(self, kind: str, code: str, message: str, ns: str | None = None) -> None:
-        self.outbox.append(
-            {"event": kind, "data": {"stamp": self.clock(), "ns": ns or self.robot, "code": code, "message": message}}
-        )
+    def _event(self, kind: str, code: str, message: str, ns: str | None = None, **cause: Any) -> None:
+        data = {"stamp": self.clock(), "ns": ns or self.robot, "code": code, "message": message}
+        data.update((k, v) for k, v in cause.items() if v is not None)
+        self.outbox.append({"event": kind, "data": data})
 
     def _set_state(self, state: OperatingState) -> None:
         if state is not self.state:
@@ -242,24 +158,58 @@ class Controller:
             return None
         if cmd not in MOTION_COMMANDS:
             raise Refused("unknown_command", f"{self.robot}: unknown command {cmd!r}")
-        motion = self.namespaces.get(ns)
-        if motion is None:
+        m = self.namespaces.get(ns)
+        if m is None:
             raise Refused("unknown_namespace", f"{self.robot}: unknown namespace {ns!r} (have: {', '.join(self.namespaces)})")
-        if not self.caps.position:
-            raise Refused("unsupported", f"{ns}: {cmd} unsupported: the backend has no position control")
+        field, need = MOTION_COMMANDS[cmd]
+        if not self.can(need):
+            what = {"position": "position control", "velocity": "velocity or position control",
+                    "effort": "effort control", "free": "a way to switch torque off"}[need]
+            raise Refused("unsupported", f"{ns}: {cmd} is not supported: the {self.profile.backend_type} backend has no {what}")
         self._check_can_move(ns, cmd)
-        vec = self._vector(ns, cmd, motion, data.get("position"), "position")
+        vec = self._vector(ns, cmd, m, data.get(field), field) if field else None
+        now = self.clock()
+        if m.mode is Mode.FREE and cmd != "free":
+            m.reset(self.feedback.position[m.idx])  # leaving free: start from where the joints are
+        was_busy = self.is_busy
         if cmd == "servo_jp":
             ff = data.get("velocity")
-            v = self._vector(ns, cmd, motion, ff, "velocity") if ff else None
-            return self._servo(motion, vec, v)
-        if cmd == "servo_jr":
-            return self._servo(motion, motion.setpoint_p + vec, None)
-        if cmd == "move_jp":
-            return self._move(motion, vec)
-        # move_jr: relative to the current goal while a move runs, else to the setpoint
-        base = motion.goal_p if motion.mode is Mode.MOVE else motion.setpoint_p
-        return self._move(motion, base + vec)
+            v = self._vector(ns, cmd, m, ff, "velocity") if ff else None
+            self._check_step(m, vec, m.setpoint_p, cmd)
+            m.servo_p(self._clip(m, vec), v, now)
+        elif cmd == "servo_jr":
+            p = m.setpoint_p + vec
+            self._check_step(m, p, m.setpoint_p, cmd)
+            m.servo_p(self._clip(m, p), None, now)
+        elif cmd == "servo_jv":
+            m.servo_v(vec, now)
+        elif cmd == "servo_jf":
+            m.servo_f(vec, now)
+        elif cmd in ("interpolate_jp", "interpolate_jr"):
+            base = m.goal_p if m.mode is Mode.INTERP_P else m.setpoint_p
+            goal = vec if cmd == "interpolate_jp" else base + vec
+            self._check_step(m, goal, base, cmd)
+            m.interpolate_p(self._clip(m, goal), now)
+        elif cmd == "interpolate_jv":
+            m.interpolate_v(vec, now)
+        elif cmd == "interpolate_jf":
+            m.interpolate_f(vec, now)
+        elif cmd == "move_jp":
+            return self._move(m, vec)
+        elif cmd == "move_jr":
+            # relative to the current goal while a move runs, else to the setpoint
+            return self._move(m, (m.goal_p if m.mode is Mode.MOVE else m.setpoint_p) + vec)
+        elif cmd == "hold":
+            m.stop() if m.mode is Mode.MOVE else m.hold()
+            if m.level is None:  # nothing commanded yet: hold the measured position
+                m.setpoint_p[:] = self.feedback.position[m.idx]
+                m.level = Mode.HOLD
+                m.setpoint_stamp = now
+        elif cmd == "free":
+            m.free()
+        if was_busy and not self.is_busy:  # the command pre-empted a move
+            self._push_state()
+        return None
 
     def _check_can_move(self, ns: str, cmd: str) -> None:
         if self.state is not OperatingState.ENABLED:
@@ -287,37 +237,28 @@ class Controller:
             raise Refused("bad_request", f"{ns}: {cmd} {field} contains a non-finite value")
         return vec
 
-    def _servo(self, m: NamespaceMotion, p: np.ndarray, v: np.ndarray | None) -> None:
-        now = self.clock()
-        step = np.abs(p - m.setpoint_p)
+    def _check_step(self, m: NamespaceMotion, p: np.ndarray, base: np.ndarray, cmd: str) -> None:
+        step = np.abs(p - base)
         worst = int(np.argmax(step))
         if step[worst] > self.safety.servo_step_max:
             raise Refused(
                 "step_too_large",
-                f"{m.name}: servo step refused: joint {m.joint_names[worst]!r} would jump {step[worst]:.4f} rad "
-                f"from its setpoint {m.setpoint_p[worst]:.4f} (safety.servo_step_max = {self.safety.servo_step_max})",
+                f"{m.name}: {cmd} refused: joint {m.joint_names[worst]!r} would jump {step[worst]:.4f} rad "
+                f"from {base[worst]:.4f} (safety.servo_step_max = {self.safety.servo_step_max})",
             )
+
+    def _clip(self, m: NamespaceMotion, p: np.ndarray) -> np.ndarray:
         clipped = np.clip(p, m.pos_min, m.pos_max)
+        now = self.clock()
         if np.any(clipped != p) and now - m.last_clip_warning >= _WARN_INTERVAL_S:
             m.last_clip_warning = now
             j = int(np.argmax(np.abs(clipped - p)))
             self._event(
                 "warning", "limit_clipped",
-                f"{m.name}: servo setpoint of joint {m.joint_names[j]!r} ({p[j]:.4f} rad) clipped to its limit "
-                f"[{m.pos_min[j]:.4f}, {m.pos_max[j]:.4f}]", m.name,
+                f"{m.name}: setpoint of joint {m.joint_names[j]!r} ({p[j]:.4f} rad) clipped to its limit "
+                f"[{m.pos_min[j]:.4f}, {m.pos_max[j]:.4f}]", m.name, joint=m.joint_names[j], value=float(p[j]),
             )
-        was_busy = self.is_busy
-        m.mode = Mode.SERVO
-        m.level = "servo_jp"
-        m.setpoint_p[:] = clipped
-        m.setpoint_has_v = v is not None
-        m.setpoint_v[:] = v if v is not None else 0.0
-        m.setpoint_stamp = now
-        m.goal_stamp = 0.0  # no interpolate/move goal while servoing
-        m.last_servo_time = now
-        if was_busy and not self.is_busy:  # the servo pre-empted a move
-            self._push_state()
-        return None
+        return clipped
 
     def _move(self, m: NamespaceMotion, goal: np.ndarray) -> dict:
         bad = np.flatnonzero((goal < m.pos_min) | (goal > m.pos_max))
@@ -328,6 +269,8 @@ class Controller:
                 f"{m.name}: move refused: goal {goal[j]:.4f} rad for joint {m.joint_names[j]!r} is outside "
                 f"its limits [{m.pos_min[j]:.4f}, {m.pos_max[j]:.4f}]",
             )
+        if m.mode is Mode.FREE:
+            m.reset(self.feedback.position[m.idx])
         m.start_move(goal, self.clock())
         self.busy_seq += 1
         self._push_state()  # busy=True edge, before the reply
@@ -367,6 +310,8 @@ class Controller:
             m.reset(self.feedback.position[m.idx])
         self.fault_cause = None
         self._consecutive_bus_errors = 0
+        self._tracking_cycles = 0
+        self._written = False
         self._set_state(OperatingState.ENABLED)
 
     def _disable(self, retry: bool) -> None:
@@ -386,6 +331,8 @@ class Controller:
             raise Refused("unsupported", f"{self.robot}: home unsupported without position control")
         now = self.clock()
         for m in self.namespaces.values():
+            if m.mode is Mode.FREE:
+                m.reset(self.feedback.position[m.idx])
             m.start_move(m.home.copy(), now)
         self.homing = True
         self.busy_seq += 1
@@ -402,14 +349,14 @@ class Controller:
     def _stop_all(self) -> None:
         was_busy = self.is_busy
         for m in self.namespaces.values():
-            m.start_stop()
+            m.stop()
         self.homing = False
         if was_busy:
             self._push_state()
 
     def _client_lost(self) -> None:
         """The controlling session went away: stop moves, hold servo streams."""
-        moving = [m.name for m in self.namespaces.values() if m.mode in (Mode.MOVE, Mode.SERVO)]
+        moving = [m.name for m in self.namespaces.values() if m.mode is Mode.MOVE or m.streaming]
         if self.state is OperatingState.ENABLED and moving:
             self._stop_all()
             self._event("warning", "control_released",
@@ -422,54 +369,64 @@ class Controller:
             self.actuator.disable()
         except Exception:
             pass  # best effort: the bus may be gone
-        self._event("error", fault.code, fault.message)
+        self._event("error", fault.code, fault.message, joint=fault.joint, register=fault.register,
+                    value=fault.value)
         self._set_state(OperatingState.FAULT)
 
     # ------------------------------------------------------------------ the cycle
     def on_read(self, feedback: JointFeedback, fault: Fault | None) -> None:
         """Account for this cycle's read. A fault (after ``safety.bus_errors_max`` transient ones
-        in a row, or at once for a non-transient one) puts the robot in FAULT, torque off."""
-        if fault is None:
-            self._consecutive_bus_errors = 0
-            f = self.feedback
-            f.position[:] = feedback.position
-            f.velocity[:] = feedback.velocity
-            f.effort[:] = feedback.effort
-            f.stamp = feedback.stamp
+        in a row, or at once for a non-transient one) puts the robot in FAULT, torque off. A joint
+        whose measured position stays farther than ``safety.tracking_error_max`` from its position
+        command for TRACKING_CYCLES cycles does too."""
+        active = self.state in (OperatingState.ENABLED, OperatingState.PAUSED)
+        if fault is not None:
+            self._consecutive_bus_errors += 1
+            if active and (not fault.transient or self._consecutive_bus_errors >= self.safety.bus_errors_max):
+                self._enter_fault(fault)
             return
-        self._consecutive_bus_errors += 1
-        if self.state in (OperatingState.ENABLED, OperatingState.PAUSED) and (
-            not fault.transient or self._consecutive_bus_errors >= self.safety.bus_errors_max
-        ):
-            self._enter_fault(fault)
+        self._consecutive_bus_errors = 0
+        f = self.feedback
+        f.position[:] = feedback.position
+        f.velocity[:] = feedback.velocity
+        f.effort[:] = feedback.effort
+        f.stamp = feedback.stamp
+        if active and self._written:
+            cmd = self.command
+            err = np.abs(f.position - cmd.position)
+            err[cmd.mode != CommandMode.POSITION] = 0.0
+            j = int(np.argmax(err))
+            if err[j] > self.safety.tracking_error_max:
+                self._tracking_cycles += 1
+                if self._tracking_cycles >= TRACKING_CYCLES:
+                    name = self.profile.joints[j].name
+                    self._enter_fault(Fault(
+                        "tracking_error",
+                        f"{self.robot}: joint {name!r} is {err[j]:.3f} rad from its setpoint {cmd.position[j]:.3f} "
+                        f"(safety.tracking_error_max = {self.safety.tracking_error_max}): blocked or not following",
+                        joint=name, value=float(err[j]), transient=False))
+            else:
+                self._tracking_cycles = 0
 
     def step(self) -> bool:
         """Advance motion by one cycle and fill ``self.command``. Returns True if it must be written."""
         if self.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
+            self._written = False
             return False
         now = self.clock()
         cmd = self.command
+        measured = self.feedback.position
         for m in self.namespaces.values():
-            if m.mode is Mode.MOVE or m.mode is Mode.STOP:
-                m.step_trajectory(now)
-            elif m.mode is Mode.SERVO and now - m.last_servo_time > self.safety.servo_timeout_s:
-                m.mode = Mode.HOLD
-                m.setpoint_v[:] = 0.0
-                self._event("warning", "servo_timeout",
-                            f"{m.name}: no servo command for {self.safety.servo_timeout_s} s; holding position", m.name)
-            cmd.mode[m.idx] = CommandMode.POSITION
-            cmd.position[m.idx] = m.setpoint_p
-            cmd.velocity[m.idx] = m.setpoint_v
+            if m.mode is Mode.FREE:
+                m.setpoint_p[:] = measured[m.idx]  # follow the hand: leaving free is bumpless
+            msg = m.step(now, measured[m.idx])
+            if msg:
+                self._event("warning", "servo_timeout", msg, m.name)
+            m.fill(cmd)
         if self.homing and not any(m.busy for m in self.namespaces.values()):
             self.homing = False
             self.is_homed = True
         if self._busy_reported and not self.is_busy:
             self._push_state()  # busy=False edge (also carries is_homed after home)
+        self._written = True
         return True
-
-    # ------------------------------------------------------------------ views for the snapshot
-    def setpoint_fields(self, m: NamespaceMotion) -> tuple[bool, bool, bool]:
-        """Which of position / velocity / effort setpoint_js carries (spec 4.2.5 summary)."""
-        if m.setpoint_stamp == 0.0 or m.level is None:
-            return (False, False, False)
-        return (True, m.setpoint_has_v, False)

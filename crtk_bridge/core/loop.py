@@ -137,13 +137,20 @@ class ControlLoop:
         for k, m in enumerate(self._ns):
             v["setpoint_p"][m.idx] = m.setpoint_p
             v["setpoint_v"][m.idx] = m.setpoint_v
+            v["setpoint_f"][m.idx] = m.setpoint_f
             v["goal_p"][m.idx] = m.goal_p
-            has_p, has_v, has_f = c.setpoint_fields(m)
-            v["ns_setpoint_stamp"][k] = m.setpoint_stamp if has_p else 0.0
+            v["goal_v"][m.idx] = m.goal_v
+            v["goal_f"][m.idx] = m.goal_f
+            has_p, has_v, has_f = m.setpoint_fields()
+            v["ns_setpoint_stamp"][k] = m.setpoint_stamp if (has_p or has_v or has_f) else 0.0
             v["ns_has_p"][k] = has_p
             v["ns_has_v"][k] = has_v
             v["ns_has_f"][k] = has_f
-            v["ns_goal_stamp"][k] = m.goal_stamp
+            g_p, g_v, g_f = m.goal_fields()
+            v["ns_goal_stamp"][k] = m.goal_stamp if (g_p or g_v or g_f) else 0.0
+            v["ns_goal_has_p"][k] = g_p
+            v["ns_goal_has_v"][k] = g_v
+            v["ns_goal_has_f"][k] = g_f
         self.snap.end()
 
     # ---------------------------------------------------------------- the loop

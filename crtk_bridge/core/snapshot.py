@@ -5,8 +5,8 @@ sequence number to odd, writes, bumps it to even; a reader copies the block and 
 sequence was odd or changed meanwhile. Nothing is allocated on the writer's side per cycle.
 
 Layout (float64 unless said): ``seq`` (int64) | measured stamp, p[n], v[n], f[n] |
-setpoint p[n], v[n], f[n] | goal p[n] | per namespace: setpoint stamp, has_p, has_v, has_f,
-goal stamp | cycle count, overrun count, lateness ring [RING], compute ring [RING].
+setpoint p[n], v[n], f[n] | goal p[n], v[n], f[n] | per namespace: setpoint stamp, has_p,
+has_v, has_f, goal stamp, goal has_p, has_v, has_f | cycle count, overrun count, lateness ring [RING], compute ring [RING].
 """
 
 from __future__ import annotations
@@ -29,8 +29,9 @@ class Layout:
         n, k = self.n, self.k
         fields = [
             ("measured_stamp", 1), ("measured_p", n), ("measured_v", n), ("measured_f", n),
-            ("setpoint_p", n), ("setpoint_v", n), ("setpoint_f", n), ("goal_p", n),
+            ("setpoint_p", n), ("setpoint_v", n), ("setpoint_f", n), ("goal_p", n), ("goal_v", n), ("goal_f", n),
             ("ns_setpoint_stamp", k), ("ns_has_p", k), ("ns_has_v", k), ("ns_has_f", k), ("ns_goal_stamp", k),
+            ("ns_goal_has_p", k), ("ns_goal_has_v", k), ("ns_goal_has_f", k),
             ("cycles", 1), ("overruns", 1), ("ring_index", 1), ("lateness", RING), ("compute", RING),
         ]
         self.slices: dict[str, slice] = {}

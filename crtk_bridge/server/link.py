@@ -174,11 +174,13 @@ class ControlLink:
                 "velocity": buf[s["setpoint_v"]][idx].tolist() if has_v else [],
                 "effort": buf[s["setpoint_f"]][idx].tolist() if has_f else [],
             }
-        # goal_js
-        stamp = float(buf[s["ns_goal_stamp"]][k])
+        # goal_js: the goal of the running or last interpolate / move command
+        has_p, has_v, has_f = (bool(buf[s[f]][k]) for f in ("ns_goal_has_p", "ns_goal_has_v", "ns_goal_has_f"))
         return {
-            "stamp": stamp, "frame_id": ns, "name": names,
-            "position": buf[s["goal_p"]][idx].tolist() if stamp else [], "velocity": [], "effort": [],
+            "stamp": float(buf[s["ns_goal_stamp"]][k]), "frame_id": ns, "name": names,
+            "position": buf[s["goal_p"]][idx].tolist() if has_p else [],
+            "velocity": buf[s["goal_v"]][idx].tolist() if has_v else [],
+            "effort": buf[s["goal_f"]][idx].tolist() if has_f else [],
         }
 
     def period_statistics(self) -> dict:

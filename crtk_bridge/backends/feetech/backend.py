@@ -68,6 +68,7 @@ for _bit in tables.ERROR_BITS:
     _FAULT_MASK |= _bit
 
 _POSITION = int(CommandMode.POSITION)
+_FREE = int(CommandMode.FREE)
 _BLOCK = tables.PRESENT_BLOCK_START
 _BLOCK_LEN = tables.PRESENT_BLOCK_LEN
 
@@ -192,6 +193,7 @@ class FeetechBackend(Actuator):
         self._tmp = np.zeros(self.n)
         self._goal = np.zeros(self.n)  # goal ticks computed this cycle (float)
         self._last_goal = [0] * self.n  # ticks last sent / written at enable (int)
+        self._free = [False] * self.n  # joints switched torque-off by a FREE command
         self._attempts = 1 + cfg.read_retries
         self._port: FastPortHandler | None = None
         self._ph = None
@@ -342,6 +344,7 @@ class FeetechBackend(Actuator):
             self._last_goal[i] = present
             raw = tables.encode_sign_magnitude(present, tables.SIGN_BITS["Goal_Position"])
             self._sync_write.changeParam(self._ids[i], [raw & 0xFF, raw >> 8])
+        self._free = [False] * self.n
         try:
             for i in range(self.n):
                 self._write_register(i, "Torque_Enable", 1, check_error=True)
@@ -488,7 +491,15 @@ class FeetechBackend(Actuator):
         last = self._last_goal
         fault = None
         send = False
+        freeing = None  # joints entering / leaving FREE this cycle (rare: lists only then)
+        holding = None
         for i in range(self.n):
+            if mode[i] == _FREE:
+                if not self._free[i]:
+                    freeing = (freeing or []) + [i]
+                continue
+            if self._free[i] and mode[i] == _POSITION:
+                holding = (holding or []) + [i]
             if mode[i] == _POSITION:
                 send = True
                 g = goal[i]
@@ -510,7 +521,28 @@ class FeetechBackend(Actuator):
                 return Fault("bus_timeout",
                              f"{self.robot}: sync write of Goal_Position on {self._where} "
                              f"failed: {self._result_text(result)}", transient=True)
+        # `free`: torque off on joints entering FREE; torque back on for joints leaving it, AFTER
+        # the goal above (the controller commands their measured position, so nothing jumps)
+        if freeing:
+            fault = self._torque_sync(freeing, 0) or fault
+        if holding:
+            fault = self._torque_sync(holding, 1) or fault
         return fault
+
+    def _torque_sync(self, joints: list[int], value: int) -> Fault | None:
+        """One sync write of Torque_Enable to ``joints`` (transitions of `free` only)."""
+        reg = tables.STS_CONTROL_TABLE["Torque_Enable"]
+        gsw = GroupSyncWrite(self._port, self._ph, reg.address, reg.size)
+        for i in joints:
+            gsw.addParam(self._ids[i], [value])
+        self._port.is_using = False
+        result = gsw.txPacket()
+        if result != COMM_SUCCESS:
+            return Fault("bus_timeout", f"{self.robot}: sync write of Torque_Enable={value} on {self._where} "
+                         f"failed: {self._result_text(result)}", transient=True)
+        for i in joints:
+            self._free[i] = value == 0
+        return None
 
 
 def _describe(bits: int) -> str:

@@ -1,0 +1,359 @@
+"""Joint motion of one CRTK namespace: servo, interpolate and move, with setpoint / goal bookkeeping.
+
+Each namespace (an arm, its gripper) has its own setpoints, goals and trajectory generator, so a
+gripper move never disturbs the arm's servo stream (the dVRK jaw lesson), while all namespaces
+share one operating state (see ``controller.py``).
+
+Levels and what they produce each cycle (crtk-spec 4.1.1, setpoint fields per 4.2.5):
+
+| mode | source | setpoint_js fields | native command |
+|---|---|---|---|
+| SERVO_P  | latest servo_jp / servo_jr (+ optional velocity feed-forward) | p (+v) | position |
+| SERVO_V  | latest servo_jv; integrated into p on position-only hardware | v (+p) | velocity or position |
+| SERVO_F  | latest servo_jf | f | effort |
+| INTERP_P | linear interpolation from the setpoint to each interpolate_jp goal over one estimated command period | p, v | position |
+| INTERP_V | setpoint velocity ramps to each interpolate_jv goal at the acceleration limit | v (+p) | velocity or position |
+| INTERP_F | linear ramp to each interpolate_jf goal over one estimated command period | f | effort |
+| MOVE     | ruckig jerk-limited trajectory to the move goal, ending at rest | p, v | position |
+| STOP     | ruckig decelerates to rest (pause, hold, client loss), then HOLD | p, v | position |
+| HOLD     | the last position setpoint | p | position |
+| FREE     | nothing: torque off on these joints (`free`) | – | free |
+
+Interpolation latency: an interpolate_jp goal is reached one estimated command period after it
+arrives (an exponential average of the inter-arrival times, clamped to [loop period,
+servo_timeout_s]); that period is the latency interpolation adds.
+"""
+
+from __future__ import annotations
+
+import enum
+
+import numpy as np
+from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig
+
+from ..profile import Profile
+from .actuator import Capabilities, CommandMode, JointCommand
+
+
+class Mode(enum.Enum):
+    HOLD = "hold"
+    SERVO_P = "servo_jp"
+    SERVO_V = "servo_jv"
+    SERVO_F = "servo_jf"
+    INTERP_P = "interpolate_jp"
+    INTERP_V = "interpolate_jv"
+    INTERP_F = "interpolate_jf"
+    MOVE = "move_jp"
+    STOP = "stop"
+    FREE = "free"
+
+
+STREAMS = (Mode.SERVO_P, Mode.SERVO_V, Mode.SERVO_F, Mode.INTERP_P, Mode.INTERP_V, Mode.INTERP_F)
+VELOCITY_MODES = (Mode.SERVO_V, Mode.INTERP_V)
+EFFORT_MODES = (Mode.SERVO_F, Mode.INTERP_F)
+_PERIOD_GAIN = 0.3  # weight of the newest inter-arrival time in the command-period estimate
+
+
+class NamespaceMotion:
+    """Setpoints, goals and trajectory generator of one namespace. All vectors in rad, rad/s, N*m."""
+
+    def __init__(self, name: str, indices: list[int], profile: Profile, dt: float, caps: Capabilities):
+        self.name = name
+        self.idx = np.asarray(indices, dtype=np.intp)
+        joints = [profile.joints[i] for i in indices]
+        self.joint_names = [j.name for j in joints]
+        self.n = n = len(indices)
+        self.dt = dt
+        self.caps = caps
+        self.timeout = profile.safety.servo_timeout_s
+        self.pos_min = np.array([j.limits.position_min for j in joints])
+        self.pos_max = np.array([j.limits.position_max for j in joints])
+        self.vel_max = np.array([j.limits.velocity_max for j in joints])
+        self.acc_max = np.array([j.limits.acceleration_max for j in joints])
+        self.eff_max = np.array([j.limits.effort_max if j.limits.effort_max is not None else np.inf for j in joints])
+        self.home = np.array([j.home for j in joints])
+        self.mode = Mode.HOLD
+        self.level: Mode | None = None  # command level that produced the setpoint (None: invalid)
+        self.setpoint_p = np.zeros(n)
+        self.setpoint_v = np.zeros(n)
+        self.setpoint_f = np.zeros(n)
+        self.has_v_ff = False  # servo_jp carried a velocity feed-forward
+        self.setpoint_stamp = 0.0
+        self.goal_p = np.zeros(n)
+        self.goal_v = np.zeros(n)
+        self.goal_f = np.zeros(n)
+        self.goal_level: Mode | None = None  # interpolate_* or move that set the goal
+        self.goal_stamp = 0.0
+        self.last_cmd_time = 0.0
+        self.last_clip_warning = -np.inf
+        self.cmd_period = 0.02  # estimated interpolate command period, s
+        self.interp_start = np.zeros(n)
+        self.interp_t0 = 0.0
+        self.otg = Ruckig(n, dt)
+        self.inp = InputParameter(n)
+        self.out = OutputParameter(n)
+        self.inp.max_velocity = self.vel_max
+        self.inp.max_acceleration = self.acc_max
+        self.inp.max_jerk = [j.limits.jerk_max for j in joints]
+        self._zeros = np.zeros(n)
+        self._tmp = np.zeros(n)
+
+    # ------------------------------------------------------------------ fields (spec 4.2.5)
+    def setpoint_fields(self) -> tuple[bool, bool, bool]:
+        """Which of position / velocity / effort setpoint_js carries now."""
+        lv = self.level
+        if lv is None or self.setpoint_stamp == 0.0:
+            return (False, False, False)
+        integrated = not self.caps.velocity  # velocity modes integrate into a position setpoint
+        if lv is Mode.SERVO_P or lv is Mode.HOLD:
+            return (True, self.has_v_ff, False)
+        if lv in VELOCITY_MODES:
+            return (integrated, True, False)
+        if lv in EFFORT_MODES:
+            return (False, False, True)
+        return (True, True, False)  # INTERP_P, MOVE, STOP: p(t), v(t)
+
+    def goal_fields(self) -> tuple[bool, bool, bool]:
+        g = self.goal_level
+        if g is None or self.goal_stamp == 0.0:
+            return (False, False, False)
+        if g in VELOCITY_MODES:
+            return (False, True, False)
+        if g in EFFORT_MODES:
+            return (False, False, True)
+        return (True, False, False)
+
+    @property
+    def busy(self) -> bool:
+        return self.mode is Mode.MOVE
+
+    @property
+    def streaming(self) -> bool:
+        return self.mode in STREAMS
+
+    # ------------------------------------------------------------------ transitions
+    def reset(self, measured_p: np.ndarray) -> None:
+        """Hold where the joints are (on enable, or when leaving FREE): no surprise motion."""
+        self.mode = Mode.HOLD
+        self.level = None
+        self.setpoint_p[:] = measured_p
+        self.setpoint_v[:] = 0.0
+        self.setpoint_f[:] = 0.0
+        self.has_v_ff = False
+        self.setpoint_stamp = 0.0
+        self.goal_level = None
+        self.goal_stamp = 0.0
+
+    def invalidate(self) -> None:
+        """Torque off: setpoints and goals become invalid (stamp 0)."""
+        self.mode = Mode.HOLD
+        self.level = None
+        self.setpoint_stamp = 0.0
+        self.goal_level = None
+        self.goal_stamp = 0.0
+        self.setpoint_v[:] = 0.0
+        self.setpoint_f[:] = 0.0
+
+    def _enter(self, mode: Mode, now: float) -> None:
+        """Switch to a command level; a stream estimates its command period from arrivals."""
+        if mode is self.mode and mode in STREAMS:
+            dtc = now - self.last_cmd_time
+            if 0.0 < dtc <= self.timeout:
+                est = (1 - _PERIOD_GAIN) * self.cmd_period + _PERIOD_GAIN * dtc
+                self.cmd_period = min(max(est, self.dt), self.timeout)
+        elif mode in STREAMS:
+            self.cmd_period = max(0.02, self.dt)  # first command of a stream: assume 50 Hz
+        if mode not in EFFORT_MODES:
+            self.setpoint_f[:] = 0.0
+        self.mode = mode
+        self.level = mode
+        self.last_cmd_time = now
+        self.setpoint_stamp = now
+
+    def servo_p(self, p: np.ndarray, v: np.ndarray | None, now: float) -> None:
+        self._enter(Mode.SERVO_P, now)
+        self.setpoint_p[:] = p
+        self.has_v_ff = v is not None
+        self.setpoint_v[:] = v if v is not None else 0.0
+        self.goal_level = None
+        self.goal_stamp = 0.0
+
+    def servo_v(self, v: np.ndarray, now: float) -> None:
+        self._enter(Mode.SERVO_V, now)
+        np.clip(v, -self.vel_max, self.vel_max, out=self.setpoint_v)
+        self.goal_level = None
+        self.goal_stamp = 0.0
+
+    def servo_f(self, f: np.ndarray, now: float) -> None:
+        self._enter(Mode.SERVO_F, now)
+        np.clip(f, -self.eff_max, self.eff_max, out=self.setpoint_f)
+        self.goal_level = None
+        self.goal_stamp = 0.0
+
+    def interpolate_p(self, goal: np.ndarray, now: float) -> None:
+        self._enter(Mode.INTERP_P, now)
+        self.interp_start[:] = self.setpoint_p
+        self.interp_t0 = now
+        self.goal_p[:] = goal
+        self.goal_level = Mode.INTERP_P
+        self.goal_stamp = now
+
+    def interpolate_v(self, goal: np.ndarray, now: float) -> None:
+        self._enter(Mode.INTERP_V, now)
+        np.clip(goal, -self.vel_max, self.vel_max, out=self.goal_v)
+        self.goal_level = Mode.INTERP_V
+        self.goal_stamp = now
+
+    def interpolate_f(self, goal: np.ndarray, now: float) -> None:
+        start = self.setpoint_f.copy() if self.mode in EFFORT_MODES else np.zeros(self.n)
+        self._enter(Mode.INTERP_F, now)
+        self.interp_start[:] = start
+        self.setpoint_f[:] = start
+        self.interp_t0 = now
+        np.clip(goal, -self.eff_max, self.eff_max, out=self.goal_f)
+        self.goal_level = Mode.INTERP_F
+        self.goal_stamp = now
+
+    def start_move(self, goal: np.ndarray, now: float) -> None:
+        inp = self.inp
+        if self.mode is Mode.MOVE or self.mode is Mode.STOP:
+            pass  # re-plan from the trajectory's current state (kept in inp by pass_to_input)
+        else:
+            inp.current_position = self.setpoint_p
+            # start from the current setpoint velocity (a servo/interpolate stream in progress)
+            inp.current_velocity = np.clip(self.setpoint_v, -self.vel_max, self.vel_max) \
+                if self.mode in (Mode.SERVO_V, Mode.INTERP_V, Mode.INTERP_P) else self._zeros
+            inp.current_acceleration = self._zeros
+        inp.control_interface = ControlInterface.Position
+        inp.target_position = goal
+        inp.target_velocity = self._zeros
+        inp.target_acceleration = self._zeros
+        self.goal_p[:] = goal
+        self.goal_level = Mode.MOVE
+        self.goal_stamp = now
+        self.mode = Mode.MOVE
+        self.level = Mode.MOVE
+        self.setpoint_f[:] = 0.0
+
+    def stop(self) -> None:
+        """Come to rest: a move decelerates (jerk-limited), streams hold where they are."""
+        if self.mode is Mode.MOVE:
+            self.inp.control_interface = ControlInterface.Velocity
+            self.inp.target_velocity = self._zeros
+            self.inp.target_acceleration = self._zeros
+            self.mode = Mode.STOP
+        elif self.mode in (Mode.SERVO_P, Mode.INTERP_P, Mode.SERVO_V, Mode.INTERP_V):
+            self.hold()
+
+    def hold(self) -> None:
+        """Servo to the current position setpoint (dVRK `hold`)."""
+        self.mode = Mode.HOLD
+        if self.level is not None:
+            self.level = Mode.HOLD
+        self.has_v_ff = False
+        self.setpoint_v[:] = 0.0
+        self.setpoint_f[:] = 0.0
+
+    def free(self) -> None:
+        self.invalidate()
+        self.mode = Mode.FREE
+
+    # ------------------------------------------------------------------ one cycle
+    def step(self, now: float, measured_p: np.ndarray) -> str | None:
+        """Advance one cycle. Returns a watchdog message when a stream just timed out."""
+        mode = self.mode
+        msg = None
+        if mode in STREAMS and now - self.last_cmd_time > self.timeout:
+            msg = f"{self.name}: no {mode.value} command for {self.timeout} s; "
+            if mode in EFFORT_MODES and self.caps.position:
+                self.setpoint_p[:] = measured_p
+                self.hold()
+                msg += "holding position"
+            elif mode in EFFORT_MODES:
+                self.setpoint_f[:] = 0.0
+                msg += "effort set to zero"
+            elif mode in VELOCITY_MODES and self.caps.velocity and not self.caps.position:
+                self.setpoint_v[:] = 0.0
+                msg += "velocity set to zero"
+            else:
+                if mode in VELOCITY_MODES and self.caps.velocity:
+                    self.setpoint_p[:] = measured_p  # native velocity: hold where the joint is
+                self.hold()
+                msg += "holding position"
+            self.last_cmd_time = now  # say it once
+            mode = self.mode
+        if mode is Mode.MOVE or mode is Mode.STOP:
+            self._step_trajectory(now)
+        elif mode is Mode.INTERP_P:
+            self._step_interpolate_p(now)
+        elif mode is Mode.SERVO_V:
+            self._integrate(now)
+        elif mode is Mode.INTERP_V:
+            # ramp the setpoint velocity toward the goal at the acceleration limit
+            dv = np.clip(self.goal_v - self.setpoint_v, -self.acc_max * self.dt, self.acc_max * self.dt)
+            self.setpoint_v += dv
+            self._integrate(now)
+        elif mode is Mode.INTERP_F:
+            a = min(1.0, (now - self.interp_t0) / self.cmd_period)
+            self.setpoint_f[:] = self.interp_start + a * (self.goal_f - self.interp_start)
+            self.setpoint_stamp = now
+        return msg
+
+    def _integrate(self, now: float) -> None:
+        if self.caps.velocity:
+            self.setpoint_stamp = now
+            return  # native velocity control: nothing to integrate
+        p = self.setpoint_p
+        p += self.setpoint_v * self.dt
+        at_limit = (p <= self.pos_min) | (p >= self.pos_max)
+        np.clip(p, self.pos_min, self.pos_max, out=p)
+        self.setpoint_v[at_limit] = 0.0
+        self.setpoint_stamp = now
+
+    def _step_interpolate_p(self, now: float) -> None:
+        a = min(1.0, (now - self.interp_t0) / self.cmd_period)
+        target = self._tmp
+        np.subtract(self.goal_p, self.interp_start, out=target)
+        target *= a
+        target += self.interp_start
+        # never faster than the joint can go: a goal arriving early or far is followed at v_max
+        step = np.clip(target - self.setpoint_p, -self.vel_max * self.dt, self.vel_max * self.dt)
+        self.setpoint_p += step
+        self.setpoint_v[:] = step / self.dt
+        self.setpoint_stamp = now
+
+    def _step_trajectory(self, now: float) -> bool:
+        result = self.otg.update(self.inp, self.out)
+        if result is not Result.Working and result is not Result.Finished:
+            self.hold()  # invalid input cannot happen with validated limits; hold, don't guess
+            return True
+        self.setpoint_p[:] = self.out.new_position
+        self.setpoint_v[:] = self.out.new_velocity
+        self.setpoint_stamp = now
+        self.out.pass_to_input(self.inp)
+        if result is Result.Finished:
+            was_stop = self.mode is Mode.STOP
+            self.mode = Mode.HOLD
+            self.setpoint_v[:] = 0.0
+            if was_stop:
+                self.level = Mode.HOLD
+            return True
+        return False
+
+    def fill(self, cmd: JointCommand) -> None:
+        """Write this namespace's setpoints into the native command, in the hardware's terms."""
+        idx = self.idx
+        mode = self.mode
+        if mode is Mode.FREE:
+            cmd.mode[idx] = CommandMode.FREE
+            return
+        if mode in EFFORT_MODES:
+            cmd.mode[idx] = CommandMode.EFFORT
+        elif mode in VELOCITY_MODES and self.caps.velocity:
+            cmd.mode[idx] = CommandMode.VELOCITY
+        else:
+            cmd.mode[idx] = CommandMode.POSITION
+            np.clip(self.setpoint_p, self.pos_min, self.pos_max, out=self.setpoint_p)  # the limits stage
+        cmd.position[idx] = self.setpoint_p
+        cmd.velocity[idx] = self.setpoint_v
+        cmd.effort[idx] = self.setpoint_f
