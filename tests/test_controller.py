@@ -351,3 +351,144 @@ def test_client_lost_stops_motion(rig):
     c.handle({"id": None, "cmd": "_client_lost"})
     assert any(m.get("event") == "warning" and m["data"]["code"] == "control_released" for m in c.outbox)
     assert c.namespaces["so101"].mode.name == "HOLD"
+
+
+# ---------------------------------------------------------------- issue 3: every joint command
+
+
+def test_supported_commands_follow_capabilities(rig):
+    c, act, clock, cycle, req = rig
+    cmds = c.supported_commands()
+    for name in ("servo_jp", "servo_jr", "servo_jv", "interpolate_jp", "interpolate_jr", "interpolate_jv",
+                 "move_jp", "move_jr", "hold", "free"):
+        assert name in cmds
+    assert "servo_jf" not in cmds and "interpolate_jf" not in cmds  # no effort control
+    assert req("enable")["ok"]
+    r = req("servo_jf", "so101", effort=[0.0] * 5)
+    assert r["error"]["code"] == "unsupported" and "effort control" in r["error"]["message"]
+
+
+def test_servo_jv_integrates_on_position_hardware_and_times_out(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("servo_jv", "so101", velocity=[0.5, 0, 0, 0, 0])["ok"]
+    cycle(40)  # 0.2 s at 200 Hz
+    assert act.pos[0] == pytest.approx(0.1, abs=1e-9)
+    m = c.namespaces["so101"]
+    assert m.setpoint_fields() == (True, True, False)
+    assert m.goal_fields() == (False, False, False)
+    c.outbox.clear()
+    cycle(int(PROFILE.safety.servo_timeout_s / c.dt) + 2)
+    held = act.pos[0]
+    cycle(20)
+    assert act.pos[0] == held  # the watchdog stopped the velocity
+    assert [m["data"]["code"] for m in c.outbox if m.get("event") == "warning"] == ["servo_timeout"]
+
+
+def test_servo_jv_is_clipped_to_velocity_limit(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("servo_jv", "so101", velocity=[100.0, 0, 0, 0, 0])["ok"]
+    cycle(1)
+    assert act.pos[0] == pytest.approx(PROFILE.joints[0].limits.velocity_max * c.dt)
+
+
+def test_interpolate_jp_smooths_a_slow_stream(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    m = c.namespaces["so101"]
+    steps = []
+    goal = 0.0
+    for k in range(20):  # 20 Hz goals on a 200 Hz loop: 10 cycles apart
+        goal += 0.02
+        assert req("interpolate_jp", "so101", position=[goal, 0, 0, 0, 0])["ok"]
+        for _ in range(10):
+            before = act.pos[0]
+            cycle()
+            steps.append(act.pos[0] - before)
+    cycle(20)
+    assert act.pos[0] == pytest.approx(goal)
+    assert max(steps) < 0.02 / 2  # a goal's 0.02 rad is spread over several cycles, not one jump
+    assert m.setpoint_fields() == (True, True, False)
+    gp = m.goal_p[0]
+    assert m.goal_fields() == (True, False, False) and gp == pytest.approx(goal)
+    assert not c.is_busy
+    assert m.cmd_period == pytest.approx(10 * c.dt, rel=0.1)  # the period estimate converged
+
+
+def test_interpolate_jr_is_relative_to_the_last_goal(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("interpolate_jp", "so101", position=[0.1, 0, 0, 0, 0])["ok"]
+    assert req("interpolate_jr", "so101", position=[0.1, 0, 0, 0, 0])["ok"]
+    assert c.namespaces["so101"].goal_p[0] == pytest.approx(0.2)
+
+
+def test_interpolate_jv_ramps_at_the_acceleration_limit(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    m = c.namespaces["so101"]
+    assert req("interpolate_jv", "so101", velocity=[1.0, 0, 0, 0, 0])["ok"]
+    cycle(1)
+    assert m.setpoint_v[0] == pytest.approx(PROFILE.joints[0].limits.acceleration_max * c.dt)
+    for _ in range(30):
+        req("interpolate_jv", "so101", velocity=[1.0, 0, 0, 0, 0])
+        cycle(2)
+    assert m.setpoint_v[0] == pytest.approx(1.0)
+    assert m.goal_fields() == (False, True, False)
+
+
+def test_hold_stops_a_move_and_servo_resets_goal(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("move_jp", "so101", position=[1.5, 0, 0, 0, 0])["ok"]
+    cycle(30)
+    assert req("hold", "so101")["ok"]
+    cycle(200)
+    assert not c.is_busy and 0 < act.pos[0] < 1.5
+    assert [s["is_busy"] for s in states(c)][-1] is False
+    m = c.namespaces["so101"]
+    assert req("servo_jp", "so101", position=list(m.setpoint_p))["ok"]
+    assert m.goal_fields() == (False, False, False)  # no interpolate/move goal while servoing
+
+
+def test_free_then_move_starts_from_where_the_hand_left_it(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("free", "so101/gripper")["ok"]
+    cycle()
+    assert c.command.mode[5] == CommandMode.FREE and c.command.mode[0] == CommandMode.POSITION
+    assert c.namespaces["so101/gripper"].setpoint_fields() == (False, False, False)
+    act.pos[5] = 0.7  # moved by hand
+    cycle(3)
+    assert req("move_jp", "so101/gripper", position=[0.7])["ok"]
+    cycle()
+    assert c.command.mode[5] == CommandMode.POSITION and act.pos[5] == pytest.approx(0.7, abs=1e-6)
+
+
+def test_tracking_error_faults_naming_the_joint(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("move_jp", "so101", position=[1.5, 0, 0, 0, 0])["ok"]
+    frozen = act.pos.copy()
+    orig_write = act._write
+    act._write = lambda cmd: None  # the joint stops following
+    for _ in range(400):
+        act.pos[:] = frozen
+        cycle()
+        if c.state is OperatingState.FAULT:
+            break
+    act._write = orig_write
+    assert c.state is OperatingState.FAULT and not act.torque
+    err = [m["data"] for m in c.outbox if m.get("event") == "error"][-1]
+    assert err["code"] == "tracking_error" and err["joint"] == "shoulder_pan" and err["value"] > 0.6
+
+
+def test_servo_error_fault_carries_register_and_value(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    c.on_read(act.new_feedback(), Fault("servo_error", "so101: joint 'gripper' (id 6) reports overload (Status=0x20)",
+                                        joint="gripper", register="Status", value=0x20, transient=False))
+    err = [m["data"] for m in c.outbox if m.get("event") == "error"][-1]
+    assert (err["code"], err["joint"], err["register"], err["value"]) == ("servo_error", "gripper", "Status", 0x20)
+    assert c.state is OperatingState.FAULT
