@@ -24,6 +24,10 @@ from crtk_bridge.client.connection import Connection, DaemonConnectionError
 from crtk_bridge.errors import CommandError
 
 JOINTS = ["shoulder_pan", "elbow"]
+#: what a position-only backend lists: no servo_jf / interpolate_jf
+ARM_COMMANDS = ["enable", "disable", "pause", "resume", "home", "unhome", "servo_jp", "servo_jr",
+                "servo_jv", "interpolate_jp", "interpolate_jr", "interpolate_jv", "move_jp",
+                "move_jr", "hold", "free"]
 
 
 def wait_until(pred, timeout=3.0):
@@ -65,7 +69,7 @@ class FakeDaemon:
             "list": lambda r, s: s.send(ok(r, {
                 "robot": self.robot, "protocol_version": 1, "daemon_version": "0.1.0",
                 "namespaces": [
-                    {"name": "so101", "joints": JOINTS, "commands": ["move_jp", "servo_jp"],
+                    {"name": "so101", "joints": JOINTS, "commands": ARM_COMMANDS,
                      "queries": ["measured_js"], "topics": ["measured_js"]},
                     {"name": "so101/gripper", "joints": ["gripper"], "commands": ["move_jp"],
                      "queries": ["measured_js"], "topics": ["measured_js"]}]})),
@@ -556,3 +560,147 @@ def test_request_from_a_callback_is_refused_instead_of_deadlocking(fake, robot):
     robot.device().subscribe("measured_js", 10, callback=cb)
     assert wait_until(lambda: seen)
     assert "callback" in str(seen[0])
+
+
+# -- joint-space commands (issue 3) -------------------------------------------------------------
+
+@pytest.mark.parametrize("method,cmd,field", [
+    ("servo_jv", "servo_jv", "velocity"),
+    ("servo_jr", "servo_jr", "position"),
+    ("interpolate_jp", "interpolate_jp", "position"),
+    ("interpolate_jr", "interpolate_jr", "position"),
+    ("interpolate_jv", "interpolate_jv", "velocity"),
+])
+def test_stream_commands_send_their_payload_field(fake, robot, method, cmd, field):
+    fake.handlers[cmd] = lambda r, s: s.send(ok(r))
+    assert getattr(robot.device(), method)(np.array([0.25, -0.5])) is None
+    sent = fake.requests[-1]
+    assert sent["cmd"] == cmd and sent["ns"] == "so101" and sent["data"] == {field: [0.25, -0.5]}
+
+
+def test_hold_and_free_send_no_payload(fake, robot):
+    fake.handlers["hold"] = lambda r, s: s.send(ok(r))
+    fake.handlers["free"] = lambda r, s: s.send(ok(r))
+    arm = robot.device()
+    arm.hold()
+    assert fake.requests[-1] == {"id": fake.requests[-1]["id"], "cmd": "hold", "ns": "so101"}
+    arm.free()
+    assert fake.requests[-1]["cmd"] == "free" and "data" not in fake.requests[-1]
+
+
+def test_unlisted_commands_refused_locally_naming_command_and_namespace(fake, robot):
+    arm = robot.device()
+    n = len(fake.requests)
+    for call in (lambda: arm.servo_jf([0.1, 0.2]), lambda: arm.interpolate_jf([0.1, 0.2]),
+                 lambda: arm.gripper.free(), lambda: arm.gripper.servo_jv([0.1])):
+        with pytest.raises(CommandError) as info:
+            call()
+        assert info.value.code == "unsupported"
+        assert "so101" in info.value.message
+    assert "servo_jf" in str(pytest.raises(CommandError, arm.servo_jf, [0.0, 0.0]).value)
+    assert "so101/gripper: free" in str(pytest.raises(CommandError, arm.gripper.free).value)
+    assert len(fake.requests) == n  # nothing was sent
+    assert arm.supports("servo_jv") and not arm.supports("servo_jf")
+
+
+def test_daemon_unsupported_reply_raises_too(fake, robot):
+    fake.handlers["list"] = lambda r, s: s.send(ok(r, {  # an older daemon: no commands listed
+        "robot": "so101", "protocol_version": 1, "namespaces": [{"name": "so101", "joints": JOINTS}]}))
+    fake.handlers["servo_jf"] = lambda r, s: s.send(err(r, "unsupported",
+                                                        "so101: servo_jf is not supported by this robot"))
+    r2 = connect(socket=fake.path, timeout=3.0)
+    try:
+        with pytest.raises(CommandError) as info:
+            r2.device().servo_jf([0.0, 0.0])
+        assert info.value.code == "unsupported" and fake.requests[-1]["cmd"] == "servo_jf"
+    finally:
+        r2.close()
+
+
+def test_goal_queries_split_the_joint_state(fake, robot):
+    fake.handlers["goal_js"] = lambda r, s: s.send(ok(r, {
+        "stamp": 7.5, "name": JOINTS, "position": [], "velocity": [0.5, -0.5], "effort": []}))
+    arm = robot.device()
+    v, ts = arm.goal_jv()
+    np.testing.assert_allclose(v, [0.5, -0.5])
+    assert ts == 7.5
+    p, ts = arm.goal_jp()
+    assert p.shape == (0,) and ts == 7.5
+    f, _ = arm.goal_jf()
+    assert f.shape == (0,)
+
+
+def warning(code, ns="so101", **extra):
+    return {"event": "warning", "data": {"stamp": 2.0, "ns": ns, "code": code, "message": code, **extra}}
+
+
+def test_wait_for_event_sees_only_new_matching_events(fake, robot):
+    fake.push(warning("limit_clipped"))
+    assert wait_until(lambda: robot.connection.event_count == 1)
+    arm = robot.device()
+    t0 = time.monotonic()
+    assert arm.wait_for_event("limit_clipped", timeout=0.2) is None  # an old event does not count
+    assert time.monotonic() - t0 >= 0.15
+    mark = robot.connection.event_count
+    assert robot.wait_for_event("limit_clipped", 0.1, since=0).data["code"] == "limit_clipped"
+
+    threading.Timer(0.05, fake.push, args=(warning("servo_timeout", ns="so101/gripper"),)).start()
+    threading.Timer(0.1, fake.push, args=({"event": "error", "data": {
+        "stamp": 3.0, "ns": "so101", "code": "bus_timeout", "message": "no reply",
+        "joint": "elbow"}},)).start()
+    ev = arm.wait_for_event(kind="error", timeout=3.0)
+    assert ev.kind == "error" and ev.data["joint"] == "elbow"
+    # the gripper's warning is not about "so101", but it is there for the robot and the gripper
+    assert arm.wait_for_event("servo_timeout", 0.05, since=mark) is None
+    assert arm.gripper.wait_for_event("servo_timeout", 0.5, since=mark) is not None
+    assert [e.data["code"] for e in robot.connection.events_since(mark)] == ["servo_timeout", "bus_timeout"]
+
+
+def test_cli_new_stream_commands_hold_free(fake, capsys):
+    for cmd in ("servo_jv", "interpolate_jp", "interpolate_jv", "hold", "free"):
+        fake.handlers[cmd] = lambda r, s: s.send(ok(r))
+    assert main(["--socket", fake.path, "servo_jv", "0.1", "-0.1"]) == 0
+    assert fake.requests[-1]["data"] == {"velocity": [0.1, -0.1]}
+    assert "servo_jv sent" in capsys.readouterr().out
+    assert main(["--socket", fake.path, "interpolate_jp", "0.5", "0.25", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == {"cmd": "interpolate_jp", "ns": "so101", "ok": True}
+    assert fake.requests[-1]["data"] == {"position": [0.5, 0.25]}
+    n = len(fake.requests)
+    t0 = time.monotonic()
+    assert main(["--socket", fake.path, "interpolate_jv", "0", "0", "--duration", "0.2", "--rate", "50"]) == 0
+    assert time.monotonic() - t0 >= 0.18
+    assert len([r for r in fake.requests[n:] if r["cmd"] == "interpolate_jv"]) == 11
+    assert main(["--socket", fake.path, "hold"]) == 0
+    assert fake.requests[-1]["cmd"] == "hold"
+    assert main(["--socket", fake.path, "free"]) == 0
+    assert fake.requests[-1]["cmd"] == "free"
+    capsys.readouterr()
+    assert main(["--socket", fake.path, "servo_jf", "0.1", "0.1"]) == 1
+    assert "servo_jf refused (unsupported)" in capsys.readouterr().err
+    assert main(["--socket", fake.path, "servo_jv", "0.1"]) == 1  # wrong length, caught locally
+    assert "bad_request" in capsys.readouterr().err
+
+
+def test_cli_events_prints_until_count(fake, capsys):
+    def push_later():
+        time.sleep(0.1)
+        fake.push(os_event(state("ENABLED")))  # not printed: operating_state is not an event here
+        fake.push({"event": "status", "data": {"stamp": 1.0, "ns": "so101", "code": "state_changed",
+                                               "message": "so101: ENABLED"}})
+        fake.push({"event": "error", "data": {"stamp": 2.0, "ns": "so101", "code": "servo_error",
+                                              "message": "servo 3 reports overload",
+                                              "joint": "elbow", "register": "Status", "value": 32}})
+        fake.push(warning("servo_timeout"))
+
+    threading.Thread(target=push_later, daemon=True).start()
+    assert main(["--socket", fake.path, "events", "--count", "2"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2
+    assert "status" in lines[0] and "state_changed" in lines[0]
+    assert "servo_error" in lines[1] and "joint=elbow" in lines[1] and "register=Status" in lines[1] \
+        and "value=32" in lines[1]
+
+    threading.Thread(target=push_later, daemon=True).start()
+    assert main(["--socket", fake.path, "events", "--kind", "warning", "--count", "1", "--json"]) == 0
+    obj = json.loads(capsys.readouterr().out)
+    assert obj["event"] == "warning" and obj["data"]["code"] == "servo_timeout"

@@ -3,6 +3,8 @@
     crtk-ctl state                      crtk-ctl enable            crtk-ctl home
     crtk-ctl get measured_js            crtk-ctl echo measured_js --rate 50 --count 10
     crtk-ctl move_jp 0 0.5 -0.5 0 0 --wait        crtk-ctl --robot so101 --ns so101/gripper list
+    crtk-ctl servo_jv 0.1 0 0 0 0       crtk-ctl interpolate_jp 0 0.5 -0.5 0 0
+    crtk-ctl hold                       crtk-ctl free              crtk-ctl events --count 5
 
 Exit status: 0 on success; 1 when the daemon refuses a command (one line on stderr with the
 error code and the daemon's message), a wait times out or a state is not reached; 2 when no
@@ -14,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from typing import Sequence
 
 from crtk_bridge.client.connection import DaemonConnectionError
@@ -28,6 +31,18 @@ WAIT_DEFAULTS = {"enable": 5.0, "disable": 5.0, "pause": 5.0, "resume": 5.0,
 TARGETS = {"enable": "ENABLED", "disable": "DISABLED", "pause": "PAUSED", "resume": "ENABLED",
            "home": "homed", "unhome": "not homed"}
 MOVE_WAIT_DEFAULT = 30.0
+#: one-shot stream commands: name -> (help, metavar of the vector)
+STREAM_COMMANDS = {
+    "servo_jp": ("set the joint position setpoint P (rad)", "P"),
+    "servo_jr": ("move the joint position setpoint by P (rad)", "P"),
+    "servo_jv": ("set the joint velocity setpoint V (rad/s); the stream holds after the "
+                 "profile's servo timeout", "V"),
+    "servo_jf": ("set the joint effort setpoint F (N·m); needs effort control", "F"),
+    "interpolate_jp": ("set the interpolated joint position goal P (rad)", "P"),
+    "interpolate_jr": ("move the interpolated joint position goal by P (rad)", "P"),
+    "interpolate_jv": ("set the interpolated joint velocity goal V (rad/s)", "V"),
+    "interpolate_jf": ("set the interpolated joint effort goal F (N·m); needs effort control", "F"),
+}
 
 
 class Failure(Exception):
@@ -81,10 +96,21 @@ def build_parser() -> argparse.ArgumentParser:
         p = add(name, what)
         p.add_argument("position", nargs="+", type=float, metavar="P")
         p.add_argument("--wait", action="store_true", help="wait until the move has ended")
-    for name, what in (("servo_jp", "set the joint position setpoint P (rad)"),
-                       ("servo_jr", "move the joint position setpoint by P (rad)")):
+    for name, (what, meta) in STREAM_COMMANDS.items():
         p = add(name, what)
-        p.add_argument("position", nargs="+", type=float, metavar="P")
+        p.add_argument("values", nargs="+", type=float, metavar=meta)
+        p.add_argument("--duration", metavar="S", type=float, default=0.0,
+                       help="repeat the command at --rate for S seconds (default: send once; the "
+                            "daemon holds when crtk-ctl disconnects, or after its servo timeout)")
+        p.add_argument("--rate", metavar="HZ", type=float, default=50.0,
+                       help="repeat rate with --duration (default 50)")
+    add("hold", "stop a move (decelerating) or a stream and hold the position")
+    add("free", "torque off on the namespace's joints; the robot stays ENABLED")
+    p = add("events", "print status/warning/error events as they arrive, until Ctrl-C or "
+                      "--count events")
+    p.add_argument("--count", metavar="N", type=int, default=None, help="stop after N events")
+    p.add_argument("--kind", choices=("status", "warning", "error"), action="append",
+                   help="only events of this kind (repeatable; default: all)")
     return parser
 
 
@@ -256,14 +282,65 @@ def _run(args, robot: Robot) -> int:
                 print(f"{dev.name}: {cmd} done ({state})")
         return 0
 
-    if cmd in ("servo_jp", "servo_jr"):
-        _check_len(dev, cmd, args.position)
-        getattr(dev, cmd)(args.position)
+    if cmd in STREAM_COMMANDS or cmd in ("hold", "free"):
+        if cmd in STREAM_COMMANDS:
+            _check_len(dev, cmd, args.values)
+            if args.rate <= 0:
+                raise CommandError("bad_request", f"--rate must be > 0, got {args.rate:g}")
+            send = getattr(dev, cmd)
+            send(args.values)
+            n = int(round(max(0.0, args.duration) * args.rate))
+            if n:
+                t0 = time.monotonic()
+                for k in range(1, n + 1):
+                    time.sleep(max(0.0, t0 + k / args.rate - time.monotonic()))
+                    send(args.values)
+        else:
+            getattr(dev, cmd)()
         _emit_json({"cmd": cmd, "ns": dev.name, "ok": True}) if out_json else print(
             f"{dev.name}: {cmd} sent")
         return 0
 
+    if cmd == "events":
+        return _events(robot, args)
+
     raise AssertionError(f"unhandled command {cmd}")  # argparse choices make this unreachable
+
+
+def _fmt_event(ev) -> str:
+    d = ev.data
+    extra = "".join(f"  {k}={d[k]}" for k in ("joint", "register", "value") if k in d)
+    stamp = d.get("stamp")
+    when = f"{stamp:.3f}" if isinstance(stamp, (int, float)) and stamp else "-"
+    return f"{when}  {ev.kind:<7} {d.get('code')}  {d.get('ns')}: {_one_line(d.get('message', ''))}{extra}"
+
+
+def _events(robot: Robot, args) -> int:
+    """Print events as they arrive (the reader thread queues them) until --count or Ctrl-C."""
+    import queue
+
+    q: queue.Queue = queue.Queue()
+    robot.connection.on_event = q.put
+    kinds = set(args.kind or ("status", "warning", "error"))
+    count = 0
+    if args.count is not None and args.count <= 0:
+        return 0
+    while True:
+        try:
+            ev = q.get(timeout=0.5)
+        except queue.Empty:
+            if robot.connection.closed:
+                raise DaemonConnectionError(f"crtk-bridge at {robot.connection.path} went away")
+            continue
+        if ev.kind not in kinds:
+            continue
+        if args.json:
+            _emit_json({"event": ev.kind, "data": ev.data})
+        else:
+            print(_fmt_event(ev), flush=True)
+        count += 1
+        if args.count is not None and count >= args.count:
+            return 0
 
 
 def _one_line(text: str) -> str:

@@ -90,6 +90,8 @@ class Connection:
     - :attr:`max_busy_seq`: the highest ``busy_seq`` seen at all (every move or home numbered
       ``<= max_busy_seq`` has started);
     - :attr:`events`: the last ``max_events`` status/warning/error :class:`Event` s;
+    - :attr:`event_count`: how many status/warning/error events have arrived in all (take it
+      before a command, then :meth:`events_since` gives what came after);
     - :attr:`on_event`: optional ``callable(Event)``, called on the reader thread.
     """
 
@@ -102,6 +104,7 @@ class Connection:
         self.idle_seq = -1
         self.max_busy_seq = -1
         self.events: collections.deque[Event] = collections.deque(maxlen=max_events)
+        self.event_count = 0
         self.on_event: Callable[[Event], None] | None = None
         self._pending: dict[int, _Pending] = {}
         self._streams: dict[int, Callable[[dict | None, BaseException | None], None]] = {}
@@ -384,9 +387,17 @@ class Connection:
                     self.idle_seq = max(self.idle_seq, seq)
             self.cond.notify_all()
 
-    def _record_event(self, ev: Event) -> None:
-        self.events.append(ev)
+    def events_since(self, count: int) -> list[Event]:
+        """The events that arrived after :attr:`event_count` was ``count`` (as many as are
+        still kept), oldest first."""
         with self.cond:
+            n = min(max(0, self.event_count - count), len(self.events))
+            return list(self.events)[len(self.events) - n:] if n else []
+
+    def _record_event(self, ev: Event) -> None:
+        with self.cond:
+            self.events.append(ev)
+            self.event_count += 1
             self.cond.notify_all()
         cb = self.on_event
         if cb is not None:

@@ -26,7 +26,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from crtk_bridge.client.connection import (
-    PROTOCOL_VERSION, Connection, DaemonConnectionError, encode_vector)
+    PROTOCOL_VERSION, Connection, DaemonConnectionError, Event, encode_vector)
 from crtk_bridge.client.paths import (
     SYSTEM_SOCKET_DIR, default_socket_dir, default_socket_path, find_sockets)
 from crtk_bridge.errors import CommandError, CrtkBridgeError
@@ -363,7 +363,9 @@ class Device:
 
     def setpoint_js(self):
         """``(position, velocity, effort, ts)`` of the servo setpoint; only the vectors of the
-        active command level are filled (servo_jp: position; move_jp: position and velocity)."""
+        active command level are filled (CRTK 4.2.5: servo_jp: position; servo_jv: velocity,
+        plus the integrated position on position-only hardware; interpolate_jp and move_jp:
+        position and velocity; servo_jf: effort). ``ts == 0`` when disabled or freed."""
         return self._js("setpoint_js")
 
     def setpoint_jp(self):
@@ -379,24 +381,55 @@ class Device:
         return f, ts
 
     def goal_js(self):
-        """``(position, velocity, effort, ts)`` of the running or last move's goal; ``ts == 0``
-        when there is none."""
+        """``(position, velocity, effort, ts)`` of the goal of the running or last
+        ``interpolate_*`` / ``move_*`` command (position for jp/jr, velocity for jv, effort for
+        jf); ``ts == 0`` when there is none (after a servo command, or while disabled)."""
         return self._js("goal_js")
 
     def goal_jp(self):
         p, _, _, ts = self._js("goal_js")
         return p, ts
 
+    def goal_jv(self):
+        _, v, _, ts = self._js("goal_js")
+        return v, ts
+
+    def goal_jf(self):
+        _, _, f, ts = self._js("goal_js")
+        return f, ts
+
     # -- motion (CRTK 4.3) -------------------------------------------------------------------
 
     def _vec(self, values, what: str) -> list[float]:
         return encode_vector(values, f"{self.name}: {what}")
+
+    def supports(self, cmd: str) -> bool:
+        """True if ``cmd`` is in this namespace's ``commands`` of ``list`` (as of connecting).
+        A daemon that lists no commands is assumed to support everything."""
+        commands = self.info.get("commands")
+        return commands is None or cmd in commands
+
+    def _check_supported(self, cmd: str) -> None:
+        if not self.supports(cmd):
+            have = ", ".join(c for c in self.info.get("commands") or () if c.split("_")[0]
+                             in ("servo", "interpolate", "move", "hold", "free")) or "none"
+            raise CommandError("unsupported",
+                               f"{self.name}: {cmd} is not supported by this namespace "
+                               f"(motion commands it lists: {have})")
+
+    def _motion(self, cmd: str, field: str | None = None, values=None) -> Any:
+        """Send one motion command after checking it is listed; ``field`` names the payload
+        vector (``position`` / ``velocity`` / ``effort``)."""
+        self._check_supported(cmd)
+        data = None if field is None else {field: self._vec(values, f"{cmd} {field}")}
+        return self._req(cmd, data)
 
     def servo_jp(self, setpoint_p, setpoint_v=None) -> None:
         """Set the position setpoint (rad), optionally with a velocity feed-forward (rad/s), one
         entry per joint. Preemptive; send continuously at about the loop rate. Blocks for the
         reply; raises :class:`CommandError` (``step_too_large``, ``out_of_limits``,
         ``invalid_state``, ``bad_request``...)."""
+        self._check_supported("servo_jp")
         data = {"position": self._vec(setpoint_p, "servo_jp position")}
         if setpoint_v is not None and len(setpoint_v) > 0:
             data["velocity"] = self._vec(setpoint_v, "servo_jp velocity")
@@ -405,9 +438,58 @@ class Device:
     def servo_jr(self, setpoint_p) -> None:
         """Move the position setpoint by ``setpoint_p`` (rad), relative to the current setpoint.
         Blocks for the reply; raises :class:`CommandError` like :meth:`servo_jp`."""
-        self._req("servo_jr", {"position": self._vec(setpoint_p, "servo_jr position")})
+        self._motion("servo_jr", "position", setpoint_p)
+
+    def servo_jv(self, setpoint_v) -> None:
+        """Set the joint velocity setpoint (rad/s, one per joint; clipped to the velocity
+        limits). Preemptive; on position-only hardware the daemon integrates it into the
+        position setpoint. Send continuously: a stream silent for the profile's
+        ``safety.servo_timeout_s`` holds. Raises :class:`CommandError`."""
+        self._motion("servo_jv", "velocity", setpoint_v)
+
+    def servo_jf(self, setpoint_f) -> None:
+        """Set the joint effort setpoint (N·m, one per joint). Needs effort control: raises
+        :class:`CommandError` ``unsupported`` (without sending) when the namespace does not
+        list ``servo_jf``."""
+        self._motion("servo_jf", "effort", setpoint_f)
+
+    def interpolate_jp(self, goal_p) -> None:
+        """Set the joint position goal (rad) of an interpolated stream, sent at a rate below the
+        loop rate (e.g. 20-50 Hz): the daemon moves the setpoint linearly to each goal over one
+        estimated command period (the latency this adds), never faster than the joint's
+        velocity limit. Preemptive. Raises :class:`CommandError` (``step_too_large`` for a goal
+        farther than ``safety.servo_step_max`` from the previous goal)."""
+        self._motion("interpolate_jp", "position", goal_p)
+
+    def interpolate_jr(self, goal_r) -> None:
+        """Like :meth:`interpolate_jp` with a goal relative (rad) to the running interpolation
+        goal, or to the setpoint when none runs."""
+        self._motion("interpolate_jr", "position", goal_r)
+
+    def interpolate_jv(self, goal_v) -> None:
+        """Set the joint velocity goal (rad/s); the setpoint velocity ramps to it at the
+        acceleration limits. Raises :class:`CommandError`."""
+        self._motion("interpolate_jv", "velocity", goal_v)
+
+    def interpolate_jf(self, goal_f) -> None:
+        """Set the joint effort goal (N·m), reached by a linear ramp over one command period.
+        Needs effort control (else ``unsupported``)."""
+        self._motion("interpolate_jf", "effort", goal_f)
+
+    def hold(self) -> None:
+        """Stop and hold: a running move decelerates to rest, a stream holds its last position
+        setpoint (nothing commanded yet: the measured position). Raises :class:`CommandError`."""
+        self._motion("hold")
+
+    def free(self) -> None:
+        """Switch torque off on this namespace's joints while the robot stays ENABLED (the arm
+        can be moved by hand; setpoint_js becomes invalid). The next motion command torques them
+        back on from where they are, without a jump. Needs ``free`` in the namespace's
+        commands (else ``unsupported``)."""
+        self._motion("free")
 
     def _move(self, cmd: str, goal) -> MoveHandle:
+        self._check_supported(cmd)
         seq_before = self._conn.max_busy_seq
         reply = self._req(cmd, {"position": self._vec(goal, f"{cmd} position")})
         n = seq_before + 1
@@ -426,6 +508,16 @@ class Device:
         """Like :meth:`move_jp` with a goal relative (rad) to the running move's goal, or to the
         setpoint when no move runs."""
         return self._move("move_jr", goal)
+
+    # -- events --------------------------------------------------------------------------------
+
+    def wait_for_event(self, code: str | None = None, timeout: float = 5.0,
+                       kind: str | None = None, since: int | None = None) -> Event | None:
+        """Wait up to ``timeout`` s for a status/warning/error event about this namespace (or the
+        whole robot) with ``code`` (any if None) and ``kind``; return it, or None on timeout.
+        Only events arriving after the call count, unless ``since`` (an
+        :attr:`Connection.event_count` taken earlier) says from where to look."""
+        return self._robot.wait_for_event(code, timeout, kind=kind, since=since, ns=self.name)
 
     # -- streams -------------------------------------------------------------------------------
 
@@ -513,6 +605,29 @@ class Robot:
         """The last status/warning/error events (a deque of :class:`Event`)."""
         return self.connection.events
 
+    def wait_for_event(self, code: str | None = None, timeout: float = 5.0, *,
+                       kind: str | None = None, since: int | None = None,
+                       ns: str | None = None) -> Event | None:
+        """Wait up to ``timeout`` s for a status/warning/error event with ``code`` (any if None),
+        of ``kind`` (``"error"``, ``"warning"``, ``"status"``; any if None) and, if ``ns`` is
+        given, about that namespace or the whole robot. Returns the first match, or None on
+        timeout. Only events arriving after the call count, unless ``since`` (a value of
+        :attr:`Connection.event_count` taken earlier, e.g. before sending a command) says from
+        where to look. Raises :class:`DaemonConnectionError` if the daemon goes away."""
+        conn = self.connection
+        start = conn.event_count if since is None else since
+        found: list[Event] = []
+
+        def match(c: Connection) -> bool:
+            for e in c.events_since(start):
+                if _event_matches(e, kind, code, ns, self.name):
+                    found.append(e)
+                    return True
+            return False
+
+        conn.wait_for(match, max(0.0, timeout))
+        return found[0] if found else None
+
     def close(self) -> None:
         self.connection.close()
 
@@ -521,6 +636,16 @@ class Robot:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _event_matches(ev: Event, kind: str | None, code: str | None, ns: str | None, robot: str) -> bool:
+    if kind is not None and ev.kind != kind:
+        return False
+    if code is not None and ev.data.get("code") != code:
+        return False
+    if ns is not None and ev.data.get("ns") not in (ns, robot, None):
+        return False
+    return True
 
 
 def resolve_socket(socket: str | None = None, robot: str | None = None) -> str:
