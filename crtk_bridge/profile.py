@@ -63,9 +63,20 @@ class Joint(_Strict, kw_only=True):
     effort_per_amp: float | None = None  # N*m per A, to report effort from current; None = no effort
 
 
+class KinematicsConfig(_Strict, kw_only=True):
+    """Cartesian space of a namespace (pinocchio, see core/kinematics.py)."""
+
+    urdf: str  # path to the URDF, relative to the profile file
+    base_frame: str  # reference frame of every pose (a link fixed to the URDF root)
+    tip_frame: str  # the moving frame (tool tip)
+    ik_tolerance_position: float = 1e-3  # m: IK goals not reached this close are refused
+    ik_tolerance_orientation: float = 0.01  # rad
+
+
 class Namespace(_Strict, kw_only=True):
     name: str  # CRTK namespace, e.g. "so101" or "so101/gripper"
     joints: list[str]
+    kinematics: KinematicsConfig | None = None  # cartesian commands and queries; None = joint only
 
 
 class Loop(_Strict, kw_only=True):
@@ -211,7 +222,18 @@ def load_profile(path: str | Path) -> Profile:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ProfileError(f"{path}: not valid YAML: {exc}") from exc
-    return parse_profile(data, str(path))
+    profile = parse_profile(data, str(path))
+    # URDF paths are relative to the profile file: resolve them now, so the daemon can chdir
+    namespaces = []
+    for i, ns in enumerate(profile.namespaces):
+        k = ns.kinematics
+        if k is not None:
+            urdf = (path.parent / k.urdf).resolve()
+            if not urdf.is_file():
+                raise ProfileError(f"{path}: namespaces[{i}] ({ns.name}).kinematics.urdf: no file {urdf}")
+            ns = msgspec.structs.replace(ns, kinematics=msgspec.structs.replace(k, urdf=str(urdf)))
+        namespaces.append(ns)
+    return msgspec.structs.replace(profile, namespaces=namespaces)
 
 
 def backend_config(profile: Profile, config_type: type, source: str = "<profile>") -> Any:

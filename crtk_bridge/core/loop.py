@@ -154,8 +154,11 @@ class ControlLoop:
         self.snap.end()
 
     # ---------------------------------------------------------------- the loop
-    def run(self) -> int:
-        """Run until shutdown or loss of the front process. Returns the exit status."""
+    def run(self, ready: dict | None = None) -> int:
+        """Run until shutdown or loss of the front process. Returns the exit status.
+
+        ``ready`` is sent to the front process once the first sample is published, so nobody is
+        served an all-zero snapshot."""
         c = self.controller
         problems = request_realtime(self.profile.loop.realtime_priority, self.profile.loop.cpu) if self.realtime else ["disabled by --no-realtime"]
         if problems:
@@ -166,6 +169,8 @@ class ControlLoop:
         c.on_read(self.feedback, fault)
         c._push_state()
         self._publish()
+        if ready is not None:
+            c.outbox.append(ready)
         self._flush()
         gc.collect()
         gc.freeze()
@@ -259,14 +264,14 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
     caps = actuator.capabilities
     loop = ControlLoop(profile, actuator, chan, snapshot, realtime=realtime)
     loop_ref["loop"] = loop
-    chan.send(_encode({"event": "_ready", "data": {
+    ready = {"event": "_ready", "data": {
         "commands": loop.controller.supported_commands(),
         "capabilities": {k: getattr(caps, k) for k in caps.__dataclass_fields__},
-    }}))
+    }}
     if stop["flag"]:
         loop.running = False
     try:
-        return loop.run()
+        return loop.run(ready)
     except Exception:
         loop.shutdown()
         raise

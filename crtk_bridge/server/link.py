@@ -183,6 +183,28 @@ class ControlLink:
             "effort": buf[s["goal_f"]][idx].tolist() if has_f else [],
         }
 
+    def ns_arrays(self, ns: str) -> dict:
+        """One consistent snapshot of a namespace's joint state as numpy arrays and flags."""
+        buf = self.read()
+        s = self._slices
+        idx = self.ns_joints[ns]
+        k = self.ns_index[ns]
+        return {
+            "measured_stamp": float(buf[s["measured_stamp"]][0]),
+            "measured_p": buf[s["measured_p"]][idx], "measured_v": buf[s["measured_v"]][idx],
+            "measured_f": buf[s["measured_f"]][idx],
+            "measures_velocity": self.measures_velocity, "measures_effort": self.measures_effort,
+            "setpoint_stamp": float(buf[s["ns_setpoint_stamp"]][k]),
+            "setpoint_p": buf[s["setpoint_p"]][idx], "setpoint_v": buf[s["setpoint_v"]][idx],
+            "setpoint_f": buf[s["setpoint_f"]][idx],
+            "setpoint_has_p": bool(buf[s["ns_has_p"]][k]), "setpoint_has_v": bool(buf[s["ns_has_v"]][k]),
+            "setpoint_has_f": bool(buf[s["ns_has_f"]][k]),
+            "goal_stamp": float(buf[s["ns_goal_stamp"]][k]),
+            "goal_p": buf[s["goal_p"]][idx], "goal_v": buf[s["goal_v"]][idx], "goal_f": buf[s["goal_f"]][idx],
+            "goal_has_p": bool(buf[s["ns_goal_has_p"]][k]), "goal_has_v": bool(buf[s["ns_goal_has_v"]][k]),
+            "goal_has_f": bool(buf[s["ns_goal_has_f"]][k]),
+        }
+
     def period_statistics(self) -> dict:
         buf = self.read()
         s = self._slices

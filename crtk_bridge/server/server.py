@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
+from .cartesian import FRAMED, CartesianSpace
 from .link import ControlLink, ControlLost
 from .protocol import (
     JOINT_QUERIES, PROTOCOL_VERSION, ROBOT_QUERIES, STATE_COMMANDS, TOPICS, ProtocolError, decode_request,
@@ -54,6 +55,10 @@ class Server:
         self.profile = link.profile
         self.robot = self.profile.name
         self.commands = commands  # motion and state commands the control process supports
+        self.cartesian: dict[str, CartesianSpace] = {
+            ns.name: CartesianSpace(self.profile, ns.name, ns.kinematics, commands, link.measures_effort)
+            for ns in self.profile.namespaces if ns.kinematics is not None
+        }
         self.socket_path = socket_path
         self.sessions: dict[int, Session] = {}
         self.controller: Session | None = None
@@ -182,7 +187,29 @@ class Server:
                                 f"{self.robot}: unknown namespace {ns!r} (have: {', '.join(self.link.ns_index)})")
         return ns
 
+    def _frame(self, cmd: str, ns: str | None) -> tuple[str | None, str]:
+        """``so101/body`` -> (``so101``, "body") for commands and queries whose frame differs."""
+        if ns:
+            base, _, last = ns.rpartition("/")
+            if last in ("body", "spatial") and base in self.cartesian:
+                if cmd not in FRAMED:
+                    raise ProtocolError("unsupported", f"{ns}: {cmd} is not available in the {last}/ namespace "
+                                        f"(only {', '.join(FRAMED)})")
+                return base, last
+        return ns, "spatial"
+
     async def _dispatch(self, s: Session, rid: int, cmd: str, ns: str | None, data: Any) -> Any:
+        ns, frame = self._frame(cmd, ns)
+        cs = self.cartesian.get(ns) if ns else None
+        if cs is not None and (cmd in cs.queries or cmd in cs.commands):
+            if cmd == "forward_kinematics":
+                return cs.forward_kinematics(data)
+            if cmd == "inverse_kinematics":
+                return cs.inverse_kinematics(data, self.link.ns_arrays(ns))
+            if cmd in cs.queries:
+                return cs.query(cmd, self.link.ns_arrays(ns), frame)
+            self._take_control(s, cmd)
+            cmd, data = cs.translate(cmd, data, self.link.ns_arrays(ns), frame, self.state.get("is_busy", False))
         if cmd in JOINT_QUERIES:
             return self.link.joint_state(cmd, self._check_ns(cmd, ns, True))
         if cmd == "operating_state":
@@ -231,9 +258,13 @@ class Server:
         if not isinstance(data, dict):
             raise ProtocolError("bad_request", "subscribe needs data {\"topic\": ..., \"rate_hz\": ...}")
         topic = data.get("topic")
-        if topic not in TOPICS:
-            raise ProtocolError("bad_request", f"unknown topic {topic!r} (topics: {', '.join(TOPICS)})")
-        ns = self._check_ns("subscribe", ns, topic in JOINT_QUERIES)
+        base, _ = self._frame(topic if isinstance(topic, str) else "", ns)
+        cs = self.cartesian.get(base) if base else None
+        cart_topics = [q for q in cs.queries if q.startswith(("measured_", "setpoint_", "goal_"))] if cs else []
+        if topic not in TOPICS and topic not in cart_topics:
+            raise ProtocolError("bad_request", f"unknown topic {topic!r} for {ns or self.robot} "
+                                f"(topics: {', '.join(list(TOPICS) + cart_topics)})")
+        self._check_ns("subscribe", base, topic in JOINT_QUERIES or topic in cart_topics)
         rate = data.get("rate_hz", 10.0)
         if not isinstance(rate, (int, float)) or not rate > 0:
             raise ProtocolError("bad_request", f"rate_hz must be a number > 0, got {rate!r}")
@@ -244,10 +275,14 @@ class Server:
 
     async def _stream(self, s: Session, sub: int, topic: str, ns: str | None, period: float) -> None:
         loop = asyncio.get_running_loop()
+        base, frame = self._frame(topic, ns)
+        cs = self.cartesian.get(base) if base else None
         next_t = loop.time()
         while not s.closed:
             if topic in JOINT_QUERIES:
                 data = self.link.joint_state(topic, ns)
+            elif cs is not None:
+                data = cs.query(topic, self.link.ns_arrays(base), frame)
             elif topic == "operating_state":
                 data = self.state
             else:
@@ -263,13 +298,19 @@ class Server:
     def describe(self) -> dict:
         namespaces = []
         for ns in self.profile.namespaces:
-            namespaces.append({
+            cs = self.cartesian.get(ns.name)
+            cart_q = cs.queries if cs else []
+            entry = {
                 "name": ns.name,
                 "joints": list(ns.joints),
-                "commands": list(self.commands),
-                "queries": list(JOINT_QUERIES + ROBOT_QUERIES),
-                "topics": list(TOPICS),
-            })
+                "commands": list(self.commands) + (cs.commands if cs else []),
+                "queries": list(JOINT_QUERIES + ROBOT_QUERIES) + cart_q,
+                "topics": list(TOPICS) + [q for q in cart_q if not q.endswith("kinematics")],
+            }
+            if cs:
+                entry["cartesian"] = {"base_frame": cs.cfg.base_frame, "tip_frame": cs.cfg.tip_frame,
+                                      "frames": ["spatial", "body"]}
+            namespaces.append(entry)
         return {"robot": self.robot, "protocol_version": PROTOCOL_VERSION, "daemon_version": __version__,
                 "backend": self.profile.backend_type, "rate_hz": self.profile.loop.rate_hz, "namespaces": namespaces}
 

@@ -1,0 +1,188 @@
+"""Cartesian CRTK for one namespace, in the front process: queries from the snapshot, commands
+translated to joint commands before they reach the control loop.
+
+Why here and not in the loop: IK costs 0.1 ms warm and up to tens of ms cold (bench/), which the
+real-time loop must not pay; FK and Jacobians for queries are pure functions of a joint sample. So a
+cartesian command becomes the equivalent joint command (``servo_cp`` -> ``servo_jp`` of the IK
+solution, ``servo_cv`` -> ``servo_jv`` of J⁺·twist, ...), and the loop's limits, watchdog, busy
+edges and faults apply unchanged.
+
+Conventions (docs/protocol.md, "Cartesian"):
+* poses are the tip frame in the base frame, ``position`` [m] + ``orientation`` quaternion
+  ``[x, y, z, w]``;
+* twists ``linear`` [m/s] + ``angular`` [rad/s], wrenches ``force`` [N] + ``torque`` [N·m], in the
+  base frame's axes at the tip (``spatial``, the default) or in the tip frame's axes (``body``, via
+  the ``<ns>/body`` namespace);
+* relative commands (``*_cr``) are in the base frame: the translation is added to the current
+  position, the rotation pre-multiplies the current orientation;
+* cartesian data carries the stamp of the joint sample it was computed from; stamp 0 when that
+  data is invalid (``setpoint_cp`` is valid only while the active command is position based).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from ..core.kinematics import Kinematics, matrix_from_quaternion, quaternion_from_matrix
+from ..profile import KinematicsConfig, Profile
+from .protocol import ProtocolError
+
+POSE_CMDS = ("servo_cp", "interpolate_cp", "move_cp")
+RELATIVE_CMDS = ("servo_cr", "interpolate_cr", "move_cr")
+TWIST_CMDS = ("servo_cv", "interpolate_cv")
+WRENCH_CMDS = ("servo_cf", "interpolate_cf")
+#: cartesian command -> the joint command it becomes
+JOINT_EQUIVALENT = {
+    "servo_cp": "servo_jp", "interpolate_cp": "interpolate_jp", "move_cp": "move_jp",
+    "servo_cr": "servo_jr", "interpolate_cr": "interpolate_jp", "move_cr": "move_jp",
+    "servo_cv": "servo_jv", "interpolate_cv": "interpolate_jv",
+    "servo_cf": "servo_jf", "interpolate_cf": "interpolate_jf",
+}
+FRAMED = ("measured_cv", "measured_cf", "setpoint_cv", "setpoint_cf", "goal_cv") + TWIST_CMDS + WRENCH_CMDS
+_DAMPING = 1e-3  # damped least squares for J⁺ (5-DOF arm: no exact twist inverse)
+
+
+class CartesianSpace:
+    def __init__(self, profile: Profile, ns: str, config: KinematicsConfig, joint_commands: list[str],
+                 measures_effort: bool):
+        self.ns = ns
+        self.cfg = config
+        spec = profile.namespace(ns)
+        self.kin = Kinematics(config.urdf, config.base_frame, config.tip_frame, list(spec.joints))
+        idx = [profile.joint_index(j) for j in spec.joints]
+        self.kin.set_limits([profile.joints[i].limits.position_min for i in idx],
+                            [profile.joints[i].limits.position_max for i in idx])
+        self.n = len(idx)
+        self.commands = [c for c, j in JOINT_EQUIVALENT.items() if j in joint_commands]
+        self.queries = ["measured_cp", "measured_cv", "setpoint_cp", "setpoint_cv", "goal_cp", "goal_cv",
+                        "forward_kinematics", "inverse_kinematics"]
+        if measures_effort:
+            self.queries.append("measured_cf")
+        if "servo_jf" in joint_commands:
+            self.queries.append("setpoint_cf")
+
+    # ---------------------------------------------------------------- payloads
+    def _pose(self, stamp: float, q: np.ndarray | None) -> dict:
+        if q is None:
+            return {"stamp": 0.0, "frame_id": self.cfg.base_frame, "child_frame_id": self.cfg.tip_frame,
+                    "position": [], "orientation": []}
+        p, quat = self.kin.fk(q)
+        return {"stamp": stamp, "frame_id": self.cfg.base_frame, "child_frame_id": self.cfg.tip_frame,
+                "position": p.tolist(), "orientation": quat.tolist()}
+
+    def _six(self, kind: str, stamp: float, vec: np.ndarray | None, frame: str) -> dict:
+        a, b = ("linear", "angular") if kind == "twist" else ("force", "torque")
+        base = {"stamp": stamp if vec is not None else 0.0,
+                "frame_id": self.cfg.base_frame if frame == "spatial" else self.cfg.tip_frame,
+                "child_frame_id": self.cfg.tip_frame}
+        if vec is None:
+            base.update({a: [], b: []})
+        else:
+            base.update({a: vec[:3].tolist(), b: vec[3:].tolist()})
+        return base
+
+    # ---------------------------------------------------------------- queries
+    def query(self, cmd: str, st: dict, frame: str) -> dict:
+        """``st`` is the namespace's joint state from one snapshot read (see ControlLink.ns_arrays)."""
+        if cmd == "measured_cp":
+            return self._pose(st["measured_stamp"], st["measured_p"] if st["measured_stamp"] else None)
+        if cmd == "measured_cv":
+            ok = st["measured_stamp"] and st["measures_velocity"]
+            v = self.kin.twist(st["measured_p"], st["measured_v"], frame) if ok else None
+            return self._six("twist", st["measured_stamp"], v, frame)
+        if cmd == "measured_cf":
+            ok = st["measured_stamp"] and st["measures_effort"]
+            w = self.kin.wrench_from_efforts(st["measured_p"], st["measured_f"], frame) if ok else None
+            return self._six("wrench", st["measured_stamp"], w, frame)
+        if cmd == "setpoint_cp":  # spec 4.2.6: valid only when the active command is position based
+            return self._pose(st["setpoint_stamp"], st["setpoint_p"] if st["setpoint_has_p"] else None)
+        if cmd == "setpoint_cv":
+            ok = st["setpoint_has_v"] and st["setpoint_has_p"]
+            v = self.kin.twist(st["setpoint_p"], st["setpoint_v"], frame) if ok else None
+            return self._six("twist", st["setpoint_stamp"], v, frame)
+        if cmd == "setpoint_cf":
+            ok = st["setpoint_has_f"]
+            w = self.kin.wrench_from_efforts(st["measured_p"], st["setpoint_f"], frame) if ok else None
+            return self._six("wrench", st["setpoint_stamp"], w, frame)
+        if cmd == "goal_cp":
+            return self._pose(st["goal_stamp"], st["goal_p"] if st["goal_has_p"] else None)
+        if cmd == "goal_cv":
+            ok = st["goal_has_v"]
+            v = self.kin.twist(st["measured_p"], st["goal_v"], frame) if ok else None
+            return self._six("twist", st["goal_stamp"], v, frame)
+        raise ProtocolError("unknown_command", f"{self.ns}: unknown cartesian query {cmd!r}")
+
+    def forward_kinematics(self, data: Any) -> dict:
+        q = self._vec(data, "jp", self.n, "forward_kinematics")
+        return self._pose(time.time(), q)  # a computed pose: stamped when computed
+
+    def inverse_kinematics(self, data: Any, st: dict) -> dict:
+        p, quat = self._target(data, "inverse_kinematics")
+        seed = data.get("jp")
+        seed = self._vec(data, "jp", self.n, "inverse_kinematics") if seed else st["measured_p"]
+        q, ok, rp, ro, msg = self.kin.ik(p, quat, seed, self.cfg.ik_tolerance_position, self.cfg.ik_tolerance_orientation)
+        return {"jp": q.tolist(), "result": bool(ok), "message": msg,
+                "residual_position": float(rp), "residual_orientation": float(ro)}
+
+    # ---------------------------------------------------------------- commands -> joint commands
+    def translate(self, cmd: str, data: Any, st: dict, frame: str, busy: bool) -> tuple[str, dict]:
+        """The joint command equivalent to cartesian ``cmd``. Raises ProtocolError (ik_failed...)."""
+        joint_cmd = JOINT_EQUIVALENT[cmd]
+        current = st["setpoint_p"] if st["setpoint_has_p"] else st["measured_p"]
+        if cmd in POSE_CMDS:
+            p, quat = self._target(data, cmd)
+            return joint_cmd, {"position": self._ik(cmd, p, quat, current).tolist()}
+        if cmd in RELATIVE_CMDS:
+            dp, dquat = self._target(data, cmd)
+            if cmd == "servo_cr":
+                base = current
+            elif cmd == "move_cr":
+                base = st["goal_p"] if busy and st["goal_has_p"] else current
+            else:  # interpolate_cr: relative to the last interpolate goal while a stream runs
+                base = st["goal_p"] if st["goal_has_p"] else current
+            T = self.kin.fk_matrix(base)
+            p = T[:3, 3] + dp
+            R = matrix_from_quaternion(dquat) @ T[:3, :3]  # base frame: pre-multiply
+            q = self._ik(cmd, p, quaternion_from_matrix(R), base)
+            if cmd == "servo_cr":
+                return joint_cmd, {"position": (q - current).tolist()}  # accumulates in the loop
+            return joint_cmd, {"position": q.tolist()}
+        if cmd in TWIST_CMDS:
+            twist = np.concatenate([self._vec(data, "linear", 3, cmd), self._vec(data, "angular", 3, cmd)])
+            J = self.kin.jacobian(current, frame)
+            qd = J.T @ np.linalg.solve(J @ J.T + _DAMPING * np.eye(6), twist)
+            return joint_cmd, {"velocity": qd.tolist()}
+        wrench = np.concatenate([self._vec(data, "force", 3, cmd), self._vec(data, "torque", 3, cmd)])
+        J = self.kin.jacobian(st["measured_p"], frame)
+        return joint_cmd, {"effort": (J.T @ wrench).tolist()}
+
+    def _ik(self, cmd: str, p: np.ndarray, quat: np.ndarray, seed: np.ndarray) -> np.ndarray:
+        restarts = 4 if cmd.startswith("move") else 0  # streams: one warm solve, never a slow search
+        q, ok, rp, ro, msg = self.kin.ik(p, quat, seed, self.cfg.ik_tolerance_position,
+                                         self.cfg.ik_tolerance_orientation, restarts=restarts)
+        if not ok:
+            raise ProtocolError("ik_failed", f"{self.ns}: {cmd} refused: {msg}")
+        return q
+
+    def _target(self, data: Any, cmd: str) -> tuple[np.ndarray, np.ndarray]:
+        p = self._vec(data, "position", 3, cmd)
+        quat = self._vec(data, "orientation", 4, cmd)
+        norm = float(np.linalg.norm(quat))
+        if not 0.5 < norm < 1.5:
+            raise ProtocolError("bad_request", f"{self.ns}: {cmd} orientation must be a unit quaternion [x, y, z, w]")
+        return p, quat / norm
+
+    def _vec(self, data: Any, field: str, n: int, cmd: str) -> np.ndarray:
+        values = data.get(field) if isinstance(data, dict) else None
+        if not isinstance(values, (list, tuple)) or len(values) != n:
+            raise ProtocolError("bad_request", f"{self.ns}: {cmd} needs {field!r} with {n} numbers")
+        try:
+            vec = np.array(values, dtype=float)
+        except (TypeError, ValueError):
+            raise ProtocolError("bad_request", f"{self.ns}: {cmd} {field} must be numbers") from None
+        if not np.all(np.isfinite(vec)):
+            raise ProtocolError("bad_request", f"{self.ns}: {cmd} {field} contains a non-finite value")
+        return vec
