@@ -165,6 +165,9 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="crtk-bench-"))
     data = yaml.safe_load((ROOT / "profiles" / "so101.yaml").read_text())
     data["loop"]["rate_hz"] = 1000
+    for ns in data["namespaces"]:
+        if "kinematics" in ns:
+            ns["kinematics"]["urdf"] = str(ROOT / "profiles" / "urdf" / "so101.urdf")
     prof = tmp / "so101-1khz.yaml"
     prof.write_text(yaml.safe_dump(data))
     sock = tmp / "so101.sock"

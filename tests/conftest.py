@@ -18,6 +18,18 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 SO101 = ROOT / "profiles" / "so101.yaml"
+SO101_URDF = ROOT / "profiles" / "urdf" / "so101.urdf"
+
+
+def so101_data() -> dict:
+    """profiles/so101.yaml as data, with its URDF path made absolute so a copy can live anywhere."""
+    import yaml
+
+    data = yaml.safe_load(SO101.read_text())
+    for ns in data["namespaces"]:
+        if "kinematics" in ns:
+            ns["kinematics"]["urdf"] = str(SO101_URDF)
+    return data
 
 
 def wait_until(predicate, timeout=10.0, interval=0.01, what="condition"):

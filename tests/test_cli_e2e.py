@@ -10,7 +10,7 @@ import yaml
 from crtk_bridge.cli import main as bridge_main
 from crtk_bridge.client.cli import main as ctl_main
 
-from .conftest import SO101
+from .conftest import SO101, so101_data
 
 
 def test_check_accepts_a_valid_profile(capsys):
@@ -19,7 +19,7 @@ def test_check_accepts_a_valid_profile(capsys):
 
 
 def test_check_rejects_an_invalid_profile_naming_key(tmp_path, capsys):
-    data = yaml.safe_load(SO101.read_text())
+    data = so101_data()
     data["joints"][1]["limits"]["velocity_max"] = "fast"
     data["backend"]["baudrate"] = 123
     bad = tmp_path / "bad.yaml"
@@ -30,7 +30,7 @@ def test_check_rejects_an_invalid_profile_naming_key(tmp_path, capsys):
 
 
 def test_check_rejects_unknown_backend_key(tmp_path, capsys):
-    data = yaml.safe_load(SO101.read_text())
+    data = so101_data()
     data["backend"]["speed"] = 3
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump(data))

@@ -13,7 +13,7 @@ import yaml
 from crtk_bridge.client import CommandError, connect
 from crtk_bridge.sim.control import control_request
 
-from .conftest import SO101, DaemonProcess, RawSession, wait_until
+from .conftest import SO101, so101_data, DaemonProcess, RawSession, wait_until
 
 TOL = 0.02  # rad: sim servo quantisation is 2*pi/4096 = 0.0015 rad; first-order lag settles well inside this
 
@@ -120,7 +120,7 @@ def test_sigterm_mid_motion_turns_torque_off(short_tmp):
     try:
         wait_until(lambda: link.exists() and control.exists() or sim.poll() is not None, 15, what="simulator link")
         assert sim.poll() is None, sim.stderr.read().decode()
-        data = yaml.safe_load(SO101.read_text())
+        data = so101_data()
         data["backend"]["port"] = str(link)
         profile = short_tmp / "so101-sim.yaml"
         profile.write_text(yaml.safe_dump(data))

@@ -113,7 +113,9 @@ def test_example_backend_section_matches_feetech_config():
 
 @pytest.fixture
 def base() -> dict:
-    return yaml.safe_load(SO101.read_text())
+    from .conftest import so101_data
+
+    return so101_data()
 
 
 def load_bad(tmp_path: Path, data: Any, name: str = "bad.yaml") -> str:
