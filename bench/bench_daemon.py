@@ -106,7 +106,8 @@ def round_trips(path: str, n: int) -> np.ndarray:
 class Load:
     """8 subscribers of measured_js at 1 kHz + one servo_jp client at 500 Hz."""
 
-    def __init__(self, path: str, arm_start: np.ndarray):
+    def __init__(self, path: str, arm_start: np.ndarray, cartesian: bool = False):
+        self.cartesian = cartesian
         self.stop = threading.Event()
         self.frames = [0] * 8
         self.threads = [threading.Thread(target=self._sub, args=(path, i), daemon=True) for i in range(8)]
@@ -126,14 +127,23 @@ class Load:
     def _servo(self, path: str, start: np.ndarray) -> None:
         robot = self.robot
         arm = robot.device("so101")
+        conn = robot.connection
         period = 1 / 500
         nxt = time.perf_counter()
         k = 0
+        if self.cartesian:  # a 2 cm circle in the arm's vertical plane, one servo_cp (IK) per command
+            cp = conn.request("measured_cp", "so101")
+            centre, quat = np.array(cp["position"]), cp["orientation"]
+            radial = np.array([1.0, 0.0, 0.0])
         while not self.stop.is_set():
             k += 1
-            p = start + np.array([0.2 * np.sin(k * period), 0, 0, 0, 0])
             try:
-                arm.servo_jp(p)
+                if self.cartesian:
+                    a = k * period * 2 * np.pi
+                    goal = centre + 0.02 * ((np.cos(a) - 1) * radial + np.sin(a) * np.array([0, 0, 1.0]))
+                    conn.request("servo_cp", "so101", {"position": goal.tolist(), "orientation": quat})
+                else:
+                    arm.servo_jp(start + np.array([0.2 * np.sin(k * period), 0, 0, 0, 0]))
                 self.sent += 1
             except Exception:
                 pass
@@ -160,6 +170,7 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--window", type=float, default=3.0, help="seconds per measurement window")
     ap.add_argument("--rtt", type=int, default=2000, help="round trips per window")
+    ap.add_argument("--cartesian", action="store_true", help="stream servo_cp (IK per command) instead of servo_jp")
     args = ap.parse_args()
 
     tmp = Path(tempfile.mkdtemp(prefix="crtk-bench-"))
@@ -196,7 +207,7 @@ def main() -> int:
         # -- loop lateness under load, alternating with the bare loop --
         bare, loaded, compute, overruns = [], [], [], []
         stats_start = robot.connection.request("period_statistics")
-        load = Load(str(sock), start)
+        load = Load(str(sock), start, cartesian=args.cartesian)
         load.start(robot)
         load_t0 = time.monotonic()
         time.sleep(0.5)  # let subscriptions start
@@ -228,8 +239,8 @@ def main() -> int:
     bare_all = np.concatenate(bare)
     loaded_p99 = float(np.median(np.concatenate(loaded)))
     bare_p99 = pct(bare_all, 99)
-    print(f"loop @1kHz under load (8x measured_js@1kHz subscribers, servo_jp@500Hz; {frames} frames, "
-          f"{sent} servo_jp sent; overruns so far {overruns[-1]}):")
+    print(f"loop @1kHz under load (8x measured_js@1kHz subscribers, {'servo_cp' if args.cartesian else 'servo_jp'}@500Hz; {frames} frames, "
+          f"{sent} {'servo_cp' if args.cartesian else 'servo_jp'} sent; overruns so far {overruns[-1]}):")
     print(f"  daemon lateness p99 (median of ~1 s windows): {loaded_p99 * 1e3:.3f} ms")
     print(f"  bare SCHED_FIFO loop lateness p50 {pct(bare_all, 50) * 1e3:.3f} ms, p99 {bare_p99 * 1e3:.3f} ms")
     cyc = stats_end["cycles"] - stats_start["cycles"]
