@@ -7,6 +7,7 @@ physics clock (``sim.clock``), so no test depends on how long a sleep happened t
 from __future__ import annotations
 
 import os
+import select
 import shutil
 import signal
 import subprocess
@@ -162,7 +163,7 @@ def test_sync_write_goal_with_torque_on_converges(sim, bus):
     port, ph = bus
     for sid in (1, 2):
         assert ph.write1ByteTxRx(port, sid, 40, 1)[0] == sdk.COMM_SUCCESS
-    sync_write_goals(port, ph, {1: 2500, 2: 800})
+    sync_write_goals(port, ph, {1: 4000, 2: 800})  # 0.85 s of travel for servo 1
     seen_moving = []
 
     def arrived():
@@ -170,7 +171,7 @@ def test_sync_write_goal_with_torque_on_converges(sim, bus):
         assert res == sdk.COMM_SUCCESS
         seen_moving.append((group.getData(1, 66, 1), T.decode_sign_magnitude(group.getData(1, 58, 2), 15),
                             group.getData(1, 69, 2)))
-        return group.getData(1, 56, 2) == 2500 and group.getData(2, 56, 2) == 800
+        return group.getData(1, 56, 2) == 4000 and group.getData(2, 56, 2) == 800
 
     wait_for(arrived, 5.0, "servos 1 and 2 at their goals")
     assert any(m == 1 and v > 0 and cur > 0 for m, v, cur in seen_moving), seen_moving
@@ -253,7 +254,8 @@ def test_bad_checksum_ignored_and_garbage_resynced(sim):
         assert reply == b"\xff\xff\x01\x02\x00" + bytes((checksum(b"\x01\x02\x00"),))
         assert sim.servo(1).read("Torque_Enable") == 1
         # broadcast: no status reply to READ or WRITE; every servo answers a broadcast PING
-        ser.write(packet(T.BROADCAST_ID, T.INST_READ, bytes((5, 1))) + packet(T.BROADCAST_ID, T.INST_WRITE, bytes((41, 9))))
+        ser.write(packet(T.BROADCAST_ID, T.INST_READ, bytes((5, 1)))
+                  + packet(T.BROADCAST_ID, T.INST_WRITE, bytes((41, 9))))
         assert ser.read(6) == b""
         assert all(sim.servo(i).read("Acceleration") == 9 for i in IDS)
         ser.write(packet(T.BROADCAST_ID, T.INST_PING))
@@ -401,6 +403,8 @@ def test_cli_serves_until_sigterm(tmp):
                              "--link", str(link), "--control", str(ctl)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
+        ready, _, _ = select.select([proc.stdout], [], [], 20.0)
+        assert ready, "crtk-sim printed nothing within 20 s"
         line = proc.stdout.readline()  # printed once the link and the socket exist
         assert f"port={link}" in line and f"control={ctl}" in line, (line, proc.stderr.read())
         assert link.is_symlink() and ctl.exists()

@@ -13,6 +13,9 @@ physics, advanced lazily from the monotonic clock whenever a packet or a caller 
 - torque off (or any other mode): the joint stays where it is (no gravity);
 - Present_Velocity is the instantaneous rate, Present_Current / Present_Load grow with the
   tracking error, Moving is 1 while the servo is still closing in; Present = Actual - Homing_Offset.
+- enabling torque drives to whatever Goal_Position holds (it is not reset to Present_Position), so
+  a backend must write Goal = Present before enabling, as on hardware. Torque_Enable 128 makes the
+  current position read 2048 (writes Homing_Offset) and leaves torque off.
 
 Bus behaviour modelled: broadcast id 0xFE (no status reply, except PING and SYNC_READ where every
 addressed servo answers in turn), Response_Status_Level 0 (answer only reads and pings), bad
@@ -551,7 +554,10 @@ class FeetechSimulator:
                 return {"ok": True}
             if cmd == "fault":
                 servo = self._control_servo(request)
-                self.set_fault(servo.id, str(request.get("kind")), int(request.get("bits", 0)))
+                bits = request.get("bits", 0)
+                if not isinstance(bits, int) or isinstance(bits, bool):
+                    return {"ok": False, "error": f"'bits' must be an integer, got {bits!r}"}
+                self.set_fault(servo.id, str(request.get("kind")), bits)
                 return {"ok": True}
             if cmd == "clear_faults":
                 sid = request.get("id")
