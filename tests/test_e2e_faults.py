@@ -226,7 +226,7 @@ def test_killed_controlling_client_makes_the_arm_hold(sim_daemon):
         held = arm.measured_jp()[0][0]
         time.sleep(0.3)  # the observation window of "it stays there"
         assert abs(arm.measured_jp()[0][0] - held) < 0.005
-        assert arm.is_enabled()  # a lost client is not a fault
+        assert arm.is_enabled(), (arm.operating_state(), watcher.connection.events_since(mark))  # not a fault
         # and control is free for the watcher
         assert arm.move_jr([-0.05, 0, 0, 0, 0]).wait(timeout=5.0)
     finally:
