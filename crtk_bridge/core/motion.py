@@ -263,6 +263,10 @@ class NamespaceMotion:
         """Advance one cycle. Returns a watchdog message when a stream just timed out."""
         mode = self.mode
         msg = None
+        if mode in EFFORT_MODES or (mode in VELOCITY_MODES and self.caps.velocity):
+            # native velocity / effort control: the position setpoint follows the joint, so a
+            # later position-level command (hold, stop, move, servo_jr) starts where it is
+            self.setpoint_p[:] = measured_p
         if mode in STREAMS and now - self.last_cmd_time > self.timeout:
             msg = f"{self.name}: no {mode.value} command for {self.timeout} s; "
             if mode in EFFORT_MODES and self.caps.position:

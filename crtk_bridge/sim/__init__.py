@@ -5,6 +5,7 @@ serial buses), so ``--sim`` and the tests run the same backend code path as hard
 
 - :mod:`crtk_bridge.sim.pty`      raw pseudo-terminal pair with an optional stable symlink
 - :mod:`crtk_bridge.sim.feetech`  Feetech STS3215 servo bus (:class:`FeetechSimulator`)
+- :mod:`crtk_bridge.sim.dynamixel` Dynamixel X-series Protocol 2.0 bus (:class:`DynamixelSimulator`)
 - :mod:`crtk_bridge.sim.control`  JSON-lines control socket to inspect and change a running sim
 - :mod:`crtk_bridge.sim.cli`      ``crtk-sim`` console script
 
@@ -26,7 +27,11 @@ def __getattr__(name: str):
         from .feetech import FeetechSimulator
 
         return FeetechSimulator
+    if name == "DynamixelSimulator":
+        from .dynamixel import DynamixelSimulator
+
+        return DynamixelSimulator
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["SimulatorError", "FeetechSimulator"]
+__all__ = ["SimulatorError", "FeetechSimulator", "DynamixelSimulator"]

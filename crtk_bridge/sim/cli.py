@@ -2,6 +2,7 @@
 
     crtk-sim feetech --profile profiles/so101.yaml --link /tmp/ttySIM [--control /tmp/sim.sock]
                      [--emulate-baud] [--log-level info]
+    crtk-sim dynamixel --profile profiles/koch.yaml --link /tmp/ttySIM [...same options]
 
 Prints one line once the port (and control socket) exist, then serves until signalled; exits 0
 after removing the link and the control socket. Exit 2: bad arguments or profile; 1: the
@@ -25,14 +26,16 @@ _HEALTH_CHECK_S = 0.5
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="crtk-sim", description="Run a wire-level device simulator.")
     sub = p.add_subparsers(dest="device", required=True, metavar="DEVICE")
-    fe = sub.add_parser("feetech", help="Feetech STS3215 servo bus on a pseudo-terminal")
-    fe.add_argument("--profile", required=True, help="robot profile (YAML); one servo per joint id")
-    fe.add_argument("--link", help="create this symlink to the pty (default: print the pty path)")
-    fe.add_argument("--control", help="serve the JSON-lines control socket at this path")
-    fe.add_argument("--emulate-baud", action="store_true",
-                    help="delay replies by the wire time at the profile's baud rate")
-    fe.add_argument("--log-level", default="warning",
-                    choices=["debug", "info", "warning", "error"], help="default: warning")
+    for device, what in (("feetech", "Feetech STS3215 servo bus on a pseudo-terminal"),
+                         ("dynamixel", "Dynamixel X-series (Protocol 2.0) bus on a pseudo-terminal")):
+        d = sub.add_parser(device, help=what)
+        d.add_argument("--profile", required=True, help="robot profile (YAML); one servo per joint id")
+        d.add_argument("--link", help="create this symlink to the pty (default: print the pty path)")
+        d.add_argument("--control", help="serve the JSON-lines control socket at this path")
+        d.add_argument("--emulate-baud", action="store_true",
+                       help="delay replies by the wire time at the profile's baud rate")
+        d.add_argument("--log-level", default="warning",
+                       choices=["debug", "info", "warning", "error"], help="default: warning")
     return p
 
 
@@ -45,13 +48,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"crtk-sim: {exc}", file=sys.stderr)
         return 2
 
-    from .feetech import FeetechSimulator
+    if args.device == "dynamixel":
+        from .dynamixel import DynamixelSimulator as Simulator
+    else:
+        from .feetech import FeetechSimulator as Simulator
 
     # Block the signals before any thread exists, so every thread inherits the mask and only
     # sigtimedwait() below receives them: a clean, race-free shutdown path.
     signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
     try:
-        sim = FeetechSimulator.from_profile(
+        sim = Simulator.from_profile(
             profile, link=args.link, control=args.control, emulate_baud=args.emulate_baud)
         sim.start()
     except CrtkBridgeError as exc:
@@ -61,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"crtk-sim: cannot start the simulator: {exc}", file=sys.stderr)
         return 1
     try:
-        print(f"crtk-sim: feetech bus ready: port={sim.port} pty={sim.pty_path} "
+        print(f"crtk-sim: {args.device} bus ready: port={sim.port} pty={sim.pty_path} "
               f"control={sim.control_path or '-'} ids={','.join(map(str, sim.ids))} "
               f"baud={sim.baudrate}{' (emulated)' if sim.emulate_baud else ''}", flush=True)
         while True:

@@ -28,7 +28,6 @@ Endianness: ``PacketHandler(0)`` sets the SDK's module-GLOBAL byte order to litt
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Annotated
 
@@ -44,18 +43,17 @@ from scservo_sdk import (
 )
 
 from ...core.actuator import (
-    Actuator,
-    ActuatorInfo,
     Capabilities,
     CommandMode,
     Fault,
     JointCommand,
     JointFeedback,
 )
-from ...errors import BackendError, ProfileError
-from ...profile import Profile, backend_config
+from ...errors import BackendError
+from ...profile import Profile
+from ..serial_servo import SerialServoBackend
 from . import tables
-from .port import DEFAULT_MARGIN_MS, FastPortHandler
+from .port import FastPortHandler
 
 Byte = Annotated[int, msgspec.Meta(ge=0, le=254)]
 
@@ -108,7 +106,7 @@ class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     d_coefficient: Byte = 32
 
 
-class FeetechBackend(Actuator):
+class FeetechBackend(SerialServoBackend):
     """Feetech STS servos on one serial bus, position control. See the module docstring.
 
     Constructing validates the profile (raises ProfileError naming ``backend.<key>`` or the joint
@@ -120,167 +118,71 @@ class FeetechBackend(Actuator):
         measures_effort=False, needs_homing=False, can_free=True,
     )
     extra = "feetech"
+    vendor = "feetech"
+    Config = Config
+    MODEL_NUMBERS = tables.MODEL_NUMBERS
+    RESOLUTION = tables.RESOLUTION
+    MAX_ID = 253
+    SUPPORTED_BAUDS = SUPPORTED_BAUDS
+    RX_TIMEOUT = COMM_RX_TIMEOUT
+    RX_CORRUPT = COMM_RX_CORRUPT
 
     def __init__(self, profile: Profile, *, source: str = "<profile>"):
         super().__init__(profile, source=source)
-        # msgspec reports unknown/missing fields "at $" (no key name); name the key ourselves.
-        given = set(profile.backend) - {"type"}
-        fields = Config.__struct_fields__
-        for key in sorted(given - set(fields)):
-            raise ProfileError(f"{source}: backend.{key}: unknown key for the feetech backend "
-                               f"(valid: {', '.join(fields)})")
-        if "port" not in given:
-            raise ProfileError(f"{source}: backend.port: required, the serial device "
-                               f"(e.g. /dev/ttyACM0)")
-        self.config: Config = backend_config(profile, Config, source)
-        cfg = self.config
-        if cfg.baudrate not in SUPPORTED_BAUDS:
-            raise ProfileError(
-                f"{source}: backend.baudrate: {cfg.baudrate} is not supported; "
-                f"valid: {', '.join(map(str, SUPPORTED_BAUDS))}"
-            )
-        problems = []
-        for i, j in enumerate(profile.joints):
-            key = f"joints[{i}] ({j.name})"
-            if j.id is None:
-                problems.append(f"{key}.id: required by the feetech backend (servo id 0-253)")
-            elif not 0 <= j.id <= 253:
-                problems.append(f"{key}.id: {j.id} is not a servo id (0-253)")
-            if j.model is None:
-                problems.append(f"{key}.model: required by the feetech backend "
-                                f"(one of {', '.join(tables.MODEL_NUMBERS)})")
-            elif j.model not in tables.MODEL_NUMBERS:
-                problems.append(f"{key}.model: unknown model {j.model!r} for the feetech backend "
-                                f"(known: {', '.join(tables.MODEL_NUMBERS)})")
-            else:
-                res = tables.RESOLUTION[j.model]
-                r = j.calibration.range
-                if r is not None and not (0 <= r[0] and r[1] <= res - 1):
-                    problems.append(f"{key}.calibration.range: {list(r)} is outside 0..{res - 1}")
-                if not 0 <= j.calibration.offset <= res - 1:
-                    problems.append(f"{key}.calibration.offset: {j.calibration.offset} is outside "
-                                    f"0..{res - 1}")
-        if problems:
-            raise ProfileError(f"{source}: " + "; ".join(problems))
-
         joints = profile.joints
-        self._ids = [int(j.id) for j in joints]
-        self._label = [f"joint {j.name!r} (id {j.id})" for j in joints]
-        res = np.array([tables.RESOLUTION[j.model] for j in joints], dtype=float)
-        direction = np.array([j.calibration.direction for j in joints], dtype=float)
-        self._offset_ticks = np.array([j.calibration.offset for j in joints], dtype=float)
-        self._rad_per_tick = direction * 2.0 * math.pi / res  # signed: includes direction
-        self._tick_per_rad = 1.0 / self._rad_per_tick
+        n = self.n
         lo = [max(0, j.calibration.range[0]) if j.calibration.range else 0 for j in joints]
-        hi = [min(int(r) - 1, j.calibration.range[1]) if j.calibration.range else int(r) - 1
-              for j, r in zip(joints, res)]
+        hi = [min(tables.RESOLUTION[j.model] - 1, j.calibration.range[1]) if j.calibration.range
+              else tables.RESOLUTION[j.model] - 1 for j in joints]
         self._goal_min = np.array(lo, dtype=float)
         self._goal_max = np.array(hi, dtype=float)
         epa = [j.effort_per_amp for j in joints]
         self._measures_effort = all(e is not None for e in epa)
         self._nm_per_unit = (
-            direction * tables.CURRENT_UNIT_A * np.array(epa, dtype=float)
-            if self._measures_effort else np.zeros(self.n)
+            self._direction * tables.CURRENT_UNIT_A * np.array(epa, dtype=float)
+            if self._measures_effort else np.zeros(n)
         )
         self.capabilities = Capabilities(
             position=True, velocity=False, effort=False, measures_velocity=True,
             measures_effort=self._measures_effort, needs_homing=False, can_free=True,
         )
         # pre-allocated real-time buffers
-        self._raw_pos = np.zeros(self.n)
-        self._raw_vel = np.zeros(self.n)
-        self._raw_cur = np.zeros(self.n)
-        self._tmp = np.zeros(self.n)
-        self._goal = np.zeros(self.n)  # goal ticks computed this cycle (float)
-        self._last_goal = [0] * self.n  # ticks last sent / written at enable (int)
-        self._free = [False] * self.n  # joints switched torque-off by a FREE command
-        self._attempts = 1 + cfg.read_retries
-        self._port: FastPortHandler | None = None
-        self._ph = None
+        self._raw_pos = np.zeros(n)
+        self._raw_vel = np.zeros(n)
+        self._raw_cur = np.zeros(n)
+        self._tmp = np.zeros(n)
+        self._goal = np.zeros(n)  # goal ticks computed this cycle (float)
+        self._last_goal = [0] * n  # ticks last sent / written at enable (int)
+        self._free = [False] * n  # joints switched torque-off by a FREE command
         self._sync_read: GroupSyncRead | None = None
         self._sync_write: GroupSyncWrite | None = None
-        self._details: dict = {}
 
-    # ------------------------------------------------------------------ helpers
-    @property
-    def _where(self) -> str:
-        return self.config.port
+    # ------------------------------------------------------------------ hooks
+    def _make_port(self, margin_ms: float) -> FastPortHandler:
+        return FastPortHandler(self.config.port, margin_ms=margin_ms)
 
-    def _result_text(self, result: int) -> str:
-        text = self._ph.getTxRxResult(result) if self._ph else str(result)
-        err = self._port.last_os_error if self._port else None
-        if err is not None:
-            text += f" (port error: {err})"
-        return text
+    def _make_packet_handler(self):
+        return PacketHandler(0)  # sets the SDK's global byte order: little-endian (STS)
 
-    def _txrx(self, fn, *args):
-        """Call an SDK ``...TxRx`` function, retrying comm failures. Returns (value, result, error)."""
-        if self._port is not None:
-            self._port.last_os_error = None
-            self._port.is_using = False
-        for _ in range(self._attempts):
-            out = fn(self._port, *args)
-            result = out[-2]
-            if result == COMM_SUCCESS:
-                break
-        return out
-
-    def _write_register(self, i: int, name: str, value: int, check_error: bool = False) -> None:
-        """Write one register of joint ``i`` and wait for its ack. Raises BackendError."""
+    def _register(self, i: int, name: str) -> tuple[int, int]:
         reg = tables.STS_CONTROL_TABLE[name]
+        return reg.address, reg.size
+
+    def _encode(self, i: int, name: str, value: int) -> int:
         if name in tables.SIGN_BITS:
-            value = tables.encode_sign_magnitude(value, tables.SIGN_BITS[name])
-        fn = {1: self._ph.write1ByteTxRx, 2: self._ph.write2ByteTxRx}[reg.size]
-        result, error = self._txrx(fn, self._ids[i], reg.address, value)
-        if result != COMM_SUCCESS:
-            raise BackendError(
-                f"{self.robot}: {self._label[i]}: writing {name} = {value} on {self._where} "
-                f"got no acknowledgement: {self._result_text(result)}"
-            )
-        if check_error and error & _FAULT_MASK:
-            raise BackendError(
-                f"{self.robot}: {self._label[i]} reports {_describe(error)} "
-                f"(status error 0x{error:02X}) when writing {name}"
-            )
+            return tables.encode_sign_magnitude(value, tables.SIGN_BITS[name])
+        return int(value)
 
-    def _read_register(self, i: int, name: str) -> int:
-        """Read one register of joint ``i`` (decoded, signed where the table says). Raises."""
-        reg = tables.STS_CONTROL_TABLE[name]
-        fn = {1: self._ph.read1ByteTxRx, 2: self._ph.read2ByteTxRx}[reg.size]
-        value, result, _ = self._txrx(fn, self._ids[i], reg.address)
-        if result != COMM_SUCCESS:
-            raise BackendError(
-                f"{self.robot}: {self._label[i]}: reading {name} on {self._where} failed: "
-                f"{self._result_text(result)}"
-            )
+    def _decode(self, i: int, name: str, raw: int) -> int:
         if name in tables.SIGN_BITS:
-            value = tables.decode_sign_magnitude(value, tables.SIGN_BITS[name])
-        return value
+            return tables.decode_sign_magnitude(raw, tables.SIGN_BITS[name])
+        return raw
 
-    def info(self) -> ActuatorInfo:
-        return ActuatorInfo(list(self.joint_names), self.capabilities, dict(self._details))
+    def _error_text(self, error: int) -> str | None:
+        return _describe(error) if error & _FAULT_MASK else None
 
-    # ------------------------------------------------------------------ lifecycle
-    def _open_hook(self) -> None:
-        """Open the port, ping every servo and check its model. Blocks. Raises BackendError."""
-        cfg = self.config
-        margin = DEFAULT_MARGIN_MS if cfg.timeout_ms is None else cfg.timeout_ms
-        port = FastPortHandler(cfg.port, margin_ms=margin)
-        port.baudrate = cfg.baudrate
-        try:
-            ok = port.openPort()
-        except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
-            raise BackendError(f"{self.robot}: cannot open port {cfg.port}: {exc}") from exc
-        if not ok:
-            raise BackendError(f"{self.robot}: cannot open port {cfg.port} at {cfg.baudrate} baud")
-        self._port = port
-        self._ph = PacketHandler(0)  # sets the SDK's global byte order: little-endian (STS)
-        try:
-            self._check_servos()
-        except BaseException:
-            port.closePort()
-            self._port = None
-            raise
+    def _after_open(self) -> None:
+        port = self._port
         self._sync_read = GroupSyncRead(port, self._ph, _BLOCK, _BLOCK_LEN)
         self._sync_write = GroupSyncWrite(
             port, self._ph, tables.STS_CONTROL_TABLE["Goal_Position"].address, 2
@@ -288,29 +190,8 @@ class FeetechBackend(Actuator):
         for sid in self._ids:
             self._sync_read.addParam(sid)
             self._sync_write.addParam(sid, [0, 0])
-        self._details = {
-            "port": cfg.port, "baudrate": cfg.baudrate, "ids": list(self._ids),
-            "models": {j.name: j.model for j in self.profile.joints},
-            "packet_margin_ms": margin,
-        }
 
-    def _check_servos(self) -> None:
-        problems = []
-        for i, j in enumerate(self.profile.joints):
-            model, result, _ = self._txrx(self._ph.ping, self._ids[i])
-            if result != COMM_SUCCESS:
-                problems.append(f"{self._label[i]} did not answer ping on {self._where}: "
-                                f"{self._result_text(result)}")
-            elif model != tables.MODEL_NUMBERS[j.model]:
-                problems.append(f"{self._label[i]} on {self._where} is model number {model}, "
-                                f"expected {tables.MODEL_NUMBERS[j.model]} ({j.model})")
-        if problems:
-            raise BackendError(f"{self.robot}: " + "; ".join(problems))
-
-    def _require_open(self, what: str) -> None:
-        if self._port is None:
-            raise BackendError(f"{self.robot}: {what} needs an open bus; call open() first")
-
+    # ------------------------------------------------------------------ lifecycle
     def _configure_hook(self) -> None:
         """Torque off, then write the configuration registers to every servo. Blocks. Raises."""
         self._require_open("configure")
@@ -355,27 +236,8 @@ class FeetechBackend(Actuator):
                 pass
             raise
 
-    def _disable_hook(self) -> None:
-        """Torque_Enable = 0 on every servo, each acknowledged. Blocks.
-
-        Tries every servo even if one fails, then raises BackendError naming those that did not
-        confirm. Status error bits do not count as failure here (torque off is what we want).
-        """
-        if self._port is None:
-            return
-        failed = []
-        for i in range(self.n):
-            try:
-                self._write_register(i, "Torque_Enable", 0)
-            except BackendError as exc:
-                failed.append(str(exc).removeprefix(f"{self.robot}: "))
-        if failed:
-            raise BackendError(f"{self.robot}: torque off not confirmed: " + "; ".join(failed))
-
     def _close_hook(self) -> None:
-        if self._port is not None:
-            self._port.closePort()
-        self._port = None
+        super()._close_hook()
         self._sync_read = None
         self._sync_write = None
 
@@ -434,26 +296,7 @@ class FeetechBackend(Actuator):
         return None
 
     def _bus_fault(self, result: int) -> Fault:
-        # GroupSyncRead.rxPacket fills ids in request order and stores [] for the one it gave up
-        # on; the first empty entry is the first servo that did not answer (in full).
-        joint = None
-        who = ""
-        if result in (COMM_RX_TIMEOUT, COMM_RX_CORRUPT):
-            data = self._sync_read.data_dict
-            for i, sid in enumerate(self._ids):
-                if len(data.get(sid) or ()) < _BLOCK_LEN:
-                    joint = self.joint_names[i]
-                    who = f" from {self._label[i]}"
-                    break
-        code = "bus_corrupt" if result == COMM_RX_CORRUPT else "bus_timeout"
-        what = "bad reply" if code == "bus_corrupt" else "no reply"
-        return Fault(
-            code,
-            f"{self.robot}: {what}{who} to the sync read of ids "
-            f"{','.join(map(str, self._ids))} on {self._where} ({self._attempts} attempt"
-            f"{'s' if self._attempts > 1 else ''}): {self._result_text(result)}",
-            joint=joint, transient=True,
-        )
+        return self._sync_read_fault(result, self._sync_read.data_dict, _BLOCK_LEN)
 
     def _status_fault(self, data: dict) -> Fault:
         bad = []

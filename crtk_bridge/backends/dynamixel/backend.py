@@ -1,0 +1,558 @@
+"""Dynamixel X-series backend (Protocol 2.0; XL330-M288, XL430-W250, XM430-W350), e.g. the Koch v1.1.
+
+Uses the vendor SDK (``dynamixel_sdk`` 4.x, pip ``dynamixel-sdk``) for packet framing (CRC-16,
+byte stuffing) with the shared port fixes of :mod:`..serial_servo`. One cycle is normally two
+bus transactions:
+
+* ``read``: ONE sync read of registers 126..135 (10 bytes per servo: Present_Current -- or
+  Present_Load on the XL430 -- Present_Velocity, Present_Position). A Fast Sync Read (0x8A, one
+  status packet for all servos) when ``fast_sync_read`` allows it: ``auto`` uses it when every
+  servo's firmware supports it (X430 >= 45, X330 >= 46). The SDK's own group reader is not used:
+  it throws the status ERR bytes away (so a hardware-error Alert would go unseen) and raises
+  IndexError when a fast reply is short; this backend calls the SDK's packet functions and keeps
+  the ERR bytes. A failed fast read is retried (``read_retries``) as a plain sync read, whose
+  per-servo replies name the silent servo.
+* ``write``: ONE sync write of the goals of the joints with a command: Goal_Position (4 bytes) in
+  the position modes, Goal_Velocity (4) in velocity mode, Goal_Current (2) in current mode. When
+  joints in different modes are commanded in the same cycle, ONE bulk write (0x93) instead.
+
+Operating mode per joint follows the command's :class:`CommandMode`: POSITION -> position mode
+(3), or extended position (4) / current-based position (5) where ``position_mode`` /
+``joint_position_modes`` ask; VELOCITY -> velocity mode (1); EFFORT -> current mode (0); FREE ->
+torque off. A switch happens in ``write`` when a joint's command mode changes, as the servo
+requires (Operating_Mode is EEPROM, writable with torque off only): Torque_Enable 0 -> Operating_Mode
+-> Goal_Position = Present_Position (position modes) or a zero velocity/current goal ->
+Torque_Enable 1, then the cycle's goal. These are 4-5 ACKNOWLEDGED transactions on the real-time
+path (about 4 x (wire time + turnaround) ~= 1-2 ms at 1 Mbps, up to 4 x ``timeout_ms`` if a servo
+is slow), only in the cycle of a switch; the joint is unpowered for that time. Steady streams
+pay nothing.
+
+Units (raw units never leave this module), per joint with the profile's ``calibration``:
+
+* position rad   = direction * (ticks - offset) * 2*pi / 4096
+* velocity rad/s = direction * Present_Velocity * 0.229 rev/min
+* effort N*m     = direction * Present_Current * unit * effort_per_amp, unit = 1 mA (XL330),
+  2.69 mA (XM430). An ESTIMATE (current is not torque: friction, gear losses). The XL430 has no
+  current sensor, only Present_Load (0.1 % of its maximum torque, which depends on the supply
+  voltage): it is NOT turned into an effort; see "capabilities".
+* effort commands: Goal_Current = effort / effort_per_amp / unit, clamped to Current_Limit.
+* velocity commands: Goal_Velocity in 0.229 rev/min, clamped to Velocity_Limit.
+
+Capabilities (per robot, because :class:`Capabilities` is per robot): position and velocity
+always; ``effort`` and ``measures_effort`` only if EVERY joint has current control (not the
+XL430) and an ``effort_per_amp`` -- the conservative rule: a Koch v1.1 (two XL430s) therefore has
+no servo_jf / interpolate_jf, and reports no measured effort; an all-XL330/XM430 arm with
+``effort_per_amp`` on every joint has both.
+
+Hardware errors: a status packet's Alert bit (0x80) means Hardware_Error_Status (70) is set; the
+backend then reads register 70 of that servo (one extra transaction, only when the Alert first
+appears) and returns a non-transient ``servo_error`` Fault naming the bits. The servo has shut
+down (torque off) and only a REBOOT clears it: ``enable`` (the way out of FAULT) reads register 70
+of every servo, REBOOTs (0x08) those with an error, waits for each to answer a ping again, writes
+the configuration registers again (a reboot restores RAM defaults) and then enables as usual.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated, Literal
+
+import msgspec
+import numpy as np
+from dynamixel_sdk import (
+    COMM_RX_CORRUPT,
+    COMM_RX_TIMEOUT,
+    COMM_SUCCESS,
+    PacketHandler,
+    PortHandler,
+)
+
+from ...core.actuator import Capabilities, CommandMode, Fault, JointCommand, JointFeedback
+from ...errors import BackendError
+from ...profile import Profile
+from ..serial_servo import SerialPortFixes, SerialServoBackend
+from . import tables as T
+from .tables import OperatingMode
+
+Byte = Annotated[int, msgspec.Meta(ge=0, le=254)]
+PositionModeName = Literal["position", "extended_position", "current_based_position"]
+_POSITION_MODE = {
+    "position": OperatingMode.POSITION,
+    "extended_position": OperatingMode.EXTENDED_POSITION,
+    "current_based_position": OperatingMode.CURRENT_BASED_POSITION,
+}
+
+# Bauds both the servo (register 8 codes) and the SDK's PortHandler.getCFlagBaud accept.
+_SDK_BAUDS = {9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000}
+SUPPORTED_BAUDS = sorted(set(T.BAUD_CODES) & _SDK_BAUDS)
+
+_NONE = int(CommandMode.NONE)
+_POSITION = int(CommandMode.POSITION)
+_VELOCITY = int(CommandMode.VELOCITY)
+_EFFORT = int(CommandMode.EFFORT)
+_FREE = int(CommandMode.FREE)
+_BLOCK = T.PRESENT_BLOCK_START
+_BLOCK_LEN = T.PRESENT_BLOCK_LEN
+_GOAL = {  # operating mode -> goal register (name, address, size)
+    OperatingMode.CURRENT: ("Goal_Current", 102, 2),
+    OperatingMode.VELOCITY: ("Goal_Velocity", 104, 4),
+    OperatingMode.POSITION: ("Goal_Position", 116, 4),
+    OperatingMode.EXTENDED_POSITION: ("Goal_Position", 116, 4),
+    OperatingMode.CURRENT_BASED_POSITION: ("Goal_Position", 116, 4),
+}
+REBOOT_TIMEOUT_S = 2.0  # a rebooting X servo answers again within ~0.5 s
+
+
+class FastPortHandler(SerialPortFixes, PortHandler):
+    """dynamixel_sdk PortHandler with the shared serial fixes (see :class:`SerialPortFixes`)."""
+
+
+class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
+    """The ``backend:`` section of a profile with ``type: dynamixel``."""
+
+    port: str  # serial device, e.g. /dev/ttyUSB0 (U2D2) or a simulator's pty
+    baudrate: int = 1_000_000  # must match the servos' Baud_Rate register
+    timeout_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] | None = None  # None = 10 ms
+    read_retries: Annotated[int, msgspec.Meta(ge=0, le=10)] = 1
+    # "auto": Fast Sync Read when every servo's firmware has it; "on" / "off" force it.
+    fast_sync_read: Literal["auto", "on", "off"] = "auto"
+    # Operating mode for position commands, for every joint / per joint name:
+    position_mode: PositionModeName = "position"
+    joint_position_modes: dict[str, PositionModeName] = {}
+    # Registers written in configure() (RAM except Return_Delay_Time):
+    return_delay: Byte = 0  # Return_Delay_Time, x2 us (factory 250 = 500 us)
+    profile_velocity: Annotated[int, msgspec.Meta(ge=0)] = 0  # 0 = no on-servo profile
+    profile_acceleration: Annotated[int, msgspec.Meta(ge=0)] = 0
+
+
+class DynamixelBackend(SerialServoBackend):
+    """Dynamixel X-series servos on one Protocol 2.0 bus. See the module docstring."""
+
+    capabilities = Capabilities(position=True, velocity=True, effort=False, measures_velocity=True,
+                                measures_effort=False, needs_homing=False, can_free=True)
+    extra = "dynamixel"
+    vendor = "dynamixel"
+    Config = Config
+    MODEL_NUMBERS = T.MODEL_NUMBERS
+    RESOLUTION = T.RESOLUTION
+    MAX_ID = T.MAX_ID
+    SUPPORTED_BAUDS = SUPPORTED_BAUDS
+    RX_TIMEOUT = COMM_RX_TIMEOUT
+    RX_CORRUPT = COMM_RX_CORRUPT
+
+    def __init__(self, profile: Profile, *, source: str = "<profile>"):
+        super().__init__(profile, source=source)
+        joints = profile.joints
+        n = self.n
+        self._models = [j.model for j in joints]
+        self._tables = [T.CONTROL_TABLES[m] for m in self._models]
+        self._pos_mode = [self._joint_position_mode(j.name) for j in joints]
+        lo, hi = [], []
+        for j, mode in zip(joints, self._pos_mode):
+            span = (0, 4095) if mode is OperatingMode.POSITION else \
+                (-T.POSITION_EXTENDED_LIMIT, T.POSITION_EXTENDED_LIMIT)
+            r = j.calibration.range
+            lo.append(max(span[0], r[0]) if r else span[0])
+            hi.append(min(span[1], r[1]) if r else span[1])
+        self._goal_min = np.array(lo, dtype=float)
+        self._goal_max = np.array(hi, dtype=float)
+        self._has_current = [T.CURRENT_UNIT_A[m] is not None for m in self._models]
+        epa = [j.effort_per_amp for j in joints]
+        effort = all(self._has_current) and all(e is not None for e in epa)
+        unit = np.array([T.CURRENT_UNIT_A[m] or 0.0 for m in self._models])
+        self._nm_per_unit = self._direction * unit * np.array([e or 0.0 for e in epa]) if effort \
+            else np.zeros(n)
+        self._unit_per_nm = np.divide(1.0, self._nm_per_unit, out=np.zeros(n), where=self._nm_per_unit != 0)
+        self._effort = effort
+        self.capabilities = Capabilities(position=True, velocity=True, effort=effort,
+                                         measures_velocity=True, measures_effort=effort,
+                                         needs_homing=False, can_free=True)
+        self._vel_per_rad_s = self._direction / T.VELOCITY_UNIT_RAD_S
+        self._rad_s_per_vel = self._direction * T.VELOCITY_UNIT_RAD_S
+        self._vel_limit = np.array([T.VELOCITY_LIMIT_DEFAULT[m] for m in self._models], dtype=float)
+        self._cur_limit = np.array([T.CURRENT_LIMIT_DEFAULT.get(m, 0) for m in self._models], dtype=float)
+        # real-time state and buffers
+        self._raw_pos = np.zeros(n)
+        self._raw_vel = np.zeros(n)
+        self._raw_cur = np.zeros(n)
+        self._tmp = np.zeros(n)
+        self._goal = np.zeros(n)
+        self._errors = [0] * n  # status ERR byte of each servo, last read
+        self._hw_bits = [0] * n  # Hardware_Error_Status read when the Alert appeared
+        self._op_mode: list[OperatingMode | None] = [None] * n  # mode the servo is in (None: unknown)
+        self._free = [False] * n
+        self._fast = False
+        self._id_param = list(self._ids)
+        self._fast_reply_len = (_BLOCK_LEN + 4) * n
+
+    def _joint_position_mode(self, name: str) -> OperatingMode:
+        return _POSITION_MODE[self.config.joint_position_modes.get(name, self.config.position_mode)]
+
+    # ------------------------------------------------------------------ hooks
+    def _check_joint(self, i: int, key: str, problems: list[str]) -> None:
+        j = self.profile.joints[i]
+        cfg = self.config
+        names = set(self.profile.joint_names)
+        if i == 0:
+            for name in cfg.joint_position_modes:
+                if name not in names:
+                    problems.append(f"backend.joint_position_modes.{name}: unknown joint "
+                                    f"(joints: {', '.join(self.profile.joint_names)})")
+        mode = self._joint_position_mode(j.name)
+        if mode not in T.OPERATING_MODES[j.model]:
+            where = (f"backend.joint_position_modes.{j.name}" if j.name in cfg.joint_position_modes
+                     else "backend.position_mode")
+            problems.append(f"{where}: {mode.name.lower()} mode is not available on {key}, a {j.model}")
+        if mode is OperatingMode.POSITION:
+            super()._check_joint(i, key, problems)
+
+    def _make_port(self, margin_ms: float) -> FastPortHandler:
+        return FastPortHandler(self.config.port, margin_ms=margin_ms)
+
+    def _make_packet_handler(self):
+        return PacketHandler(2.0)
+
+    def _register(self, i: int, name: str) -> tuple[int, int]:
+        try:
+            reg = self._tables[i][name]
+        except KeyError:
+            raise BackendError(f"{self.robot}: {self._label[i]}: a {self._models[i]} has no register "
+                               f"{name}") from None
+        return reg.address, reg.size
+
+    def _encode(self, i: int, name: str, value: int) -> int:
+        reg = self._tables[i][name]
+        return T.to_raw(value, reg.size) if reg.signed else int(value)
+
+    def _decode(self, i: int, name: str, raw: int) -> int:
+        reg = self._tables[i][name]
+        return T.to_signed(raw, reg.size) if reg.signed else raw
+
+    def _error_text(self, error: int) -> str | None:
+        if error & T.ERR_ALERT:
+            return "a hardware error (Alert bit)"
+        return None
+
+    def _after_open(self) -> None:
+        firmware = [self._read_register(i, "Firmware_Version") for i in range(self.n)]
+        mode = self.config.fast_sync_read
+        if mode == "auto":
+            self._fast = all(fw >= T.FAST_SYNC_READ_FIRMWARE[m] for fw, m in zip(firmware, self._models))
+        else:
+            self._fast = mode == "on"
+        self._op_mode = [None] * self.n
+        self._details = {"firmware": dict(zip(self.joint_names, firmware)), "fast_sync_read": self._fast}
+
+    # ------------------------------------------------------------------ lifecycle
+    def _configure_hook(self) -> None:
+        """Torque off, then operating mode (position flavour of each joint) and the configuration
+        registers on every servo, each acknowledged. Reads Velocity_Limit / Current_Limit for the
+        command clamps. Blocks. Raises BackendError."""
+        self._require_open("configure")
+        self._disable_hook()
+        for i in range(self.n):
+            self._configure_servo(i)
+
+    def _configure_servo(self, i: int) -> None:
+        cfg = self.config
+        self._write_register(i, "Return_Delay_Time", cfg.return_delay)
+        self._write_register(i, "Operating_Mode", int(self._pos_mode[i]))
+        self._op_mode[i] = self._pos_mode[i]
+        self._write_register(i, "Profile_Velocity", cfg.profile_velocity)
+        self._write_register(i, "Profile_Acceleration", cfg.profile_acceleration)
+        self._vel_limit[i] = self._read_register(i, "Velocity_Limit")
+        if self._has_current[i]:
+            self._cur_limit[i] = self._read_register(i, "Current_Limit")
+
+    def _enable_hook(self, feedback: JointFeedback) -> None:
+        """Reboot servos in hardware error, hold every servo where it is, torque on. Blocks.
+
+        Each servo: Hardware_Error_Status read; if nonzero, REBOOT, wait for it to answer a ping
+        (up to REBOOT_TIMEOUT_S), write its configuration again. Then Goal_Position = a fresh
+        Present_Position (position modes) on every servo BEFORE any torque goes on, so enabling
+        never moves the arm. Raises BackendError naming the joint and register; if a torque-on
+        fails midway, the servos already on are switched off again (best effort).
+        """
+        self._require_open("enable")
+        for i in range(self.n):
+            bits = self._read_register(i, "Hardware_Error_Status")
+            if bits:
+                self._reboot(i, bits)
+        for i in range(self.n):
+            if self._op_mode[i] != self._pos_mode[i]:
+                self._write_register(i, "Torque_Enable", 0)
+                self._write_register(i, "Operating_Mode", int(self._pos_mode[i]))
+                self._op_mode[i] = self._pos_mode[i]
+            present = self._read_register(i, "Present_Position")
+            self._write_register(i, "Goal_Position", present, check_error=True)
+        self._free = [False] * self.n
+        self._hw_bits = [0] * self.n
+        try:
+            for i in range(self.n):
+                self._write_register(i, "Torque_Enable", 1, check_error=True)
+        except BackendError:
+            try:
+                self._disable_hook()
+            except BackendError:
+                pass
+            raise
+
+    def _reboot(self, i: int, bits: int) -> None:
+        """REBOOT joint ``i`` (clears a latched hardware error), wait until it answers, configure."""
+        what = T.describe_hardware_error(bits)
+        result, _ = self._txrx(self._ph.reboot, self._ids[i])
+        if result != COMM_SUCCESS:
+            raise BackendError(f"{self.robot}: {self._label[i]} ({what}, Hardware_Error_Status="
+                               f"0x{bits:02X}) did not acknowledge REBOOT on {self._where}: "
+                               f"{self._result_text(result)}")
+        deadline = time.monotonic() + REBOOT_TIMEOUT_S
+        while True:
+            _, result, _ = self._ph.ping(self._port, self._ids[i])
+            if result == COMM_SUCCESS:
+                break
+            self._port.is_using = False
+            if time.monotonic() > deadline:
+                raise BackendError(f"{self.robot}: {self._label[i]} did not answer within "
+                                   f"{REBOOT_TIMEOUT_S} s of a REBOOT (to clear {what})")
+            time.sleep(0.01)
+        bits = self._read_register(i, "Hardware_Error_Status")
+        if bits:
+            raise BackendError(f"{self.robot}: {self._label[i]} still reports "
+                               f"{T.describe_hardware_error(bits)} (Hardware_Error_Status=0x{bits:02X}) "
+                               f"after a REBOOT: check the cause (load, supply, temperature)")
+        self._op_mode[i] = None  # Operating_Mode is EEPROM and survives, but re-check it
+        self._configure_servo(i)
+
+    # ------------------------------------------------------------------ real-time path
+    def _read(self, feedback: JointFeedback) -> Fault | None:
+        """ONE (fast) sync read of 126..135 of every servo, decoded into ``feedback`` in place.
+
+        Returns a transient ``bus_timeout`` / ``bus_corrupt`` Fault (``feedback`` untouched), or a
+        non-transient ``servo_error`` Fault naming the Hardware_Error_Status bits when a servo's
+        status carries the Alert bit (``feedback`` filled: the data is valid).
+        """
+        port, ph = self._port, self._ph
+        if port is None:
+            return Fault("bus_timeout", f"{self.robot}: read on a closed bus", transient=False)
+        port.last_os_error = None
+        result = COMM_SUCCESS
+        blocks = None
+        fast = self._fast
+        for _ in range(self._attempts):
+            port.is_using = False
+            stamp = time.time()
+            blocks, result = self._fast_read() if fast else self._plain_read()
+            if result == COMM_SUCCESS:
+                break
+            fast = False  # a retry reads plainly: its per-servo replies name a silent servo
+        if result != COMM_SUCCESS:
+            return self._sync_read_fault(result, blocks or {}, _BLOCK_LEN)
+        raw_pos, raw_vel, raw_cur = self._raw_pos, self._raw_vel, self._raw_cur
+        alert = False
+        for i, sid in enumerate(self._ids):
+            b = blocks[sid]
+            raw_cur[i] = int.from_bytes(b[0:2], "little", signed=True)
+            raw_vel[i] = int.from_bytes(b[2:6], "little", signed=True)
+            raw_pos[i] = int.from_bytes(b[6:10], "little", signed=True)
+            if self._errors[i] & T.ERR_ALERT:
+                alert = True
+        np.subtract(raw_pos, self._offset_ticks, out=self._tmp)
+        np.multiply(self._tmp, self._rad_per_tick, out=feedback.position)
+        np.multiply(raw_vel, self._rad_s_per_vel, out=feedback.velocity)
+        if self._effort:
+            np.multiply(raw_cur, self._nm_per_unit, out=feedback.effort)
+        feedback.stamp = stamp
+        if alert:
+            return self._alert_fault()
+        return None
+
+    def _plain_read(self) -> tuple[dict, int]:
+        """Sync Read (0x82): one status packet per servo, in request order."""
+        ph, port = self._ph, self._port
+        result = ph.syncReadTx(port, _BLOCK, _BLOCK_LEN, self._id_param, self.n, False)
+        blocks: dict = {}
+        if result != COMM_SUCCESS:
+            return blocks, result
+        for i, sid in enumerate(self._ids):
+            data, result, error = ph.readRx(port, sid, _BLOCK_LEN)
+            blocks[sid] = data
+            if result != COMM_SUCCESS:
+                return blocks, result
+            if len(data) < _BLOCK_LEN:
+                return blocks, COMM_RX_CORRUPT
+            self._errors[i] = error
+        return blocks, COMM_SUCCESS
+
+    def _fast_read(self) -> tuple[dict, int]:
+        """Fast Sync Read (0x8A): one status packet carrying ``ERR ID data CRC`` per servo."""
+        ph, port = self._ph, self._port
+        result = ph.syncReadTx(port, _BLOCK, _BLOCK_LEN, self._id_param, self.n, True)
+        if result != COMM_SUCCESS:
+            return {}, result
+        raw, result, _ = ph.fastSyncReadRx(port, T.BROADCAST_ID, self._fast_reply_len)
+        if result != COMM_SUCCESS:
+            return {}, result
+        if len(raw) < self._fast_reply_len:
+            return {}, COMM_RX_CORRUPT
+        blocks: dict = {}
+        k = 0
+        step = _BLOCK_LEN + 4
+        for i, sid in enumerate(self._ids):
+            if raw[k + 1] != sid:  # replies come in request order
+                return blocks, COMM_RX_CORRUPT
+            self._errors[i] = raw[k]
+            blocks[sid] = raw[k + 2: k + 2 + _BLOCK_LEN]
+            k += step
+        return blocks, COMM_SUCCESS
+
+    def _alert_fault(self) -> Fault:
+        bad = []
+        for i in range(self.n):
+            if not self._errors[i] & T.ERR_ALERT:
+                self._hw_bits[i] = 0
+                continue
+            if not self._hw_bits[i]:  # read register 70 once per Alert, not every cycle
+                value, result, _ = self._ph.read1ByteTxRx(self._port, self._ids[i],
+                                                          self._tables[i]["Hardware_Error_Status"].address)
+                self._port.is_using = False
+                self._hw_bits[i] = value if result == COMM_SUCCESS and value else -1
+            bad.append(i)
+        parts = []
+        for i in bad:
+            bits = self._hw_bits[i]
+            if bits > 0:
+                parts.append(f"{self._label[i]} reports {T.describe_hardware_error(bits)} "
+                             f"(Hardware_Error_Status=0x{bits:02X})")
+            else:
+                parts.append(f"{self._label[i]} reports a hardware error (status Alert bit; "
+                             f"Hardware_Error_Status unreadable)")
+        i = bad[0]
+        return Fault("servo_error", f"{self.robot}: " + "; ".join(parts), joint=self.joint_names[i],
+                     register="Hardware_Error_Status", value=max(self._hw_bits[i], 0), transient=False)
+
+    def _write(self, command: JointCommand) -> Fault | None:
+        """Goals of every commanded joint in ONE sync write (one bulk write if modes are mixed).
+
+        Joints in NONE are not written (they keep their goal); FREE turns torque off; a change of
+        a joint's command mode switches its operating mode first (see the module docstring).
+        Nothing is sent while disabled. A non-finite command is not sent and returns a
+        non-transient ``invalid_command`` Fault.
+        """
+        if not self._enabled or self._port is None:
+            return None
+        mode = command.mode
+        fault = None
+        goal = self._goal
+        np.multiply(command.position, self._tick_per_rad, out=goal)
+        np.add(goal, self._offset_ticks, out=goal)
+        np.rint(goal, out=goal)
+        np.clip(goal, self._goal_min, self._goal_max, out=goal)
+        writes = None  # (joint, address, size, raw) of this cycle
+        freeing = None
+        for i in range(self.n):
+            m = mode[i]
+            if m == _NONE:
+                continue
+            if m == _FREE:
+                if not self._free[i]:
+                    freeing = (freeing or []) + [i]
+                continue
+            if m == _POSITION:
+                want = self._pos_mode[i]
+                g = goal[i]
+                value = command.position[i]
+            elif m == _VELOCITY:
+                want = OperatingMode.VELOCITY
+                value = command.velocity[i]
+                lim = self._vel_limit[i]
+                g = min(max(round(value * self._vel_per_rad_s[i]), -lim), lim) if value == value else 0
+            elif m == _EFFORT and self._effort:
+                want = OperatingMode.CURRENT
+                value = command.effort[i]
+                lim = self._cur_limit[i]
+                g = min(max(round(value * self._unit_per_nm[i]), -lim), lim) if value == value else 0
+            else:
+                continue
+            if value != value:  # NaN: inf is clamped above
+                if fault is None:
+                    fault = Fault("invalid_command", f"{self.robot}: joint {self.joint_names[i]!r}: "
+                                  f"command {value} is not a number; not sent",
+                                  joint=self.joint_names[i], transient=False)
+                continue
+            if want != self._op_mode[i] or self._free[i]:
+                f = self._switch(i, want)
+                if f is not None:
+                    return f
+            name, address, size = _GOAL[want]
+            writes = (writes or []) + [(i, address, size, int(g))]
+        if writes:
+            f = self._send_goals(writes)
+            if f is not None:
+                return f
+        if freeing:
+            fault = self._torque_off(freeing) or fault
+        return fault
+
+    def _switch(self, i: int, want: OperatingMode) -> Fault | None:
+        """Operating-mode switch (or leaving FREE) of joint ``i``, holding it. Acknowledged writes."""
+        try:
+            if self._op_mode[i] != want:
+                self._write_register(i, "Torque_Enable", 0)
+                self._write_register(i, "Operating_Mode", int(want))
+                self._op_mode[i] = want
+            if want in T.POSITION_MODES:
+                self._write_register(i, "Goal_Position", self._read_register(i, "Present_Position"))
+            elif want is OperatingMode.VELOCITY:
+                self._write_register(i, "Goal_Velocity", 0)
+            else:
+                self._write_register(i, "Goal_Current", 0)
+            self._write_register(i, "Torque_Enable", 1)
+        except BackendError as exc:
+            self._op_mode[i] = None
+            return Fault("bus_timeout", f"{exc} (switching to {want.name.lower()} mode)",
+                         joint=self.joint_names[i], register="Operating_Mode", value=int(want),
+                         transient=True)
+        finally:
+            self._port.is_using = False
+        self._free[i] = False
+        return None
+
+    def _send_goals(self, writes: list) -> Fault | None:
+        ph, port = self._ph, self._port
+        port.is_using = False
+        address, size = writes[0][1], writes[0][2]
+        if all(w[1] == address for w in writes):
+            param = []
+            for i, _, _, raw in writes:
+                param.append(self._ids[i])
+                param.extend((raw & ((1 << (8 * size)) - 1)).to_bytes(size, "little"))
+            result = ph.syncWriteTxOnly(port, address, size, param, len(param))
+            what = "sync write"
+        else:
+            param = []
+            for i, addr, sz, raw in writes:
+                param.append(self._ids[i])
+                param.extend((addr & 0xFF, addr >> 8, sz & 0xFF, sz >> 8))
+                param.extend((raw & ((1 << (8 * sz)) - 1)).to_bytes(sz, "little"))
+            result = ph.bulkWriteTxOnly(port, param, len(param))
+            what = "bulk write"
+        port.is_using = False
+        if result != COMM_SUCCESS:
+            return Fault("bus_timeout", f"{self.robot}: {what} of goals on {self._where} failed: "
+                         f"{self._result_text(result)}", transient=True)
+        return None
+
+    def _torque_off(self, joints: list[int]) -> Fault | None:
+        """One sync write of Torque_Enable = 0 (entering `free`)."""
+        param = []
+        for i in joints:
+            param.extend((self._ids[i], 0))
+        self._port.is_using = False
+        result = self._ph.syncWriteTxOnly(self._port, 64, 1, param, len(param))
+        self._port.is_using = False
+        if result != COMM_SUCCESS:
+            return Fault("bus_timeout", f"{self.robot}: sync write of Torque_Enable=0 on {self._where} "
+                         f"failed: {self._result_text(result)}", transient=True)
+        for i in joints:
+            self._free[i] = True
+        return None

@@ -1,0 +1,421 @@
+"""What the serial-servo backends (Feetech STS, Dynamixel X) truly share, as LeRobot's MotorsBus does.
+
+Both vendors' SDKs have the same shape: a ``PortHandler`` over pyserial, a ``PacketHandler``
+with ``ping`` / ``readNByteTxRx`` / ``writeNByteTxRx`` returning ``(value, result, error)``,
+``COMM_SUCCESS == 0``, and group sync reads/writes. What they share is here:
+
+* :class:`SerialPortFixes` -- a mixin that fixes both SDKs' serial-port gaps (stale input, busy
+  polling, 34 ms packet timeouts, wall-clock deadlines); each vendor's ``port.py`` mixes it into
+  its SDK's ``PortHandler``.
+* :class:`SerialServoBackend` -- profile validation (backend keys, joint ids and models,
+  calibration), the tick <-> rad calibration arrays, retried register reads/writes with errors
+  naming robot, joint, id, register and port, opening (ping every servo, check its model number),
+  torque off, close, and naming the first silent servo of a failed sync read.
+
+Each vendor fills a few hooks: its tables (``MODEL_NUMBERS``, ``RESOLUTION``), its ``Config``
+struct, how a register name maps to (address, size) for a joint and how values are encoded
+(sign-magnitude on STS, two's complement on Dynamixel), how a status ERR byte is described, and
+its ``_read`` / ``_write`` hot paths (the block layouts differ).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import select
+import termios
+import time
+from typing import Any, ClassVar
+
+import numpy as np
+import serial
+
+from ..core.actuator import Actuator, ActuatorInfo
+from ..errors import BackendError, ProfileError
+from ..profile import Profile, backend_config
+
+DEFAULT_MARGIN_MS = 10.0
+COMM_SUCCESS = 0  # the same value in scservo_sdk and dynamixel_sdk
+
+
+class SerialPortFixes:
+    """Mixin for an SDK ``PortHandler`` (scservo_sdk or dynamixel_sdk): input flushing, sleeping
+    reads, short packet timeouts on a monotonic clock, an exclusive open, OS errors as results.
+
+    The pip SDKs' flaws that matter to a real-time loop (reference/servos.md sections 1 and 5):
+
+    1. scservo's ``clearPort()`` only drains OUTPUT: a late reply from a failed transaction is
+       taken as the answer to the next request. Here ``clearPort`` discards stale INPUT.
+    2. Both open the port with ``timeout=0`` and busy-poll ``readPort`` until the packet deadline:
+       a core spins while waiting. Here ``readPort(n)`` sleeps in ``select`` until ``n`` bytes
+       arrived or the deadline passed; the SDKs' loops keep working unchanged.
+    3. The packet timeout is wire time + 2 x 16 ms LATENCY_TIMER + 2 ms (~34 ms per attempt).
+       Here it is the wire time of the expected bytes + ``margin_ms``.
+
+    The deadline clock is monotonic (the SDKs use wall-clock time); the port is opened
+    ``exclusive`` (an OS lock; the SDKs' ``is_using`` is an in-process flag); OS errors (adapter
+    unplugged, pty closed) become the SDKs' TX_FAIL / RX_TIMEOUT results, kept in
+    :attr:`last_os_error` for messages. Not thread-safe.
+    """
+
+    def __init__(self, port_name: str, margin_ms: float = DEFAULT_MARGIN_MS):
+        super().__init__(port_name)  # type: ignore[call-arg]
+        self.margin_ms = float(margin_ms)
+        self.last_os_error: OSError | None = None
+        self._fd = -1
+
+    # ---- opening ----
+    def setupPort(self, cflag_baud):  # noqa: N802 (SDK name)
+        if self.is_open:
+            self.closePort()
+        # Raises serial.SerialException (an OSError subclass); the backend wraps it.
+        self.ser = serial.Serial(port=self.port_name, baudrate=self.baudrate,
+                                 bytesize=serial.EIGHTBITS, timeout=0, exclusive=True)
+        self.is_open = True
+        self._fd = self.ser.fileno()
+        self.ser.reset_input_buffer()
+        self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0  # ms per byte, 8N1
+        self.last_os_error = None
+        return True
+
+    def closePort(self):  # noqa: N802
+        if self.ser is not None:
+            try:
+                self.ser.close()
+            except (OSError, serial.SerialException):
+                pass
+        self.is_open = False
+        self._fd = -1
+
+    # ---- gap 1: discard stale input ----
+    def clearPort(self):  # noqa: N802
+        try:
+            termios.tcflush(self._fd, termios.TCIFLUSH)
+        except (OSError, termios.error) as exc:
+            self.last_os_error = exc if isinstance(exc, OSError) else OSError(str(exc))
+
+    # ---- gap 2: sleep until the bytes arrive or the deadline passes ----
+    def readPort(self, length):  # noqa: N802
+        fd = self._fd
+        try:
+            data = os.read(fd, length)
+        except BlockingIOError:
+            data = b""
+        except OSError as exc:
+            return self._read_failed(exc)
+        if len(data) >= length:
+            return data
+        deadline = self.packet_start_time + self.packet_timeout  # ms, monotonic
+        while True:
+            remaining = deadline - self.getCurrentTime()
+            if remaining <= 0:
+                return data
+            try:
+                ready, _, _ = select.select((fd,), (), (), remaining / 1000.0)
+                if not ready:
+                    return data
+                chunk = os.read(fd, length - len(data))
+            except BlockingIOError:
+                continue
+            except (OSError, ValueError) as exc:
+                if not isinstance(exc, OSError):
+                    exc = OSError(str(exc))
+                return data if data else self._read_failed(exc)
+            if not chunk:  # EOF: the other side is gone
+                return data if data else self._read_failed(OSError("end of file on serial port"))
+            data += chunk
+            if len(data) >= length:
+                return data
+
+    def _read_failed(self, exc: OSError) -> bytes:
+        # Expire the deadline so the SDK's loop gives up now instead of spinning on a dead fd.
+        self.last_os_error = exc
+        self.packet_timeout = -1.0
+        return b""
+
+    def writePort(self, packet):  # noqa: N802
+        data = bytes(packet)
+        sent = 0
+        deadline = time.monotonic() + 0.1  # a full output queue drains in well under this
+        try:
+            while sent < len(data):
+                try:
+                    sent += os.write(self._fd, data[sent:])
+                except BlockingIOError:
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        break
+                    select.select((), (self._fd,), (), remaining)
+        except OSError as exc:
+            self.last_os_error = exc
+        return sent  # != len(packet) -> the SDK reports TX_FAIL and releases the port
+
+    def getBytesAvailable(self):  # noqa: N802
+        try:
+            return self.ser.in_waiting
+        except (OSError, serial.SerialException):
+            return 0
+
+    # ---- gap 3: short, byte-count-sized packet timeouts on a monotonic clock ----
+    def setPacketTimeout(self, packet_length):  # noqa: N802
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = self.tx_time_per_byte * packet_length + self.margin_ms
+
+    def setPacketTimeoutMillis(self, msec):  # noqa: N802
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = msec
+
+    def getCurrentTime(self):  # noqa: N802
+        return time.monotonic() * 1000.0
+
+    def getTimeSinceStart(self):  # noqa: N802
+        return self.getCurrentTime() - self.packet_start_time
+
+
+class SerialServoBackend(Actuator):
+    """Servos with one id each on one half-duplex serial bus. Subclasses fill the hooks below.
+
+    Constructing validates the profile (raises ProfileError naming ``backend.<key>`` or the joint
+    key); nothing touches the bus before :meth:`open`.
+    """
+
+    #: vendor name as in the registry ("feetech", "dynamixel")
+    vendor: ClassVar[str] = ""
+    #: the backend's ``Config`` msgspec struct (must have ``port``, ``baudrate``, ``timeout_ms``,
+    #: ``read_retries``)
+    Config: ClassVar[type]
+    #: model name -> model number (register read by ping)
+    MODEL_NUMBERS: ClassVar[dict[str, int]] = {}
+    #: model name -> encoder ticks per turn
+    RESOLUTION: ClassVar[dict[str, int]] = {}
+    MAX_ID: ClassVar[int] = 253
+    SUPPORTED_BAUDS: ClassVar[list[int]] = []
+    #: SDK result codes that mean "no reply" / "bad reply"
+    RX_TIMEOUT: ClassVar[int] = -1
+    RX_CORRUPT: ClassVar[int] = -2
+
+    def __init__(self, profile: Profile, *, source: str = "<profile>"):
+        super().__init__(profile, source=source)
+        self.source = source
+        # msgspec reports unknown/missing fields "at $" (no key name); name the key ourselves.
+        given = set(profile.backend) - {"type"}
+        fields = self.Config.__struct_fields__
+        for key in sorted(given - set(fields)):
+            raise ProfileError(f"{source}: backend.{key}: unknown key for the {self.vendor} backend "
+                               f"(valid: {', '.join(fields)})")
+        if "port" not in given:
+            raise ProfileError(f"{source}: backend.port: required, the serial device "
+                               f"(e.g. /dev/ttyACM0)")
+        self.config = backend_config(profile, self.Config, source)
+        cfg = self.config
+        if cfg.baudrate not in self.SUPPORTED_BAUDS:
+            raise ProfileError(f"{source}: backend.baudrate: {cfg.baudrate} is not supported; "
+                               f"valid: {', '.join(map(str, self.SUPPORTED_BAUDS))}")
+        problems: list[str] = []
+        models = ", ".join(self.MODEL_NUMBERS)
+        for i, j in enumerate(profile.joints):
+            key = f"joints[{i}] ({j.name})"
+            if j.id is None:
+                problems.append(f"{key}.id: required by the {self.vendor} backend "
+                                f"(servo id 0-{self.MAX_ID})")
+            elif not 0 <= j.id <= self.MAX_ID:
+                problems.append(f"{key}.id: {j.id} is not a servo id (0-{self.MAX_ID})")
+            if j.model is None:
+                problems.append(f"{key}.model: required by the {self.vendor} backend (one of {models})")
+            elif j.model not in self.MODEL_NUMBERS:
+                problems.append(f"{key}.model: unknown model {j.model!r} for the {self.vendor} "
+                                f"backend (known: {models})")
+            else:
+                self._check_joint(i, key, problems)
+        if problems:
+            raise ProfileError(f"{source}: " + "; ".join(problems))
+
+        joints = profile.joints
+        self._ids = [int(j.id) for j in joints]
+        self._label = [f"joint {j.name!r} (id {j.id})" for j in joints]
+        res = np.array([self.RESOLUTION[j.model] for j in joints], dtype=float)
+        self._direction = np.array([j.calibration.direction for j in joints], dtype=float)
+        self._offset_ticks = np.array([j.calibration.offset for j in joints], dtype=float)
+        self._rad_per_tick = self._direction * 2.0 * math.pi / res  # signed: includes direction
+        self._tick_per_rad = 1.0 / self._rad_per_tick
+        self._attempts = 1 + cfg.read_retries
+        self._port: Any = None
+        self._ph: Any = None
+        self._details: dict = {}
+
+    # ------------------------------------------------------------------ hooks
+    def _check_joint(self, i: int, key: str, problems: list[str]) -> None:
+        """Vendor checks of joint ``i`` (known model); append 'key: message' to ``problems``."""
+        j = self.profile.joints[i]
+        res = self.RESOLUTION[j.model]
+        r = j.calibration.range
+        if r is not None and not (0 <= r[0] and r[1] <= res - 1):
+            problems.append(f"{key}.calibration.range: {list(r)} is outside 0..{res - 1}")
+        if not 0 <= j.calibration.offset <= res - 1:
+            problems.append(f"{key}.calibration.offset: {j.calibration.offset} is outside 0..{res - 1}")
+
+    def _make_port(self, margin_ms: float) -> Any:
+        """A :class:`SerialPortFixes` port handler of this vendor's SDK (not opened)."""
+        raise NotImplementedError
+
+    def _make_packet_handler(self) -> Any:
+        raise NotImplementedError
+
+    def _register(self, i: int, name: str) -> tuple[int, int]:
+        """(address, size) of register ``name`` on joint ``i``'s model. Raises KeyError."""
+        raise NotImplementedError
+
+    def _encode(self, i: int, name: str, value: int) -> int:
+        return int(value)
+
+    def _decode(self, i: int, name: str, raw: int) -> int:
+        return raw
+
+    def _error_text(self, error: int) -> str | None:
+        """Description of a status ERR byte if it means the servo is in error, else None."""
+        return None
+
+    def _after_open(self) -> None:
+        """Set up sync groups etc. once the servos answered. Blocks; raises BackendError."""
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def _where(self) -> str:
+        return self.config.port
+
+    def info(self) -> ActuatorInfo:
+        return ActuatorInfo(list(self.joint_names), self.capabilities, dict(self._details))
+
+    def _result_text(self, result: int) -> str:
+        text = self._ph.getTxRxResult(result) if self._ph else str(result)
+        err = self._port.last_os_error if self._port else None
+        if err is not None:
+            text += f" (port error: {err})"
+        return text
+
+    def _txrx(self, fn, *args):
+        """Call an SDK ``...TxRx`` function, retrying comm failures. Returns its tuple."""
+        if self._port is not None:
+            self._port.last_os_error = None
+            self._port.is_using = False  # we own the port alone; a stale flag = PORT_BUSY forever
+        for _ in range(self._attempts):
+            out = fn(self._port, *args)
+            if out[-2] == COMM_SUCCESS:
+                break
+        return out
+
+    def _write_register(self, i: int, name: str, value: int, check_error: bool = False) -> None:
+        """Write one register of joint ``i`` and wait for its ack. Blocks. Raises BackendError."""
+        address, size = self._register(i, name)
+        raw = self._encode(i, name, value)
+        fn = {1: self._ph.write1ByteTxRx, 2: self._ph.write2ByteTxRx, 4: self._ph.write4ByteTxRx}[size]
+        result, error = self._txrx(fn, self._ids[i], address, raw)
+        if result != COMM_SUCCESS:
+            raise BackendError(
+                f"{self.robot}: {self._label[i]}: writing {name} = {value} on {self._where} "
+                f"got no acknowledgement: {self._result_text(result)}")
+        if check_error:
+            text = self._error_text(error)
+            if text:
+                raise BackendError(f"{self.robot}: {self._label[i]} reports {text} "
+                                   f"(status error 0x{error:02X}) when writing {name}")
+
+    def _read_register(self, i: int, name: str) -> int:
+        """Read one register of joint ``i``, decoded (signed where the table says). Blocks."""
+        address, size = self._register(i, name)
+        fn = {1: self._ph.read1ByteTxRx, 2: self._ph.read2ByteTxRx, 4: self._ph.read4ByteTxRx}[size]
+        value, result, _ = self._txrx(fn, self._ids[i], address)
+        if result != COMM_SUCCESS:
+            raise BackendError(f"{self.robot}: {self._label[i]}: reading {name} on {self._where} "
+                               f"failed: {self._result_text(result)}")
+        return self._decode(i, name, value)
+
+    def _require_open(self, what: str) -> None:
+        if self._port is None:
+            raise BackendError(f"{self.robot}: {what} needs an open bus; call open() first")
+
+    def _first_missing(self, data: dict, length: int) -> int | None:
+        """Index of the first joint whose sync-read entry is shorter than ``length``: the SDKs
+        fill ids in request order and give up at the first silent or broken one."""
+        for i, sid in enumerate(self._ids):
+            if len(data.get(sid) or ()) < length:
+                return i
+        return None
+
+    def _sync_read_fault(self, result: int, data: dict, length: int) -> Any:
+        from ..core.actuator import Fault
+
+        i = None
+        if result in (self.RX_TIMEOUT, self.RX_CORRUPT):
+            i = self._first_missing(data, length)
+        code = "bus_corrupt" if result == self.RX_CORRUPT else "bus_timeout"
+        what = "bad reply" if code == "bus_corrupt" else "no reply"
+        who = f" from {self._label[i]}" if i is not None else ""
+        return Fault(code,
+                     f"{self.robot}: {what}{who} to the sync read of ids "
+                     f"{','.join(map(str, self._ids))} on {self._where} ({self._attempts} attempt"
+                     f"{'s' if self._attempts > 1 else ''}): {self._result_text(result)}",
+                     joint=self.joint_names[i] if i is not None else None, transient=True)
+
+    # ------------------------------------------------------------------ lifecycle
+    def _open_hook(self) -> None:
+        """Open the port, ping every servo and check its model. Blocks. Raises BackendError."""
+        cfg = self.config
+        margin = DEFAULT_MARGIN_MS if cfg.timeout_ms is None else cfg.timeout_ms
+        port = self._make_port(margin)
+        port.baudrate = cfg.baudrate
+        try:
+            ok = port.openPort()
+        except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
+            raise BackendError(f"{self.robot}: cannot open port {cfg.port}: {exc}") from exc
+        if not ok:
+            raise BackendError(f"{self.robot}: cannot open port {cfg.port} at {cfg.baudrate} baud")
+        self._port = port
+        self._ph = self._make_packet_handler()
+        try:
+            self._check_servos()
+            self._after_open()
+        except BaseException:
+            port.closePort()
+            self._port = None
+            raise
+        self._details = {
+            "port": cfg.port, "baudrate": cfg.baudrate, "ids": list(self._ids),
+            "models": {j.name: j.model for j in self.profile.joints},
+            "packet_margin_ms": margin, **self._details,
+        }
+
+    def _check_servos(self) -> None:
+        problems = []
+        for i, j in enumerate(self.profile.joints):
+            model, result, _ = self._txrx(self._ph.ping, self._ids[i])
+            if result != COMM_SUCCESS:
+                problems.append(f"{self._label[i]} did not answer ping on {self._where}: "
+                                f"{self._result_text(result)}")
+            elif model != self.MODEL_NUMBERS[j.model]:
+                problems.append(f"{self._label[i]} on {self._where} is model number {model}, "
+                                f"expected {self.MODEL_NUMBERS[j.model]} ({j.model})")
+        if problems:
+            raise BackendError(f"{self.robot}: " + "; ".join(problems))
+
+    def _disable_hook(self) -> None:
+        """Torque_Enable = 0 on every servo, each acknowledged. Blocks.
+
+        Tries every servo even if one fails, then raises BackendError naming those that did not
+        confirm. Status error bits do not count as failure here (torque off is what we want).
+        """
+        if self._port is None:
+            return
+        failed = []
+        for i in range(self.n):
+            try:
+                self._write_register(i, "Torque_Enable", 0)
+            except BackendError as exc:
+                failed.append(str(exc).removeprefix(f"{self.robot}: "))
+        if failed:
+            raise BackendError(f"{self.robot}: torque off not confirmed: " + "; ".join(failed))
+
+    def _close_hook(self) -> None:
+        if self._port is not None:
+            self._port.closePort()
+        self._port = None
