@@ -1,0 +1,240 @@
+"""DynamixelBackend against the Protocol 2.0 simulator (real dynamixel_sdk packets on a pty).
+
+Dynamixel specifics: capabilities per model mix, current mode (effort), operating-mode switches
+without a jump, hardware-error FAULT and recovery by reboot on enable, fast vs plain sync read,
+bytes per cycle. Every wait is a poll with a deadline."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from crtk_bridge.backends import create_backend
+from crtk_bridge.backends.dynamixel import tables as T
+from crtk_bridge.backends.dynamixel.backend import DynamixelBackend
+from crtk_bridge.core.actuator import CommandMode
+from crtk_bridge.errors import ProfileError
+from crtk_bridge.profile import parse_profile
+from crtk_bridge.sim.dynamixel import DynamixelSimulator
+
+from .conftest import wait_until
+
+with open("profiles/koch.yaml") as f:
+    KOCH = yaml.safe_load(f)
+TICK = 2 * math.pi / 4096
+
+
+def koch(**backend) -> dict:
+    data = copy.deepcopy(KOCH)
+    data["backend"].update(backend)
+    return data
+
+
+def all_xl330(**backend) -> dict:
+    """A Koch whose shoulders are XL330s too, every joint with effort_per_amp: effort capable."""
+    data = koch(**backend)
+    for j in data["joints"]:
+        j["model"] = "xl330-m288"
+        j["effort_per_amp"] = 0.35
+    return data
+
+
+def start_sim(data):
+    s = DynamixelSimulator.from_profile(parse_profile(data))
+    s.start()
+    return s
+
+
+@pytest.fixture
+def rig(request):
+    data = getattr(request, "param", None) or koch()
+    sim = start_sim(data)
+    data = copy.deepcopy(data)
+    data["backend"]["port"] = sim.port
+    b = DynamixelBackend(parse_profile(data, "koch.yaml"), source="koch.yaml")
+    b.open()
+    b.configure()
+    yield sim, b
+    b.close()
+    sim.stop()
+
+
+def ok(fault):
+    assert fault is None, fault
+
+
+def reg(sim, sid, name):
+    return sim.servo(sid).read(name)
+
+
+# ---------------------------------------------------------------- profile and capabilities
+
+def test_koch_capabilities_conservative_effort_rule():
+    b = create_backend(parse_profile(koch()))
+    c = b.capabilities
+    assert isinstance(b, DynamixelBackend)
+    assert (c.position, c.velocity, c.effort, c.measures_effort, c.can_free) == (True, True, False, False, True)
+    c = DynamixelBackend(parse_profile(all_xl330())).capabilities
+    assert c.effort and c.measures_effort
+    data = all_xl330()
+    del data["joints"][0]["effort_per_amp"]
+    assert not DynamixelBackend(parse_profile(data)).capabilities.effort
+
+
+def test_profile_errors_name_the_key():
+    with pytest.raises(ProfileError, match=r"backend\.joint_position_modes\.shoulder_pan: "
+                                           r"current_based_position mode is not available .* xl430-w250"):
+        DynamixelBackend(parse_profile(koch(joint_position_modes={"shoulder_pan": "current_based_position"})))
+    with pytest.raises(ProfileError, match=r"backend\.joint_position_modes\.elbow: unknown joint"):
+        DynamixelBackend(parse_profile(koch(joint_position_modes={"elbow": "position"})))
+    with pytest.raises(ProfileError, match=r"backend\.baudrate: 1234 is not supported"):
+        DynamixelBackend(parse_profile(koch(baudrate=1234)))
+    data = koch()
+    data["joints"][1]["model"] = "xl320"
+    with pytest.raises(ProfileError, match=r"joints\[1\] \(shoulder_lift\)\.model: unknown model 'xl320'"):
+        DynamixelBackend(parse_profile(data))
+
+
+# ---------------------------------------------------------------- against the simulator
+
+def test_configure_sets_modes_and_read_applies_calibration(rig):
+    sim, b = rig
+    assert [reg(sim, i, "Operating_Mode") for i in range(1, 7)] == [4, 4, 4, 4, 4, 5]
+    assert all(reg(sim, i, "Return_Delay_Time") == 0 for i in range(1, 7))
+    sim.servo(2).write("Present_Position", 2048 + 300)
+    sim.servo(6).write("Present_Position", 2048 - 100)
+    fb = b.new_feedback()
+    ok(b.read(fb))
+    assert fb.position[1] == pytest.approx(300 * TICK) and fb.position[5] == pytest.approx(-100 * TICK)
+    assert fb.stamp > 0 and b.info().details["fast_sync_read"] is True
+
+
+def test_enable_holds_and_position_command_converges(rig):
+    sim, b = rig
+    sim.servo(3).write("Present_Position", 2500)
+    sim.servo(3).write("Goal_Position", 0)  # stale goal: enabling must not jump to it
+    fb = b.new_feedback()
+    b.enable(fb)
+    assert reg(sim, 3, "Goal_Position") == 2500 and reg(sim, 3, "Torque_Enable") == 1
+    cmd = b.new_command()
+    cmd.mode[:] = CommandMode.POSITION
+    cmd.position[:] = 0.2
+
+    def there():
+        ok(b.read(fb))
+        ok(b.write(cmd))
+        return np.all(np.abs(fb.position - 0.2) < 3 * TICK)
+
+    wait_until(there, 10.0, what="joints at 0.2 rad")
+
+
+@pytest.mark.parametrize("rig", [all_xl330()], indirect=True)
+def test_current_mode_effort_command_and_measured_effort(rig):
+    sim, b = rig
+    fb = b.new_feedback()
+    b.enable(fb)
+    cmd = b.new_command()
+    cmd.mode[:] = CommandMode.NONE
+    cmd.mode[2] = CommandMode.EFFORT
+    cmd.effort[2] = 0.0175  # N*m = 50 mA at 0.35 N*m/A
+    ok(b.write(cmd))
+    assert reg(sim, 3, "Operating_Mode") == 0 and reg(sim, 3, "Torque_Enable") == 1
+    wait_until(lambda: reg(sim, 3, "Goal_Current") == 50, 2.0, what="Goal_Current 50 mA")
+    ok(b.read(fb))
+    assert fb.effort[2] == pytest.approx(0.0175)
+    start = fb.position[2]
+    wait_until(lambda: b.read(fb) is None and fb.position[2] > start + 0.1, 5.0, what="current mode motion")
+
+
+def test_mode_switch_velocity_then_position_without_a_jump(rig):
+    sim, b = rig
+    fb = b.new_feedback()
+    b.enable(fb)
+    cmd = b.new_command()
+    cmd.mode[:] = CommandMode.NONE
+    cmd.mode[0] = CommandMode.VELOCITY
+    cmd.velocity[0] = 1.0
+    ok(b.write(cmd))
+    assert reg(sim, 1, "Operating_Mode") == 1
+    wait_until(lambda: b.read(fb) is None and fb.position[0] > 0.3, 5.0, what="velocity mode motion")
+    # back to position where the joint is (the motion layer's position setpoint follows the joint
+    # under velocity control): the switch holds it, nothing jumps while torque goes off and on
+    cmd.mode[0] = CommandMode.POSITION
+    cmd.position[0] = fb.position[0]
+    ok(b.write(cmd))
+    assert reg(sim, 1, "Operating_Mode") == 4 and reg(sim, 1, "Torque_Enable") == 1
+    ok(b.read(fb))
+    held = fb.position[0]
+    for _ in range(20):
+        ok(b.read(fb))
+        ok(b.write(cmd))
+        assert abs(fb.position[0] - held) < 0.05
+    # the gripper's position flavour is current-based position; a FREE joint is torque off
+    cmd.mode[5] = CommandMode.FREE
+    ok(b.write(cmd))
+    wait_until(lambda: reg(sim, 6, "Torque_Enable") == 0, 2.0, what="gripper free")
+    cmd.mode[5] = CommandMode.POSITION
+    cmd.position[5] = fb.position[5]
+    ok(b.write(cmd))
+    assert reg(sim, 6, "Torque_Enable") == 1 and reg(sim, 6, "Operating_Mode") == 5
+
+
+def test_hardware_error_is_a_fault_and_enable_reboots(rig):
+    sim, b = rig
+    fb = b.new_feedback()
+    b.enable(fb)
+    sim.set_fault(4, "error_bits", T.HW_OVERLOAD | T.HW_OVERHEATING)
+    fault = b.read(fb)
+    assert fault is not None and fault.code == "servo_error" and not fault.transient
+    assert fault.joint == "wrist_flex" and fault.register == "Hardware_Error_Status" and fault.value == 0x24
+    assert fault.message == ("koch: joint 'wrist_flex' (id 4) reports overheating error, overload error "
+                             "(Hardware_Error_Status=0x24)")
+    assert reg(sim, 4, "Torque_Enable") == 0
+    b.disable()
+    b.enable(fb)  # the way out of FAULT: reboot, wait, reconfigure, hold, torque on
+    assert reg(sim, 4, "Hardware_Error_Status") == 0 and reg(sim, 4, "Torque_Enable") == 1
+    assert reg(sim, 4, "Operating_Mode") == 4
+    ok(b.read(fb))
+
+
+def test_silent_servo_named_by_the_plain_retry_of_a_fast_read(rig):
+    sim, b = rig
+    fb = b.new_feedback()
+    ok(b.read(fb))
+    sim.set_fault(5, "silent")
+    fault = b.read(fb)
+    assert fault is not None and fault.code in ("bus_timeout", "bus_corrupt") and fault.transient
+    assert fault.joint == "wrist_roll" and "joint 'wrist_roll' (id 5)" in fault.message
+    sim.clear_faults()
+    ok(b.read(fb))
+
+
+@pytest.mark.parametrize("fast, reply", [("on", 8 + 6 * 14), ("off", 6 * (11 + 10))])
+def test_one_cycle_is_the_protocol_minimum_of_bytes(fast, reply):
+    data = koch(fast_sync_read=fast)
+    sim = start_sim(data)
+    data["backend"]["port"] = sim.port
+    b = DynamixelBackend(parse_profile(data))
+    try:
+        b.open()
+        b.configure()
+        fb = b.new_feedback()
+        b.enable(fb)
+        cmd = b.new_command()
+        cmd.mode[:] = CommandMode.POSITION
+        ok(b.read(fb))
+        ok(b.write(cmd))
+        wait_until(lambda: sim.rx_bytes > 0, 1.0)
+        rx0, tx0 = sim.rx_bytes, sim.tx_bytes
+        ok(b.read(fb))
+        ok(b.write(cmd))
+        wait_until(lambda: sim.rx_bytes - rx0 >= (14 + 6) + (14 + 6 * 5), 2.0, what="the sync write")
+        assert sim.rx_bytes - rx0 == (14 + 6) + (14 + 6 * 5)  # sync read request + sync write of goals
+        assert sim.tx_bytes - tx0 == reply
+    finally:
+        b.close()
+        sim.stop()
