@@ -65,17 +65,6 @@ class SimulatorProcess:
                 raise CrtkBridgeError("--sim: the simulator did not start")
             time.sleep(0.02)
 
-    def set_realtime(self, priority: int) -> bool:
-        """Give every thread of the simulator SCHED_FIFO ``priority``: simulated hardware should
-        answer in bounded time, like real servos, not when the host's other load allows.
-        Returns False (and changes nothing) without the privilege."""
-        try:
-            for tid in os.listdir(f"/proc/{self.proc.pid}/task"):
-                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
-            return True
-        except (OSError, AttributeError):
-            return False
-
     def stop(self) -> None:
         if self.proc.poll() is None:
             self.proc.terminate()
@@ -153,8 +142,6 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
         workdir = tempfile.mkdtemp(prefix=f"crtk-bridge-{profile.name}-sim-")
         simulator = SimulatorProcess(str(profile_path), profile.backend_type, workdir)
         profile = msgspec.structs.replace(profile, backend={**profile.backend, "port": simulator.link})
-        if realtime:
-            simulator.set_realtime(max(1, profile.loop.realtime_priority - 1))
         print(f"crtk-bridge: simulated {profile.backend_type} bus on {simulator.link} "
               f"(simulator control socket {simulator.control})", flush=True)
 

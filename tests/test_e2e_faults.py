@@ -132,11 +132,6 @@ def test_unplugged_bus(rig):
     recover(arm, sim)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "core bug: Controller._enter_fault (crtk_bridge/core/controller.py) swallows the failure of "
-    "actuator.disable() ('except Exception: pass'); with the bus unplugged the servos keep torque "
-    "on, the robot says FAULT ('torque is off' per docs) and nothing reports that torque off was "
-    "not confirmed, nor is it retried once the bus answers again"))
 def test_unplugged_bus_torque_off_confirmed_or_reported(rig):
     robot, arm, sim = rig
     mark = robot.connection.event_count
@@ -144,11 +139,13 @@ def test_unplugged_bus_torque_off_confirmed_or_reported(rig):
     expect_fault(robot, arm, mark, "bus_timeout", "shoulder_pan")
     time.sleep(0.1)  # unplugged for a while, as a pulled cable would be
     sim_req(sim, cmd="unplug", on=False)
-    # torque off could not reach the servos while unplugged: once the bus is back, either the
-    # daemon switches them off, or it has said that it could not confirm torque off
-    said = any("not confirmed" in e.data.get("message", "") for e in robot.connection.events_since(mark))
-    if not said:
-        wait_until(lambda: all_torque(sim, 0), 2, what="torque off after replugging")
+    # torque off could not reach the servos while unplugged: the daemon says so, and switches
+    # them off once the bus is back
+    errors = [e for e in robot.connection.events_since(mark) if e.data.get("code") == "bus_timeout"]
+    assert errors and "torque off not confirmed" in errors[0].data["message"]
+    wait_until(lambda: all_torque(sim, 0), 2, what="torque off after replugging")
+    wait_until(lambda: any(e.data.get("code") == "torque_off_confirmed" for e in robot.connection.events_since(mark)),
+               2, what="torque_off_confirmed status event")
 
 
 def test_fault_row_of_the_transition_table(rig):

@@ -93,6 +93,7 @@ class Controller:
         self._consecutive_bus_errors = 0
         self._tracking_cycles = 0
         self._written = False  # self.command holds what was written last cycle
+        self._torque_unconfirmed = False  # a fault's torque off did not reach the bus
 
     # ------------------------------------------------------------------ queries
     @property
@@ -365,13 +366,25 @@ class Controller:
     def _enter_fault(self, fault: Fault) -> None:
         self.fault_cause = fault
         self._abort_motion()
+        message = fault.message
+        try:
+            self.actuator.disable()
+            self._torque_unconfirmed = False
+        except Exception as exc:  # the bus may be gone: say so, and retry once it answers again
+            self._torque_unconfirmed = True
+            message += f"; torque off not confirmed ({exc}); retrying when the bus answers"
+        self._event("error", fault.code, message, joint=fault.joint, register=fault.register,
+                    value=fault.value)
+        self._set_state(OperatingState.FAULT)
+
+    def _retry_torque_off(self) -> None:
+        """In FAULT with torque off unconfirmed: the bus answered again, switch torque off now."""
         try:
             self.actuator.disable()
         except Exception:
-            pass  # best effort: the bus may be gone
-        self._event("error", fault.code, fault.message, joint=fault.joint, register=fault.register,
-                    value=fault.value)
-        self._set_state(OperatingState.FAULT)
+            return  # still not confirmed: next good read tries again
+        self._torque_unconfirmed = False
+        self._event("status", "torque_off_confirmed", f"{self.robot}: torque off confirmed on every joint")
 
     # ------------------------------------------------------------------ the cycle
     def on_read(self, feedback: JointFeedback, fault: Fault | None) -> None:
@@ -386,6 +399,8 @@ class Controller:
                 self._enter_fault(fault)
             return
         self._consecutive_bus_errors = 0
+        if self._torque_unconfirmed and self.state is OperatingState.FAULT:
+            self._retry_torque_off()
         f = self.feedback
         f.position[:] = feedback.position
         f.velocity[:] = feedback.velocity

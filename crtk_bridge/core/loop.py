@@ -72,6 +72,7 @@ class ControlLoop:
         self.period = 1.0 / profile.loop.rate_hz
         self.controller = Controller(profile, actuator, time.time)
         self.feedback = actuator.new_feedback()
+        self._bus_errors_max = profile.safety.bus_errors_max
         self.pending: deque[bytes] = deque()  # messages the pair could not take yet
         self.running = True
         self.front_alive = True
@@ -130,7 +131,8 @@ class ControlLoop:
     def _publish(self) -> None:
         c, v, fb = self.controller, self._v, self.controller.feedback
         self.snap.begin()
-        v["measured_stamp"][0] = fb.stamp if c._consecutive_bus_errors == 0 else 0.0
+        # a missed read leaves the last sample, honestly stamped; it turns invalid only with a bus fault
+        v["measured_stamp"][0] = fb.stamp if c._consecutive_bus_errors < self._bus_errors_max else 0.0
         v["measured_p"][:] = fb.position
         v["measured_v"][:] = fb.velocity
         v["measured_f"][:] = fb.effort

@@ -1,0 +1,62 @@
+"""Subscriptions: frames at the requested rate; a slow subscriber loses frames, never slows others."""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+
+from crtk_bridge.client import connect
+
+from .conftest import wait_until
+
+
+def test_subscription_rate_and_slow_subscriber(sim_daemon):
+    path = str(sim_daemon.socket_path)
+    robot = connect(socket=path)
+    try:
+        # a normal subscriber gets frames at about the requested rate, each fresh
+        sub = robot.device("so101").subscribe("measured_js", 50)
+        first = sub.get(timeout=2)
+        frames = [first] + [sub.get(timeout=2) for _ in range(24)]
+        stamps = [f["stamp"] if "stamp" in f else f["data"]["stamp"] for f in frames]
+        assert all(b >= a for a, b in zip(stamps, stamps[1:])) and stamps[-1] > stamps[0]
+        sub.close()
+
+        # a slow client: 20 streams at the loop rate that it never reads
+        slow = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        slow.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        slow.connect(path)
+        for i in range(20):
+            req = {"id": i + 1, "cmd": "subscribe", "ns": "so101", "data": {"topic": "measured_js", "rate_hz": 1000}}
+            slow.sendall((json.dumps(req) + "\n").encode())
+        t0 = time.monotonic()
+        answered = 0
+        while time.monotonic() - t0 < 3.0:  # meanwhile another session is served as usual
+            pos, ts = robot.device("so101").measured_jp()
+            assert ts > 0
+            answered += 1
+        elapsed = time.monotonic() - t0
+        assert answered > 100
+        # what the slow client can read now is a fraction of what was produced: frames were dropped
+        slow.settimeout(0.05)
+        received = b""
+        t_read = time.monotonic()
+        while time.monotonic() - t_read < 0.3:  # bounded: the streams never stop by themselves
+            try:
+                chunk = slow.recv(1 << 20)
+            except socket.timeout:
+                continue
+            if not chunk:
+                break
+            received += chunk
+        produced = 20 * 200 * (time.monotonic() - t0)  # 20 streams capped at the 200 Hz loop rate
+        got = received.count(b'"topic"')
+        assert 0 < got < produced / 2, (got, produced)
+        stats = robot.period_statistics()
+        assert stats["cycles"] > 0
+        slow.close()
+        # the daemon is still healthy
+        wait_until(lambda: robot.device("so101").measured_jp()[1] > 0, 2, what="daemon still serving")
+    finally:
+        robot.close()
