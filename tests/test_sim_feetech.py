@@ -165,10 +165,14 @@ def test_sync_write_goal_with_torque_on_converges(sim, bus):
         assert ph.write1ByteTxRx(port, sid, 40, 1)[0] == sdk.COMM_SUCCESS
     sync_write_goals(port, ph, {1: 4000, 2: 800})  # 0.85 s of travel for servo 1
     seen_moving = []
+    failures = []
 
     def arrived():
         group, res = sync_read(port, ph, [1, 2])
-        assert res == sdk.COMM_SUCCESS
+        if res != sdk.COMM_SUCCESS:  # a loaded host may delay one reply past the SDK's timeout
+            failures.append(res)
+            assert len(failures) < 5, failures
+            return False
         seen_moving.append((group.getData(1, 66, 1), T.decode_sign_magnitude(group.getData(1, 58, 2), 15),
                             group.getData(1, 69, 2)))
         return group.getData(1, 56, 2) == 4000 and group.getData(2, 56, 2) == 800
