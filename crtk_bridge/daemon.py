@@ -75,7 +75,11 @@ class SimulatorProcess:
                 self.proc.wait()
 
 
-def _control_process(profile: Profile, source: str, chan: socket.socket, snap: SnapshotBuffer, realtime: bool) -> None:
+def _control_process(profile: Profile, source: str, chan: socket.socket, front: socket.socket,
+                     snap: SnapshotBuffer, realtime: bool) -> None:
+    # the fork copied the front's end of the pair: close it, or the loop would never see EOF
+    # when the front process dies (and would keep the robot enabled with nobody in charge)
+    front.close()
     code = control_main(profile, lambda: create_backend(profile, source=source), chan, snap, realtime=realtime)
     sys.exit(code)
 
@@ -148,7 +152,7 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
     snap = SnapshotBuffer(Layout(len(profile.joints), len(profile.namespaces)), create=True)
     front, back = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     ctx = multiprocessing.get_context("fork")  # forked before any thread or event loop exists
-    proc = ctx.Process(target=_control_process, args=(profile, source, back, snap, realtime),
+    proc = ctx.Process(target=_control_process, args=(profile, source, back, front, snap, realtime),
                        name=f"crtk-bridge-{profile.name}-control")
     try:
         proc.start()

@@ -27,7 +27,7 @@ import msgspec
 
 from ..errors import CrtkBridgeError
 from ..profile import Profile
-from .actuator import Actuator
+from .actuator import Actuator, Fault
 from .controller import Controller
 from .snapshot import RING, SnapshotBuffer
 
@@ -195,13 +195,17 @@ class ControlLoop:
             t0 = clock()
             late = t0 - next_t
             # -- the cycle --
-            fault = self.actuator.read(self.feedback)
-            c.on_read(self.feedback, fault)
-            self._receive()
-            if c.step():
-                wfault = self.actuator.write(c.command)
-                if wfault is not None:
-                    c.on_read(self.feedback, wfault)
+            try:
+                fault = self.actuator.read(self.feedback)
+                c.on_read(self.feedback, fault)
+                self._receive()
+                if c.step():
+                    wfault = self.actuator.write(c.command)
+                    if wfault is not None:
+                        c.on_read(self.feedback, wfault)
+            except Exception as exc:  # a bug must fault the robot, not kill the loop
+                c._enter_fault(Fault("internal", f"{self.profile.name}: control loop error: {exc!r}",
+                                     transient=False))
             # stats go in before the snapshot is published, so the same seqlock covers them
             i += 1
             slot = i % RING

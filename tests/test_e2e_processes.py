@@ -1,0 +1,83 @@
+"""The two-process design's failure paths: either process dying leaves the robot safe."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+
+import yaml
+
+from crtk_bridge.client import connect
+from crtk_bridge.sim.control import control_request
+
+from .conftest import SO101, DaemonProcess, so101_data, wait_until
+
+
+def _control_pid(daemon_pid: int) -> int:
+    """The forked control process: the child running the daemon's own command line (the others
+    are the simulator and multiprocessing's resource tracker)."""
+    with open(f"/proc/{daemon_pid}/task/{daemon_pid}/children") as f:
+        children = [int(x) for x in f.read().split()]
+    for pid in children:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            if b"crtk_bridge.cli" in f.read():
+                return pid
+    raise AssertionError(f"no control process among {children}")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().split()[2] != "Z"
+
+
+def test_front_process_killed_mid_motion_control_process_stops_safely(short_tmp):
+    link, control = short_tmp / "tty", short_tmp / "sim.sock"
+    sim = subprocess.Popen([sys.executable, "-m", "crtk_bridge.sim.cli", "feetech", "--profile", str(SO101),
+                            "--link", str(link), "--control", str(control)],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        wait_until(lambda: link.exists() and control.exists(), 15, what="simulator link")
+        data = so101_data()
+        data["backend"]["port"] = str(link)
+        profile = short_tmp / "p.yaml"
+        profile.write_text(yaml.safe_dump(data))
+        daemon = DaemonProcess(["--profile", str(profile)], short_tmp / "d.sock", short_tmp / "d.log")
+        try:
+            ctl_pid = _control_pid(daemon.proc.pid)
+            robot = connect(socket=str(daemon.socket_path))
+            arm = robot.device("so101")
+            assert arm.enable(5.0)
+            arm.move_jp([1.2, -1.0, 1.0, 0.5, 1.5])
+            wait_until(lambda: control_request(str(control), {"cmd": "dump"})["servos"]["1"]["present_velocity"] != 0,
+                       5, what="arm moving")
+            daemon.proc.send_signal(signal.SIGKILL)  # the front process dies without a word
+            daemon.proc.wait(5)
+            robot.close()
+            wait_until(lambda: not _alive(ctl_pid), 5, what="control process exit after losing the front")
+            servos = control_request(str(control), {"cmd": "dump"})["servos"]
+            assert all(s["torque_enable"] == 0 for s in servos.values()), servos
+        finally:
+            daemon.stop()
+    finally:
+        sim.terminate()
+        sim.wait(10)
+
+
+def test_control_process_killed_front_reports_fault_and_exits_nonzero(sim_daemon):
+    robot = connect(socket=str(sim_daemon.socket_path))
+    try:
+        ctl_pid = _control_pid(sim_daemon.proc.pid)
+        mark = robot.connection.event_count
+        os.kill(ctl_pid, signal.SIGKILL)
+        wait_until(lambda: any(e.data.get("code") == "control_process_died"
+                               for e in robot.connection.events_since(mark)), 5, what="control_process_died event")
+        assert (robot.connection.operating_state or {}).get("state") == "FAULT"
+    finally:
+        robot.close()
+    assert sim_daemon.proc.wait(10) == 1
