@@ -8,6 +8,7 @@ the real daemon lives elsewhere.
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import socket
@@ -18,7 +19,8 @@ import time
 import numpy as np
 import pytest
 
-from crtk_bridge.client import connect, default_socket_path
+from crtk_bridge.client import (
+    connect, default_socket_path, matrix_from_quaternion, pose_matrix, pose_pq, quaternion_from_matrix)
 from crtk_bridge.client.cli import main
 from crtk_bridge.client.connection import Connection, DaemonConnectionError
 from crtk_bridge.errors import CommandError
@@ -704,3 +706,305 @@ def test_cli_events_prints_until_count(fake, capsys):
     assert main(["--socket", fake.path, "events", "--kind", "warning", "--count", "1", "--json"]) == 0
     obj = json.loads(capsys.readouterr().out)
     assert obj["event"] == "warning" and obj["data"]["code"] == "servo_timeout"
+
+
+# -- cartesian space (issue 4) ------------------------------------------------------------------
+
+
+CART_COMMANDS = ARM_COMMANDS + ["servo_cp", "interpolate_cp", "move_cp", "servo_cr", "interpolate_cr",
+                                "move_cr", "servo_cv", "interpolate_cv"]  # no servo_cf: no effort control
+CART_QUERIES = ["measured_js", "measured_cp", "measured_cv", "setpoint_cp", "setpoint_cv", "goal_cp",
+                "goal_cv", "forward_kinematics", "inverse_kinematics"]  # no measured_cf / setpoint_cf
+#: a quarter turn about y: the tip's z axis along the base's x
+QUAT_Y90 = [0.0, math.sqrt(0.5), 0.0, math.sqrt(0.5)]
+
+
+def cart_list(fake):
+    return lambda r, s: s.send(ok(r, {
+        "robot": "so101", "protocol_version": 1, "daemon_version": "0.1.0",
+        "namespaces": [
+            {"name": "so101", "joints": JOINTS, "commands": CART_COMMANDS, "queries": CART_QUERIES,
+             "topics": CART_QUERIES[:-2],
+             "cartesian": {"base_frame": "base_link", "tip_frame": "tip", "frames": ["spatial", "body"]}},
+            {"name": "so101/gripper", "joints": ["gripper"], "commands": ["move_jp"],
+             "queries": ["measured_js"], "topics": ["measured_js"]}]}))
+
+
+@pytest.fixture
+def cart(fake):
+    fake.handlers["list"] = cart_list(fake)
+    r = connect(socket=fake.path, timeout=3.0)
+    yield r.device("so101")
+    r.close()
+
+
+def wire_pose(stamp, position, orientation):
+    return {"stamp": stamp, "frame_id": "base_link", "child_frame_id": "tip",
+            "position": position, "orientation": orientation}
+
+
+def test_quaternion_helpers_round_trip_every_branch():
+    rng = np.random.default_rng(4)
+    quats = [QUAT_Y90, [1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
+    quats += [list(q / np.linalg.norm(q)) for q in rng.normal(size=(50, 4))]
+    for q in quats:
+        R = matrix_from_quaternion(q)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.linalg.det(R) == pytest.approx(1.0)
+        back = quaternion_from_matrix(R)
+        assert back[3] >= 0 and np.allclose(back, np.sign(q[3] or 1.0) * np.array(q), atol=1e-9)
+    T = pose_matrix([0.1, 0.2, 0.3], QUAT_Y90)
+    assert np.allclose(T[:3, 2], [1.0, 0.0, 0.0]) and np.allclose(T[3], [0, 0, 0, 1])
+    p, q = pose_pq(T)
+    assert np.allclose(p, [0.1, 0.2, 0.3]) and np.allclose(q, QUAT_Y90)
+
+
+def test_cartesian_pose_queries_give_a_matrix_and_pq(fake, cart):
+    fake.handlers["measured_cp"] = lambda r, s: s.send(ok(r, wire_pose(12.5, [0.3, -0.1, 0.2], QUAT_Y90)))
+    fake.handlers["setpoint_cp"] = lambda r, s: s.send(ok(r, wire_pose(0.0, [], [])))
+    T, ts = cart.measured_cp()
+    assert ts == 12.5 and T.shape == (4, 4) and T.dtype == np.float64
+    assert np.allclose(T[:3, 3], [0.3, -0.1, 0.2]) and np.allclose(T[:3, 2], [1, 0, 0])
+    assert fake.requests[-1] == {"id": fake.requests[-1]["id"], "cmd": "measured_cp", "ns": "so101"}
+    p, q, ts2 = cart.measured_cp_pq()
+    assert ts2 == 12.5 and np.allclose(p, [0.3, -0.1, 0.2]) and np.allclose(q, QUAT_Y90)
+    assert np.allclose(pose_matrix(p, q), T)
+    # invalid data: natural shape, all NaN, ts 0 (never a silent identity)
+    T0, ts0 = cart.setpoint_cp()
+    assert ts0 == 0.0 and T0.shape == (4, 4) and np.all(np.isnan(T0))
+    p0, q0, _ = cart.setpoint_cp_pq()
+    assert p0.shape == (3,) and q0.shape == (4,) and np.all(np.isnan(p0)) and np.all(np.isnan(q0))
+
+
+def test_twist_and_wrench_queries_pick_the_frame_namespace(fake, cart):
+    fake.handlers["measured_cv"] = lambda r, s: s.send(ok(r, {
+        "stamp": 3.0, "frame_id": "tip" if r["ns"].endswith("/body") else "base_link",
+        "linear": [0.1, 0.2, 0.3], "angular": [0.4, 0.5, 0.6]}))
+    v, ts = cart.measured_cv()
+    assert ts == 3.0 and np.allclose(v, [0.1, 0.2, 0.3, 0.4, 0.5, 0.6])
+    assert fake.requests[-1]["ns"] == "so101"
+    cart.measured_cv(frame="body")
+    assert fake.requests[-1]["ns"] == "so101/body" and fake.requests[-1]["cmd"] == "measured_cv"
+    fake.handlers["goal_cv"] = lambda r, s: s.send(ok(r, {"stamp": 0.0, "linear": [], "angular": []}))
+    g, ts = cart.goal_cv("body")
+    assert ts == 0.0 and g.shape == (6,) and np.all(np.isnan(g)) and fake.requests[-1]["ns"] == "so101/body"
+    n = len(fake.requests)
+    with pytest.raises(CommandError) as info:
+        cart.measured_cv(frame="tool")
+    assert info.value.code == "bad_request" and "spatial, body" in info.value.message
+    for call in (cart.measured_cf, cart.setpoint_cf, lambda: cart.servo_cf([0] * 6),
+                 lambda: cart.interpolate_cf([0] * 6, frame="body"), cart.gripper.measured_cp,
+                 lambda: cart.gripper.move_cp(np.eye(4)), lambda: cart.gripper.forward_kinematics([0.0])):
+        with pytest.raises(CommandError) as info:
+            call()
+        assert info.value.code == "unsupported" and "so101" in info.value.message
+    assert "measured_cf" in str(pytest.raises(CommandError, cart.measured_cf).value)
+    assert len(fake.requests) == n  # all refused locally
+
+
+@pytest.mark.parametrize("method", ["servo_cp", "interpolate_cp", "servo_cr", "interpolate_cr"])
+def test_pose_commands_accept_a_matrix_or_a_pair(fake, cart, method):
+    fake.handlers[method] = lambda r, s: s.send(ok(r))
+    T = pose_matrix([0.25, 0.0, 0.125], QUAT_Y90)
+    assert getattr(cart, method)(T) is None
+    sent = fake.requests[-1]
+    assert sent["cmd"] == method and sent["ns"] == "so101"
+    assert sent["data"]["position"] == [0.25, 0.0, 0.125]
+    assert np.allclose(sent["data"]["orientation"], QUAT_Y90, atol=1e-12)
+    getattr(cart, method)(T.tolist())  # nested lists work too
+    assert np.allclose(fake.requests[-1]["data"]["orientation"], QUAT_Y90)
+    getattr(cart, method)((np.array([0.1, 0.2, 0.3]), [0.0, 0.0, 0.0, 2.0 / 1.5]))  # normalised
+    assert fake.requests[-1]["data"] == {"position": [0.1, 0.2, 0.3], "orientation": [0.0, 0.0, 0.0, 1.0]}
+
+
+def test_malformed_poses_and_twists_refused_locally(fake, cart):
+    n = len(fake.requests)
+    bad_rotation = np.eye(4)
+    bad_rotation[0, 0] = 2.0
+    nan_pose = np.eye(4)
+    nan_pose[0, 3] = float("nan")
+    for call in (lambda: cart.servo_cp(bad_rotation), lambda: cart.servo_cp(nan_pose),
+                 lambda: cart.servo_cp(np.eye(3)), lambda: cart.move_cp(([0, 0], [0, 0, 0, 1])),
+                 lambda: cart.move_cr(([0, 0, 0], [0, 0, 0, 0])),  # zero quaternion
+                 lambda: cart.servo_cp(([0, 0, 0], [0, 0, 0, 3.0])),  # not unit: a mistake
+                 lambda: cart.servo_cv([0.1, 0, 0]), lambda: cart.servo_cv([0, 0, 0, 0, 0, float("inf")]),
+                 lambda: cart.inverse_kinematics(np.zeros((4, 4)))):
+        with pytest.raises(CommandError) as info:
+            call()
+        assert info.value.code == "bad_request"
+    assert len(fake.requests) == n
+
+
+def test_move_cp_and_move_cr_return_handles(fake, cart):
+    fake.set_state(state="ENABLED", busy_seq=2)
+    assert wait_until(lambda: cart.operating_state() == "ENABLED")
+
+    def move(req, s):
+        seq = fake.state["busy_seq"] + 1
+        s.send(os_event(state("ENABLED", busy=True, seq=seq)))
+        s.send(ok(req, {"busy_seq": seq}))
+        fake.state = state("ENABLED", seq=seq)
+        threading.Timer(0.1, fake.push, args=(os_event(fake.state),)).start()
+
+    fake.handlers["move_cp"] = move
+    fake.handlers["move_cr"] = move
+    h = cart.move_cp(([0.3, 0.0, 0.2], QUAT_Y90))
+    assert h.busy_seq == 3 and h.cmd == "move_cp"
+    assert fake.requests[-1]["data"] == {"position": [0.3, 0.0, 0.2], "orientation": QUAT_Y90}
+    assert h.wait(timeout=3.0) and not h.is_busy()
+    h2 = cart.move_cr(pose_matrix([0.0, 0.0, 0.01], [0, 0, 0, 1]))
+    assert h2.busy_seq == 4 and h2.wait(timeout=3.0)
+    assert fake.requests[-1]["data"] == {"position": [0.0, 0.0, 0.01], "orientation": [0.0, 0.0, 0.0, 1.0]}
+    fake.handlers["move_cp"] = lambda r, s: s.send(err(r, "ik_failed", "so101: move_cp refused: IK did not converge"))
+    with pytest.raises(CommandError) as info:
+        cart.move_cp(np.eye(4))
+    assert info.value.code == "ik_failed"
+
+
+def test_twist_commands_frame_and_payload(fake, cart):
+    fake.handlers["servo_cv"] = lambda r, s: s.send(ok(r))
+    fake.handlers["interpolate_cv"] = lambda r, s: s.send(ok(r))
+    cart.servo_cv(np.array([0.01, 0.02, 0.03, 0.1, 0.2, 0.3]))
+    assert fake.requests[-1]["ns"] == "so101"
+    assert fake.requests[-1]["data"] == {"linear": [0.01, 0.02, 0.03], "angular": [0.1, 0.2, 0.3]}
+    cart.servo_cv([0, 0, 0.05, 0, 0, 0], frame="body")
+    assert fake.requests[-1]["ns"] == "so101/body" and fake.requests[-1]["cmd"] == "servo_cv"
+    cart.interpolate_cv([0, 0, 0.05, 0, 0, 0], "body")
+    assert fake.requests[-1]["ns"] == "so101/body" and fake.requests[-1]["cmd"] == "interpolate_cv"
+
+
+def test_forward_and_inverse_kinematics(fake, cart):
+    fake.handlers["forward_kinematics"] = lambda r, s: s.send(ok(r, wire_pose(9.0, [0.3, 0.0, 0.2], QUAT_Y90)))
+    T = cart.forward_kinematics(np.array([0.5, -0.5]))
+    assert fake.requests[-1]["data"] == {"jp": [0.5, -0.5]}
+    assert T.shape == (4, 4) and np.allclose(T[:3, 3], [0.3, 0.0, 0.2]) and np.allclose(T[:3, 2], [1, 0, 0])
+
+    def ik(req, s):
+        reach = req["data"]["position"][0] < 1.0
+        s.send(ok(req, {"jp": [0.5, -0.5], "result": reach,
+                        "message": "" if reach else "IK did not converge: position residual 0.6 m",
+                        "residual_position": 0.0 if reach else 0.6, "residual_orientation": 0.0}))
+
+    fake.handlers["inverse_kinematics"] = ik
+    jp, ok_, msg = cart.inverse_kinematics(T, jp_seed=[0.1, 0.2])
+    assert ok_ is True and isinstance(jp, np.ndarray) and np.allclose(jp, [0.5, -0.5])
+    sent = fake.requests[-1]["data"]
+    assert sent["jp"] == [0.1, 0.2] and sent["position"] == [0.3, 0.0, 0.2]
+    assert np.allclose(sent["orientation"], QUAT_Y90)
+    jp, ok_, msg = cart.inverse_kinematics(([1.5, 0.0, 0.0], [0, 0, 0, 1]))
+    assert ok_ is False and "residual" in msg and "jp" not in fake.requests[-1]["data"]  # seed: the daemon's default
+
+    fake.handlers["forward_kinematics"] = lambda r, s: s.send(err(
+        r, "bad_request", "so101: forward_kinematics needs 'jp' with 2 numbers"))
+    with pytest.raises(CommandError) as info:
+        cart.forward_kinematics([0.0])
+    assert info.value.code == "bad_request"
+
+
+def test_cartesian_subscription_uses_the_frame_namespace(fake, cart):
+    def subscribe(req, s):
+        s.send(ok(req, {"sub": 9}))
+        s.send({"topic": req["data"]["topic"], "ns": req.get("ns"), "sub": 9,
+                "data": {"stamp": 2.0, "linear": [0, 0, 1], "angular": [0, 0, 0]}})
+
+    fake.handlers["subscribe"] = subscribe
+    fake.handlers["unsubscribe"] = lambda r, s: s.send(ok(r))
+    with cart.subscribe("measured_cv", 20, frame="body") as sub:
+        assert sub.get(timeout=2.0)["linear"] == [0, 0, 1]
+    sent = [r for r in fake.requests if r["cmd"] == "subscribe"][-1]
+    assert sent["ns"] == "so101/body" and sent["data"]["topic"] == "measured_cv"
+    with pytest.raises(CommandError) as info:
+        cart.subscribe("measured_cf", 20)
+    assert info.value.code == "unsupported"
+
+
+def test_cli_cartesian_get_human_and_json(fake, cart, capsys):
+    fake.handlers["measured_cp"] = lambda r, s: s.send(ok(r, wire_pose(12.5, [0.3, -0.1, 0.2], QUAT_Y90)))
+    fake.handlers["measured_cv"] = lambda r, s: s.send(ok(r, {
+        "stamp": 3.0, "frame_id": "tip", "child_frame_id": "tip", "linear": [0.1, 0, 0], "angular": [0, 0, -0.25]}))
+    assert main(["--socket", fake.path, "get", "measured_cp"]) == 0
+    out = capsys.readouterr().out
+    assert "+0.3000 -0.1000 +0.2000 m" in out and "+0.0000 +0.7071 +0.0000 +0.7071" in out
+    assert "tip in base_link" in out and "stamp 12.500" in out
+    assert main(["--socket", fake.path, "--json", "get", "measured_cp"]) == 0
+    assert json.loads(capsys.readouterr().out)["orientation"] == QUAT_Y90
+    assert main(["--socket", fake.path, "get", "measured_cv", "--frame", "body"]) == 0
+    out = capsys.readouterr().out
+    assert fake.requests[-1]["ns"] == "so101/body"
+    assert "(body)" in out and "+0.1000 +0.0000 +0.0000 m/s" in out and "-0.2500 rad/s" in out
+    assert main(["--socket", fake.path, "get", "measured_cf"]) == 1
+    assert "get refused (unsupported)" in capsys.readouterr().err
+
+
+def test_cli_cartesian_commands(fake, cart, capsys):
+    fake.set_state(state="ENABLED")
+
+    def move(req, s):
+        s.send(os_event(state("ENABLED", busy=True, seq=1)))
+        s.send(ok(req, {"busy_seq": 1}))
+        threading.Timer(0.1, fake.push, args=(os_event(state("ENABLED", seq=1)),)).start()
+
+    for cmd in ("move_cp", "move_cr"):
+        fake.handlers[cmd] = move
+    for cmd in ("servo_cp", "servo_cv", "servo_cr"):
+        fake.handlers[cmd] = lambda r, s: s.send(ok(r))
+    s = ["--socket", fake.path]
+    assert main(s + ["move_cp", "0.3", "0", "0.2", "0", "0.7071", "0", "0.7071", "--wait", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["done"] is True
+    sent = fake.requests[-1]["data"]
+    assert sent["position"] == [0.3, 0.0, 0.2] and np.allclose(sent["orientation"], QUAT_Y90, atol=1e-4)
+    assert main(s + ["move_cr", "0", "0", "-0.01"]) == 0  # no quaternion: no rotation
+    assert fake.requests[-1]["data"] == {"position": [0.0, 0.0, -0.01], "orientation": [0.0, 0.0, 0.0, 1.0]}
+    assert "move_cr accepted" in capsys.readouterr().out
+    assert main(s + ["move_cr", "0", "-2.5e-03", "-1E-2"]) == 0  # exponents, as --json prints them
+    assert fake.requests[-1]["data"]["position"] == [0.0, -0.0025, -0.01]
+    capsys.readouterr()
+    assert main(s + ["servo_cp", "0.3", "0", "0.2", "0", "0", "0", "1"]) == 0
+    assert fake.requests[-1]["cmd"] == "servo_cp" and "servo_cp sent" in capsys.readouterr().out
+    assert main(s + ["servo_cv", "0", "0", "0.02", "0", "0", "0", "--frame", "body", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == {"cmd": "servo_cv", "ns": "so101", "ok": True, "frame": "body"}
+    assert fake.requests[-1]["ns"] == "so101/body"
+    assert fake.requests[-1]["data"] == {"linear": [0.0, 0.0, 0.02], "angular": [0.0, 0.0, 0.0]}
+    assert main(s + ["servo_cv", "0", "0", "0.02"]) == 1  # 3 values: refused locally
+    assert "bad_request" in capsys.readouterr().err
+    assert main(s + ["move_cr", "0", "0", "0", "1"]) == 1
+    assert "bad_request" in capsys.readouterr().err
+    assert main(s + ["move_cp", "0.3", "0", "0.2"]) == 1  # 7 numbers needed
+    assert "move_cp needs X Y Z QX QY QZ QW" in capsys.readouterr().err
+    assert main(s + ["servo_cf", "0", "0", "0", "0", "0", "0"]) == 1
+    assert "servo_cf refused (unsupported)" in capsys.readouterr().err
+
+
+def test_cli_fk_and_ik(fake, cart, capsys):
+    fake.handlers["forward_kinematics"] = lambda r, s: s.send(ok(r, wire_pose(9.0, [0.3, 0.0, 0.2], QUAT_Y90)))
+
+    def ik(req, s):
+        reach = req["data"]["position"][0] < 1.0
+        s.send(ok(req, {"jp": [0.5, -0.25], "result": reach,
+                        "message": "" if reach else "IK did not converge: position residual 0.6 m",
+                        "residual_position": 0.0 if reach else 0.6, "residual_orientation": 0.0}))
+
+    fake.handlers["inverse_kinematics"] = ik
+    s = ["--socket", fake.path]
+    assert main(s + ["fk", "0.5", "-0.25"]) == 0
+    out = capsys.readouterr().out
+    assert "forward_kinematics" in out and "+0.3000 +0.0000 +0.2000 m" in out
+    assert fake.requests[-1]["data"] == {"jp": [0.5, -0.25]}
+    assert main(s + ["fk", "0.5"]) == 1  # wrong length, caught locally
+    assert "bad_request" in capsys.readouterr().err
+    assert main(s + ["ik", "0.3", "0", "0.2", "0", "0", "0", "1", "--seed", "0.1", "0.2"]) == 0
+    out = capsys.readouterr().out
+    assert "shoulder_pan" in out and "+0.5000 rad" in out and "-0.2500 rad" in out
+    assert fake.requests[-1]["data"]["jp"] == [0.1, 0.2]
+    assert main(s + ["--json", "ik", "1.5", "0", "0.2", "0", "0", "0", "1"]) == 1
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["result"] is False
+    assert captured.err.count("\n") == 1 and "ik refused (ik_failed)" in captured.err and "residual" in captured.err
+
+
+def test_success_reply_without_id_is_ignored_not_recorded_as_an_error(fake, robot):
+    # the daemon fans out its control process's reply to an internal notice (id null, ok true)
+    fake.push({"id": None, "ok": True, "data": None})
+    fake.push({"id": None, "ok": False, "error": {"code": "bad_request", "message": "invalid JSON"}})
+    assert wait_until(lambda: robot.connection.event_count == 1)
+    assert [(e.kind, e.data["code"]) for e in robot.connection.events] == [("error", "bad_request")]
+    assert robot.connection.request("list")["robot"] == "so101"

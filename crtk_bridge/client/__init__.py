@@ -6,6 +6,9 @@
     if arm.enable(5.0):
         p, ts = arm.measured_jp()
         arm.move_jp(p + 0.1).wait()
+        T, ts = arm.measured_cp()           # 4x4 numpy pose of the tip in the base frame (m)
+        T[2, 3] += 0.02                     # 2 cm up
+        arm.move_cp(T).wait()               # or arm.move_cp((position, quaternion_xyzw))
 
 Names and return conventions follow crtk_python_client 1.4. Names are loaded lazily (PEP 562),
 so ``crtk_bridge.client.paths`` imports only the standard library: the daemon uses it for the
@@ -31,6 +34,10 @@ _EXPORTS = {
     "MoveHandle": "device",
     "Subscription": "device",
     "joint_state": "device",
+    "pose_matrix": "device",
+    "pose_pq": "device",
+    "matrix_from_quaternion": "device",
+    "quaternion_from_matrix": "device",
     "CommandError": None,
 }
 

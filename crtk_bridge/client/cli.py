@@ -5,6 +5,15 @@
     crtk-ctl move_jp 0 0.5 -0.5 0 0 --wait        crtk-ctl --robot so101 --ns so101/gripper list
     crtk-ctl servo_jv 0.1 0 0 0 0       crtk-ctl interpolate_jp 0 0.5 -0.5 0 0
     crtk-ctl hold                       crtk-ctl free              crtk-ctl events --count 5
+    crtk-ctl get measured_cp            crtk-ctl get measured_cv --frame body
+    crtk-ctl move_cp 0.3 0 0.2 0 0.7071 0 0.7071 --wait      crtk-ctl move_cr 0 0 0.02 --wait
+    crtk-ctl servo_cv 0 0 0.02 0 0 0 --frame body --duration 1
+    crtk-ctl fk 0 0.5 -0.5 0 0          crtk-ctl ik 0.3 0 0.2 0 0.7071 0 0.7071 --seed 0 0 0 0 0
+
+Cartesian poses are X Y Z (m) then the unit quaternion QX QY QZ QW, the tip frame in the base
+frame; relative commands (_cr) take DX DY DZ [QX QY QZ QW] in the base frame (no quaternion: no
+rotation). Twists are VX VY VZ (m/s) WX WY WZ (rad/s), wrenches FX FY FZ (N) TX TY TZ (N·m), in
+the spatial frame (base axes) or, with --frame body, the tip frame's axes.
 
 Exit status: 0 on success; 1 when the daemon refuses a command (one line on stderr with the
 error code and the daemon's message), a wait times out or a state is not reached; 2 when no
@@ -15,16 +24,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from typing import Sequence
 
 from crtk_bridge.client.connection import DaemonConnectionError
-from crtk_bridge.client.device import JS_TOPICS, Device, Robot, connect
+from crtk_bridge.client.device import (
+    CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, FRAMES, JS_TOPICS, Device, Robot, connect, encode_pose)
 from crtk_bridge.errors import CommandError, CrtkBridgeError
 
 PROG = "crtk-ctl"
-GET_TOPICS = (*JS_TOPICS, "operating_state", "period_statistics")
+GET_TOPICS = (*JS_TOPICS, *CARTESIAN_TOPICS, "operating_state", "period_statistics")
 #: Default wait (s) per state command when --timeout is not given.
 WAIT_DEFAULTS = {"enable": 5.0, "disable": 5.0, "pause": 5.0, "resume": 5.0,
                  "home": 30.0, "unhome": 5.0}
@@ -42,6 +53,20 @@ STREAM_COMMANDS = {
     "interpolate_jr": ("move the interpolated joint position goal by P (rad)", "P"),
     "interpolate_jv": ("set the interpolated joint velocity goal V (rad/s)", "V"),
     "interpolate_jf": ("set the interpolated joint effort goal F (N·m); needs effort control", "F"),
+}
+
+#: cartesian one-shot stream commands: name -> (help, payload kind)
+CART_STREAM_COMMANDS = {
+    "servo_cp": ("set the cartesian position setpoint: X Y Z (m) QX QY QZ QW", "pose"),
+    "servo_cr": ("move the cartesian setpoint by DX DY DZ (m) [QX QY QZ QW] (base frame)", "delta"),
+    "interpolate_cp": ("set the interpolated cartesian goal X Y Z (m) QX QY QZ QW", "pose"),
+    "interpolate_cr": ("move the interpolated cartesian goal by DX DY DZ [QX QY QZ QW]", "delta"),
+    "servo_cv": ("set the cartesian velocity setpoint VX VY VZ (m/s) WX WY WZ (rad/s)", "twist"),
+    "interpolate_cv": ("set the interpolated cartesian velocity goal VX VY VZ WX WY WZ", "twist"),
+    "servo_cf": ("set the wrench setpoint FX FY FZ (N) TX TY TZ (N·m); needs effort control",
+                 "wrench"),
+    "interpolate_cf": ("set the interpolated wrench goal FX FY FZ TX TY TZ; needs effort control",
+                       "wrench"),
 }
 
 
@@ -66,14 +91,25 @@ def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
                    help="reply timeout, and wait timeout of enable/home/move --wait (s)")
 
 
+#: what argparse takes for a negative number rather than an option: its own pattern misses the
+#: exponent form (``-9.5e-06``, as ``--json`` output prints small floats)
+_NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
+
+
+def _numbers_not_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    if hasattr(p, "_negative_number_matcher"):  # argparse internals: keep working without it
+        p._negative_number_matcher = _NEGATIVE_NUMBER
+    return p
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog=PROG, description="Command a robot served by the crtk-bridge daemon (CRTK API).")
+    parser = _numbers_not_options(argparse.ArgumentParser(
+        prog=PROG, description="Command a robot served by the crtk-bridge daemon (CRTK API)."))
     _add_globals(parser, suppress=False)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     def add(name, help_):
-        p = sub.add_parser(name, help=help_, description=help_)
+        p = _numbers_not_options(sub.add_parser(name, help=help_, description=help_))
         _add_globals(p, suppress=True)
         return p
 
@@ -85,12 +121,18 @@ def build_parser() -> argparse.ArgumentParser:
     add("pause", "pause (ENABLED -> PAUSED)")
     add("resume", "resume (PAUSED -> ENABLED)")
     add("list", "print namespaces, joints and commands")
+    def add_frame(p):
+        p.add_argument("--frame", choices=FRAMES, default="spatial",
+                       help="twists and wrenches: spatial (base axes, default) or body (tip axes)")
+
     p = add("get", "print one sample of a topic")
     p.add_argument("topic", choices=GET_TOPICS, metavar="TOPIC", help=", ".join(GET_TOPICS))
+    add_frame(p)
     p = add("echo", "stream a topic until Ctrl-C or --count frames")
     p.add_argument("topic", choices=GET_TOPICS, metavar="TOPIC", help=", ".join(GET_TOPICS))
     p.add_argument("--rate", metavar="HZ", type=float, default=10.0, help="frames/s (default 10)")
     p.add_argument("--count", metavar="N", type=int, default=None, help="stop after N frames")
+    add_frame(p)
     for name, what in (("move_jp", "move to joint positions P (rad)"),
                        ("move_jr", "move by joint offsets P (rad)")):
         p = add(name, what)
@@ -104,6 +146,40 @@ def build_parser() -> argparse.ArgumentParser:
                             "daemon holds when crtk-ctl disconnects, or after its servo timeout)")
         p.add_argument("--rate", metavar="HZ", type=float, default=50.0,
                        help="repeat rate with --duration (default 50)")
+    p = add("move_cp", "move the tip to the pose X Y Z (m) QX QY QZ QW (IK, then a joint "
+                       "trajectory)")
+    p.add_argument("values", nargs="+", type=float, metavar="POSE",
+                       help="X Y Z (m) QX QY QZ QW: the tip frame in the base frame")
+    p.add_argument("--wait", action="store_true", help="wait until the move has ended")
+    p = add("move_cr", "move the tip by DX DY DZ (m) [QX QY QZ QW] in the base frame")
+    p.add_argument("values", nargs="+", type=float, metavar="DELTA",
+                   help="DX DY DZ (m) [QX QY QZ QW], in the base frame")
+    p.add_argument("--wait", action="store_true", help="wait until the move has ended")
+    for name, (what, kind) in CART_STREAM_COMMANDS.items():
+        p = add(name, what)
+        if kind == "pose":
+            p.add_argument("values", nargs="+", type=float, metavar="POSE",
+                       help="X Y Z (m) QX QY QZ QW: the tip frame in the base frame")
+        else:
+            meta, helptext = {
+                "delta": ("DELTA", "DX DY DZ (m) [QX QY QZ QW], in the base frame"),
+                "twist": ("TWIST", "VX VY VZ (m/s) WX WY WZ (rad/s)"),
+                "wrench": ("WRENCH", "FX FY FZ (N) TX TY TZ (N·m)")}[kind]
+            p.add_argument("values", nargs="+", type=float, metavar=meta, help=helptext)
+        if kind in ("twist", "wrench"):
+            add_frame(p)
+        p.add_argument("--duration", metavar="S", type=float, default=0.0,
+                       help="repeat the command at --rate for S seconds (default: send once)")
+        p.add_argument("--rate", metavar="HZ", type=float, default=50.0,
+                       help="repeat rate with --duration (default 50)")
+    p = add("fk", "forward kinematics: print the tip pose for joint positions J (rad)")
+    p.add_argument("values", nargs="+", type=float, metavar="J")
+    p = add("ik", "inverse kinematics: print the joint positions for the pose X Y Z QX QY QZ QW "
+                  "(exit 1 with ik_failed when not reachable)")
+    p.add_argument("values", nargs="+", type=float, metavar="POSE",
+                       help="X Y Z (m) QX QY QZ QW: the tip frame in the base frame")
+    p.add_argument("--seed", nargs="+", type=float, metavar="J",
+                   help="joint positions to start from (rad; default: the measured ones)")
     add("hold", "stop a move (decelerating) or a stream and hold the position")
     add("free", "torque off on the namespace's joints; the robot stays ENABLED")
     p = add("events", "print status/warning/error events as they arrive, until Ctrl-C or "
@@ -155,6 +231,41 @@ def _js_oneline(dev: Device, data: dict) -> str:
     return f"{stamp:.3f}  {vals}" if stamp else f"(invalid)  {vals}"
 
 
+def _vec_text(vec, fmt: str = "{:+.4f}") -> str:
+    return " ".join(fmt.format(v) for v in vec) if vec else "-"
+
+
+def _cart_lines(dev: Device, topic: str, data: dict, frame: str = "spatial") -> list[str]:
+    """A pose, twist or wrench, readable: 4 decimals, units named."""
+    head = f"{dev.name} {topic}"
+    if topic in CV_TOPICS + CF_TOPICS:
+        head += f" ({frame})"
+    frames = ""
+    if data.get("frame_id") or data.get("child_frame_id"):
+        frames = f"  {data.get('child_frame_id', '?')} in {data.get('frame_id', '?')}"
+    lines = [f"{head}  {_fmt_stamp(data.get('stamp'))}{frames}"]
+    if topic in CV_TOPICS:
+        lines += [f"  linear       {_vec_text(data.get('linear'))} m/s",
+                  f"  angular      {_vec_text(data.get('angular'))} rad/s"]
+    elif topic in CF_TOPICS:
+        lines += [f"  force        {_vec_text(data.get('force'))} N",
+                  f"  torque       {_vec_text(data.get('torque'))} N·m"]
+    else:
+        lines += [f"  position     {_vec_text(data.get('position'))} m (x y z)",
+                  f"  orientation  {_vec_text(data.get('orientation'))} (qx qy qz qw)"]
+    return lines
+
+
+def _cart_oneline(topic: str, data: dict) -> str:
+    stamp = float(data.get("stamp") or 0.0)
+    when = f"{stamp:.3f}" if stamp else "(invalid)"
+    if topic in CV_TOPICS:
+        return f"{when}  v={_vec_text(data.get('linear'))}  w={_vec_text(data.get('angular'))}"
+    if topic in CF_TOPICS:
+        return f"{when}  f={_vec_text(data.get('force'))}  t={_vec_text(data.get('torque'))}"
+    return f"{when}  p={_vec_text(data.get('position'))}  q={_vec_text(data.get('orientation'))}"
+
+
 def _dict_line(data: dict) -> str:
     def f(v):
         return f"{v:.6g}" if isinstance(v, float) else str(v)
@@ -168,6 +279,18 @@ def _check_len(dev: Device, cmd: str, values: Sequence[float]) -> None:
     if n and len(values) != n:
         raise CommandError("bad_request", f"{dev.name}: {cmd} needs {n} values "
                            f"({', '.join(dev.joint_names)}), got {len(values)}")
+
+
+def _pose_arg(dev: Device, cmd: str, values: Sequence[float], relative: bool) -> tuple:
+    """X Y Z QX QY QZ QW as a (position, quaternion) pair; a relative command also takes just
+    DX DY DZ (no rotation)."""
+    values = list(values)
+    if relative and len(values) == 3:
+        values += [0.0, 0.0, 0.0, 1.0]
+    if len(values) != 7:
+        want = "DX DY DZ [QX QY QZ QW]" if relative else "X Y Z QX QY QZ QW"
+        raise CommandError("bad_request", f"{dev.name}: {cmd} needs {want}, got {len(values)} values")
+    return values[:3], values[3:]
 
 
 def _last_error(robot: Robot, since: int) -> str:
@@ -221,7 +344,10 @@ def _run(args, robot: Robot) -> int:
 
     if cmd == "get":
         topic = args.topic
-        if topic in JS_TOPICS:
+        if topic in CARTESIAN_TOPICS:
+            data = dev._cartesian_query(topic, args.frame)
+            _emit_json(data) if out_json else print("\n".join(_cart_lines(dev, topic, data, args.frame)))
+        elif topic in JS_TOPICS:
             data = robot.connection.request(topic, dev.name)
             _emit_json(data) if out_json else print("\n".join(_js_lines(dev, topic, data)))
         elif topic == "operating_state":
@@ -240,7 +366,7 @@ def _run(args, robot: Robot) -> int:
     if cmd == "echo":
         topic = args.topic
         count = 0
-        with dev.subscribe(topic, args.rate) as sub:
+        with dev.subscribe(topic, args.rate, frame=args.frame) as sub:
             if args.count is not None and args.count <= 0:
                 return 0
             for frame in sub:
@@ -248,6 +374,8 @@ def _run(args, robot: Robot) -> int:
                     _emit_json(frame)
                 elif topic in JS_TOPICS:
                     print(_js_oneline(dev, frame), flush=True)
+                elif topic in CARTESIAN_TOPICS:
+                    print(_cart_oneline(topic, frame), flush=True)
                 elif topic == "operating_state":
                     print(_fmt_state(frame), flush=True)
                 else:
@@ -257,9 +385,12 @@ def _run(args, robot: Robot) -> int:
                     break
         return 0
 
-    if cmd in ("move_jp", "move_jr"):
-        _check_len(dev, cmd, args.position)
-        handle = getattr(dev, cmd)(args.position)
+    if cmd in ("move_jp", "move_jr", "move_cp", "move_cr"):
+        if cmd in ("move_jp", "move_jr"):
+            _check_len(dev, cmd, args.position)
+            handle = getattr(dev, cmd)(args.position)
+        else:
+            handle = getattr(dev, cmd)(_pose_arg(dev, cmd, args.values, cmd == "move_cr"))
         done = None
         if args.wait:
             timeout = args.timeout if args.timeout is not None else MOVE_WAIT_DEFAULT
@@ -299,6 +430,68 @@ def _run(args, robot: Robot) -> int:
             getattr(dev, cmd)()
         _emit_json({"cmd": cmd, "ns": dev.name, "ok": True}) if out_json else print(
             f"{dev.name}: {cmd} sent")
+        return 0
+
+    if cmd in CART_STREAM_COMMANDS:
+        kind = CART_STREAM_COMMANDS[cmd][1]
+        if args.rate <= 0:
+            raise CommandError("bad_request", f"--rate must be > 0, got {args.rate:g}")
+        if kind in ("pose", "delta"):
+            payload = _pose_arg(dev, cmd, args.values, kind == "delta")
+            send = lambda: getattr(dev, cmd)(payload)  # noqa: E731
+        else:
+            if len(args.values) != 6:
+                raise CommandError("bad_request", f"{dev.name}: {cmd} needs 6 values "
+                                   f"({'VX VY VZ WX WY WZ' if kind == 'twist' else 'FX FY FZ TX TY TZ'}), "
+                                   f"got {len(args.values)}")
+            send = lambda: getattr(dev, cmd)(args.values, frame=args.frame)  # noqa: E731
+        send()
+        n = int(round(max(0.0, args.duration) * args.rate))
+        if n:
+            t0 = time.monotonic()
+            for k in range(1, n + 1):
+                time.sleep(max(0.0, t0 + k / args.rate - time.monotonic()))
+                send()
+        obj = {"cmd": cmd, "ns": dev.name, "ok": True}
+        if kind in ("twist", "wrench"):
+            obj["frame"] = args.frame
+        _emit_json(obj) if out_json else print(f"{dev.name}: {cmd} sent"
+                                               + (f" ({args.frame})" if "frame" in obj else ""))
+        return 0
+
+    if cmd == "fk":
+        _check_len(dev, cmd, args.values)
+        dev._check_query("forward_kinematics")
+        data = robot.connection.request("forward_kinematics", dev.name, {"jp": args.values})
+        if out_json:
+            _emit_json(data)
+        else:
+            lines = _cart_lines(dev, "forward_kinematics", data)
+            print("\n".join([f"{dev.name} forward_kinematics  {data.get('child_frame_id', '?')} in "
+                             f"{data.get('frame_id', '?')}"] + lines[1:]))
+        return 0
+
+    if cmd == "ik":
+        if args.seed is not None:
+            _check_len(dev, "ik --seed", args.seed)
+        dev._check_query("inverse_kinematics")
+        payload = encode_pose(_pose_arg(dev, cmd, args.values, False), f"{dev.name}: ik")
+        if args.seed is not None:
+            payload["jp"] = list(args.seed)
+        data = robot.connection.request("inverse_kinematics", dev.name, payload)
+        if out_json:
+            _emit_json(data)
+        elif data.get("result"):
+            names = dev.joint_names
+            jp = list(data.get("jp") or [])
+            width = max([len(x) for x in names] + [5])
+            print(f"{dev.name} inverse_kinematics  ok  residual "
+                  f"{float(data.get('residual_position', 0.0)) * 1000:.3f} mm, "
+                  f"{float(data.get('residual_orientation', 0.0)):.4f} rad")
+            for i, q in enumerate(jp):
+                print(f"  {names[i] if i < len(names) else f'joint{i}':<{width}}  {q:+.4f} rad")
+        if not data.get("result"):
+            raise CommandError("ik_failed", f"{dev.name}: {data.get('message') or 'IK did not converge'}")
         return 0
 
     if cmd == "events":

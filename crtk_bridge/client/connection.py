@@ -341,6 +341,11 @@ class Connection:
 
     def _on_reply(self, msg: dict) -> None:
         rid = msg.get("id")
+        if rid is None and msg.get("ok"):
+            # not ours: we never send a request without an id (daemons up to 0.1 fan out the
+            # control process's reply to its internal "_client_lost" notice to every session)
+            log.debug("ignoring a success reply without id: %.200r", msg)
+            return
         if rid is None:
             # bad_request for a line the daemon could not parse; we only send valid JSON
             err = msg.get("error") or {}

@@ -18,6 +18,7 @@ Units are SI: rad, rad/s, N·m, s; stamps in seconds since the Unix epoch.
 
 from __future__ import annotations
 
+import math
 import os
 import queue
 import threading
@@ -38,6 +39,18 @@ JS_TOPICS = ("measured_js", "setpoint_js", "goal_js")
 STATES = ("DISABLED", "ENABLED", "PAUSED", "FAULT")
 
 
+#: Cartesian pose queries (answered as 4x4 matrices, or position + quaternion with ``*_pq``).
+CP_TOPICS = ("measured_cp", "setpoint_cp", "goal_cp")
+#: Cartesian twist queries (6-vectors ``[linear; angular]``), in the spatial or body frame.
+CV_TOPICS = ("measured_cv", "setpoint_cv", "goal_cv")
+#: Cartesian wrench queries (6-vectors ``[force; torque]``), in the spatial or body frame.
+CF_TOPICS = ("measured_cf", "setpoint_cf")
+CARTESIAN_TOPICS = CP_TOPICS + CV_TOPICS + CF_TOPICS
+#: Reference frames of twists and wrenches (docs/cartesian.md): ``spatial`` = the base frame's
+#: axes (namespace ``<ns>``), ``body`` = the tip frame's axes (namespace ``<ns>/body``).
+FRAMES = ("spatial", "body")
+
+
 def joint_state(data: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """A wire JointState as ``(position, velocity, effort, ts)``: float64 arrays (empty when the
     robot does not provide that vector) and the stamp in s (``0.0``: invalid data)."""
@@ -45,6 +58,138 @@ def joint_state(data: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
             np.asarray(data.get("velocity") or (), dtype=float),
             np.asarray(data.get("effort") or (), dtype=float),
             float(data.get("stamp") or 0.0))
+
+
+# -- cartesian helpers (numpy only: the client does not need pinocchio) ------------------------
+
+def matrix_from_quaternion(quaternion) -> np.ndarray:
+    """3x3 rotation matrix of a quaternion ``[x, y, z, w]`` (ROS order), normalised first.
+    Raises ``ValueError`` on a zero or non-finite quaternion."""
+    x, y, z, w = (float(v) for v in np.asarray(quaternion, dtype=float).ravel())
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if not (n > 1e-9 and math.isfinite(n)):
+        raise ValueError(f"quaternion [x, y, z, w] = {[x, y, z, w]} has no direction")
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def quaternion_from_matrix(rotation) -> np.ndarray:
+    """Unit quaternion ``[x, y, z, w]`` (``w >= 0``) of a 3x3 rotation matrix (or the rotation
+    block of a 4x4 pose)."""
+    R = np.asarray(rotation, dtype=float)[:3, :3]
+    t = R[0, 0] + R[1, 1] + R[2, 2]
+    if t > 0.0:
+        s = 2.0 * math.sqrt(t + 1.0)
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, s / 4]
+    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+        s = 2.0 * math.sqrt(max(0.0, 1.0 + R[0, 0] - R[1, 1] - R[2, 2]))
+        q = [s / 4, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
+    elif R[1, 1] >= R[2, 2]:
+        s = 2.0 * math.sqrt(max(0.0, 1.0 + R[1, 1] - R[0, 0] - R[2, 2]))
+        q = [(R[0, 1] + R[1, 0]) / s, s / 4, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
+    else:
+        s = 2.0 * math.sqrt(max(0.0, 1.0 + R[2, 2] - R[0, 0] - R[1, 1]))
+        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, s / 4, (R[1, 0] - R[0, 1]) / s]
+    q = np.array(q) / np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def pose_matrix(position, quaternion) -> np.ndarray:
+    """The 4x4 homogeneous matrix of ``position`` [x, y, z] (m) and ``quaternion`` [x, y, z, w]."""
+    T = np.eye(4)
+    T[:3, :3] = matrix_from_quaternion(quaternion)
+    T[:3, 3] = np.asarray(position, dtype=float).ravel()[:3]
+    return T
+
+
+def pose_pq(matrix) -> tuple[np.ndarray, np.ndarray]:
+    """``(position [3] in m, quaternion [4] x, y, z, w with w >= 0)`` of a 4x4 homogeneous matrix."""
+    T = np.asarray(matrix, dtype=float)
+    return T[:3, 3].copy(), quaternion_from_matrix(T[:3, :3])
+
+
+def pose_from_wire(data: dict) -> tuple[np.ndarray, float]:
+    """A wire pose (``{"stamp", "position", "orientation", ...}``) as ``(4x4 matrix, ts)``; the
+    matrix is all NaN when the pose is invalid (``ts == 0``, empty vectors)."""
+    p, q, ts = pq_from_wire(data)
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+        return np.full((4, 4), np.nan), ts
+    return pose_matrix(p, q), ts
+
+
+def pq_from_wire(data: dict) -> tuple[np.ndarray, np.ndarray, float]:
+    """A wire pose as ``(position [3], quaternion [4] xyzw, ts)``; NaN vectors when invalid."""
+    p = np.asarray(data.get("position") or (), dtype=float)
+    q = np.asarray(data.get("orientation") or (), dtype=float)
+    if p.shape != (3,) or q.shape != (4,):
+        p, q = np.full(3, np.nan), np.full(4, np.nan)
+    return p, q, float(data.get("stamp") or 0.0)
+
+
+def six_from_wire(data: dict, a: str, b: str) -> tuple[np.ndarray, float]:
+    """A wire twist (``a, b = "linear", "angular"``) or wrench (``"force", "torque"``) as
+    ``(vector [6], ts)``; NaN when invalid."""
+    v = np.asarray(list(data.get(a) or ()) + list(data.get(b) or ()), dtype=float)
+    if v.shape != (6,):
+        v = np.full(6, np.nan)
+    return v, float(data.get("stamp") or 0.0)
+
+
+def encode_pose(pose, what: str = "pose") -> dict:
+    """A pose as the wire's ``{"position": [3], "orientation": [4]}``.
+
+    ``pose`` is a 4x4 homogeneous matrix (numpy array or nested lists; the rotation block must be
+    a rotation within 1e-3), a ``(position[3], quaternion[4] xyzw)`` pair, or a dict with
+    ``position`` and ``orientation``. The quaternion is normalised (its norm must lie in
+    (0.5, 1.5), as the daemon requires). Raises :class:`CommandError` ``bad_request`` before
+    anything is sent.
+    """
+    if isinstance(pose, dict):
+        if "position" not in pose or "orientation" not in pose:
+            raise CommandError("bad_request", f"{what}: a pose dict needs 'position' and 'orientation'")
+        position, quaternion = pose["position"], pose["orientation"]
+    elif isinstance(pose, (tuple, list)) and len(pose) == 2:
+        position, quaternion = pose
+    else:
+        try:
+            T = np.asarray(pose, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise CommandError("bad_request", f"{what}: not a 4x4 matrix or a (position, quaternion) "
+                               f"pair: {pose!r}") from exc
+        if T.shape != (4, 4):
+            raise CommandError("bad_request", f"{what}: expected a 4x4 homogeneous matrix or a "
+                               f"(position, quaternion) pair, got shape {T.shape}")
+        if not np.all(np.isfinite(T)):
+            raise CommandError("bad_request", f"{what}: the matrix has a non-finite entry")
+        R = T[:3, :3]
+        if (not np.allclose(T[3], [0, 0, 0, 1], atol=1e-9)
+                or not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0):
+            raise CommandError("bad_request", f"{what}: not a homogeneous transform (rotation block "
+                               "not orthonormal, or last row not [0, 0, 0, 1])")
+        return {"position": T[:3, 3].tolist(), "orientation": quaternion_from_matrix(R).tolist()}
+    p = encode_vector(position, f"{what} position")
+    q = encode_vector(quaternion, f"{what} orientation")
+    if len(p) != 3 or len(q) != 4:
+        raise CommandError("bad_request", f"{what}: position needs 3 numbers (m) and the quaternion "
+                           f"4 [x, y, z, w], got {len(p)} and {len(q)}")
+    n = math.sqrt(sum(v * v for v in q))
+    if not 0.5 < n < 1.5:
+        raise CommandError("bad_request", f"{what}: orientation must be a unit quaternion [x, y, z, w] "
+                           f"(norm {n:.3g})")
+    return {"position": p, "orientation": [v / n for v in q]}
+
+
+def encode_six(values, a: str, b: str, what: str) -> dict:
+    """A 6-vector as ``{a: values[:3], b: values[3:]}`` (twist: linear, angular; wrench: force,
+    torque). Raises :class:`CommandError` ``bad_request`` unless 6 finite numbers."""
+    v = encode_vector(values, what)
+    if len(v) != 6:
+        raise CommandError("bad_request", f"{what}: needs 6 numbers [{a} x y z, {b} x y z], got {len(v)}")
+    return {a: v[:3], b: v[3:]}
 
 
 class MoveHandle:
@@ -404,10 +549,10 @@ class Device:
         return encode_vector(values, f"{self.name}: {what}")
 
     def supports(self, cmd: str) -> bool:
-        """True if ``cmd`` is in this namespace's ``commands`` of ``list`` (as of connecting).
-        A daemon that lists no commands is assumed to support everything."""
-        commands = self.info.get("commands")
-        return commands is None or cmd in commands
+        """True if ``cmd`` is in this namespace's ``commands`` or ``queries`` of ``list`` (as of
+        connecting). A daemon that lists neither is assumed to support everything."""
+        lists = [x for x in (self.info.get("commands"), self.info.get("queries")) if x is not None]
+        return not lists or any(cmd in x for x in lists)
 
     def _check_supported(self, cmd: str) -> None:
         if not self.supports(cmd):
@@ -490,8 +635,11 @@ class Device:
 
     def _move(self, cmd: str, goal) -> MoveHandle:
         self._check_supported(cmd)
+        return self._start_move(cmd, {"position": self._vec(goal, f"{cmd} position")})
+
+    def _start_move(self, cmd: str, data: dict) -> MoveHandle:
         seq_before = self._conn.max_busy_seq
-        reply = self._req(cmd, {"position": self._vec(goal, f"{cmd} position")})
+        reply = self._req(cmd, data)
         n = seq_before + 1
         if isinstance(reply, dict) and isinstance(reply.get("busy_seq"), int):
             n = max(n, reply["busy_seq"])
@@ -509,6 +657,202 @@ class Device:
         setpoint when no move runs."""
         return self._move("move_jr", goal)
 
+    # -- cartesian space (docs/cartesian.md) -------------------------------------------------
+    #
+    # Poses are the tip frame in the base frame (``list`` -> ``cartesian``: ``base_frame``,
+    # ``tip_frame``). crtk_python_client returns a PyKDL Frame; without PyKDL, the numpy
+    # equivalent is a 4x4 homogeneous matrix (rotation block + translation in m), and the ``*_pq``
+    # variants give ``(position [3] m, quaternion [4] x, y, z, w with w >= 0, ts)``. Twists are
+    # ``[vx, vy, vz, wx, wy, wz]`` (m/s, rad/s), wrenches ``[fx, fy, fz, tx, ty, tz]`` (N, N·m),
+    # of the tip frame's origin, in the ``spatial`` frame (base frame's axes, the default) or the
+    # ``body`` frame (tip frame's axes; sent to the namespace ``<ns>/body``). Queries always
+    # return arrays of their natural shape; ``ts == 0.0`` marks invalid data, and the arrays are
+    # then NaN (never a silent identity). Each call is one round trip; a query or command this
+    # namespace does not list raises :class:`CommandError` ``unsupported`` without sending.
+
+    def _frame_ns(self, frame: str) -> str:
+        if frame == "spatial":
+            return self.name
+        if frame == "body":
+            return f"{self.name}/body"
+        raise CommandError("bad_request", f"{self.name}: frame must be one of {', '.join(FRAMES)}, "
+                           f"got {frame!r}")
+
+    def _check_query(self, query: str) -> None:
+        if not self.supports(query):
+            have = ", ".join(q for q in self.info.get("queries") or () if q.endswith(
+                ("_cp", "_cv", "_cf", "kinematics"))) or "none"
+            raise CommandError("unsupported", f"{self.name}: {query} is not supported by this "
+                               f"namespace (cartesian queries it lists: {have})")
+
+    def _cartesian_query(self, query: str, frame: str = "spatial") -> dict:
+        """The wire reply of a cartesian query (``measured_cp``, ``measured_cv``...), checked to
+        be listed; ``frame`` picks ``<ns>`` or ``<ns>/body`` (twist and wrench queries only)."""
+        self._check_query(query)
+        ns = self._frame_ns(frame) if query in CV_TOPICS + CF_TOPICS else self.name
+        return self._conn.request(query, ns)
+
+    def _pose_query(self, query: str) -> tuple[np.ndarray, float]:
+        return pose_from_wire(self._cartesian_query(query))
+
+    def _pq_query(self, query: str) -> tuple[np.ndarray, np.ndarray, float]:
+        return pq_from_wire(self._cartesian_query(query))
+
+    def measured_cp(self) -> tuple[np.ndarray, float]:
+        """``(pose, ts)``: the measured pose of the tip frame in the base frame (FK of the
+        measured joints), a 4x4 homogeneous numpy matrix (translation in m); ``ts`` is the stamp of
+        the joint sample it comes from. All NaN with ``ts == 0.0`` when invalid."""
+        return self._pose_query("measured_cp")
+
+    def measured_cp_pq(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(position [3] m, quaternion [4] x, y, z, w, ts)``: :meth:`measured_cp` as the
+        daemon sends it (quaternion with ``w >= 0``)."""
+        return self._pq_query("measured_cp")
+
+    def setpoint_cp(self) -> tuple[np.ndarray, float]:
+        """``(pose 4x4, ts)`` of the position setpoint (FK of ``setpoint_js``). Valid only while
+        the active command is position based (servo/interpolate/move ``_jp``/``_cp``, relative
+        commands, hold, integrated velocity commands); NaN with ``ts == 0.0`` otherwise."""
+        return self._pose_query("setpoint_cp")
+
+    def setpoint_cp_pq(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """:meth:`setpoint_cp` as ``(position [3], quaternion [4] xyzw, ts)``."""
+        return self._pq_query("setpoint_cp")
+
+    def goal_cp(self) -> tuple[np.ndarray, float]:
+        """``(pose 4x4, ts)`` of the running or last interpolate / move goal; NaN with
+        ``ts == 0.0`` when there is none."""
+        return self._pose_query("goal_cp")
+
+    def goal_cp_pq(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """:meth:`goal_cp` as ``(position [3], quaternion [4] xyzw, ts)``."""
+        return self._pq_query("goal_cp")
+
+    def measured_cv(self, frame: str = "spatial") -> tuple[np.ndarray, float]:
+        """``(twist [6], ts)``: ``[vx, vy, vz]`` (m/s) and ``[wx, wy, wz]`` (rad/s) of the tip,
+        in ``frame`` (``"spatial"``: base axes; ``"body"``: tip axes), from the measured joint
+        velocities. NaN with ``ts == 0.0`` when invalid (the backend measures no velocity)."""
+        return six_from_wire(self._cartesian_query("measured_cv", frame), "linear", "angular")
+
+    def setpoint_cv(self, frame: str = "spatial") -> tuple[np.ndarray, float]:
+        """``(twist [6], ts)`` of the setpoint (J × ``setpoint_js`` velocity), in ``frame``;
+        valid when the setpoint has both position and velocity."""
+        return six_from_wire(self._cartesian_query("setpoint_cv", frame), "linear", "angular")
+
+    def goal_cv(self, frame: str = "spatial") -> tuple[np.ndarray, float]:
+        """``(twist [6], ts)`` of the velocity goal of an ``interpolate_*v``, in ``frame``."""
+        return six_from_wire(self._cartesian_query("goal_cv", frame), "linear", "angular")
+
+    def measured_cf(self, frame: str = "spatial") -> tuple[np.ndarray, float]:
+        """``(wrench [6], ts)``: ``[fx, fy, fz]`` (N) and ``[tx, ty, tz]`` (N·m) the tool exerts,
+        in ``frame``, estimated from the measured joint efforts (gravity not compensated). Needs
+        a backend that measures effort (else ``unsupported``)."""
+        return six_from_wire(self._cartesian_query("measured_cf", frame), "force", "torque")
+
+    def setpoint_cf(self, frame: str = "spatial") -> tuple[np.ndarray, float]:
+        """``(wrench [6], ts)`` of the effort setpoint, in ``frame``. Needs effort control."""
+        return six_from_wire(self._cartesian_query("setpoint_cf", frame), "force", "torque")
+
+    def _cartesian_command(self, cmd: str, data: dict, ns: str | None = None) -> Any:
+        return self._conn.request(cmd, ns or self.name, data)
+
+    def _pose_command(self, cmd: str, pose) -> Any:
+        self._check_supported(cmd)
+        return self._cartesian_command(cmd, encode_pose(pose, f"{self.name}: {cmd}"))
+
+    def servo_cp(self, pose) -> None:
+        """Set the cartesian position setpoint: ``pose`` is the tip frame in the base frame, a
+        4x4 homogeneous matrix (m) or a ``(position [3] m, quaternion [4] xyzw)`` pair. The
+        daemon solves IK (seeded with the current setpoint) and sends ``servo_jp``; send
+        continuously at about the loop rate. Blocks for the reply; raises
+        :class:`CommandError` (``ik_failed`` for an unreachable pose, ``step_too_large``,
+        ``invalid_state``, ``bad_request``...)."""
+        self._pose_command("servo_cp", pose)
+
+    def servo_cr(self, delta) -> None:
+        """Move the setpoint by ``delta`` (4x4 or (position, quaternion)), in the base frame: the
+        translation is added to the position, the rotation pre-multiplies the orientation
+        (``R_new = R_delta · R``). Quick successive calls accumulate. Raises
+        :class:`CommandError` like :meth:`servo_cp`."""
+        self._pose_command("servo_cr", delta)
+
+    def interpolate_cp(self, pose) -> None:
+        """Set the cartesian goal of an interpolated stream (20-50 Hz), solved by IK into
+        ``interpolate_jp``. Raises :class:`CommandError` like :meth:`servo_cp`."""
+        self._pose_command("interpolate_cp", pose)
+
+    def interpolate_cr(self, delta) -> None:
+        """Like :meth:`interpolate_cp`, relative (base frame, as :meth:`servo_cr`) to the last
+        interpolate goal, else to the setpoint."""
+        self._pose_command("interpolate_cr", delta)
+
+    def move_cp(self, pose) -> MoveHandle:
+        """Move to ``pose`` (4x4 or (position, quaternion); the tip frame in the base frame): the
+        daemon solves IK and runs a jerk-limited joint trajectory (the tip's path is not a
+        straight line). Returns once accepted, with a :class:`MoveHandle` to wait on. Raises
+        :class:`CommandError` when refused (``ik_failed`` for an unreachable pose, naming the
+        residual; ``invalid_state``, ``not_homed``, ``out_of_limits``...), so there is never a
+        handle to wait on in vain."""
+        self._check_supported("move_cp")
+        return self._start_move("move_cp", encode_pose(pose, f"{self.name}: move_cp"))
+
+    def move_cr(self, delta) -> MoveHandle:
+        """Like :meth:`move_cp` with a goal relative (base frame, as :meth:`servo_cr`) to the
+        running move's goal, else to the setpoint."""
+        self._check_supported("move_cr")
+        return self._start_move("move_cr", encode_pose(delta, f"{self.name}: move_cr"))
+
+    def _six_command(self, cmd: str, values, frame: str, a: str, b: str) -> None:
+        self._check_supported(cmd)
+        ns = self._frame_ns(frame)
+        self._cartesian_command(cmd, encode_six(values, a, b, f"{ns}: {cmd}"), ns)
+
+    def servo_cv(self, twist, frame: str = "spatial") -> None:
+        """Set the cartesian velocity setpoint ``twist`` = ``[vx, vy, vz, wx, wy, wz]`` (m/s,
+        rad/s) of the tip, in ``frame`` (``"spatial"``: base axes; ``"body"``: tip axes, sent to
+        ``<ns>/body``). Becomes ``servo_jv`` of the damped least-squares J⁺·twist (a 5-joint arm
+        cannot follow every twist exactly). Send continuously: a silent stream holds after the
+        servo timeout. Raises :class:`CommandError`."""
+        self._six_command("servo_cv", twist, frame, "linear", "angular")
+
+    def interpolate_cv(self, twist, frame: str = "spatial") -> None:
+        """Set the cartesian velocity goal (``interpolate_jv`` of J⁺·twist), in ``frame``."""
+        self._six_command("interpolate_cv", twist, frame, "linear", "angular")
+
+    def servo_cf(self, wrench, frame: str = "spatial") -> None:
+        """Set the wrench setpoint ``[fx, fy, fz, tx, ty, tz]`` (N, N·m) at the tip, in ``frame``
+        (``servo_jf`` of Jᵀ·wrench). Needs effort control (else ``unsupported``, locally)."""
+        self._six_command("servo_cf", wrench, frame, "force", "torque")
+
+    def interpolate_cf(self, wrench, frame: str = "spatial") -> None:
+        """Set the wrench goal (``interpolate_jf`` of Jᵀ·wrench), in ``frame``. Needs effort
+        control."""
+        self._six_command("interpolate_cf", wrench, frame, "force", "torque")
+
+    def forward_kinematics(self, jp) -> np.ndarray:
+        """The pose (4x4 homogeneous matrix, m) of the tip frame in the base frame for joint
+        positions ``jp`` (rad, one per joint). Pure computation: valid in every state. Raises
+        :class:`CommandError` (``bad_request`` for a wrong length, ``unsupported`` without
+        kinematics). Unlike crtk_python_client there is no ``extra=``: errors raise."""
+        self._check_query("forward_kinematics")
+        data = self._cartesian_command("forward_kinematics", {"jp": self._vec(jp, "forward_kinematics jp")})
+        return pose_from_wire(data)[0]
+
+    def inverse_kinematics(self, pose, jp_seed=None) -> tuple[np.ndarray, bool, str]:
+        """Solve IK for ``pose`` (4x4 or (position, quaternion); tip in base frame), starting
+        from ``jp_seed`` (rad; default: the measured joints). Returns ``(jp, ok, message)``:
+        ``ok`` False (with ``jp`` the best found and a message naming the residuals) when the
+        pose is not reachable within the profile's IK tolerances; nothing raises for that. The
+        argument order differs from crtk_python_client's ``inverse_kinematics(jp, cp)``: the
+        seed is optional here. Raises :class:`CommandError` for a malformed request."""
+        self._check_query("inverse_kinematics")
+        data = encode_pose(pose, f"{self.name}: inverse_kinematics")
+        if jp_seed is not None:
+            data["jp"] = self._vec(jp_seed, "inverse_kinematics seed")
+        reply = self._cartesian_command("inverse_kinematics", data)
+        return (np.asarray(reply.get("jp") or (), dtype=float), bool(reply.get("result")),
+                str(reply.get("message") or ""))
+
     # -- events --------------------------------------------------------------------------------
 
     def wait_for_event(self, code: str | None = None, timeout: float = 5.0,
@@ -523,11 +867,18 @@ class Device:
 
     def subscribe(self, topic: str, rate_hz: float,
                   callback: Callable[[dict], None] | None = None,
-                  maxsize: int = 1000) -> Subscription:
+                  maxsize: int = 1000, frame: str = "spatial") -> Subscription:
         """Stream ``topic`` (``measured_js``, ``setpoint_js``, ``goal_js``, ``operating_state``,
-        ``period_statistics``) at up to ``rate_hz`` (capped at the loop rate). Returns a
-        :class:`Subscription`; frames are the wire ``data`` dicts (``joint_state(frame)`` turns a
-        JointState into arrays). Raises :class:`CommandError` for an unknown topic."""
+        ``period_statistics``, and the cartesian queries the namespace lists: ``measured_cp``,
+        ``measured_cv``...) at up to ``rate_hz`` (capped at the loop rate). ``frame``
+        (``"spatial"`` / ``"body"``) applies to twist and wrench topics. Returns a
+        :class:`Subscription`; frames are the wire ``data`` dicts (``joint_state(frame)``,
+        ``pose_from_wire(frame)`` turn them into arrays). Raises :class:`CommandError` for an
+        unknown topic."""
+        if topic in CARTESIAN_TOPICS:
+            self._check_query(topic)
+            ns = self._frame_ns(frame) if topic in CV_TOPICS + CF_TOPICS else self.name
+            return Subscription(self._conn, topic, rate_hz, ns, callback, maxsize)
         ns = None if topic in ROBOT_TOPICS else self.name
         return Subscription(self._conn, topic, rate_hz, ns, callback, maxsize)
 

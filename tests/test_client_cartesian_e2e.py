@@ -1,0 +1,208 @@
+"""The client's cartesian API and crtk-ctl's cartesian commands against the real daemon on the
+simulated SO-101 (issue 4).
+
+One daemon for the module (started with ``DaemonProcess`` directly, on a socket in a short temp
+dir); every wait has a deadline.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crtk_bridge.client import CommandError, connect, pose_matrix, pose_pq
+from crtk_bridge.client.cli import main
+
+from .conftest import SO101, DaemonProcess, wait_until
+
+POS_TOL = 0.005  # m: tip within 5 mm (servo quantisation times the reach, plus lag)
+Q_A = [0.3, 0.4, -0.3, 0.2, 0.1]  # valid joint vectors: their FK is reachable exactly
+Q_B = [0.0, -0.5, 0.5, 0.5, 0.0]  # arm in its x-z plane; the tip's z axis ~ (0.88, 0, -0.48)
+
+
+@pytest.fixture(scope="module")
+def daemon():
+    d = tempfile.mkdtemp(prefix="crtk-")  # AF_UNIX paths must stay short
+    proc = DaemonProcess(["--profile", str(SO101), "--sim"], Path(d) / "so101.sock", Path(d) / "daemon.log")
+    try:
+        yield proc
+    finally:
+        proc.stop()
+        shutil.rmtree(d, ignore_errors=True)
+
+
+@pytest.fixture
+def arm(daemon):
+    robot = connect(socket=str(daemon.socket_path), timeout=5.0)
+    try:
+        yield robot.device("so101")
+    finally:
+        robot.close()
+
+
+def enabled(arm):
+    assert arm.enable(5.0), "robot did not enable"
+    return arm
+
+
+def tip_error(arm, target) -> float:
+    T, ts = arm.measured_cp()
+    assert ts > 0
+    return float(np.linalg.norm(T[:3, 3] - np.asarray(target)[:3, 3]))
+
+
+def ctl(daemon, capsys, *argv) -> tuple[int, str, str]:
+    code = main(["--socket", str(daemon.socket_path), *argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_measured_cp_matrix_is_consistent_with_pq_and_fk(arm):
+    T, ts = arm.measured_cp()
+    p, q, ts_pq = arm.measured_cp_pq()
+    assert ts > 0 and ts_pq >= ts
+    assert T.shape == (4, 4) and np.allclose(T[3], [0, 0, 0, 1])
+    R = T[:3, :3]
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) == pytest.approx(1.0)
+    assert np.linalg.norm(q) == pytest.approx(1.0) and q[3] >= 0
+    assert np.allclose(pose_matrix(p, q), T, atol=1e-3)  # the robot is still (disabled)
+    jp, _ = arm.measured_jp()
+    assert np.allclose(arm.forward_kinematics(jp), T, atol=1e-3)
+    # the body frame is not for poses; the gripper namespace has no kinematics
+    with pytest.raises(CommandError) as info:
+        arm.gripper.measured_cp()
+    assert info.value.code == "unsupported"
+
+
+def test_move_cp_reaches_fk_of_a_joint_vector_via_client_and_ctl(arm, daemon, capsys):
+    enabled(arm)
+    target = arm.forward_kinematics(Q_A)
+    h = arm.move_cp(target)
+    assert h.wait(timeout=15.0), "move_cp did not end"
+    wait_until(lambda: tip_error(arm, target) < POS_TOL, 5, what="tip at the move_cp target")
+    G, ts = arm.goal_cp()
+    assert ts > 0 and np.allclose(G[:3, 3], target[:3, 3], atol=1e-6)
+    jp, _ = arm.measured_jp()
+    assert np.allclose(jp, Q_A, atol=0.02)  # the exact solution, found from another seed
+
+    # move_cr: 2 cm up in the base frame, the tip follows
+    h = arm.move_cr(([0.0, 0.0, 0.02], [0.0, 0.0, 0.0, 1.0]))
+    assert h.wait(timeout=15.0)
+    up = target.copy()
+    up[2, 3] += 0.02
+    wait_until(lambda: tip_error(arm, up) < POS_TOL, 5, what="tip 2 cm higher after move_cr")
+
+    # the same through crtk-ctl (its own session: the client gives control up first)
+    arm._robot.release()
+    target_b = arm.forward_kinematics(Q_B)
+    p, q = pose_pq(target_b)
+    code, out, err = ctl(daemon, capsys, "move_cp", *map(str, [*p, *q]), "--wait", "--json")
+    assert code == 0, err
+    assert json.loads(out)["done"] is True
+    wait_until(lambda: tip_error(arm, target_b) < POS_TOL, 5, what="tip at crtk-ctl's move_cp target")
+    code, out, _ = ctl(daemon, capsys, "--json", "get", "measured_cp")
+    assert code == 0 and np.linalg.norm(np.array(json.loads(out)["position"]) - p) < POS_TOL
+    code, out, _ = ctl(daemon, capsys, "get", "measured_cp")
+    assert code == 0
+    line = next(x for x in out.splitlines() if x.strip().startswith("position"))
+    assert line.endswith(" m (x y z)")
+    printed = np.array([float(v) for v in line.split()[1:4]])  # 4 decimals
+    assert np.linalg.norm(printed - p) < POS_TOL
+
+
+def test_ik_fk_round_trip_client_and_ctl(arm, daemon, capsys):
+    target = arm.forward_kinematics(Q_A)
+    jp, ok, msg = arm.inverse_kinematics(target, jp_seed=[0.0] * 5)
+    assert ok, msg
+    back = arm.forward_kinematics(jp)
+    assert np.linalg.norm(back[:3, 3] - target[:3, 3]) < 1e-3
+    assert np.allclose(back[:3, :3], target[:3, :3], atol=0.02)
+    jp2, ok2, msg2 = arm.inverse_kinematics(([1.0, 1.0, 1.0], [0, 0, 0, 1]))
+    assert not ok2 and "reach" in msg2 and jp2.shape == (5,)
+
+    p, q = pose_pq(target)
+    code, out, err = ctl(daemon, capsys, "--json", "ik", *map(str, [*p, *q]), "--seed", *["0"] * 5)
+    assert code == 0, err
+    reply = json.loads(out)
+    assert reply["result"] is True
+    code, out, _ = ctl(daemon, capsys, "--json", "fk", *map(str, reply["jp"]))
+    assert code == 0 and np.linalg.norm(np.array(json.loads(out)["position"]) - p) < 1e-3
+    code, out, err = ctl(daemon, capsys, "ik", "1", "1", "1", "0", "0", "0", "1")
+    assert code == 1 and out == ""
+    assert err.count("\n") == 1 and "ik refused (ik_failed)" in err and "reach" in err
+
+
+def test_unreachable_move_cp_refused_with_ik_failed(arm, daemon, capsys):
+    enabled(arm)
+    seq = arm.operating_state_full()["busy_seq"]
+    before, _ = arm.measured_jp()
+    with pytest.raises(CommandError) as info:
+        arm.move_cp(([1.0, 1.0, 1.0], [0.0, 0.0, 0.0, 1.0]))
+    assert info.value.code == "ik_failed" and "reach" in info.value.message
+    arm._robot.release()
+    code, _, err = ctl(daemon, capsys, "move_cp", "1", "1", "1", "0", "0", "0", "1", "--wait")
+    assert code == 1 and "move_cp refused (ik_failed)" in err and err.count("\n") == 1
+    assert arm.operating_state_full()["busy_seq"] == seq  # no move started
+    assert np.allclose(arm.measured_jp()[0], before, atol=0.01)
+
+
+def _stream_cv(arm, twist, frame, duration=0.3, rate=100.0):
+    """servo_cv for ``duration`` s; returns the setpoint position's displacement (m)."""
+    T0, ts = arm.setpoint_cp()
+    assert ts > 0
+    t0 = time.monotonic()
+    k = 0
+    while time.monotonic() - t0 < duration:
+        arm.servo_cv(twist, frame=frame)
+        k += 1
+        time.sleep(max(0.0, t0 + k / rate - time.monotonic()))
+    arm.hold()
+    T1, ts1 = arm.setpoint_cp()
+    assert ts1 > 0
+    return T1[:3, 3] - T0[:3, 3], T0
+
+
+def _back_to(arm, q):
+    assert arm.move_jp(q).wait(timeout=15.0)
+    wait_until(lambda: np.allclose(arm.measured_jp()[0], q, atol=0.01), 5, what=f"arm at {q}")
+
+
+def test_servo_cv_body_and_spatial_frames_go_to_their_namespaces(arm, daemon, capsys):
+    enabled(arm)
+    _back_to(arm, Q_B)
+    v = 0.03
+    # spatial: +z of the base frame is up
+    d, T0 = _stream_cv(arm, [0, 0, v, 0, 0, 0], "spatial")
+    assert np.linalg.norm(d) > 0.005
+    assert d @ [0, 0, 1] / np.linalg.norm(d) > 0.95, d
+    # body: +z of the tip frame, which points forward and down here
+    tip_z = T0[:3, 2]
+    assert tip_z @ [0, 0, 1] < -0.3  # so the two frames give clearly different motions
+    _back_to(arm, Q_B)
+    d, T0 = _stream_cv(arm, [0, 0, v, 0, 0, 0], "body")
+    assert np.linalg.norm(d) > 0.005
+    assert d @ T0[:3, 2] / np.linalg.norm(d) > 0.95, (d, T0[:3, 2])
+    assert d[2] < 0  # went down: the body frame was used, not the spatial one
+
+    # the body-frame twist query is the spatial one in the tip's axes
+    arm.servo_cv([0, 0, v, 0, 0, 0], frame="spatial")
+    vs, ts = arm.setpoint_cv()
+    vb, tb = arm.setpoint_cv(frame="body")
+    arm.hold()
+    assert ts > 0 and tb > 0 and vs[2] > 0.02
+    T, _ = arm.setpoint_cp()
+    assert np.allclose(vb[:3], T[:3, :3].T @ vs[:3], atol=2e-3)
+
+    # crtk-ctl servo_cv --frame body reaches the daemon's so101/body namespace
+    arm._robot.release()
+    _, _, z0 = arm.measured_cp_pq()[0]
+    code, out, err = ctl(daemon, capsys, "servo_cv", "0", "0", str(v), "0", "0", "0", "--frame", "body",
+                         "--duration", "0.3", "--rate", "100")
+    assert code == 0 and "servo_cv sent (body)" in out, err
+    wait_until(lambda: arm.measured_cp_pq()[0][2] < z0 - 0.003, 5, what="tip moved down under body servo_cv")
