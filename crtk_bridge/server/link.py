@@ -87,6 +87,8 @@ class ControlLink:
                 return
             msg = _decode(data)
             rid = msg.get("id")
+            if "ok" in msg and rid is None:
+                continue  # the reply to a notice we sent without an id (_client_lost): nobody asked
             if rid is not None and "ok" in msg:
                 entry = self._pending.pop(rid, None)
                 if entry is not None:
