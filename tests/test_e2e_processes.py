@@ -81,3 +81,28 @@ def test_control_process_killed_front_reports_fault_and_exits_nonzero(sim_daemon
     finally:
         robot.close()
     assert sim_daemon.proc.wait(10) == 1
+
+
+def test_client_loss_notice_reaches_others_as_one_warning_only(sim_daemon):
+    import json
+    import socket as _socket
+    import threading
+
+    lines: list[dict] = []
+    watcher = _socket.socket(_socket.AF_UNIX, _socket.SOCK_STREAM)
+    watcher.connect(str(sim_daemon.socket_path))
+
+    def read():
+        for line in watcher.makefile("rb"):
+            lines.append(json.loads(line))
+
+    threading.Thread(target=read, daemon=True).start()
+    robot = connect(socket=str(sim_daemon.socket_path))
+    arm = robot.device(robot.namespaces[0])
+    assert arm.enable(5.0)
+    arm.servo_jp(arm.measured_jp()[0])
+    robot.close()  # the controlling session goes away mid-stream
+    wait_until(lambda: any(m.get("data", {}).get("code") == "control_released" for m in lines), 5,
+               what="control_released warning")
+    assert not [m for m in lines if "ok" in m], "a reply nobody asked for reached another session"
+    watcher.close()
