@@ -12,24 +12,116 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from crtk_bridge.profile import load_profile
 
 ROOT = Path(__file__).resolve().parent.parent
 SO101 = ROOT / "profiles" / "so101.yaml"
 SO101_URDF = ROOT / "profiles" / "urdf" / "so101.urdf"
+KOCH = ROOT / "profiles" / "koch.yaml"
+
+
+def profile_data(path: Path) -> dict:
+    """A profile as data, with its URDF paths made absolute so a copy can live anywhere."""
+    import yaml
+
+    data = yaml.safe_load(path.read_text())
+    for ns in data["namespaces"]:
+        if "kinematics" in ns:
+            ns["kinematics"]["urdf"] = str((path.parent / ns["kinematics"]["urdf"]).resolve())
+    return data
 
 
 def so101_data() -> dict:
     """profiles/so101.yaml as data, with its URDF path made absolute so a copy can live anywhere."""
-    import yaml
+    return profile_data(SO101)
 
-    data = yaml.safe_load(SO101.read_text())
-    for ns in data["namespaces"]:
-        if "kinematics" in ns:
-            ns["kinematics"]["urdf"] = str(SO101_URDF)
-    return data
+
+# Arm goals (rad, shoulder_pan .. wrist_roll) used by the end-to-end tests on every simulated
+# robot; SimRobot checks each lies inside the robot's limits with a margin.
+SAFE_GOALS = {
+    "small": (0.1, 0.2, 0.3, 0.0, 0.0),
+    "reach": (0.6, 0.3, -0.4, 0.2, 0.0),
+    "far": (-0.6, 0.3, -0.4, 0.2, 0.0),
+    "wide": (1.2, -1.0, 1.0, 0.5, 1.5),
+}
+GOAL_MARGIN = 0.1  # rad inside the position limits
+
+
+@dataclass(frozen=True, eq=False)
+class SimRobot:
+    """One simulated robot the conformance tests run on: its profile, simulator and namespaces.
+
+    ``backend`` is the profile's backend type, which is also the ``crtk-sim`` device name; tests
+    key their per-backend differences on it. Servo ids are strings, as the simulators' dump keys.
+    """
+
+    id: str
+    profile: Path
+    backend: str
+    arm: str
+    gripper: str
+    joint_names: tuple[str, ...]
+    gripper_joint: str
+    arm_ids: tuple[str, ...]
+    gripper_id: str
+    servo_id: dict  # joint name -> bus id (int)
+    pos_min: np.ndarray
+    pos_max: np.ndarray
+    home: np.ndarray
+    servo_timeout_s: float
+    goals: dict  # name -> np.ndarray, see SAFE_GOALS
+
+    @classmethod
+    def load(cls, id: str, path: Path) -> SimRobot:
+        p = load_profile(path)
+        arm_ns, grip_ns = p.namespaces[0], p.namespaces[1]
+        by_name = {j.name: j for j in p.joints}
+        arm = [by_name[n] for n in arm_ns.joints]
+        (grip,) = [by_name[n] for n in grip_ns.joints]
+        lo = np.array([j.limits.position_min for j in arm])
+        hi = np.array([j.limits.position_max for j in arm])
+        goals = {k: np.array(v) for k, v in SAFE_GOALS.items()}
+        for k, g in goals.items():
+            assert len(g) == len(arm) and np.all(g >= lo + GOAL_MARGIN) and np.all(g <= hi - GOAL_MARGIN), \
+                f"{path}: SAFE_GOALS[{k!r}] = {g} is not inside the limits of {arm_ns.name}"
+        return cls(id=id, profile=path, backend=p.backend_type, arm=arm_ns.name, gripper=grip_ns.name,
+                   joint_names=tuple(arm_ns.joints), gripper_joint=grip.name,
+                   arm_ids=tuple(str(j.id) for j in arm), gripper_id=str(grip.id),
+                   servo_id={j.name: j.id for j in p.joints}, pos_min=lo, pos_max=hi,
+                   home=np.array([j.home for j in arm]), servo_timeout_s=p.safety.servo_timeout_s,
+                   goals=goals)
+
+    @property
+    def n(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def servo_ids(self) -> tuple[str, ...]:
+        return self.arm_ids + (self.gripper_id,)
+
+    def data(self) -> dict:
+        return profile_data(self.profile)
+
+    def vec(self, **by_joint: float) -> np.ndarray:
+        """An arm vector, zero except the named joints: ``robot.vec(elbow_flex=0.1)``."""
+        out = np.zeros(self.n)
+        for name, value in by_joint.items():
+            out[self.joint_names.index(name)] = value
+        return out
+
+
+SIM_ROBOTS = {r.id: r for r in (SimRobot.load("so101-feetech", SO101), SimRobot.load("koch-dynamixel", KOCH))}
+
+
+def only_on(*ids: str):
+    """Restrict a test that uses ``sim_daemon`` / ``sim_robot`` to some simulated robots."""
+    return pytest.mark.parametrize("sim_robot", [SIM_ROBOTS[i] for i in ids], ids=list(ids), indirect=True)
 
 
 def wait_until(predicate, timeout=10.0, interval=0.01, what="condition"):
@@ -55,7 +147,8 @@ def short_tmp():
 class DaemonProcess:
     """``crtk-bridge`` as a real subprocess."""
 
-    def __init__(self, args: list[str], socket_path: Path, log_path: Path):
+    def __init__(self, args: list[str], socket_path: Path, log_path: Path, robot: SimRobot | None = None):
+        self.robot = robot
         self.socket_path = socket_path
         self.log_path = log_path
         self._log = open(log_path, "wb")
@@ -96,10 +189,17 @@ class DaemonProcess:
         self._log.close()
 
 
+@pytest.fixture(params=list(SIM_ROBOTS.values()), ids=list(SIM_ROBOTS))
+def sim_robot(request) -> SimRobot:
+    """Each simulated robot in turn (one conformance suite over every backend with a simulator)."""
+    return request.param
+
+
 @pytest.fixture
-def sim_daemon(short_tmp):
-    """``crtk-bridge --profile profiles/so101.yaml --sim`` on its own socket."""
-    d = DaemonProcess(["--profile", str(SO101), "--sim"], short_tmp / "so101.sock", short_tmp / "daemon.log")
+def sim_daemon(short_tmp, sim_robot):
+    """``crtk-bridge --profile <robot profile> --sim`` on its own socket; ``.robot`` is the SimRobot."""
+    d = DaemonProcess(["--profile", str(sim_robot.profile), "--sim"], short_tmp / f"{sim_robot.id}.sock",
+                      short_tmp / "daemon.log", robot=sim_robot)
     yield d
     d.stop()
 

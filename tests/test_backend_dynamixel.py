@@ -201,11 +201,15 @@ def test_hardware_error_is_a_fault_and_enable_reboots(rig):
     ok(b.read(fb))
 
 
-def test_silent_servo_named_by_the_plain_retry_of_a_fast_read(rig):
+@pytest.mark.parametrize("kind", ["silent", "corrupt"])
+def test_silent_or_corrupt_servo_named_by_the_plain_retry_of_a_fast_read(rig, kind):
+    # corrupt: in a Fast Sync Read only this servo's own (cumulative) CRC is bad; the packet's
+    # last CRC, the only one the SDK checks, is good
     sim, b = rig
     fb = b.new_feedback()
     ok(b.read(fb))
-    sim.set_fault(5, "silent")
+    assert b.info().details["fast_sync_read"] is True
+    sim.set_fault(5, kind)
     fault = b.read(fb)
     assert fault is not None and fault.code in ("bus_timeout", "bus_corrupt") and fault.transient
     assert fault.joint == "wrist_roll" and "joint 'wrist_roll' (id 5)" in fault.message

@@ -1,4 +1,4 @@
-"""`crtk-bridge check` and `crtk-ctl` against a real daemon on the simulated SO-101."""
+"""`crtk-bridge check` and `crtk-ctl` against a real daemon on each simulated robot."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ import yaml
 from crtk_bridge.cli import main as bridge_main
 from crtk_bridge.client.cli import main as ctl_main
 
-from .conftest import SO101, so101_data
+from .conftest import so101_data
 
 
-def test_check_accepts_a_valid_profile(capsys):
-    assert bridge_main(["check", "--profile", str(SO101)]) == 0
-    assert "so101" in capsys.readouterr().out
+def test_check_accepts_a_valid_profile(sim_robot, capsys):
+    assert bridge_main(["check", "--profile", str(sim_robot.profile)]) == 0
+    assert sim_robot.arm in capsys.readouterr().out
 
 
 def test_check_rejects_an_invalid_profile_naming_key(tmp_path, capsys):
@@ -46,29 +46,31 @@ def ctl(capsys, *args):
 
 
 def test_crtk_ctl_drives_the_daemon(sim_daemon, capsys):
+    bot = sim_daemon.robot
+    goal = [f"{x:g}" for x in bot.goals["small"]]
     sock = str(sim_daemon.socket_path)
     code, out, _ = ctl(capsys, "--socket", sock, "--json", "state")
     assert code == 0 and json.loads(out)["state"] == "DISABLED"
 
-    code, _, err = ctl(capsys, "--socket", sock, "move_jp", "0.1", "0.2", "0.3", "0", "0")
+    code, _, err = ctl(capsys, "--socket", sock, "move_jp", *goal)
     assert code == 1 and len(err.strip().splitlines()) == 1 and "DISABLED" in err
 
     code, out, _ = ctl(capsys, "--socket", sock, "list")
-    assert code == 0 and "so101/gripper" in out and "move_jp" in out
+    assert code == 0 and bot.gripper in out and "move_jp" in out
 
     assert ctl(capsys, "--socket", sock, "enable")[0] == 0
     assert ctl(capsys, "--socket", sock, "home")[0] == 0
-    assert ctl(capsys, "--socket", sock, "move_jp", "0.1", "0.2", "0.3", "0", "0", "--wait")[0] == 0
+    assert ctl(capsys, "--socket", sock, "move_jp", *goal, "--wait")[0] == 0
     code, out, _ = ctl(capsys, "--socket", sock, "--json", "get", "measured_js")
     js = json.loads(out)
-    assert code == 0 and js["stamp"] > 0 and js["name"][0] == "shoulder_pan"
-    assert js["position"] == pytest.approx([0.1, 0.2, 0.3, 0, 0], abs=0.02)
+    assert code == 0 and js["stamp"] > 0 and js["name"] == list(bot.joint_names)
+    assert js["position"] == pytest.approx(list(bot.goals["small"]), abs=0.02)
 
     code, out, _ = ctl(capsys, "--socket", sock, "--json", "echo", "measured_js", "--rate", "50", "--count", "5")
     frames = [json.loads(line) for line in out.splitlines() if line.strip()]
     assert code == 0 and len(frames) == 5
 
-    code, out, _ = ctl(capsys, "--socket", sock, "--ns", "so101/gripper", "move_jp", "0.4", "--wait")
+    code, out, _ = ctl(capsys, "--socket", sock, "--ns", bot.gripper, "move_jp", "0.4", "--wait")
     assert code == 0
     assert ctl(capsys, "--socket", sock, "disable")[0] == 0
     code, out, _ = ctl(capsys, "--socket", sock, "--json", "state")

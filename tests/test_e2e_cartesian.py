@@ -10,7 +10,7 @@ import pytest
 
 from crtk_bridge.client import CommandError, connect
 
-from .conftest import wait_until
+from .conftest import only_on, wait_until
 
 POS_TOL = 0.005  # m: servo quantisation (0.0015 rad) times the arm's ~0.4 m reach, plus lag
 
@@ -20,6 +20,7 @@ def pose(c, query="measured_cp"):
     return np.array(d["position"]), np.array(d["orientation"]), d["stamp"]
 
 
+@only_on("so101-feetech")  # the Koch profile has no URDF: no cartesian commands
 def test_cartesian_queries_commands_and_validity(sim_daemon):
     robot = connect(socket=str(sim_daemon.socket_path))
     c = robot.connection

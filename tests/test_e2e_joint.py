@@ -1,6 +1,7 @@
 """End to end, joint space (issue 3): every joint command through the socket of a real daemon on
-the simulated SO-101, checked on what the simulator measures, on setpoint_js / goal_js (fields per
-crtk-spec 4.2.5, stamps) and on the operating_state events a second, raw session sees."""
+each simulated robot (SO-101 on Feetech, Koch on Dynamixel), checked on what the simulator
+measures, on setpoint_js / goal_js (fields per crtk-spec 4.2.5, stamps) and on the operating_state
+events a second, raw session sees."""
 
 from __future__ import annotations
 
@@ -16,10 +17,14 @@ from crtk_bridge.sim.control import control_request
 from .conftest import RawSession, wait_until
 
 TOL = 0.02  # rad: sim quantisation 0.0015 rad; the first-order servo lag settles well inside this
-V_MAX = 3.0  # rad/s, shoulder_pan .. elbow_flex in profiles/so101.yaml
+V_MAX = 3.0  # rad/s, shoulder_pan .. elbow_flex in profiles/so101.yaml and koch.yaml
 DT = 1.0 / 200  # loop period
-ARM_IDS = ("1", "2", "3", "4", "5")
-GRIPPER_ID = "6"
+
+# What legitimately differs per backend (keyed by the profile's backend type):
+# setpoint_js fields (position, velocity, effort) under servo_jv / interpolate_jv. The STS3215 is
+# position-only: the velocity is integrated into a position setpoint. Dynamixel servos run velocity
+# mode natively: the setpoint has no position (core/motion.py setpoint_fields, crtk-spec 4.2.5).
+VELOCITY_SETPOINT_FIELDS = {"feetech": (True, True, False), "dynamixel": (False, True, False)}
 
 
 @pytest.fixture
@@ -27,7 +32,7 @@ def rig(sim_daemon):
     """An enabled arm (client) plus a raw session recording operating_state events."""
     robot = connect(socket=str(sim_daemon.socket_path))
     raw = RawSession(str(sim_daemon.socket_path))
-    arm = robot.device("so101")
+    arm = robot.device(sim_daemon.robot.arm)
     try:
         assert arm.enable(5.0)
         yield robot, arm, raw, sim_daemon.sim_control_path()
@@ -82,28 +87,32 @@ def caught_up(raw: RawSession, arm) -> None:
 
 
 def test_validity_stamps_and_unsupported_effort_commands(sim_daemon):
+    bot = sim_daemon.robot
+    n = bot.n
     robot = connect(socket=str(sim_daemon.socket_path))
     try:
-        arm = robot.device("so101")
+        arm = robot.device(bot.arm)
         # disabled: setpoint and goal invalid (stamp 0), still served
         assert arm.setpoint_js()[3] == 0.0 and arm.goal_js()[3] == 0.0
         assert fields(arm.setpoint_js()) == (False, False, False)
-        # position-only STS3215: velocity commands by integration, no effort commands
+        # velocity commands on both (integrated on the position-only STS3215, native on Dynamixel);
+        # no effort commands on either (the STS3215 has no current mode; the Koch's XL430s no
+        # current sensor, and effort is per robot)
         for ns in robot.list()["namespaces"]:
             for cmd in ("servo_jp", "servo_jr", "servo_jv", "interpolate_jp", "interpolate_jr", "interpolate_jv",
                         "move_jp", "move_jr", "hold", "free"):
                 assert cmd in ns["commands"], (ns["name"], cmd)
             assert "servo_jf" not in ns["commands"] and "interpolate_jf" not in ns["commands"]
         assert arm.enable(5.0)
-        for call in (lambda: arm.servo_jf([0.0] * 5), lambda: arm.interpolate_jf([0.0] * 5)):
+        for call in (lambda: arm.servo_jf([0.0] * n), lambda: arm.interpolate_jf([0.0] * n)):
             with pytest.raises(CommandError) as err:
                 call()
             assert err.value.code == "unsupported"
         # the daemon refuses it too (a client that does not check), naming command and namespace
         reply = robot.connection.request
         with pytest.raises(CommandError) as err:
-            reply("servo_jf", "so101", {"effort": [0.0] * 5})
-        assert err.value.code == "unsupported" and "servo_jf" in err.value.message and "so101" in err.value.message
+            reply("servo_jf", bot.arm, {"effort": [0.0] * n})
+        assert err.value.code == "unsupported" and "servo_jf" in err.value.message and bot.arm in err.value.message
         # enabled, nothing commanded yet: still invalid
         assert arm.setpoint_js()[3] == 0.0 and arm.goal_js()[3] == 0.0
         arm.servo_jp(measured(arm))
@@ -114,14 +123,15 @@ def test_validity_stamps_and_unsupported_effort_commands(sim_daemon):
         robot.close()
 
 
-def test_servo_jp_jr_jv_setpoints_goal_and_watchdog(rig):
+def test_servo_jp_jr_jv_setpoints_goal_and_watchdog(rig, sim_robot):
     robot, arm, raw, sim = rig
+    bot = sim_robot
     p0 = measured(arm)
     seq0 = arm.operating_state_full()["busy_seq"]
     n_states = len(raw.states)
 
     # servo_jp: position only; goal invalid; the arm follows
-    target = p0 + np.array([0.2, -0.1, 0.1, 0.0, 0.0])
+    target = p0 + bot.vec(shoulder_pan=0.2, shoulder_lift=-0.1, elbow_flex=0.1)
     arm.servo_jp(target)
     sp = arm.setpoint_js()
     assert fields(sp) == (True, False, False) and sp[3] > 0
@@ -130,26 +140,26 @@ def test_servo_jp_jr_jv_setpoints_goal_and_watchdog(rig):
     wait_until(lambda: at(arm, target), 5, what="servo_jp target reached")
 
     # servo_jp with velocity feed-forward: position and velocity
-    arm.servo_jp(target, [0.1, 0, 0, 0, 0])
+    arm.servo_jp(target, bot.vec(shoulder_pan=0.1))
     assert fields(arm.setpoint_js()) == (True, True, False)
 
     # servo_jr: relative to the current setpoint
-    arm.servo_jr([0.0, 0.0, 0.0, 0.15, 0.0])
-    expect = target + np.array([0.0, 0.0, 0.0, 0.15, 0.0])
+    arm.servo_jr(bot.vec(wrist_flex=0.15))
+    expect = target + bot.vec(wrist_flex=0.15)
     np.testing.assert_allclose(arm.setpoint_jp()[0], expect, atol=1e-9)
     wait_until(lambda: at(arm, expect), 5, what="servo_jr target reached")
 
-    # servo_jv at 50 Hz for 0.4 s: the setpoint position integrates v (position-only hardware)
-    v = np.array([0.5, 0.0, 0.0, 0.0, 0.0])
-    start = arm.setpoint_jp()[0]
+    # servo_jv at 50 Hz for 0.4 s: the joint moves at v (setpoint fields per backend)
+    v = bot.vec(shoulder_pan=0.5)
+    start = measured(arm)
     t0 = time.monotonic()
     while time.monotonic() - t0 < 0.4:
         arm.servo_jv(v)
         time.sleep(0.02)  # paces the 50 Hz stream
     sp = arm.setpoint_js()
-    assert fields(sp) == (True, True, False) and sp[3] > 0
+    moved = measured(arm)[0] - start[0]
+    assert fields(sp) == VELOCITY_SETPOINT_FIELDS[bot.backend] and sp[3] > 0
     np.testing.assert_allclose(sp[1], v, atol=1e-9)
-    moved = sp[0][0] - start[0]
     assert 0.15 < moved < 0.35, moved  # ~0.5 rad/s * 0.4 s, plus the time since the last command
     assert arm.goal_js()[3] == 0.0
 
@@ -168,42 +178,45 @@ def test_servo_jp_jr_jv_setpoints_goal_and_watchdog(rig):
     assert all(not s["is_busy"] for s in raw.states[n_states:])
 
 
-def test_servo_step_too_large_refused_and_limit_clipping_warned(rig):
+def test_servo_step_too_large_refused_and_limit_clipping_warned(rig, sim_robot):
     robot, arm, raw, sim = rig
+    bot = sim_robot
     p0 = arm.setpoint_jp()[0] if arm.setpoint_jp()[1] else measured(arm)
     arm.servo_jp(p0)
     with pytest.raises(CommandError) as err:
-        arm.servo_jp(p0 + np.array([0.0, 0.5, 0.0, 0.0, 0.0]))
+        arm.servo_jp(p0 + bot.vec(shoulder_lift=0.5))
     assert err.value.code == "step_too_large" and "shoulder_lift" in err.value.message
     np.testing.assert_allclose(arm.setpoint_jp()[0], p0, atol=1e-9)  # the refused step changed nothing
     with pytest.raises(CommandError) as err:
-        arm.interpolate_jp(p0 + np.array([0.0, 0.0, -0.5, 0.0, 0.0]))
+        arm.interpolate_jp(p0 + bot.vec(elbow_flex=-0.5))
     assert err.value.code == "step_too_large" and "elbow_flex" in err.value.message
 
-    # bring elbow_flex near its limit (1.69), then servo past it: clipped, with a warning
+    # bring elbow_flex near its limit, then servo past it: clipped, with a warning
+    limit = bot.pos_max[2]
     goal = p0.copy()
-    goal[2] = 1.6
+    goal[2] = limit - 0.09
     assert arm.move_jp(goal).wait(timeout=10.0)
     mark = robot.connection.event_count
     beyond = goal.copy()
-    beyond[2] = 1.8
+    beyond[2] = limit + 0.11
     arm.servo_jp(beyond)
     ev = arm.wait_for_event("limit_clipped", timeout=2.0, since=mark)
     assert ev is not None and ev.kind == "warning"
-    assert ev.data["joint"] == "elbow_flex" and ev.data["value"] == pytest.approx(1.8)
-    assert arm.setpoint_jp()[0][2] == pytest.approx(1.69)
-    wait_until(lambda: abs(measured(arm)[2] - 1.69) < TOL, 5, what="elbow at its limit")
+    assert ev.data["joint"] == "elbow_flex" and ev.data["value"] == pytest.approx(limit + 0.11)
+    assert arm.setpoint_jp()[0][2] == pytest.approx(limit)
+    wait_until(lambda: abs(measured(arm)[2] - limit) < TOL, 5, what="elbow at its limit")
 
 
-def test_interpolate_jp_follows_a_20hz_stream_smoothly(rig):
+def test_interpolate_jp_follows_a_20hz_stream_smoothly(rig, sim_robot):
     robot, arm, raw, sim = rig
+    bot = sim_robot
     seq0 = arm.operating_state_full()["busy_seq"]
     p0 = measured(arm)
     arm.servo_jp(p0)
     frames = []
     sub = arm.subscribe("setpoint_js", 200, callback=frames.append)
     # a ramp of 0.08 rad per 50 ms command (1.6 rad/s) on shoulder_pan, then 0.04 on elbow_flex
-    step = np.array([0.08, 0.0, 0.04, 0.0, 0.0])
+    step = bot.vec(shoulder_pan=0.08, elbow_flex=0.04)
     goal = p0.copy()
     n0 = 0
     for k in range(12):
@@ -241,23 +254,25 @@ def test_interpolate_jp_follows_a_20hz_stream_smoothly(rig):
     assert sum(1 for s in steps if s > 1e-6) > 30  # it moved on most cycles
 
     # interpolate_jr: relative to the running interpolation goal
-    arm.interpolate_jr([0.0, 0.1, 0.0, 0.0, 0.0])
+    arm.interpolate_jr(bot.vec(shoulder_lift=0.1))
     g2 = arm.goal_jp()[0]
-    np.testing.assert_allclose(g2, goal + np.array([0.0, 0.1, 0.0, 0.0, 0.0]), atol=1e-9)
+    np.testing.assert_allclose(g2, goal + bot.vec(shoulder_lift=0.1), atol=1e-9)
     wait_until(lambda: at(arm, g2), 5, what="interpolate_jr goal reached")
 
-    # interpolate_jv: the goal is a velocity; setpoint carries the ramped v and the integrated p
-    arm.interpolate_jv([0.0, 0.0, 0.0, 0.6, 0.0])
+    # interpolate_jv: the goal is a velocity; setpoint carries the ramped v (and, on position-only
+    # hardware, the integrated p)
+    vw = bot.vec(wrist_flex=0.6)
+    arm.interpolate_jv(vw)
     g = arm.goal_js()
     assert fields(g) == (False, True, False)
-    np.testing.assert_allclose(g[1], [0.0, 0.0, 0.0, 0.6, 0.0], atol=1e-9)
+    np.testing.assert_allclose(g[1], vw, atol=1e-9)
     wait_until(lambda: arm.setpoint_jv()[0][3] == pytest.approx(0.6), 2, what="setpoint velocity ramped up")
-    assert fields(arm.setpoint_js()) == (True, True, False)
+    assert fields(arm.setpoint_js()) == VELOCITY_SETPOINT_FIELDS[bot.backend]
     w0 = measured(arm)[3]
     for _ in range(6):
-        arm.interpolate_jv([0.0, 0.0, 0.0, 0.6, 0.0])
+        arm.interpolate_jv(vw)
         time.sleep(0.05)  # paces the 20 Hz stream
-    arm.interpolate_jv([0.0] * 5)
+    arm.interpolate_jv([0.0] * bot.n)
     wait_until(lambda: arm.setpoint_jv()[0][3] == 0.0, 2, what="setpoint velocity ramped down")
     assert measured(arm)[3] - w0 > 0.1  # wrist_flex moved at the commanded velocity
 
@@ -265,11 +280,12 @@ def test_interpolate_jp_follows_a_20hz_stream_smoothly(rig):
     assert all(not s["is_busy"] for s in raw.states)
 
 
-def test_move_jp_jr_home_busy_edges_and_goal(rig):
+def test_move_jp_jr_home_busy_edges_and_goal(rig, sim_robot):
     robot, arm, raw, sim = rig
+    bot = sim_robot
     caught_up(raw, arm)
     n = len(raw.states)
-    goal = np.array([0.6, 0.3, -0.4, 0.2, 0.0])
+    goal = bot.goals["reach"]
     h = arm.move_jp(goal)
     sp = arm.setpoint_js()
     assert fields(sp) == (True, True, False) and sp[3] > 0
@@ -281,31 +297,32 @@ def test_move_jp_jr_home_busy_edges_and_goal(rig):
     assert [s["is_busy"] for s in raw.states[n:] if s["busy_seq"] == h.busy_seq] == [True, False]
 
     # move_jr during a move is relative to the running goal, not to the setpoint
-    far = np.array([-0.6, 0.3, -0.4, 0.2, 0.0])
+    far = bot.goals["far"]
     h1 = arm.move_jp(far)
-    h2 = arm.move_jr([0.0, 0.0, 0.0, 0.0, 0.5])
+    h2 = arm.move_jr(bot.vec(wrist_roll=0.5))
     assert h2.busy_seq == h1.busy_seq + 1
-    np.testing.assert_allclose(arm.goal_jp()[0], far + [0, 0, 0, 0, 0.5], atol=1e-9)
+    np.testing.assert_allclose(arm.goal_jp()[0], far + bot.vec(wrist_roll=0.5), atol=1e-9)
     assert h1.wait(timeout=10.0) and h2.wait(timeout=10.0)
-    wait_until(lambda: at(arm, far + [0, 0, 0, 0, 0.5]), 5, what="move_jr goal reached")
+    wait_until(lambda: at(arm, far + bot.vec(wrist_roll=0.5)), 5, what="move_jr goal reached")
     # a servo command invalidates the goal
     arm.servo_jp(measured(arm))
     assert arm.goal_js()[3] == 0.0
 
-    # home: busy edges too, ends at the profile home (0 for every joint of the SO-101)
+    # home: busy edges too, ends at the profile home
     caught_up(raw, arm)
     n = len(raw.states)
     assert arm.home(15.0)
-    wait_until(lambda: at(arm, np.zeros(5)), 5, what="home reached")
+    wait_until(lambda: at(arm, bot.home), 5, what="home reached")
     wait_until(lambda: raw.busy_edges()[-1] is False and len(raw.states) > n + 1, 5, what="home idle edge")
     assert [s["is_busy"] for s in raw.states[n:]][:1] == [True] and raw.states[-1]["is_busy"] is False
 
 
-def test_pause_refuses_motion_and_holds_hold_stops_a_move(rig):
+def test_pause_refuses_motion_and_holds_hold_stops_a_move(rig, sim_robot):
     robot, arm, raw, sim = rig
+    bot = sim_robot
     start = measured(arm)
     goal = start.copy()
-    goal[0] = 1.8  # shoulder_pan limit 1.92; jerk-limited braking from v_max takes ~0.6 rad
+    goal[0] = bot.pos_max[0] - 0.12  # jerk-limited braking from v_max takes ~0.6 rad
     h = arm.move_jp(goal)
     wait_until(lambda: measured(arm)[0] - start[0] > 0.1, 5, what="arm moving")
     assert arm.pause(5.0) and arm.is_paused()
@@ -326,7 +343,7 @@ def test_pause_refuses_motion_and_holds_hold_stops_a_move(rig):
 
     # hold stops a running move short of its goal, with the idle edge
     back = stopped.copy()
-    back[0] = -1.8
+    back[0] = bot.pos_min[0] + 0.12
     h = arm.move_jp(back)
     wait_until(lambda: stopped[0] - measured(arm)[0] > 0.1, 5, what="arm moving back")
     arm.hold()
@@ -337,21 +354,24 @@ def test_pause_refuses_motion_and_holds_hold_stops_a_move(rig):
     assert settled(arm, 0.3) is not None
 
 
-def test_free_torques_off_the_namespace_and_move_resumes_without_a_jump(rig):
+def test_free_torques_off_the_namespace_and_move_resumes_without_a_jump(rig, sim_robot):
     robot, arm, raw, sim = rig
-    assert all(torque(sim)[i] == 1 for i in ARM_IDS + (GRIPPER_ID,))
+    bot = sim_robot
+    assert all(torque(sim)[i] == 1 for i in bot.servo_ids)
     arm.free()
-    wait_until(lambda: all(torque(sim)[i] == 0 for i in ARM_IDS), 2, what="arm torque off")
-    assert torque(sim)[GRIPPER_ID] == 1  # the gripper namespace is untouched
+    wait_until(lambda: all(torque(sim)[i] == 0 for i in bot.arm_ids), 2, what="arm torque off")
+    assert torque(sim)[bot.gripper_id] == 1  # the gripper namespace is untouched
     assert arm.is_enabled()
     assert arm.setpoint_js()[3] == 0.0 and arm.goal_js()[3] == 0.0
 
     # move shoulder_lift "by hand" (in the simulator) while free: the arm follows the hand
-    control_request(sim, {"cmd": "write", "id": 2, "register": "Present_Position", "value": 2048 + 400})
+    # (both profiles: joint zero at tick 2048, direction +1, 4096 ticks per turn)
+    control_request(sim, {"cmd": "write", "id": bot.servo_id["shoulder_lift"], "register": "Present_Position",
+                          "value": 2048 + 400})
     wait_until(lambda: abs(measured(arm)[1] - 400 * 2 * np.pi / 4096) < TOL, 2, what="hand motion measured")
     before = measured(arm)
-    h = arm.move_jp(before + np.array([0.0, 0.0, 0.0, 0.0, 0.3]))
-    wait_until(lambda: all(torque(sim)[i] == 1 for i in ARM_IDS), 2, what="arm torque back on")
+    h = arm.move_jp(before + bot.vec(wrist_roll=0.3))
+    wait_until(lambda: all(torque(sim)[i] == 1 for i in bot.arm_ids), 2, what="arm torque back on")
     after = measured(arm)
     np.testing.assert_allclose(after[:4], before[:4], atol=TOL)  # no snap back to the old setpoint
     assert h.wait(timeout=5.0)

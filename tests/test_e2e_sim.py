@@ -1,4 +1,5 @@
-"""End to end: the daemon as a real subprocess on the simulated SO-101, driven through the client."""
+"""End to end: the daemon as a real subprocess on each simulated robot (SO-101 on Feetech, Koch on
+Dynamixel), driven through the client."""
 
 from __future__ import annotations
 
@@ -13,29 +14,31 @@ import yaml
 from crtk_bridge.client import CommandError, connect
 from crtk_bridge.sim.control import control_request
 
-from .conftest import SO101, so101_data, DaemonProcess, RawSession, wait_until
+from .conftest import DaemonProcess, RawSession, wait_until
 
 TOL = 0.02  # rad: sim servo quantisation is 2*pi/4096 = 0.0015 rad; first-order lag settles well inside this
 
 
-def test_daemon_end_to_end_on_simulated_so101(sim_daemon):
+def test_daemon_end_to_end_on_a_simulated_robot(sim_daemon):
+    bot = sim_daemon.robot
     robot = connect(socket=str(sim_daemon.socket_path))
     raw = RawSession(str(sim_daemon.socket_path))
     try:
-        arm = robot.device("so101")
+        arm = robot.device(bot.arm)
         gripper = arm.gripper
-        assert arm.joint_names == ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"]
-        assert gripper.name == "so101/gripper"
+        assert arm.joint_names == list(bot.joint_names)
+        assert gripper.name == bot.gripper
 
         # starts DISABLED and refuses motion
         assert arm.operating_state() == "DISABLED" and arm.is_disabled()
         with pytest.raises(CommandError) as err:
-            arm.move_jp([0.1, 0.2, 0.3, 0.0, 0.0])
+            arm.move_jp(bot.goals["small"])
         assert err.value.code == "invalid_state" and "DISABLED" in str(err.value)
         with pytest.raises(CommandError):
-            arm.servo_jp([0.0] * 5)
+            arm.servo_jp([0.0] * bot.n)
         sim = sim_daemon.sim_control_path()
         dump = control_request(sim, {"cmd": "dump"})
+        assert sorted(dump["servos"]) == sorted(bot.servo_ids)
         assert all(s["torque_enable"] == 0 for s in dump["servos"].values())
 
         # enable, home
@@ -48,12 +51,12 @@ def test_daemon_end_to_end_on_simulated_so101(sim_daemon):
         wait_until(lambda: raw.states and raw.states[-1]["busy_seq"] == arm.operating_state_full()["busy_seq"]
                    and not raw.states[-1]["is_busy"], 5, what="raw session caught up with the home edges")
         edges_before = len(raw.states)
-        goal = np.array([0.1, 0.2, 0.3, 0.0, 0.0])
+        goal = bot.goals["small"]
         handle = arm.move_jp(goal)
         assert handle.wait(timeout=15.0)
         wait_until(lambda: np.allclose(arm.measured_jp()[0], goal, atol=TOL), 5, what="measured position at the goal")
         pos, vel, eff, ts = arm.measured_js()
-        assert ts > 0 and len(pos) == 5 and len(vel) == 5
+        assert ts > 0 and len(pos) == bot.n and len(vel) == bot.n
         gp, gts = arm.goal_jp()
         assert gts > 0 and np.allclose(gp, goal)
         wait_until(lambda: raw.busy_edges()[-2:] == [True, False] and len(raw.states) > edges_before, 5,
@@ -69,10 +72,10 @@ def test_daemon_end_to_end_on_simulated_so101(sim_daemon):
         seq_before = raw.states[-1]["busy_seq"]
         start = arm.setpoint_jp()[0]
         for k in range(1, 61):
-            arm.servo_jp(start + np.array([0.005 * k, 0, 0, 0, 0]))
+            arm.servo_jp(start + bot.vec(shoulder_pan=0.005 * k))
             time.sleep(0.01)  # paces the stream at ~100 Hz (not a wait for a result)
             assert not arm.is_busy()
-        target = start + np.array([0.3, 0, 0, 0, 0])
+        target = start + bot.vec(shoulder_pan=0.3)
         wait_until(lambda: np.allclose(arm.measured_jp()[0], target, atol=TOL), 5, what="servo stream followed")
         sp, sts = arm.setpoint_jp()
         assert sts > 0 and np.allclose(sp, target)
@@ -80,7 +83,7 @@ def test_daemon_end_to_end_on_simulated_so101(sim_daemon):
 
         # out-of-limit goal refused with joint named
         with pytest.raises(CommandError) as err:
-            arm.move_jp([0.0, 0.0, 3.0, 0.0, 0.0])
+            arm.move_jp(bot.vec(elbow_flex=bot.pos_max[2] + 1.0))
         assert err.value.code == "out_of_limits" and "elbow_flex" in str(err.value)
 
         # disable: torque off everywhere
@@ -95,42 +98,46 @@ def test_daemon_end_to_end_on_simulated_so101(sim_daemon):
 
 
 def test_second_session_is_read_only_while_first_holds_control(sim_daemon):
+    ns = sim_daemon.robot.arm
     a = connect(socket=str(sim_daemon.socket_path))
     b = connect(socket=str(sim_daemon.socket_path))
     try:
-        assert a.device("so101").enable(5.0)
+        assert a.device(ns).enable(5.0)
         with pytest.raises(CommandError) as err:
-            b.device("so101").disable()
+            b.device(ns).disable()
         assert err.value.code == "read_only"
-        pos, ts = b.device("so101").measured_jp()  # queries stay open to everyone
+        pos, ts = b.device(ns).measured_jp()  # queries stay open to everyone
         assert ts > 0
         a.close()
-        assert wait_until(lambda: b.device("so101").disable(1.0), 5, what="control freed on disconnect")
+        assert wait_until(lambda: b.device(ns).disable(1.0), 5, what="control freed on disconnect")
     finally:
         a.close()
         b.close()
 
 
-def test_sigterm_mid_motion_turns_torque_off(short_tmp):
-    """Standalone simulator + daemon on a profile whose port is the simulator's link."""
+def test_sigterm_mid_motion_turns_torque_off(short_tmp, sim_robot):
+    """Standalone simulator (crtk-sim feetech / dynamixel) + daemon on a profile whose port is the
+    simulator's link."""
+    bot = sim_robot
     link, control = short_tmp / "tty", short_tmp / "sim.sock"
-    sim = subprocess.Popen([sys.executable, "-m", "crtk_bridge.sim.cli", "feetech", "--profile", str(SO101),
+    sim = subprocess.Popen([sys.executable, "-m", "crtk_bridge.sim.cli", bot.backend, "--profile", str(bot.profile),
                             "--link", str(link), "--control", str(control)],
                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         wait_until(lambda: link.exists() and control.exists() or sim.poll() is not None, 15, what="simulator link")
         assert sim.poll() is None, sim.stderr.read().decode()
-        data = so101_data()
+        data = bot.data()
         data["backend"]["port"] = str(link)
-        profile = short_tmp / "so101-sim.yaml"
+        profile = short_tmp / "sim-profile.yaml"
         profile.write_text(yaml.safe_dump(data))
         daemon = DaemonProcess(["--profile", str(profile), "--no-realtime"], short_tmp / "d.sock", short_tmp / "d.log")
         try:
             robot = connect(socket=str(daemon.socket_path))
-            arm = robot.device("so101")
+            arm = robot.device(bot.arm)
             assert arm.enable(5.0)
-            arm.move_jp([1.2, -1.0, 1.0, 0.5, 1.5])
-            wait_until(lambda: control_request(str(control), {"cmd": "dump"})["servos"]["1"]["present_velocity"] != 0,
+            arm.move_jp(bot.goals["wide"])
+            pan = bot.arm_ids[0]
+            wait_until(lambda: control_request(str(control), {"cmd": "dump"})["servos"][pan]["present_velocity"] != 0,
                        5, what="arm moving in the simulator")
             status = daemon.terminate()
             robot.close()
@@ -138,7 +145,8 @@ def test_sigterm_mid_motion_turns_torque_off(short_tmp):
             assert not daemon.socket_path.exists()
             assert daemon.output().count("realtime_unavailable") == 1  # said once, ran anyway
             servos = control_request(str(control), {"cmd": "dump"})["servos"]
-            assert len(servos) == 6 and all(s["torque_enable"] == 0 for s in servos.values()), servos
+            assert sorted(servos) == sorted(bot.servo_ids), servos
+            assert all(s["torque_enable"] == 0 for s in servos.values()), servos
         finally:
             daemon.stop()
     finally:

@@ -12,11 +12,12 @@ from .conftest import wait_until
 
 
 def test_subscription_rate_and_slow_subscriber(sim_daemon):
+    ns = sim_daemon.robot.arm
     path = str(sim_daemon.socket_path)
     robot = connect(socket=path)
     try:
         # a normal subscriber gets frames at about the requested rate, each fresh
-        sub = robot.device("so101").subscribe("measured_js", 50)
+        sub = robot.device(ns).subscribe("measured_js", 50)
         first = sub.get(timeout=2)
         frames = [first] + [sub.get(timeout=2) for _ in range(24)]
         stamps = [f["stamp"] if "stamp" in f else f["data"]["stamp"] for f in frames]
@@ -28,12 +29,12 @@ def test_subscription_rate_and_slow_subscriber(sim_daemon):
         slow.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
         slow.connect(path)
         for i in range(10):
-            req = {"id": i + 1, "cmd": "subscribe", "ns": "so101", "data": {"topic": "measured_js", "rate_hz": 1000}}
+            req = {"id": i + 1, "cmd": "subscribe", "ns": ns, "data": {"topic": "measured_js", "rate_hz": 1000}}
             slow.sendall((json.dumps(req) + "\n").encode())
         t0 = time.monotonic()
         answered = 0
         while time.monotonic() - t0 < 3.0:  # meanwhile another session is served as usual
-            pos, ts = robot.device("so101").measured_jp()
+            pos, ts = robot.device(ns).measured_jp()
             assert ts > 0
             answered += 1
             time.sleep(0.005)  # paces this client at ~200 Hz (a 2-core host also runs the simulator)
@@ -58,6 +59,6 @@ def test_subscription_rate_and_slow_subscriber(sim_daemon):
         assert stats["cycles"] > 0
         slow.close()
         # the daemon is still healthy
-        wait_until(lambda: robot.device("so101").measured_jp()[1] > 0, 2, what="daemon still serving")
+        wait_until(lambda: robot.device(ns).measured_jp()[1] > 0, 2, what="daemon still serving")
     finally:
         robot.close()

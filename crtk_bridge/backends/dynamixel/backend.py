@@ -9,9 +9,10 @@ bus transactions:
   status packet for all servos) when ``fast_sync_read`` allows it: ``auto`` uses it when every
   servo's firmware supports it (X430 >= 45, X330 >= 46). The SDK's own group reader is not used:
   it throws the status ERR bytes away (so a hardware-error Alert would go unseen) and raises
-  IndexError when a fast reply is short; this backend calls the SDK's packet functions and keeps
-  the ERR bytes. A failed fast read is retried (``read_retries``) as a plain sync read, whose
-  per-servo replies name the silent servo.
+  IndexError when a fast reply is short; this backend calls the SDK's packet functions, keeps
+  the ERR bytes and checks each servo's CRC in a fast reply (the SDK checks only the last, the
+  packet's). A failed fast read is retried (``read_retries``) as a plain sync read, whose
+  per-servo replies name the silent or corrupt servo.
 * ``write``: ONE sync write of the goals of the joints with a command: Goal_Position (4 bytes) in
   the position modes, Goal_Velocity (4) in velocity mode, Goal_Current (2) in current mode. When
   joints in different modes are commanded in the same cycle, ONE bulk write (0x93) instead.
@@ -184,6 +185,8 @@ class DynamixelBackend(SerialServoBackend):
         self._fast = False
         self._id_param = list(self._ids)
         self._fast_reply_len = (_BLOCK_LEN + 4) * n
+        length = 1 + self._fast_reply_len  # the status packet's LEN field
+        self._fast_header = [0xFF, 0xFF, 0xFD, 0x00, T.BROADCAST_ID, length & 0xFF, length >> 8, T.INST_STATUS]
 
     def _joint_position_mode(self, name: str) -> OperatingMode:
         return _POSITION_MODE[self.config.joint_position_modes.get(name, self.config.position_mode)]
@@ -397,11 +400,19 @@ class DynamixelBackend(SerialServoBackend):
         blocks: dict = {}
         k = 0
         step = _BLOCK_LEN + 4
+        # Each servo's CRC covers the packet so far; the SDK checks only the last (the packet
+        # CRC), so a servo's bad CRC would go unseen: check every one.
+        crc = ph.updateCRC(0, self._fast_header, len(self._fast_header))
         for i, sid in enumerate(self._ids):
             if raw[k + 1] != sid:  # replies come in request order
                 return blocks, COMM_RX_CORRUPT
+            end = k + 2 + _BLOCK_LEN
+            crc = ph.updateCRC(crc, raw[k:end], end - k)
+            if crc != raw[end] | raw[end + 1] << 8:
+                return blocks, COMM_RX_CORRUPT  # blocks stops before this servo: it is named
+            crc = ph.updateCRC(crc, raw[end:end + 2], 2)
             self._errors[i] = raw[k]
-            blocks[sid] = raw[k + 2: k + 2 + _BLOCK_LEN]
+            blocks[sid] = raw[k + 2: end]
             k += step
         return blocks, COMM_SUCCESS
 
