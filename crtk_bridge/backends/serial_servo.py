@@ -10,7 +10,8 @@ with ``ping`` / ``readNByteTxRx`` / ``writeNByteTxRx`` returning ``(value, resul
 * :class:`SerialServoBackend` -- profile validation (backend keys, joint ids and models,
   calibration), the tick <-> rad calibration arrays, retried register reads/writes with errors
   naming robot, joint, id, register and port, opening (ping every servo, check its model number),
-  torque off, close, and naming the first silent servo of a failed sync read.
+  torque on (rolled back on failure) and off, close, and naming the first silent servo of a
+  failed sync read.
 
 Each vendor fills a few hooks: its tables (``MODEL_NUMBERS``, ``RESOLUTION``), its ``Config``
 struct, how a register name maps to (address, size) for a joint and how values are encoded
@@ -239,6 +240,14 @@ class SerialServoBackend(Actuator):
         self._rad_per_tick = self._direction * 2.0 * math.pi / res  # signed: includes direction
         self._tick_per_rad = 1.0 / self._rad_per_tick
         self._attempts = 1 + cfg.read_retries
+        # pre-allocated real-time buffers for the vendors' _read / _write hot paths
+        n = self.n
+        self._raw_pos = np.zeros(n)
+        self._raw_vel = np.zeros(n)
+        self._raw_cur = np.zeros(n)
+        self._tmp = np.zeros(n)
+        self._goal = np.zeros(n)  # goal ticks computed this cycle (float)
+        self._free = [False] * n  # joints switched torque-off by a FREE command
         self._port: Any = None
         self._ph: Any = None
         self._details: dict = {}
@@ -419,6 +428,22 @@ class SerialServoBackend(Actuator):
                 failed.append(str(exc).removeprefix(f"{self.robot}: "))
         if failed:
             raise BackendError(f"{self.robot}: torque off not confirmed: " + "; ".join(failed))
+
+    def _torque_on_all(self) -> None:
+        """Torque_Enable = 1 on every servo in joint order, each acknowledged and error-checked;
+        no joint stays free. Blocks. If one fails, the servos already on are switched off again
+        (best effort) and its BackendError is raised. Call only once every goal holds the present
+        position."""
+        self._free = [False] * self.n
+        try:
+            for i in range(self.n):
+                self._write_register(i, "Torque_Enable", 1, check_error=True)
+        except BackendError:
+            try:
+                self._disable_hook()
+            except BackendError:
+                pass
+            raise
 
     def _close_hook(self) -> None:
         if self._port is not None:

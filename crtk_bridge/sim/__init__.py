@@ -4,6 +4,7 @@ Each simulator answers the vendor SDK's real packets on a real OS channel (a pse
 serial buses), so ``--sim`` and the tests run the same backend code path as hardware.
 
 - :mod:`crtk_bridge.sim.pty`      raw pseudo-terminal pair with an optional stable symlink
+- :mod:`crtk_bridge.sim.bus`      what both servo-bus simulators share (:class:`BusSimulator`)
 - :mod:`crtk_bridge.sim.feetech`  Feetech STS3215 servo bus (:class:`FeetechSimulator`)
 - :mod:`crtk_bridge.sim.dynamixel` Dynamixel X-series Protocol 2.0 bus (:class:`DynamixelSimulator`)
 - :mod:`crtk_bridge.sim.control`  JSON-lines control socket to inspect and change a running sim

@@ -36,21 +36,18 @@ defaults (torque off, goal = present position, error cleared) and leaves the ser
 
 from __future__ import annotations
 
-import enum
 import logging
 import math
 import os
-import select
-import threading
-import time
 from collections.abc import Iterable
-from pathlib import Path
 
 from ..backends.dynamixel import tables as T
 from ..profile import Profile
 from . import SimulatorError
-from .control import ControlServer
-from .pty import PtyPort
+from .bus import BITS_PER_BYTE, FRAME_TIMEOUT_S, BusServo, BusSimulator, FaultKind, Reply, approach
+
+__all__ = ["DynamixelSimulator", "SimServo", "FaultKind", "crc16", "stuff", "unstuff", "packet",
+           "FRAME_TIMEOUT_S", "BITS_PER_BYTE"]
 
 log = logging.getLogger(__name__)
 
@@ -60,9 +57,7 @@ TICKS_PER_S_PER_MA = 12.0  # unloaded speed per mA in current mode (~0.02 rad/s 
 CURRENT_MA_PER_TICK = 0.8  # Present_Current (mA) per tick of tracking error in position modes
 LOAD_PER_TICK = 4.0  # XL430 Present_Load (0.1 %) per tick of tracking error
 HOLDING_MA = 5.0
-FRAME_TIMEOUT_S = 0.010
 REBOOT_S = 0.05  # deaf after a REBOOT
-BITS_PER_BYTE = 10
 FIRMWARE = 52  # new enough for Fast Sync Read on every modelled series
 HEADER = b"\xff\xff\xfd\x00"
 
@@ -114,13 +109,6 @@ def packet(sid: int, inst: int, params: bytes | bytearray = b"") -> bytes:
     return pkt + bytes((crc & 0xFF, crc >> 8))
 
 
-class FaultKind(str, enum.Enum):
-    SILENT = "silent"
-    CORRUPT = "corrupt"
-    ERROR_BITS = "error_bits"
-    FREEZE = "freeze"
-
-
 _A = {name: reg.address for name, reg in T.CONTROL_TABLES["xm430-w350"].items()}
 _TORQUE = _A["Torque_Enable"]
 _MODE = _A["Operating_Mode"]
@@ -132,28 +120,24 @@ _ID = _A["ID"]
 _SHUTDOWN = _A["Shutdown"]
 
 
-class SimServo:
+class SimServo(BusServo):
     """One simulated X-series servo: control table memory and physical state.
 
     :meth:`read` / :meth:`write` (by register name) are thread-safe and update the physics first.
     """
 
     def __init__(self, sim: DynamixelSimulator, servo_id: int, model: str, position: int):
-        self._sim = sim
+        super().__init__(sim)
         self.model = model
         self.table = T.CONTROL_TABLES[model]
         self._writable = bytearray(256)
         for reg in self.table.values():
             if reg.writable:
                 self._writable[reg.address: reg.address + reg.size] = b"\x01" * reg.size
-        self.registers = bytearray(256)
-        self.silent = self.corrupt = self.frozen = False
         self.deaf_until = 0.0
-        self._pending: tuple[int, bytes] | None = None
         self._pos = float(position)
         self._vel = 0.0
         self._err_ticks = 0.0  # tracking error (ticks), drives Present_Current / Present_Load
-        self._t = sim.clock()
         self._eeprom_defaults(servo_id)
         self._ram_defaults()
 
@@ -205,29 +189,14 @@ class SimServo:
         self._put("Goal_Position", round(self._pos) + self._get("Homing_Offset"))
         self._refresh(0.0)
 
-    # --- public, thread-safe ---
-    @property
-    def id(self) -> int:
-        return self.registers[_ID]
-
-    def read(self, name: str) -> int:
-        """Decoded value of register ``name``. Raises KeyError."""
-        with self._sim._lock:
-            self._update(self._sim.clock())
-            return self._get(name)
-
-    def write(self, name: str, value: int) -> None:
-        """Set register ``name`` by hand (read-only ones included; no access checks).
-        Present_Position moves the joint. Raises KeyError / ValueError."""
-        with self._sim._lock:
-            now = self._sim.clock()
-            self._update(now)
-            old = self.id
+    # --- BusServo hooks (caller holds the lock) ---
+    def _set(self, name: str, value: int) -> None:
+        try:
             self._put(name, value)
-            if name == "Present_Position":
-                self._pos = float(value - self._get("Homing_Offset"))
-            self._update(now)
-            self._sim._rekey(self, old)
+        except ValueError as exc:
+            raise ValueError(f"{name}: {exc}") from None
+        if name == "Present_Position":
+            self._pos = float(value - self._get("Homing_Offset"))
 
     # --- bus side (caller holds the lock) ---
     def _bus_write(self, addr: int, data: bytes) -> int:
@@ -278,15 +247,7 @@ class SimServo:
             pv = self._get("Profile_Velocity")
             vmax = min(vlim, pv * TICKS_PER_S_PER_RAW_VEL) if pv else vlim
             err = goal - offset - self._pos
-            a = abs(err)
-            knee = vmax * TAU_S
-            if a > knee:
-                t1 = (a - knee) / vmax
-                a = a - vmax * dt if dt <= t1 else knee * math.exp(-(dt - t1) / TAU_S)
-            else:
-                a *= math.exp(-dt / TAU_S)
-            if a < 1e-3:
-                a = 0.0
+            a = approach(err, dt, vmax, TAU_S)
             new = goal - offset - math.copysign(a, err)
             self._vel = (new - self._pos) / dt
             self._pos = new
@@ -335,7 +296,7 @@ class SimServo:
         self._put("Present_Current", int(round(ma / 1000.0 / unit)))
 
 
-class DynamixelSimulator:
+class DynamixelSimulator(BusSimulator):
     """A bus of simulated X-series servos on a pty; see the module docstring for the model.
 
     ``servos``: id -> model name ("xl330-m288", "xl430-w250", "xm430-w350"). ``start()`` creates
@@ -343,6 +304,12 @@ class DynamixelSimulator:
     ``emulate_baud`` each reply leaves no earlier than request and reply would take on a real wire
     at ``baudrate`` (10 bits per byte) plus each replying servo's Return_Delay_Time.
     """
+
+    vendor = "dynamixel"
+    BAUD_CODES = T.BAUD_CODES
+    ID_ADDRESS = _ID
+    RETURN_DELAY_ADDRESS = _RETURN_DELAY
+    MAX_ID = T.MAX_ID
 
     def __init__(
         self,
@@ -361,43 +328,17 @@ class DynamixelSimulator:
             if model not in T.CONTROL_TABLES:
                 raise SimulatorError(f"servo {sid}: unknown model {model!r} "
                                      f"(known: {', '.join(T.CONTROL_TABLES)})")
-        if baudrate <= 0:
-            raise SimulatorError(f"baudrate {baudrate} must be > 0")
-        self.baudrate = int(baudrate)
-        self.emulate_baud = bool(emulate_baud)
-        self._byte_s = BITS_PER_BYTE / self.baudrate
-        self._baud_code = T.BAUD_CODES.get(self.baudrate)
-        self._lock = threading.Lock()
-        self.clock = time.monotonic  # the physics clock; tests may swap in a fake one before start()
+        super().__init__(baudrate, link, control, emulate_baud)
         positions = initial_positions or {}
         self._servos: dict[int, SimServo] = {
             sid: SimServo(self, sid, model, int(positions.get(sid, 2048))) for sid, model in servos.items()
         }
-        self.unplugged = False
-        self._pty = PtyPort(link)
-        self._control = ControlServer(control, self.control) if control is not None else None
-        self.control_path = Path(control) if control is not None else None
-        self._thread: threading.Thread | None = None
-        self._wake_r = self._wake_w = -1
-        self._stopping = False
-        self._bus_free_at = 0.0
-        #: bytes received and sent on the wire since start (for bench/)
-        self.rx_bytes = 0
-        self.tx_bytes = 0
 
     @classmethod
     def from_profile(cls, profile: Profile, link=None, control=None, emulate_baud: bool = False
                      ) -> DynamixelSimulator:
         """One servo per joint with an ``id``, of the joint's ``model``, resting at its joint zero."""
-        if profile.backend_type != "dynamixel":
-            raise SimulatorError(f"profile {profile.name!r}: backend.type is "
-                                 f"{profile.backend_type!r}, not 'dynamixel'")
-        joints = [j for j in profile.joints if j.id is not None]
-        if not joints:
-            raise SimulatorError(f"profile {profile.name!r}: no joint has a bus id")
-        baud = profile.backend.get("baudrate", 1_000_000)
-        if not isinstance(baud, int) or isinstance(baud, bool):
-            raise SimulatorError(f"profile {profile.name!r}: backend.baudrate must be an integer")
+        joints, baud = cls._profile_joints(profile)
         servos = {}
         for j in joints:
             model = (j.model or "xm430-w350").lower()
@@ -408,227 +349,33 @@ class DynamixelSimulator:
         return cls(servos, baudrate=baud, link=link, control=control, emulate_baud=emulate_baud,
                    initial_positions={j.id: j.calibration.offset for j in joints})
 
-    # --- lifecycle ---
-    @property
-    def port(self) -> str:
-        return self._pty.path
+    # --- vendor hooks (see BusSimulator) ---
+    def _register_name(self, servo: SimServo, register: object) -> str:
+        names = {n.lower(): n for n in servo.table}
+        name = names.get(str(register if register is not None else "").lower())
+        if name is None:
+            raise SimulatorError(f"servo {servo.id}: unknown register {register!r} on a {servo.model}")
+        return name
 
-    @property
-    def pty_path(self) -> str | None:
-        return self._pty.slave_path
+    def _snapshot(self, servo: SimServo) -> dict:
+        return {"model": servo.model, **{n.lower(): servo._get(n) for n in servo.table}}
 
-    @property
-    def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
+    def _error_bits(self, servo: SimServo) -> int:
+        return servo.registers[_HW_ERROR]
 
-    def start(self) -> None:
-        if self._thread is not None:
-            return
-        self._pty.open()
-        try:
-            if self._control is not None:
-                self._control.start()
-        except BaseException:
-            self._pty.close()
-            raise
-        self._wake_r, self._wake_w = os.pipe()
-        self._stopping = False
-        self._thread = threading.Thread(target=self._run, name="sim-dynamixel", daemon=True)
-        self._thread.start()
-        log.info("dynamixel simulator: %d servo(s) %s on %s", len(self._servos), self.ids, self.port)
+    def _set_error_bits(self, servo: SimServo, bits: int) -> None:
+        # A latched hardware error: Alert in every ERR byte; torque off if in the Shutdown mask.
+        if not 0 < bits <= 0xFF:
+            raise SimulatorError(f"error_bits: bits {bits} must be in 1..255 "
+                                 f"(Hardware_Error_Status bits)")
+        servo.registers[_HW_ERROR] |= bits
+        servo._update(self.clock())  # shutdown: torque off now
 
-    def stop(self) -> None:
-        if self._thread is None:
-            return
-        self._stopping = True
-        try:
-            os.write(self._wake_w, b"x")
-        except OSError:
-            pass
-        self._thread.join()
-        self._thread = None
-        os.close(self._wake_r)
-        os.close(self._wake_w)
-        self._wake_r = self._wake_w = -1
-        if self._control is not None:
-            self._control.stop()
-        self._pty.close()
-
-    def __enter__(self) -> DynamixelSimulator:
-        self.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
-
-    # --- state access ---
-    @property
-    def ids(self) -> list[int]:
-        with self._lock:
-            return sorted(self._servos)
-
-    def servo(self, servo_id: int) -> SimServo:
-        try:
-            return self._servos[servo_id]
-        except KeyError:
-            raise SimulatorError(f"no simulated servo with id {servo_id} (ids: {sorted(self._servos)})") from None
-
-    def set_fault(self, servo_id: int, kind: str | FaultKind, bits: int = 0) -> None:
-        """Inject a fault into one servo (see the module docstring). Raises SimulatorError."""
-        with self._lock:
-            servo = self.servo(servo_id)
-            try:
-                kind = FaultKind(kind)
-            except ValueError:
-                raise SimulatorError(f"unknown fault kind {kind!r}; valid: "
-                                     f"{', '.join(k.value for k in FaultKind)}") from None
-            servo._update(self.clock())
-            if kind is FaultKind.SILENT:
-                servo.silent = True
-            elif kind is FaultKind.CORRUPT:
-                servo.corrupt = True
-            elif kind is FaultKind.FREEZE:
-                servo.frozen = True
-            else:
-                if not 0 < bits <= 0xFF:
-                    raise SimulatorError(f"error_bits: bits {bits} must be in 1..255 "
-                                         f"(Hardware_Error_Status bits)")
-                servo.registers[_HW_ERROR] |= bits
-                servo._update(self.clock())  # shutdown: torque off now
-
-    def clear_faults(self, servo_id: int | None = None) -> None:
-        """Clear injected communication faults and freeze (of one servo, or all) and the
-        unplugged state. A latched hardware error (``error_bits``) stays until a REBOOT."""
-        with self._lock:
-            servos = [self.servo(servo_id)] if servo_id is not None else list(self._servos.values())
-            now = self.clock()
-            for s in servos:
-                s._update(now)
-                s.silent = s.corrupt = s.frozen = False
-            if servo_id is None:
-                self.unplugged = False
-
-    def set_unplugged(self, on: bool) -> None:
-        with self._lock:
-            self.unplugged = bool(on)
-
-    def _rekey(self, servo: SimServo, old_id: int) -> None:
-        new_id = servo.registers[_ID]
-        if new_id == old_id:
-            return
-        if new_id in self._servos or new_id > T.MAX_ID:
-            log.warning("servo %d: refusing id change to %d (taken or invalid)", old_id, new_id)
-            servo.registers[_ID] = old_id
-            return
-        del self._servos[old_id]
-        self._servos[new_id] = servo
-
-    # --- control socket ---
-    def control(self, request: dict) -> dict:
-        """Answer one control request (dict in, dict out): dump, read, write, fault,
-        clear_faults, unplug -- as the STS simulator. Never raises for a bad request."""
-        cmd = request.get("cmd")
-        try:
-            if cmd == "dump":
-                return {"ok": True, **self._dump()}
-            if cmd in ("read", "write"):
-                servo = self._control_servo(request)
-                names = {n.lower(): n for n in servo.table}
-                name = names.get(str(request.get("register", "")).lower())
-                if name is None:
-                    return {"ok": False, "error": f"servo {servo.id}: unknown register "
-                            f"{request.get('register')!r} on a {servo.model}"}
-                if cmd == "read":
-                    return {"ok": True, "value": servo.read(name)}
-                value = request.get("value")
-                if not isinstance(value, int) or isinstance(value, bool):
-                    return {"ok": False, "error": f"{name}: value must be an integer, got {value!r}"}
-                try:
-                    servo.write(name, value)
-                except ValueError as exc:
-                    return {"ok": False, "error": f"servo {servo.id}: {name}: {exc}"}
-                return {"ok": True}
-            if cmd == "fault":
-                servo = self._control_servo(request)
-                bits = request.get("bits", 0)
-                if not isinstance(bits, int) or isinstance(bits, bool):
-                    return {"ok": False, "error": f"'bits' must be an integer, got {bits!r}"}
-                self.set_fault(servo.id, str(request.get("kind")), bits)
-                return {"ok": True}
-            if cmd == "clear_faults":
-                sid = request.get("id")
-                self.clear_faults(None if sid is None else self._control_servo(request).id)
-                return {"ok": True}
-            if cmd == "unplug":
-                self.set_unplugged(bool(request.get("on", True)))
-                return {"ok": True}
-        except SimulatorError as exc:
-            return {"ok": False, "error": str(exc)}
-        return {"ok": False, "error": f"unknown cmd {cmd!r}; valid: dump, read, write, fault, "
-                "clear_faults, unplug"}
-
-    def _control_servo(self, request: dict) -> SimServo:
-        sid = request.get("id")
-        if not isinstance(sid, int) or isinstance(sid, bool):
-            raise SimulatorError(f"'id' must be an integer servo id, got {sid!r}")
-        return self.servo(sid)
-
-    def _dump(self) -> dict:
-        with self._lock:
-            now = self.clock()
-            servos, faults = {}, {}
-            for sid in sorted(self._servos):
-                s = self._servos[sid]
-                s._update(now)
-                servos[str(sid)] = {"model": s.model, **{n.lower(): s._get(n) for n in s.table}}
-                f = [k.value for k, on in ((FaultKind.SILENT, s.silent), (FaultKind.CORRUPT, s.corrupt),
-                                           (FaultKind.FREEZE, s.frozen)) if on]
-                if s.registers[_HW_ERROR]:
-                    f.append(FaultKind.ERROR_BITS.value)
-                if f:
-                    faults[str(sid)] = f
-            return {"servos": servos, "faults": faults, "unplugged": self.unplugged,
-                    "baudrate": self.baudrate}
+    def _clear_error_bits(self, servo: SimServo) -> None:
+        """Nothing: Hardware_Error_Status stays latched until a REBOOT, as on hardware."""
 
     # --- the bus ---
-    def _run(self) -> None:
-        master = self._pty.master_fd
-        assert master is not None
-        poller = select.poll()
-        poller.register(master, select.POLLIN)
-        poller.register(self._wake_r, select.POLLIN)
-        buf = bytearray()
-        last_rx = 0.0
-        try:
-            while True:
-                poller.poll()
-                if self._stopping:
-                    return
-                try:
-                    data = os.read(master, 4096)
-                except BlockingIOError:
-                    continue
-                now = time.monotonic()
-                if buf and now - last_rx > FRAME_TIMEOUT_S:
-                    buf.clear()
-                last_rx = now
-                self.rx_bytes += len(data)
-                buf += data
-                for deadline, reply in self._parse(buf, now):
-                    if self.emulate_baud:
-                        delay = deadline - time.monotonic()
-                        if delay > 0:
-                            time.sleep(delay)
-                    self.tx_bytes += len(reply)
-                    try:
-                        os.write(master, reply)
-                    except BlockingIOError:
-                        log.debug("client not reading; dropped %d reply bytes", len(reply))
-        except Exception:
-            log.exception("dynamixel simulator thread died")
-            raise
-
-    def _parse(self, buf: bytearray, now: float) -> list[tuple[float, bytes]]:
+    def _parse(self, buf: bytearray, now: float) -> list[Reply]:
         """Consume every complete packet in ``buf``; return (deadline, reply) per answered one."""
         replies = []
         n = len(buf)
@@ -775,16 +522,8 @@ class DynamixelSimulator:
                     k += 5 + ln
             else:
                 return self._no_reply(req_len, now)  # unknown instruction: a servo stays silent
-            delay_s = sum(s.registers[_RETURN_DELAY] * 2e-6 for s in repliers) if self.emulate_baud else 0.0
-        if not out:
-            return self._no_reply(req_len, now)
-        reply = b"".join(out)
-        if not self.emulate_baud:
-            return (0.0, reply)
-        t0 = max(now, self._bus_free_at)
-        deadline = t0 + (req_len + len(reply)) * self._byte_s + delay_s
-        self._bus_free_at = deadline
-        return (deadline, reply)
+            delay_s = self._turnaround_s(repliers)
+        return self._reply(out, req_len, now, delay_s)
 
     @staticmethod
     def _fast_reply(chosen: list[SimServo], addr: int, ln: int) -> bytes:
@@ -804,7 +543,3 @@ class DynamixelSimulator:
             pkt += bytes((crc & 0xFF, crc >> 8))
         return bytes(pkt) if len(pkt) > 8 else b""
 
-    def _no_reply(self, req_len: int, now: float) -> None:
-        if self.emulate_baud:
-            self._bus_free_at = max(now, self._bus_free_at) + req_len * self._byte_s
-        return None

@@ -32,22 +32,17 @@ Status, hence into every ERR byte), ``freeze`` (the joint stops moving, as if st
 
 from __future__ import annotations
 
-import ctypes
-import enum
 import logging
 import math
 import os
-import select
-import threading
-import time
 from collections.abc import Iterable
-from pathlib import Path
 
 from ..backends.feetech import tables as T
 from ..profile import Profile
 from . import SimulatorError
-from .control import ControlServer
-from .pty import PtyPort
+from .bus import BITS_PER_BYTE, FRAME_TIMEOUT_S, BusServo, BusSimulator, FaultKind, Reply, approach
+
+__all__ = ["FeetechSimulator", "SimServo", "FaultKind", "FRAME_TIMEOUT_S", "BITS_PER_BYTE"]
 
 log = logging.getLogger(__name__)
 
@@ -57,8 +52,6 @@ CURRENT_PER_TICK = 0.6  # Present_Current units (6.5 mA) per tick of tracking er
 CURRENT_MAX = 300  # ~2 A, the STS3215 stall current
 LOAD_PER_TICK = 4.0  # Present_Load units (0.1 % PWM) per tick of tracking error
 MOVING_ERROR_TICKS = 0.5  # Moving = 1 while |goal - present| exceeds this
-FRAME_TIMEOUT_S = 0.010  # a partial packet older than this is dropped (servo inter-byte timeout)
-BITS_PER_BYTE = 10  # 8N1 on the wire
 TICKS_PER_TURN = 4096
 
 # Addresses a bus write must not change: the table's read-only registers, plus the documented
@@ -70,18 +63,6 @@ for _reg in T.STS_CONTROL_TABLE.values():
 for _addr in (64, 67, 68):
     _READ_ONLY[_addr] = 1
 _READ_ONLY = bytes(_READ_ONLY)
-
-_PR_SET_TIMERSLACK = 29
-
-
-def _tighten_timer_slack() -> None:
-    """Ask Linux for 1 us timer slack on this thread (default 50 us): emulated wire times are
-    ~0.1..2 ms, so the default slack alone would add several percent. Best effort."""
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_TIMERSLACK, 1000, 0, 0, 0)
-    except (OSError, AttributeError):
-        pass
-
 
 _NAMES = {name.lower(): name for name in T.STS_CONTROL_TABLE}
 
@@ -109,13 +90,6 @@ _TARGET_POS = 67
 _TORQUE_SET_MIDDLE = 128  # Torque_Enable value: "current position becomes 2048"
 
 
-class FaultKind(str, enum.Enum):
-    SILENT = "silent"
-    CORRUPT = "corrupt"
-    ERROR_BITS = "error_bits"
-    FREEZE = "freeze"
-
-
 def _sm16(value: float) -> int:
     """Signed -> sign-magnitude bit 15, saturating (physics must never raise)."""
     v = int(round(value))
@@ -130,7 +104,7 @@ def _from_sm(raw: int, sign_bit: int) -> int:
     return raw & ((1 << sign_bit) - 1)
 
 
-class SimServo:
+class SimServo(BusServo):
     """One simulated STS3215: its control table memory and its physical state.
 
     ``registers`` is the raw control table (little-endian, sign-magnitude where the table says);
@@ -139,14 +113,8 @@ class SimServo:
     """
 
     def __init__(self, sim: FeetechSimulator, servo_id: int, position: int, model_number: int = 777):
-        self._sim = sim
-        self.registers = bytearray(256)
+        super().__init__(sim)
         self._pos = float(position)  # actual (un-offset) position, ticks
-        self._t = sim.clock()
-        self._pending: tuple[int, bytes] | None = None  # REG_WRITE awaiting ACTION
-        self.silent = False
-        self.corrupt = False
-        self.frozen = False
         r = self.registers
         r[0], r[1] = 3, 10  # firmware 3.10
         r[3], r[4] = model_number & 0xFF, model_number >> 8
@@ -175,40 +143,17 @@ class SimServo:
         self._put(_GOAL_POS, 2, _sm16(position))
         self._update(self._t)
 
-    # --- public, thread-safe ---
-    @property
-    def id(self) -> int:
-        return self.registers[_ID]
-
-    def read(self, name: str) -> int:
-        """Decoded value of register ``name`` (signed where sign-magnitude). Raises KeyError."""
-        with self._sim._lock:
-            self._update(self._sim.clock())
-            return self._read(name)
-
-    def write(self, name: str, value: int) -> None:
-        """Set register ``name`` from outside the bus ("by hand"): any register, read-only ones
-        included. Present_Position moves the joint; derived registers (Present_Velocity, _Load,
-        _Current, Moving) are recomputed on the next update. Raises KeyError / ValueError."""
-        with self._sim._lock:
-            now = self._sim.clock()
-            self._update(now)
-            old_id = self.id
-            self._write(name, value)
-            self._update(now)
-            self._sim._rekey(self, old_id)
-
     # --- internal (caller holds the simulator lock) ---
     def _put(self, addr: int, size: int, raw: int) -> None:
         self.registers[addr : addr + size] = raw.to_bytes(size, "little")
 
-    def _read(self, name: str) -> int:
+    def _get(self, name: str) -> int:
         reg = T.STS_CONTROL_TABLE[name]
         raw = int.from_bytes(self.registers[reg.address : reg.address + reg.size], "little")
         bit = T.SIGN_BITS.get(name)
         return _from_sm(raw, bit) if bit is not None else raw
 
-    def _write(self, name: str, value: int) -> None:
+    def _set(self, name: str, value: int) -> None:
         reg = T.STS_CONTROL_TABLE[name]
         value = int(value)
         bit = T.SIGN_BITS.get(name)
@@ -272,15 +217,8 @@ class SimServo:
                 a = abs(err)
                 if not self.frozen and a > 0.0:
                     vmax = min(VELOCITY_MAX_TPS, abs(gv)) if gv else VELOCITY_MAX_TPS
-                    knee = vmax * TAU_S  # beyond this error the speed cap binds
                     if dt > 0.0:
-                        if a > knee:
-                            t1 = (a - knee) / vmax
-                            a = a - vmax * dt if dt <= t1 else knee * math.exp(-(dt - t1) / TAU_S)
-                        else:
-                            a *= math.exp(-dt / TAU_S)
-                        if a < 1e-3:
-                            a = 0.0
+                        a = approach(a, dt, vmax, TAU_S)
                         err = math.copysign(a, err)
                         pos = goal + offset - err
                     if a > MOVING_ERROR_TICKS:
@@ -327,7 +265,7 @@ class SimServo:
         return b"\xff\xff" + bytes((sid, length, err)) + bytes(data) + bytes((chk,))
 
 
-class FeetechSimulator:
+class FeetechSimulator(BusSimulator):
     """A bus of simulated STS3215 servos on a pty; see the module docstring for the model.
 
     ``start()`` creates the pty (and ``link``, and the ``control`` socket) and the serving thread,
@@ -335,6 +273,12 @@ class FeetechSimulator:
     ``emulate_baud`` each reply leaves no earlier than the request and reply would have taken on a
     real wire at ``baudrate`` (10 bits per byte, plus each servo's Return_Delay_Time).
     """
+
+    vendor = "feetech"
+    BAUD_CODES = T.BAUD_CODES
+    ID_ADDRESS = _ID
+    RETURN_DELAY_ADDRESS = _RETURN_DELAY
+    MAX_ID = 253
 
     def __init__(
         self,
@@ -351,27 +295,11 @@ class FeetechSimulator:
                 raise SimulatorError(f"servo id {sid} is not a valid Feetech id (0..253)")
         if len(set(ids)) != len(ids):
             raise SimulatorError(f"duplicate servo ids in {ids}")
-        if baudrate <= 0:
-            raise SimulatorError(f"baudrate {baudrate} must be > 0")
-        self.baudrate = int(baudrate)
-        self.emulate_baud = bool(emulate_baud)
-        self._byte_s = BITS_PER_BYTE / self.baudrate
-        self._baud_code = T.BAUD_CODES.get(self.baudrate)
-        self._lock = threading.Lock()
-        #: the physics clock (seconds); tests may swap in a fake one before start()
-        self.clock = time.monotonic
+        super().__init__(baudrate, link, control, emulate_baud)
         positions = initial_positions or {}
         self._servos: dict[int, SimServo] = {
             sid: SimServo(self, sid, int(positions.get(sid, 2048))) for sid in ids
         }
-        self.unplugged = False
-        self._pty = PtyPort(link)
-        self._control = ControlServer(control, self.control) if control is not None else None
-        self.control_path = Path(control) if control is not None else None
-        self._thread: threading.Thread | None = None
-        self._wake_r = self._wake_w = -1
-        self._stopping = False
-        self._bus_free_at = 0.0
 
     @classmethod
     def from_profile(
@@ -382,16 +310,7 @@ class FeetechSimulator:
         emulate_baud: bool = False,
     ) -> FeetechSimulator:
         """One servo per joint with an ``id``, resting at its joint zero (calibration.offset)."""
-        if profile.backend_type != "feetech":
-            raise SimulatorError(
-                f"profile {profile.name!r}: backend.type is {profile.backend_type!r}, not 'feetech'"
-            )
-        joints = [j for j in profile.joints if j.id is not None]
-        if not joints:
-            raise SimulatorError(f"profile {profile.name!r}: no joint has a bus id")
-        baud = profile.backend.get("baudrate", 1_000_000)
-        if not isinstance(baud, int) or isinstance(baud, bool):
-            raise SimulatorError(f"profile {profile.name!r}: backend.baudrate must be an integer")
+        joints, baud = cls._profile_joints(profile)
         sim = cls(
             servo_ids=[j.id for j in joints],
             baudrate=baud,
@@ -406,248 +325,34 @@ class FeetechSimulator:
             servo.registers[3], servo.registers[4] = model & 0xFF, model >> 8
         return sim
 
-    # --- lifecycle ---
-    @property
-    def port(self) -> str:
-        """Path for pyserial / scservo_sdk: the link if given, else the pty slave."""
-        return self._pty.path
+    # --- vendor hooks (see BusSimulator) ---
+    def _register_name(self, servo: SimServo, register: object) -> str:
+        name = _NAMES.get(str(register if register is not None else "").lower())
+        if name is None:
+            raise SimulatorError(f"servo {servo.id}: unknown register {register!r}")
+        return name
 
-    @property
-    def pty_path(self) -> str | None:
-        return self._pty.slave_path
+    def _snapshot(self, servo: SimServo) -> dict:
+        return {name.lower(): servo._get(name) for name in T.STS_CONTROL_TABLE}
 
-    @property
-    def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
+    def _error_bits(self, servo: SimServo) -> int:
+        return servo.registers[_STATUS]
 
-    def start(self) -> None:
-        if self._thread is not None:
-            return
-        self._pty.open()
-        try:
-            if self._control is not None:
-                self._control.start()
-        except BaseException:
-            self._pty.close()
-            raise
-        self._wake_r, self._wake_w = os.pipe()
-        self._stopping = False
-        self._thread = threading.Thread(target=self._run, name="sim-feetech", daemon=True)
-        self._thread.start()
-        log.info("feetech simulator: %d servo(s) %s on %s", len(self._servos), self.ids, self.port)
+    def _set_error_bits(self, servo: SimServo, bits: int) -> None:
+        # Status (65) is what every status packet's ERR byte reports.
+        if not 0 < bits <= 0x7F:
+            raise SimulatorError(f"error_bits: bits {bits} must be in 1..127")
+        servo.registers[_STATUS] |= bits
 
-    def stop(self) -> None:
-        if self._thread is None:
-            return
-        self._stopping = True
-        try:
-            os.write(self._wake_w, b"x")
-        except OSError:
-            pass
-        self._thread.join()
-        self._thread = None
-        os.close(self._wake_r)
-        os.close(self._wake_w)
-        self._wake_r = self._wake_w = -1
-        if self._control is not None:
-            self._control.stop()
-        self._pty.close()
-
-    def __enter__(self) -> FeetechSimulator:
-        self.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
-
-    # --- state access ---
-    @property
-    def ids(self) -> list[int]:
-        with self._lock:
-            return sorted(self._servos)
-
-    def servo(self, servo_id: int) -> SimServo:
-        try:
-            return self._servos[servo_id]
-        except KeyError:
-            raise SimulatorError(
-                f"no simulated servo with id {servo_id} (ids: {sorted(self._servos)})") from None
-
-    def set_fault(self, servo_id: int, kind: str | FaultKind, bits: int = 0) -> None:
-        """Inject a fault into one servo (see the module docstring). Raises SimulatorError."""
-        with self._lock:
-            servo = self.servo(servo_id)
-            try:
-                kind = FaultKind(kind)
-            except ValueError:
-                raise SimulatorError(
-                    f"unknown fault kind {kind!r}; valid: {', '.join(k.value for k in FaultKind)}"
-                ) from None
-            servo._update(self.clock())
-            if kind is FaultKind.SILENT:
-                servo.silent = True
-            elif kind is FaultKind.CORRUPT:
-                servo.corrupt = True
-            elif kind is FaultKind.FREEZE:
-                servo.frozen = True
-            else:
-                if not 0 < bits <= 0x7F:
-                    raise SimulatorError(f"error_bits: bits {bits} must be in 1..127")
-                servo.registers[_STATUS] |= bits
-
-    def clear_faults(self, servo_id: int | None = None) -> None:
-        """Clear every injected fault (of one servo, or all) and the unplugged state."""
-        with self._lock:
-            servos = [self.servo(servo_id)] if servo_id is not None else list(self._servos.values())
-            now = self.clock()
-            for s in servos:
-                s._update(now)
-                s.silent = s.corrupt = s.frozen = False
-                s.registers[_STATUS] = 0
-            if servo_id is None:
-                self.unplugged = False
-
-    def set_unplugged(self, on: bool) -> None:
-        with self._lock:
-            self.unplugged = bool(on)
-
-    def _faults(self, servo: SimServo) -> list[str]:
-        out = [k.value for k, on in ((FaultKind.SILENT, servo.silent), (FaultKind.CORRUPT,
-               servo.corrupt), (FaultKind.FREEZE, servo.frozen)) if on]
-        if servo.registers[_STATUS]:
-            out.append(FaultKind.ERROR_BITS.value)
-        return out
-
-    def _rekey(self, servo: SimServo, old_id: int) -> None:
-        new_id = servo.registers[_ID]
-        if new_id == old_id:
-            return
-        if new_id in self._servos or new_id > 253:
-            log.warning("servo %d: refusing id change to %d (taken or invalid)", old_id, new_id)
-            servo.registers[_ID] = old_id
-            return
-        del self._servos[old_id]
-        self._servos[new_id] = servo
-
-    # --- control socket commands ---
-    def control(self, request: dict) -> dict:
-        """Answer one control request (dict in, dict out). Never raises for a bad request."""
-        cmd = request.get("cmd")
-        try:
-            if cmd == "dump":
-                return {"ok": True, **self._dump()}
-            if cmd in ("read", "write"):
-                servo = self._control_servo(request)
-                name = _NAMES.get(str(request.get("register", "")).lower())
-                if name is None:
-                    return {"ok": False, "error": f"servo {servo.id}: unknown register "
-                            f"{request.get('register')!r}"}
-                if cmd == "read":
-                    return {"ok": True, "value": servo.read(name)}
-                value = request.get("value")
-                if not isinstance(value, int) or isinstance(value, bool):
-                    return {"ok": False, "error": f"{name}: value must be an integer, got {value!r}"}
-                try:
-                    servo.write(name, value)
-                except ValueError as exc:
-                    return {"ok": False, "error": f"servo {servo.id}: {exc}"}
-                return {"ok": True}
-            if cmd == "fault":
-                servo = self._control_servo(request)
-                bits = request.get("bits", 0)
-                if not isinstance(bits, int) or isinstance(bits, bool):
-                    return {"ok": False, "error": f"'bits' must be an integer, got {bits!r}"}
-                self.set_fault(servo.id, str(request.get("kind")), bits)
-                return {"ok": True}
-            if cmd == "clear_faults":
-                sid = request.get("id")
-                self.clear_faults(None if sid is None else self._control_servo(request).id)
-                return {"ok": True}
-            if cmd == "unplug":
-                self.set_unplugged(bool(request.get("on", True)))
-                return {"ok": True}
-        except SimulatorError as exc:
-            return {"ok": False, "error": str(exc)}
-        return {"ok": False, "error": f"unknown cmd {cmd!r}; valid: dump, read, write, fault, "
-                "clear_faults, unplug"}
-
-    def _control_servo(self, request: dict) -> SimServo:
-        sid = request.get("id")
-        if not isinstance(sid, int) or isinstance(sid, bool):
-            raise SimulatorError(f"'id' must be an integer servo id, got {sid!r}")
-        return self.servo(sid)
-
-    def _dump(self) -> dict:
-        with self._lock:
-            now = self.clock()
-            servos = {}
-            faults = {}
-            for sid in sorted(self._servos):
-                s = self._servos[sid]
-                s._update(now)
-                servos[str(sid)] = {name.lower(): s._read(name) for name in T.STS_CONTROL_TABLE}
-                f = self._faults(s)
-                if f:
-                    faults[str(sid)] = f
-            return {"servos": servos, "faults": faults, "unplugged": self.unplugged,
-                    "baudrate": self.baudrate}
+    def _clear_error_bits(self, servo: SimServo) -> None:
+        servo.registers[_STATUS] = 0
 
     # --- the bus ---
-    def _run(self) -> None:
-        master = self._pty.master_fd
-        assert master is not None
-        poller = select.poll()
-        poller.register(master, select.POLLIN)
-        poller.register(self._wake_r, select.POLLIN)
-        buf = bytearray()
-        last_rx = 0.0
-        if self.emulate_baud:
-            _tighten_timer_slack()
-        try:
-            while True:
-                poller.poll()
-                if self._stopping:
-                    return
-                try:
-                    data = os.read(master, 4096)
-                except BlockingIOError:
-                    continue
-                now = time.monotonic()
-                if buf and now - last_rx > FRAME_TIMEOUT_S:
-                    buf.clear()  # a servo forgets a half-received packet after a silence
-                last_rx = now
-                buf += data
-                replies = self._parse(buf, now, self.clock())
-                if replies:
-                    self._send(master, replies)
-        except Exception:
-            log.exception("feetech simulator thread died")
-            raise
-
-    def _send(self, master: int, replies: list[tuple[float, bytes]]) -> None:
-        if self.emulate_baud:
-            for deadline, pkt in replies:
-                delay = deadline - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                self._write(master, pkt)
-        else:
-            self._write(master, b"".join(p for _, p in replies) if len(replies) > 1 else replies[0][1])
-
-    @staticmethod
-    def _write(master: int, data: bytes) -> None:
-        try:
-            n = os.write(master, data)
-        except BlockingIOError:
-            log.debug("client not reading; dropped %d reply bytes", len(data))
-            return
-        if n < len(data):
-            log.debug("client not reading; dropped %d reply bytes", len(data) - n)
-
-    def _parse(self, buf: bytearray, now: float, sim_now: float) -> list[tuple[float, bytes]]:
+    def _parse(self, buf: bytearray, now: float) -> list[Reply]:
         """Consume every complete packet in ``buf``; return (deadline, reply bytes) per packet
         that got an answer. Leaves an incomplete packet (or a trailing FF) in ``buf``."""
-        replies: list[tuple[float, bytes]] = []
+        sim_now = self.clock()
+        replies: list[Reply] = []
         n = len(buf)
         i = 0
         while True:
@@ -687,7 +392,6 @@ class FeetechSimulator:
         """Execute one valid instruction packet. Returns (deadline, reply) or None.
         ``now``: wire clock (monotonic); ``sim_now``: physics clock (:attr:`clock`)."""
         out: list[bytes] = []
-        delay_s = 0.0
         with self._lock:
             if self.unplugged:
                 return None
@@ -768,21 +472,5 @@ class FeetechSimulator:
             if out and any(s.silent for s in targets):
                 out = [p for p, s in zip(out, targets) if not s.silent]
                 targets = [s for s in targets if not s.silent]
-            if self.emulate_baud:
-                for s in targets:
-                    delay_s += s.registers[_RETURN_DELAY] * 2e-6
-        if not out:
-            return self._no_reply(req_len, now)
-        reply = b"".join(out)
-        if not self.emulate_baud:
-            return (0.0, reply)
-        t0 = max(now, self._bus_free_at)
-        deadline = t0 + (req_len + len(reply)) * self._byte_s + delay_s
-        self._bus_free_at = deadline
-        return (deadline, reply)
-
-    def _no_reply(self, req_len: int, now: float) -> None:
-        # The request still occupied the wire: a reply to the next packet cannot start earlier.
-        if self.emulate_baud:
-            self._bus_free_at = max(now, self._bus_free_at) + req_len * self._byte_s
-        return None
+            delay_s = self._turnaround_s(targets)
+        return self._reply(out, req_len, now, delay_s)

@@ -172,16 +172,10 @@ class DynamixelBackend(SerialServoBackend):
         self._rad_s_per_vel = self._direction * T.VELOCITY_UNIT_RAD_S
         self._vel_limit = np.array([T.VELOCITY_LIMIT_DEFAULT[m] for m in self._models], dtype=float)
         self._cur_limit = np.array([T.CURRENT_LIMIT_DEFAULT.get(m, 0) for m in self._models], dtype=float)
-        # real-time state and buffers
-        self._raw_pos = np.zeros(n)
-        self._raw_vel = np.zeros(n)
-        self._raw_cur = np.zeros(n)
-        self._tmp = np.zeros(n)
-        self._goal = np.zeros(n)
+        # real-time state (buffers shared with Feetech: SerialServoBackend)
         self._errors = [0] * n  # status ERR byte of each servo, last read
         self._hw_bits = [0] * n  # Hardware_Error_Status read when the Alert appeared
         self._op_mode: list[OperatingMode | None] = [None] * n  # mode the servo is in (None: unknown)
-        self._free = [False] * n
         self._fast = False
         self._id_param = list(self._ids)
         self._fast_reply_len = (_BLOCK_LEN + 4) * n
@@ -288,17 +282,8 @@ class DynamixelBackend(SerialServoBackend):
                 self._op_mode[i] = self._pos_mode[i]
             present = self._read_register(i, "Present_Position")
             self._write_register(i, "Goal_Position", present, check_error=True)
-        self._free = [False] * self.n
         self._hw_bits = [0] * self.n
-        try:
-            for i in range(self.n):
-                self._write_register(i, "Torque_Enable", 1, check_error=True)
-        except BackendError:
-            try:
-                self._disable_hook()
-            except BackendError:
-                pass
-            raise
+        self._torque_on_all()
 
     def _reboot(self, i: int, bits: int) -> None:
         """REBOOT joint ``i`` (clears a latched hardware error), wait until it answers, configure."""

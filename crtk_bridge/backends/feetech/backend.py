@@ -146,14 +146,7 @@ class FeetechBackend(SerialServoBackend):
             position=True, velocity=False, effort=False, measures_velocity=True,
             measures_effort=self._measures_effort, needs_homing=False, can_free=True,
         )
-        # pre-allocated real-time buffers
-        self._raw_pos = np.zeros(n)
-        self._raw_vel = np.zeros(n)
-        self._raw_cur = np.zeros(n)
-        self._tmp = np.zeros(n)
-        self._goal = np.zeros(n)  # goal ticks computed this cycle (float)
         self._last_goal = [0] * n  # ticks last sent / written at enable (int)
-        self._free = [False] * n  # joints switched torque-off by a FREE command
         self._sync_read: GroupSyncRead | None = None
         self._sync_write: GroupSyncWrite | None = None
 
@@ -225,16 +218,7 @@ class FeetechBackend(SerialServoBackend):
             self._last_goal[i] = present
             raw = tables.encode_sign_magnitude(present, tables.SIGN_BITS["Goal_Position"])
             self._sync_write.changeParam(self._ids[i], [raw & 0xFF, raw >> 8])
-        self._free = [False] * self.n
-        try:
-            for i in range(self.n):
-                self._write_register(i, "Torque_Enable", 1, check_error=True)
-        except BackendError:
-            try:
-                self._disable_hook()
-            except BackendError:
-                pass
-            raise
+        self._torque_on_all()
 
     def _close_hook(self) -> None:
         super()._close_hook()

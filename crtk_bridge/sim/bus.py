@@ -1,0 +1,488 @@
+"""What the serial-servo bus simulators (Feetech STS, Dynamixel X) truly share.
+
+:class:`BusSimulator` is the serving machinery of one simulated half-duplex servo bus on a
+pseudo-terminal, as LeRobot's ``MotorsBus`` is for the real ones:
+
+- lifecycle: the pty (and its optional stable link), the optional JSON-lines control socket, and
+  one background thread blocked in poll() on the pty master and a wake pipe; ``start()`` returns
+  once clients may open :attr:`~BusSimulator.port`, ``stop()`` is idempotent, context manager;
+- state: the servos by id (an id change over the bus re-keys them), the fault flags every servo
+  carries (``silent``, ``corrupt``, ``frozen``) and the unplugged state of the whole bus;
+- the control-socket protocol (``dump``, ``read``, ``write``, ``fault``, ``clear_faults``,
+  ``unplug``; see :mod:`crtk_bridge.sim.control`);
+- the wire: a half-received packet is dropped after ``FRAME_TIMEOUT_S`` of silence, and with
+  ``emulate_baud`` each reply leaves no earlier than the request and the reply would have taken
+  on a real wire (10 bits per byte, plus the replying servos' Return_Delay_Time, 2 us units),
+  a request without a reply still occupying the wire.
+
+Each vendor module fills the hooks: packet framing and parsing (:meth:`~BusSimulator._parse`,
+which calls :meth:`~BusSimulator._reply` / :meth:`~BusSimulator._no_reply` per packet),
+instruction dispatch, control tables, physics, register names, and what ``error_bits`` means on
+that servo (:meth:`~BusSimulator._set_error_bits` and friends). Each vendor's servo is a
+:class:`BusServo` (register memory, fault flags, ``read`` / ``write`` by name) filling
+``_get`` / ``_set`` / ``_update`` with its encoding and physics.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import enum
+import logging
+import math
+import os
+import select
+import threading
+import time
+from pathlib import Path
+from typing import ClassVar
+
+from ..profile import Profile
+from . import SimulatorError
+from .control import ControlServer
+from .pty import PtyPort
+
+log = logging.getLogger(__name__)
+
+FRAME_TIMEOUT_S = 0.010  # a partial packet older than this is dropped (servo inter-byte timeout)
+BITS_PER_BYTE = 10  # 8N1 on the wire
+RETURN_DELAY_UNIT_S = 2e-6  # Return_Delay_Time unit on both vendors
+
+_PR_SET_TIMERSLACK = 29
+
+
+def _tighten_timer_slack() -> None:
+    """Ask Linux for 1 us timer slack on this thread (default 50 us): emulated wire times are
+    ~0.1..2 ms, so the default slack alone would add several percent. Best effort."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_TIMERSLACK, 1000, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
+def approach(error: float, dt: float, vmax: float, tau_s: float) -> float:
+    """Remaining |tracking error| after ``dt`` s of a position servo closing ``error`` (ticks) as
+    a first-order lag with time constant ``tau_s``, its speed capped at ``vmax`` (ticks/s): at
+    constant speed down to the knee ``vmax * tau_s``, exponentially below it; < 1e-3 is 0."""
+    a = abs(error)
+    knee = vmax * tau_s  # beyond this error the speed cap binds
+    if a > knee:
+        t1 = (a - knee) / vmax
+        a = a - vmax * dt if dt <= t1 else knee * math.exp(-(dt - t1) / tau_s)
+    else:
+        a *= math.exp(-dt / tau_s)
+    return 0.0 if a < 1e-3 else a
+
+
+class FaultKind(str, enum.Enum):
+    SILENT = "silent"
+    CORRUPT = "corrupt"
+    ERROR_BITS = "error_bits"
+    FREEZE = "freeze"
+
+
+class BusServo:
+    """Base of a vendor's simulated servo: 256 bytes of control table memory, the injected fault
+    flags, and thread-safe access by register name. The vendor subclass fills :meth:`_get`,
+    :meth:`_set` and :meth:`_update` (caller holds the simulator lock) and its defaults.
+
+    ``registers`` is the raw control table; mutate it directly only if you mean to bypass every
+    side effect. :meth:`read` and :meth:`write` bring the physics up to date first.
+    """
+
+    def __init__(self, sim: BusSimulator):
+        self._sim = sim
+        self.registers = bytearray(256)
+        self.silent = self.corrupt = self.frozen = False
+        self._pending: tuple[int, bytes] | None = None  # REG_WRITE awaiting ACTION
+        self._t = sim.clock()  # physics time of the registers' Present_* values
+
+    # --- public, thread-safe ---
+    @property
+    def id(self) -> int:
+        return self.registers[self._sim.ID_ADDRESS]
+
+    def read(self, name: str) -> int:
+        """Decoded value of register ``name`` (signed where the table says). Raises KeyError."""
+        with self._sim._lock:
+            self._update(self._sim.clock())
+            return self._get(name)
+
+    def write(self, name: str, value: int) -> None:
+        """Set register ``name`` from outside the bus ("by hand"): any register, read-only ones
+        included, no access checks. Present_Position moves the joint; derived registers are
+        recomputed. An ID change re-keys the servo. Raises KeyError / ValueError."""
+        with self._sim._lock:
+            now = self._sim.clock()
+            self._update(now)
+            old_id = self.id
+            self._set(name, value)
+            self._update(now)
+            self._sim._rekey(self, old_id)
+
+    # --- vendor hooks (caller holds the simulator lock) ---
+    def _get(self, name: str) -> int:
+        raise NotImplementedError
+
+    def _set(self, name: str, value: int) -> None:
+        """Encode and store ``value``; ValueError (naming the register) if it does not fit."""
+        raise NotImplementedError
+
+    def _update(self, now: float) -> None:
+        """Advance the physics to ``now`` (simulator clock) and refresh the Present_* registers."""
+        raise NotImplementedError
+
+
+Reply = tuple[float, bytes]  # (monotonic deadline, reply bytes); deadline 0.0 without emulate_baud
+
+
+class BusSimulator:
+    """A bus of simulated servos on a pty. Vendor subclasses fill the hooks below.
+
+    Subclass ``__init__``: validate the servo ids, call ``super().__init__`` (validates
+    ``baudrate``), then fill ``self._servos`` (servo objects may use :attr:`clock` and
+    :attr:`baudrate`). Nothing is opened before :meth:`start`.
+    """
+
+    #: vendor name: thread name ``sim-<vendor>``, log lines, ``from_profile``'s backend.type
+    vendor: ClassVar[str] = ""
+    #: bus baud rate -> Baud_Rate register code (servos with another code are deaf and mute)
+    BAUD_CODES: ClassVar[dict[int, int]] = {}
+    #: control table address of ID and of Return_Delay_Time (one byte each)
+    ID_ADDRESS: ClassVar[int]
+    RETURN_DELAY_ADDRESS: ClassVar[int]
+    #: highest id a servo may take over the bus
+    MAX_ID: ClassVar[int] = 253
+
+    def __init__(
+        self,
+        baudrate: int,
+        link: str | os.PathLike | None,
+        control: str | os.PathLike | None,
+        emulate_baud: bool,
+    ):
+        if baudrate <= 0:
+            raise SimulatorError(f"baudrate {baudrate} must be > 0")
+        self.baudrate = int(baudrate)
+        self.emulate_baud = bool(emulate_baud)
+        self._byte_s = BITS_PER_BYTE / self.baudrate
+        self._baud_code = self.BAUD_CODES.get(self.baudrate)
+        self._lock = threading.Lock()
+        #: the physics clock (seconds); tests may swap in a fake one before start()
+        self.clock = time.monotonic
+        self._servos: dict[int, BusServo] = {}
+        self.unplugged = False
+        self._pty = PtyPort(link)
+        self._control = ControlServer(control, self.control) if control is not None else None
+        self.control_path = Path(control) if control is not None else None
+        self._thread: threading.Thread | None = None
+        self._wake_r = self._wake_w = -1
+        self._stopping = False
+        self._bus_free_at = 0.0
+        #: bytes received and sent on the wire since start (for bench/)
+        self.rx_bytes = 0
+        self.tx_bytes = 0
+
+    @classmethod
+    def _profile_joints(cls, profile: Profile) -> tuple[list, int]:
+        """(joints with a bus id, baud rate) of a profile for this vendor. Raises SimulatorError."""
+        if profile.backend_type != cls.vendor:
+            raise SimulatorError(f"profile {profile.name!r}: backend.type is "
+                                 f"{profile.backend_type!r}, not {cls.vendor!r}")
+        joints = [j for j in profile.joints if j.id is not None]
+        if not joints:
+            raise SimulatorError(f"profile {profile.name!r}: no joint has a bus id")
+        baud = profile.backend.get("baudrate", 1_000_000)
+        if not isinstance(baud, int) or isinstance(baud, bool):
+            raise SimulatorError(f"profile {profile.name!r}: backend.baudrate must be an integer")
+        return joints, baud
+
+    # ------------------------------------------------------------------ vendor hooks
+    def _parse(self, buf: bytearray, now: float) -> list[Reply]:
+        """Consume every complete packet in ``buf`` (leave an incomplete one); return a reply per
+        answered packet. ``now``: wire clock (monotonic) when the bytes arrived."""
+        raise NotImplementedError
+
+    def _register_name(self, servo: BusServo, register: object) -> str:
+        """Canonical name of ``register`` (any case) on ``servo``. Raises SimulatorError."""
+        raise NotImplementedError
+
+    def _snapshot(self, servo: BusServo) -> dict:
+        """Every register of ``servo`` by lower-case name, for ``dump`` (caller holds the lock)."""
+        raise NotImplementedError
+
+    def _error_bits(self, servo: BusServo) -> int:
+        """The servo's error register (nonzero: the ``error_bits`` fault shows in ``dump``)."""
+        raise NotImplementedError
+
+    def _set_error_bits(self, servo: BusServo, bits: int) -> None:
+        """OR ``bits`` into the servo's error register. Raises SimulatorError for bad bits."""
+        raise NotImplementedError
+
+    def _clear_error_bits(self, servo: BusServo) -> None:
+        """What ``clear_faults`` does to the error register (nothing where errors latch)."""
+
+    # ------------------------------------------------------------------ lifecycle
+    @property
+    def port(self) -> str:
+        """Path for pyserial / the vendor SDK: the link if given, else the pty slave."""
+        return self._pty.path
+
+    @property
+    def pty_path(self) -> str | None:
+        return self._pty.slave_path
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._pty.open()
+        try:
+            if self._control is not None:
+                self._control.start()
+        except BaseException:
+            self._pty.close()
+            raise
+        self._wake_r, self._wake_w = os.pipe()
+        self._stopping = False
+        self._thread = threading.Thread(target=self._run, name=f"sim-{self.vendor}", daemon=True)
+        self._thread.start()
+        log.info("%s simulator: %d servo(s) %s on %s", self.vendor, len(self._servos), self.ids,
+                 self.port)
+
+    def stop(self) -> None:
+        if self._thread is None:
+            return
+        self._stopping = True
+        try:
+            os.write(self._wake_w, b"x")
+        except OSError:
+            pass
+        self._thread.join()
+        self._thread = None
+        os.close(self._wake_r)
+        os.close(self._wake_w)
+        self._wake_r = self._wake_w = -1
+        if self._control is not None:
+            self._control.stop()
+        self._pty.close()
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------ state access
+    @property
+    def ids(self) -> list[int]:
+        with self._lock:
+            return sorted(self._servos)
+
+    def servo(self, servo_id: int):
+        try:
+            return self._servos[servo_id]
+        except KeyError:
+            raise SimulatorError(
+                f"no simulated servo with id {servo_id} (ids: {sorted(self._servos)})") from None
+
+    def set_fault(self, servo_id: int, kind: str | FaultKind, bits: int = 0) -> None:
+        """Inject a fault into one servo (see the vendor module's docstring). Raises
+        SimulatorError."""
+        with self._lock:
+            servo = self.servo(servo_id)
+            try:
+                kind = FaultKind(kind)
+            except ValueError:
+                raise SimulatorError(
+                    f"unknown fault kind {kind!r}; valid: {', '.join(k.value for k in FaultKind)}"
+                ) from None
+            servo._update(self.clock())
+            if kind is FaultKind.SILENT:
+                servo.silent = True
+            elif kind is FaultKind.CORRUPT:
+                servo.corrupt = True
+            elif kind is FaultKind.FREEZE:
+                servo.frozen = True
+            else:
+                self._set_error_bits(servo, bits)
+
+    def clear_faults(self, servo_id: int | None = None) -> None:
+        """Clear injected faults (of one servo, or all, and then the unplugged state too); the
+        error register as the vendor's :meth:`_clear_error_bits` says."""
+        with self._lock:
+            servos = [self.servo(servo_id)] if servo_id is not None else list(self._servos.values())
+            now = self.clock()
+            for s in servos:
+                s._update(now)
+                s.silent = s.corrupt = s.frozen = False
+                self._clear_error_bits(s)
+            if servo_id is None:
+                self.unplugged = False
+
+    def set_unplugged(self, on: bool) -> None:
+        with self._lock:
+            self.unplugged = bool(on)
+
+    def _faults(self, servo: BusServo) -> list[str]:
+        out = [k.value for k, on in ((FaultKind.SILENT, servo.silent), (FaultKind.CORRUPT,
+               servo.corrupt), (FaultKind.FREEZE, servo.frozen)) if on]
+        if self._error_bits(servo):
+            out.append(FaultKind.ERROR_BITS.value)
+        return out
+
+    def _rekey(self, servo: BusServo, old_id: int) -> None:
+        """File ``servo`` under its new ID after a write changed it (caller holds the lock);
+        an id that is taken or above :attr:`MAX_ID` is refused and the old one restored."""
+        new_id = servo.registers[self.ID_ADDRESS]
+        if new_id == old_id:
+            return
+        if new_id in self._servos or new_id > self.MAX_ID:
+            log.warning("servo %d: refusing id change to %d (taken or invalid)", old_id, new_id)
+            servo.registers[self.ID_ADDRESS] = old_id
+            return
+        del self._servos[old_id]
+        self._servos[new_id] = servo
+
+    # ------------------------------------------------------------------ control socket
+    def control(self, request: dict) -> dict:
+        """Answer one control request (dict in, dict out): dump, read, write, fault,
+        clear_faults, unplug. Never raises for a bad request."""
+        cmd = request.get("cmd")
+        try:
+            if cmd == "dump":
+                return {"ok": True, **self._dump()}
+            if cmd in ("read", "write"):
+                servo = self._control_servo(request)
+                name = self._register_name(servo, request.get("register"))
+                if cmd == "read":
+                    return {"ok": True, "value": servo.read(name)}
+                value = request.get("value")
+                if not isinstance(value, int) or isinstance(value, bool):
+                    return {"ok": False, "error": f"{name}: value must be an integer, got {value!r}"}
+                try:
+                    servo.write(name, value)
+                except ValueError as exc:
+                    return {"ok": False, "error": f"servo {servo.id}: {exc}"}
+                return {"ok": True}
+            if cmd == "fault":
+                servo = self._control_servo(request)
+                bits = request.get("bits", 0)
+                if not isinstance(bits, int) or isinstance(bits, bool):
+                    return {"ok": False, "error": f"'bits' must be an integer, got {bits!r}"}
+                self.set_fault(servo.id, str(request.get("kind")), bits)
+                return {"ok": True}
+            if cmd == "clear_faults":
+                sid = request.get("id")
+                self.clear_faults(None if sid is None else self._control_servo(request).id)
+                return {"ok": True}
+            if cmd == "unplug":
+                self.set_unplugged(bool(request.get("on", True)))
+                return {"ok": True}
+        except SimulatorError as exc:
+            return {"ok": False, "error": str(exc)}
+        return {"ok": False, "error": f"unknown cmd {cmd!r}; valid: dump, read, write, fault, "
+                "clear_faults, unplug"}
+
+    def _control_servo(self, request: dict):
+        sid = request.get("id")
+        if not isinstance(sid, int) or isinstance(sid, bool):
+            raise SimulatorError(f"'id' must be an integer servo id, got {sid!r}")
+        return self.servo(sid)
+
+    def _dump(self) -> dict:
+        with self._lock:
+            now = self.clock()
+            servos, faults = {}, {}
+            for sid in sorted(self._servos):
+                s = self._servos[sid]
+                s._update(now)
+                servos[str(sid)] = self._snapshot(s)
+                f = self._faults(s)
+                if f:
+                    faults[str(sid)] = f
+            return {"servos": servos, "faults": faults, "unplugged": self.unplugged,
+                    "baudrate": self.baudrate}
+
+    # ------------------------------------------------------------------ the wire
+    def _run(self) -> None:
+        master = self._pty.master_fd
+        assert master is not None
+        poller = select.poll()
+        poller.register(master, select.POLLIN)
+        poller.register(self._wake_r, select.POLLIN)
+        buf = bytearray()
+        last_rx = 0.0
+        if self.emulate_baud:
+            _tighten_timer_slack()
+        try:
+            while True:
+                poller.poll()
+                if self._stopping:
+                    return
+                try:
+                    data = os.read(master, 4096)
+                except BlockingIOError:
+                    continue
+                now = time.monotonic()
+                if buf and now - last_rx > FRAME_TIMEOUT_S:
+                    buf.clear()  # a servo forgets a half-received packet after a silence
+                last_rx = now
+                self.rx_bytes += len(data)
+                buf += data
+                replies = self._parse(buf, now)
+                if replies:
+                    self._send(master, replies)
+        except Exception:
+            log.exception("%s simulator thread died", self.vendor)
+            raise
+
+    def _send(self, master: int, replies: list[Reply]) -> None:
+        if self.emulate_baud:
+            for deadline, pkt in replies:
+                delay = deadline - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                self._write(master, pkt)
+        else:
+            self._write(master, b"".join(p for _, p in replies) if len(replies) > 1 else replies[0][1])
+
+    def _write(self, master: int, data: bytes) -> None:
+        self.tx_bytes += len(data)
+        try:
+            n = os.write(master, data)
+        except BlockingIOError:
+            log.debug("client not reading; dropped %d reply bytes", len(data))
+            return
+        if n < len(data):
+            log.debug("client not reading; dropped %d reply bytes", len(data) - n)
+
+    def _turnaround_s(self, repliers: list) -> float:
+        """Summed Return_Delay_Time of the replying servos, in s (0 without emulate_baud).
+        Caller holds the lock."""
+        if not self.emulate_baud:
+            return 0.0
+        return sum(s.registers[self.RETURN_DELAY_ADDRESS] for s in repliers) * RETURN_DELAY_UNIT_S
+
+    def _reply(self, out: list[bytes], req_len: int, now: float, delay_s: float) -> Reply | None:
+        """Schedule the status packets ``out`` answering a ``req_len``-byte request that arrived
+        at ``now``: with emulate_baud, after the request, the reply and ``delay_s`` of servo
+        turnaround have passed on a wire that is free again only then."""
+        if not out:
+            return self._no_reply(req_len, now)
+        reply = b"".join(out)
+        if not self.emulate_baud:
+            return (0.0, reply)
+        t0 = max(now, self._bus_free_at)
+        deadline = t0 + (req_len + len(reply)) * self._byte_s + delay_s
+        self._bus_free_at = deadline
+        return (deadline, reply)
+
+    def _no_reply(self, req_len: int, now: float) -> None:
+        # The request still occupied the wire: a reply to the next packet cannot start earlier.
+        if self.emulate_baud:
+            self._bus_free_at = max(now, self._bus_free_at) + req_len * self._byte_s
+        return None
