@@ -41,6 +41,17 @@ STARTUP_TIMEOUT_S = 20.0
 SHUTDOWN_TIMEOUT_S = 3.0  # below the unit's TimeoutStopSec=5, so our own clean-up runs
 
 
+def _die_with_parent() -> None:
+    """In a child before exec: SIGTERM it when the daemon dies, however it dies (Linux prctl)."""
+    try:
+        import ctypes
+
+        PR_SET_PDEATHSIG = 1
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass  # not Linux: the daemon's normal shutdown still stops the simulator
+
+
 class SimulatorProcess:
     """``crtk-sim`` as a child process, serving a pty linked at ``link``."""
 
@@ -55,6 +66,7 @@ class SimulatorProcess:
              "--link", self.link, "--control", self.control],
             stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
             start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
+            preexec_fn=_die_with_parent,  # ...but a daemon killed outright must not leave it running
         )
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while not (os.path.exists(self.link) and os.path.exists(self.control)):

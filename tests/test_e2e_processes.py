@@ -106,3 +106,16 @@ def test_client_loss_notice_reaches_others_as_one_warning_only(sim_daemon):
                what="control_released warning")
     assert not [m for m in lines if "ok" in m], "a reply nobody asked for reached another session"
     watcher.close()
+
+
+def test_simulator_does_not_outlive_a_killed_daemon(sim_daemon):
+    sim_pid = None
+    with open(f"/proc/{sim_daemon.proc.pid}/task/{sim_daemon.proc.pid}/children") as f:
+        for pid in map(int, f.read().split()):
+            with open(f"/proc/{pid}/cmdline", "rb") as c:
+                if b"crtk_bridge.sim.cli" in c.read():
+                    sim_pid = pid
+    assert sim_pid is not None
+    sim_daemon.proc.send_signal(signal.SIGKILL)
+    sim_daemon.proc.wait(5)
+    wait_until(lambda: not _alive(sim_pid), 5, what="simulator exit after the daemon was killed")
