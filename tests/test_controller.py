@@ -78,7 +78,7 @@ def rig():
             clock.t += c.dt
             c.on_read(fb, act.read(fb))
             if c.step():
-                act.write(c.command)
+                c.on_write(act.write(c.command))
 
     def req(cmd, ns=None, **data):
         rid = next(ids)
@@ -492,3 +492,106 @@ def test_servo_error_fault_carries_register_and_value(rig):
     err = [m["data"] for m in c.outbox if m.get("event") == "error"][-1]
     assert (err["code"], err["joint"], err["register"], err["value"]) == ("servo_error", "gripper", "Status", 0x20)
     assert c.state is OperatingState.FAULT
+
+
+# ---------------------------------------------------------------- review findings (second reader)
+
+
+def test_enable_holds_the_fresh_position_not_a_stale_sample(rig):
+    c, act, clock, cycle, req = rig
+    act.pos[:] = 0.0
+    cycle()  # the controller's sample: all zeros
+    act.pos[1] = -0.5  # the shoulder sags after that sample, before enable is handled
+    assert req("enable")["ok"]
+    cycle(5)
+    assert act.pos[1] == pytest.approx(-0.5)  # not driven back to the stale 0.0
+
+
+def test_enable_outside_limits_holds_instead_of_snapping_to_the_limit(rig):
+    c, act, clock, cycle, req = rig
+    act.pos[4] = -3.1  # wrist_roll turned by hand beyond its -2.744 limit
+    cycle()
+    assert req("enable")["ok"]
+    cycle(5)
+    assert act.pos[4] == pytest.approx(-3.1)
+    # a move brings it back inside, from where it is
+    assert req("move_jp", "so101", position=[0, 0, 0, 0, -2.0])["ok"]
+    cycle(1000)
+    assert act.pos[4] == pytest.approx(-2.0)
+
+
+def test_refused_command_leaves_free_joints_free(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("free", "so101")["ok"]
+    cycle()
+    r = req("move_jp", "so101", position=[0, 0, 3.0, 0, 0])  # out of limits
+    assert r["error"]["code"] == "out_of_limits"
+    cycle()
+    assert c.namespaces["so101"].mode is Mode.FREE
+    assert all(c.command.mode[:5] == CommandMode.FREE)
+
+
+def test_write_faults_count_even_between_good_reads(rig):
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    orig = act._write
+    act._write = lambda cmd: Fault("bus_timeout", "so101: sync write failed", transient=True)
+    cycle(PROFILE.safety.bus_errors_max)
+    act._write = orig
+    assert c.state is OperatingState.FAULT
+
+
+class VelocityActuator(FakeActuator):
+    """Native velocity control: the joint integrates the velocity command itself."""
+
+    capabilities = Capabilities(position=True, velocity=True, measures_velocity=True)
+
+    def _write(self, cmd):
+        if self.torque:
+            for i, mode in enumerate(cmd.mode):
+                if mode == CommandMode.VELOCITY:
+                    self.pos[i] += cmd.velocity[i] * (1 / 200)
+                elif mode == CommandMode.POSITION:
+                    self.pos[i] = cmd.position[i]
+        return None
+
+
+def test_native_velocity_stops_at_the_position_limit():
+    act = VelocityActuator(PROFILE)
+    clock = Clock()
+    c = Controller(PROFILE, act, clock)
+    fb = act.new_feedback()
+
+    def cycle():
+        clock.t += c.dt
+        c.on_read(fb, act.read(fb))
+        if c.step():
+            act.write(c.command)
+
+    cycle()
+    c.handle({"id": 1, "cmd": "enable"})
+    for _ in range(600):  # 3 s of servo_jv at 2 rad/s toward a 1.92 rad limit
+        c.handle({"id": 2, "cmd": "servo_jv", "ns": "so101", "data": {"velocity": [2.0, 0, 0, 0, 0]}})
+        cycle()
+    limit = PROFILE.joints[0].limits.position_max
+    assert act.pos[0] <= limit + 0.02 and act.pos[0] > limit - 0.1
+    assert c.state is OperatingState.ENABLED
+
+
+def test_pause_stops_an_effort_stream():
+    class EffortActuator(FakeActuator):
+        capabilities = Capabilities(position=True, effort=True, measures_velocity=True)
+
+    act = EffortActuator(PROFILE)
+    clock = Clock()
+    c = Controller(PROFILE, act, clock)
+    fb = act.new_feedback()
+    c.on_read(fb, act.read(fb))
+    c.handle({"id": 1, "cmd": "enable"})
+    c.handle({"id": 2, "cmd": "servo_jf", "ns": "so101", "data": {"effort": [0.5, 0, 0, 0, 0]}})
+    c.step()
+    assert c.command.mode[0] == CommandMode.EFFORT
+    c.handle({"id": 3, "cmd": "pause"})
+    c.step()
+    assert c.command.mode[0] == CommandMode.POSITION  # holding, not pushing

@@ -88,12 +88,15 @@ class Controller:
             for ns in profile.namespaces
         }
         self.command = actuator.new_command()
-        self.feedback = actuator.new_feedback()  # latest sample, copied in by step()
+        self.feedback = actuator.new_feedback()  # latest sample, copied in by on_read()
+        self._fresh = actuator.new_feedback()  # the read that follows torque on
         self.fault_cause: Fault | None = None
         self._consecutive_bus_errors = 0
         self._tracking_cycles = 0
         self._written = False  # self.command holds what was written last cycle
         self._torque_unconfirmed = False  # a fault's torque off did not reach the bus
+        self._last_torque_retry = -math.inf
+        self._consecutive_write_errors = 0
 
     # ------------------------------------------------------------------ queries
     @property
@@ -170,8 +173,17 @@ class Controller:
         self._check_can_move(ns, cmd)
         vec = self._vector(ns, cmd, m, data.get(field), field) if field else None
         now = self.clock()
-        if m.mode is Mode.FREE and cmd != "free":
-            m.reset(self.feedback.position[m.idx])  # leaving free: start from where the joints are
+        leaving_free = m.mode is Mode.FREE and cmd != "free"
+        if leaving_free:
+            m.reset(self.feedback.position[m.idx])  # start from where the joints are
+        try:
+            return self._motion(cmd, m, vec, data, ns, now)
+        except Refused:
+            if leaving_free:
+                m.free()  # a refused command changes nothing: the joints stay free (torque off)
+            raise
+
+    def _motion(self, cmd: str, m: NamespaceMotion, vec: np.ndarray | None, data: dict, ns: str, now: float) -> Any:
         was_busy = self.is_busy
         if cmd == "servo_jp":
             ff = data.get("velocity")
@@ -304,9 +316,16 @@ class Controller:
     def _enable(self) -> None:
         try:
             self.actuator.enable(self.feedback)
-        except BackendError as exc:
+            # hold exactly where the joints are NOW: the cycle's sample may be stale (a failed
+            # read, or a joint that sagged while torque was off), and the first write must not
+            # drive the arm back to it
+            fault = self.actuator.read(self._fresh)
+            if fault is not None:
+                raise BackendError(f"no fresh position after torque on: {fault.message}")
+        except Exception as exc:  # BackendError, or an SDK surprise: never leave torque on unsaid
             self._enter_fault(Fault("enable_failed", str(exc), transient=False))
             raise Refused("fault", f"{self.robot}: enable failed: {exc}") from exc
+        self.on_read(self._fresh, None)
         for m in self.namespaces.values():
             m.reset(self.feedback.position[m.idx])
         self.fault_cause = None
@@ -400,7 +419,10 @@ class Controller:
             return
         self._consecutive_bus_errors = 0
         if self._torque_unconfirmed and self.state is OperatingState.FAULT:
-            self._retry_torque_off()
+            now = self.clock()
+            if now - self._last_torque_retry >= 1.0:  # acknowledged writes: at most once a second
+                self._last_torque_retry = now
+                self._retry_torque_off()
         f = self.feedback
         f.position[:] = feedback.position
         f.velocity[:] = feedback.velocity
@@ -422,6 +444,19 @@ class Controller:
                         joint=name, value=float(err[j]), transient=False))
             else:
                 self._tracking_cycles = 0
+
+    def on_write(self, fault: Fault | None) -> None:
+        """Account for this cycle's write: as for reads, ``safety.bus_errors_max`` failed writes in
+        a row (or one non-transient) put the robot in FAULT; counted apart from reads, so good
+        reads cannot hide a bus that takes no commands."""
+        if fault is None:
+            self._consecutive_write_errors = 0
+            return
+        self._consecutive_write_errors += 1
+        if self.state in (OperatingState.ENABLED, OperatingState.PAUSED) and (
+            not fault.transient or self._consecutive_write_errors >= self.safety.bus_errors_max
+        ):
+            self._enter_fault(fault)
 
     def step(self) -> bool:
         """Advance motion by one cycle and fill ``self.command``. Returns True if it must be written."""

@@ -34,6 +34,7 @@ from .snapshot import RING, SnapshotBuffer
 _encode = msgspec.msgpack.Encoder().encode
 _decode = msgspec.msgpack.Decoder().decode
 MAX_REQUESTS_PER_CYCLE = 64
+MAX_MESSAGE = 1 << 17  # bytes; the front refuses request lines above server.MAX_LINE (64 KiB)
 
 
 def request_realtime(priority: int, cpu: int | None) -> list[str]:
@@ -112,7 +113,7 @@ class ControlLoop:
     def _receive(self) -> None:
         for _ in range(MAX_REQUESTS_PER_CYCLE):
             try:
-                data = self.chan.recv(1 << 16, socket.MSG_DONTWAIT)
+                data = self.chan.recv(MAX_MESSAGE, socket.MSG_DONTWAIT)
             except BlockingIOError:
                 return
             except OSError:
@@ -121,7 +122,10 @@ class ControlLoop:
             if not data:  # EOF: the front process is gone
                 self.front_alive = False
                 return
-            msg = _decode(data)
+            try:
+                msg = _decode(data)
+            except (msgspec.DecodeError, ValueError):
+                continue  # cannot happen with the front's size limit; never a reason to fault
             if msg.get("cmd") == "_shutdown":
                 self.running = False
                 return
@@ -200,9 +204,7 @@ class ControlLoop:
                 c.on_read(self.feedback, fault)
                 self._receive()
                 if c.step():
-                    wfault = self.actuator.write(c.command)
-                    if wfault is not None:
-                        c.on_read(self.feedback, wfault)
+                    c.on_write(self.actuator.write(c.command))
             except Exception as exc:  # a bug must fault the robot, not kill the loop
                 c._enter_fault(Fault("internal", f"{self.profile.name}: control loop error: {exc!r}",
                                      transient=False))

@@ -244,6 +244,11 @@ class NamespaceMotion:
             self.mode = Mode.STOP
         elif self.mode in (Mode.SERVO_P, Mode.INTERP_P, Mode.SERVO_V, Mode.INTERP_V):
             self.hold()
+        elif self.mode in EFFORT_MODES:
+            if self.caps.position:
+                self.hold()  # the position setpoint follows the joint in effort modes
+            else:
+                self.setpoint_f[:] = 0.0
 
     def hold(self) -> None:
         """Servo to the current position setpoint (dVRK `hold`)."""
@@ -305,8 +310,14 @@ class NamespaceMotion:
 
     def _integrate(self, now: float) -> None:
         if self.caps.velocity:
+            # native velocity control: nothing to integrate, but the position limits still hold:
+            # brake so that the joint can stop at its limit (v <= sqrt(2 a d)), zero beyond it
+            p = self.setpoint_p  # follows the measured position in native velocity mode
+            room_up = np.sqrt(2.0 * self.acc_max * np.maximum(self.pos_max - p, 0.0))
+            room_down = np.sqrt(2.0 * self.acc_max * np.maximum(p - self.pos_min, 0.0))
+            np.clip(self.setpoint_v, -room_down, room_up, out=self.setpoint_v)
             self.setpoint_stamp = now
-            return  # native velocity control: nothing to integrate
+            return
         p = self.setpoint_p
         p += self.setpoint_v * self.dt
         at_limit = (p <= self.pos_min) | (p >= self.pos_max)
@@ -357,7 +368,10 @@ class NamespaceMotion:
             cmd.mode[idx] = CommandMode.VELOCITY
         else:
             cmd.mode[idx] = CommandMode.POSITION
-            np.clip(self.setpoint_p, self.pos_min, self.pos_max, out=self.setpoint_p)  # the limits stage
+            if mode is not Mode.HOLD:
+                # the limits stage; HOLD is exempt: a joint enabled (or freed) outside its limits
+                # is held where it is, never snapped to the limit; commands then bring it back
+                np.clip(self.setpoint_p, self.pos_min, self.pos_max, out=self.setpoint_p)
         cmd.position[idx] = self.setpoint_p
         cmd.velocity[idx] = self.setpoint_v
         cmd.effort[idx] = self.setpoint_f

@@ -127,10 +127,11 @@ class ControlLink:
         if self.lost:
             raise ControlLost("control process is gone")
         rid = next(self._ids)
+        payload = _encode({"id": rid, "cmd": cmd, "ns": ns, "data": data})  # may raise: nothing pending yet
         fut = asyncio.get_running_loop().create_future()
         self._pending[rid] = (fut, deliver)
         try:
-            self.chan.send(_encode({"id": rid, "cmd": cmd, "ns": ns, "data": data}))
+            self.chan.send(payload)
         except OSError as exc:
             self._pending.pop(rid, None)
             raise ControlLost(str(exc)) from exc

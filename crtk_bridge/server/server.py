@@ -24,7 +24,7 @@ log = logging.getLogger("crtk_bridge.server")
 
 #: a session's unsent bytes above which stream frames are dropped (replies and events never are)
 SEND_BUFFER_LIMIT = 256 * 1024
-MAX_LINE = 1 << 20
+MAX_LINE = 1 << 16  # bytes per request line; a motion command is a few hundred
 
 
 class Session:
@@ -175,6 +175,8 @@ class Server:
             s.send(error(_rid(line), "internal", f"{self.robot}: the control process is not running"))
         except asyncio.TimeoutError:
             s.send(error(_rid(line), "internal", f"{self.robot}: the control process did not answer"))
+        except (OverflowError, TypeError, ValueError) as exc:  # data the wire codec cannot carry
+            s.send(error(_rid(line), "bad_request", f"{self.robot}: request data not acceptable: {exc}"))
 
     def _check_ns(self, cmd: str, ns: str | None, required: bool) -> str | None:
         if ns is None:
