@@ -306,13 +306,15 @@ class SerialServoBackend(Actuator):
     #: patient than the real-time read: a servo busy at power-up, or a loaded host, must not fail
     #: `open` or `enable`; a truly missing servo costs this many packet timeouts, once.
     LIFECYCLE_ATTEMPTS = 4
+    _realtime_txrx = False  # set around acknowledged transactions made from the real-time path
 
     def _txrx(self, fn, *args):
         """Call an SDK ``...TxRx`` function, retrying comm failures. Returns its tuple."""
         if self._port is not None:
             self._port.last_os_error = None
             self._port.is_using = False  # we own the port alone; a stale flag = PORT_BUSY forever
-        for _ in range(max(self._attempts, self.LIFECYCLE_ATTEMPTS)):
+        attempts = self._attempts if self._realtime_txrx else max(self._attempts, self.LIFECYCLE_ATTEMPTS)
+        for _ in range(attempts):
             out = fn(self._port, *args)
             if out[-2] == COMM_SUCCESS:
                 break

@@ -490,7 +490,10 @@ class DynamixelBackend(SerialServoBackend):
         return fault
 
     def _switch(self, i: int, want: OperatingMode) -> Fault | None:
-        """Operating-mode switch (or leaving FREE) of joint ``i``, holding it. Acknowledged writes."""
+        """Operating-mode switch (or leaving FREE) of joint ``i``, holding it. Acknowledged writes,
+        on the real-time path: each gets the real-time attempts (1 + read_retries), not the
+        patient lifecycle ones, so a silent servo stalls one cycle by a few packet timeouts."""
+        self._realtime_txrx = True
         try:
             if self._op_mode[i] != want:
                 self._write_register(i, "Torque_Enable", 0)
@@ -509,6 +512,7 @@ class DynamixelBackend(SerialServoBackend):
                          joint=self.joint_names[i], register="Operating_Mode", value=int(want),
                          transient=True)
         finally:
+            self._realtime_txrx = False
             self._port.is_using = False
         self._free[i] = False
         return None
