@@ -243,10 +243,17 @@ class Server:
             raise ProtocolError("unknown_command", f"{self.robot}: unknown command {cmd!r}")
         self._check_ns(cmd, ns, cmd not in STATE_COMMANDS)
         self._take_control(s, cmd)
+        delivered = []
+
         def deliver(reply: dict) -> None:
+            delivered.append(True)
             s.send(dict(reply, id=rid))
 
-        await self.link.request(cmd, ns, data, deliver=deliver)
+        try:
+            await self.link.request(cmd, ns, data, deliver=deliver)
+        except asyncio.TimeoutError:
+            if not delivered:  # the reply and the timeout can land in the same loop pass
+                raise
         return _SENT
 
     def _take_control(self, s: Session, cmd: str) -> None:
