@@ -16,7 +16,6 @@ socket p50 within 2x of the echo's). Figures only; nothing is asserted. Usage:
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 import os
 import signal

@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import BackendError
 from ..profile import Profile
 from .actuator import Actuator, CommandMode, Fault, JointFeedback
-from .motion import EFFORT_MODES, Mode, NamespaceMotion
+from .motion import Mode, NamespaceMotion
 from .state import OperatingState, StateCommand, transition
 
 STATE_COMMANDS = tuple(c.value for c in StateCommand)

@@ -319,7 +319,7 @@ class DynamixelBackend(SerialServoBackend):
         non-transient ``servo_error`` Fault naming the Hardware_Error_Status bits when a servo's
         status carries the Alert bit (``feedback`` filled: the data is valid).
         """
-        port, ph = self._port, self._ph
+        port = self._port
         if port is None:
             return Fault("bus_timeout", f"{self.robot}: read on a closed bus", transient=False)
         port.last_os_error = None

@@ -49,7 +49,6 @@ from ...core.actuator import (
     JointCommand,
     JointFeedback,
 )
-from ...errors import BackendError
 from ...profile import Profile
 from ..serial_servo import SerialServoBackend
 from . import tables
