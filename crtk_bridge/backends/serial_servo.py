@@ -33,7 +33,7 @@ import serial
 
 from ..core.actuator import Actuator, ActuatorInfo
 from ..errors import BackendError, ProfileError
-from ..profile import Profile, backend_config
+from ..profile import Profile, backend_config, unknown_key_message
 
 DEFAULT_MARGIN_MS = 10.0
 COMM_SUCCESS = 0  # the same value in scservo_sdk and dynamixel_sdk
@@ -202,8 +202,8 @@ class SerialServoBackend(Actuator):
         given = set(profile.backend) - {"type"}
         fields = self.Config.__struct_fields__
         for key in sorted(given - set(fields)):
-            raise ProfileError(f"{source}: backend.{key}: unknown key for the {self.vendor} backend "
-                               f"(valid: {', '.join(fields)})")
+            raise ProfileError(f"{source}: backend.{key}: "
+                               f"{unknown_key_message(key, ['type', *fields], f'the {self.vendor} backend')}")
         if "port" not in given:
             raise ProfileError(f"{source}: backend.port: required, the serial device "
                                f"(e.g. /dev/ttyACM0)")
