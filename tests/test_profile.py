@@ -277,23 +277,23 @@ def test_all_problems_reported_at_once(tmp_path, base):
     assert "calibration.direction" in msg and "bus id 1" in msg
 
 
-def test_not_yaml(tmp_path):
+def yaml_error(tmp_path: Path, text: str) -> tuple[Path, str]:
     path = tmp_path / "broken.yaml"
-    path.write_text("name: so101\njoints: [unclosed\n  - {name: a\n")
+    path.write_text(text)
     with pytest.raises(ProfileError) as info:
         load_profile(path)
-    msg = str(info.value)
+    return path, str(info.value)
+
+
+def test_not_yaml(tmp_path):
+    path, msg = yaml_error(tmp_path, "name: so101\njoints: [unclosed\n  - {name: a\n")
     # the file, then the line and column (1-based), one line; never PyYAML's "<unicode string>"
     assert msg == (f"{path}: line 3, column 5: not valid YAML: expected ',' or ']', but got '{{' "
                    "(while parsing a flow sequence at line 2)")
 
 
 def test_yaml_error_names_file_and_line(tmp_path):
-    path = tmp_path / "indent.yaml"
-    path.write_text("name: so101\nbackend:\n  type: feetech\n   port: /dev/ttyACM0\n")
-    with pytest.raises(ProfileError) as info:
-        load_profile(path)
-    msg = str(info.value)
+    path, msg = yaml_error(tmp_path, "name: so101\nbackend:\n  type: feetech\n   port: /dev/ttyACM0\n")
     assert msg.startswith(f"{path}: line 4, column ") and "not valid YAML" in msg
     assert "<unicode string>" not in msg and "\n" not in msg
 
