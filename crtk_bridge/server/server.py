@@ -63,7 +63,8 @@ class Server:
         self.robot = self.profile.name
         self.commands = commands  # motion and state commands the control process supports
         self.cartesian: dict[str, CartesianSpace] = {
-            ns.name: CartesianSpace(self.profile, ns.name, ns.kinematics, commands, link.measures_effort)
+            ns.name: CartesianSpace(self.profile, ns.name, ns.kinematics, link.ns_commands[ns.name],
+                                    link.ns_measures_effort[ns.name])
             for ns in self.profile.namespaces if ns.kinematics is not None
         }
         self.socket_path = socket_path
@@ -334,7 +335,7 @@ class Server:
             entry = {
                 "name": ns.name,
                 "joints": list(ns.joints),
-                "commands": list(self.commands) + (cs.commands if cs else []),
+                "commands": list(STATE_COMMANDS) + self.link.ns_commands[ns.name] + (cs.commands if cs else []),
                 "queries": list(JOINT_QUERIES + ROBOT_QUERIES) + cart_q,
                 "topics": list(TOPICS) + [q for q in cart_q if not q.endswith("kinematics")],
             }
