@@ -395,12 +395,15 @@ class Controller:
             self._push_state()
 
     def _client_lost(self) -> None:
-        """The controlling session went away: stop moves, hold servo streams."""
-        moving = [m.name for m in self.namespaces.values() if m.mode is Mode.MOVE or m.streaming]
-        if self.state is OperatingState.ENABLED and moving:
-            self._stop_all()
+        """The controlling session went away. Commands with an end (a move, home, an
+        interpolate_jp/jr goal) run to it; commands without one (servo streams, velocity and
+        effort setpoints and goals) stop and hold (docs/protocol.md, Client loss)."""
+        endless = [m for m in self.namespaces.values() if m.streaming and m.mode is not Mode.INTERP_P]
+        if self.state is OperatingState.ENABLED and endless:
+            for m in endless:
+                m.stop()
             self._event("warning", "control_released",
-                        f"{self.robot}: controlling client disconnected; holding {', '.join(moving)}")
+                        f"{self.robot}: controlling client disconnected; holding {', '.join(m.name for m in endless)}")
 
     def _enter_fault(self, fault: Fault) -> None:
         self.fault_cause = fault
