@@ -227,7 +227,8 @@ class Controller:
             self._check_step(m, vec, m.setpoint_p, cmd)
             m.servo_p(self._clip(m, vec), v, now)
         elif cmd == "servo_jr":
-            p = m.setpoint_p + vec
+            # relative to the latest servo target (the setpoint follows it at velocity_max)
+            p = (m.servo_target if m.mode is Mode.SERVO_P else m.setpoint_p) + vec
             self._check_step(m, p, m.setpoint_p, cmd)
             m.servo_p(self._clip(m, p), None, now)
         elif cmd == "servo_jv":

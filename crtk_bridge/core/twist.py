@@ -41,8 +41,6 @@ from .motion import Mode, NamespaceMotion
 
 TWIST_COMMANDS = ("servo_cv", "interpolate_cv")
 FRAMES = ("spatial", "body")
-#: modes whose setpoint velocity is meaningful to carry into a twist stream (no jump at its start)
-_CARRY_VELOCITY = (Mode.SERVO_V, Mode.INTERP_V, Mode.MOVE, Mode.STOP, Mode.INTERP_P)
 
 
 class TwistMotion:
@@ -68,8 +66,8 @@ class TwistMotion:
     def servo(self, twist: np.ndarray, frame: str, now: float) -> None:
         """``servo_cv``: follow ``twist`` from the next cycle on (until the next command)."""
         m = self.motion
-        start = m.setpoint_v.copy() if m.mode in _CARRY_VELOCITY else np.zeros(m.n)
-        m.servo_v(start, now)  # SERVO_V level: watchdog, setpoint fields, goal invalid
+        # from the velocity the setpoint really has (no jump), toward the twist's at acceleration_max
+        m.servo_v(m.carried_velocity(), now)  # SERVO_V level: watchdog, setpoint fields, goal invalid
         self.twist[:] = twist
         self.frame = frame
         self.mode = Mode.SERVO_V
