@@ -197,7 +197,7 @@ def test_twist_commands_refused_cleanly(rig):  # noqa: F811
 
 def test_velocity_integrates_over_elapsed_time_when_a_cycle_is_skipped(rig):  # noqa: F811
     """A loop that skips a cycle after an overrun must not shorten the path (nor jump after a
-    stall): the integrated setpoint advances by v times the time really elapsed, at most 3 periods."""
+    stall): the integrated setpoint advances by v times the time really elapsed, at most 50 ms."""
     c, act, clock, cycle, req = rig
     m = enabled_at(rig, START)
     assert req("servo_jv", ARM, velocity=[0.5, 0, 0, 0, 0])["ok"]
@@ -207,7 +207,7 @@ def test_velocity_integrates_over_elapsed_time_when_a_cycle_is_skipped(rig):  # 
     cycle()
     assert m.setpoint_p[0] - p == pytest.approx(0.5 * 2 * c.dt)
     p = m.setpoint_p[0]
-    clock.t += 1.0  # a 1 s stall (the stream goes on): at most 3 periods' worth
+    clock.t += 1.0  # a 1 s stall (the stream goes on): at most 50 ms' worth
     assert req("servo_jv", ARM, velocity=[0.5, 0, 0, 0, 0])["ok"]
     cycle()
-    assert m.setpoint_p[0] - p == pytest.approx(0.5 * 3 * c.dt)
+    assert m.setpoint_p[0] - p == pytest.approx(0.5 * 0.05)
