@@ -98,7 +98,7 @@ class Shutdown(_Strict, kw_only=True):
 
     action: Literal["torque_off", "park"] = "torque_off"
     timeout_s: float = 4.0  # s: the park's time limit
-    rest: dict[str, float] = {}  # joint name -> rad: the rest pose, every joint (required for park)
+    rest: dict[str, float] = {}  # joint name -> rad: the rest pose (required for park); others stay put
 
 
 class Server(_Strict, kw_only=True):
@@ -213,9 +213,8 @@ def _check_shutdown(profile: Profile) -> list[str]:
         elif not j.limits.position_min <= value <= j.limits.position_max:
             problems.append(f"shutdown.rest.{name}: {value} is outside the position limits "
                             f"[{j.limits.position_min}, {j.limits.position_max}]")
-    missing = [n for n in by_name if n not in sd.rest]
-    if sd.action == "park" and missing:
-        problems.append(f"shutdown.rest: park needs a rest position for every joint; missing: {', '.join(missing)}")
+    if sd.action == "park" and not sd.rest:
+        problems.append("shutdown.rest: park needs a rest pose (joint name: rad)")
     return problems
 
 

@@ -45,7 +45,7 @@ def test_so101_and_koch_park_by_default_and_the_default_is_torque_off():
 
 
 @pytest.mark.parametrize("section,needle", [
-    ({"action": "park", "rest": {"shoulder_pan": 0.0}}, "missing: shoulder_lift"),
+    ({"action": "park"}, "shutdown.rest: park needs a rest pose"),
     ({"action": "park", "rest": {**PROFILE.shutdown.rest, "elbow": 0.0}}, "shutdown.rest.elbow: unknown joint"),
     ({"action": "park", "rest": {**PROFILE.shutdown.rest, "gripper": 3.0}}, "shutdown.rest.gripper: 3.0 is outside"),
     ({"action": "park", "rest": PROFILE.shutdown.rest, "timeout_s": 30}, "shutdown.timeout_s: 30"),
@@ -89,6 +89,25 @@ def test_park_moves_every_torqued_namespace_to_rest_with_busy_edges():
     assert c.at_rest_pose() and max(steps) <= 4.0 * c.dt + 1e-9  # within velocity_max
     busy = [m["data"]["is_busy"] for m in c.outbox if m.get("event") == "operating_state"]
     assert busy == [True, False]
+
+
+def test_a_joint_the_rest_pose_does_not_name_stays_where_it_is():
+    rest = dict(PROFILE.shutdown.rest)
+    del rest["wrist_roll"]
+    profile = with_shutdown(rest=rest)
+    act = FakeActuator(profile)
+    c = Controller(profile, act, Clock())
+    fb = act.new_feedback()
+    act.pos[4] = 0.7
+    c.on_read(fb, act.read(fb))
+    c.handle({"id": 1, "cmd": "enable"})
+    assert c.park()
+    for _ in range(1000):
+        c.step() and act.write(c.command)
+        c.on_read(fb, act.read(fb))
+        if not c.in_motion():
+            break
+    assert act.pos[4] == pytest.approx(0.7) and act.pos[1] == pytest.approx(rest["shoulder_lift"])
 
 
 def test_park_leaves_a_free_namespace_free():

@@ -388,7 +388,8 @@ class Controller:
         for m in self.namespaces.values():
             if m.mode is Mode.FREE:
                 continue
-            m.start_move(np.array([rest[name] for name in m.joint_names]), now)
+            here = m.setpoint_p  # a joint the rest pose does not name stops where it is
+            m.start_move(np.array([rest.get(name, here[k]) for k, name in enumerate(m.joint_names)]), now)
             started = True
         if started:
             self.busy_seq += 1
