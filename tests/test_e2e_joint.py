@@ -96,13 +96,15 @@ def test_validity_stamps_and_unsupported_effort_commands(sim_daemon):
         assert arm.setpoint_js()[3] == 0.0 and arm.goal_js()[3] == 0.0
         assert fields(arm.setpoint_js()) == (False, False, False)
         # velocity commands on both (integrated on the position-only STS3215, native on Dynamixel);
-        # no effort commands on either (the STS3215 has no current mode; the Koch's XL430s no
-        # current sensor, and effort is per robot)
+        # no effort commands on either arm (the STS3215 has no current mode; the Koch's XL430s no
+        # current sensor). Effort is per namespace: the Koch's XL330 gripper has it
+        # (test_e2e_capabilities.py), the SO-101's gripper not.
         for ns in robot.list()["namespaces"]:
             for cmd in ("servo_jp", "servo_jr", "servo_jv", "interpolate_jp", "interpolate_jr", "interpolate_jv",
                         "move_jp", "move_jr", "hold", "free"):
                 assert cmd in ns["commands"], (ns["name"], cmd)
-            assert "servo_jf" not in ns["commands"] and "interpolate_jf" not in ns["commands"]
+            effort = ns["name"] == "koch/gripper"
+            assert ("servo_jf" in ns["commands"]) is effort and ("interpolate_jf" in ns["commands"]) is effort
         assert arm.enable(5.0)
         for call in (lambda: arm.servo_jf([0.0] * n), lambda: arm.interpolate_jf([0.0] * n)):
             with pytest.raises(CommandError) as err:

@@ -28,9 +28,10 @@ import numpy as np
 
 from ..errors import BackendError, fmt_number
 from ..profile import Profile
-from .actuator import Actuator, CommandMode, Fault, JointFeedback
+from .actuator import Actuator, Capabilities, CommandMode, Fault, JointFeedback
 from .motion import Mode, NamespaceMotion
 from .state import OperatingState, StateCommand, transition
+from .twist import TWIST_COMMANDS, build_twist_motions, parse_twist
 
 STATE_COMMANDS = tuple(c.value for c in StateCommand)
 #: joint motion commands -> (payload field, capability needed: "position" / "velocity" / "effort" / "free")
@@ -82,11 +83,16 @@ class Controller:
         self._busy_reported = False
         self.state_stamp = clock()
         self.outbox: list[dict] = []
+        #: what each namespace's joints can do together: commands are offered and refused per namespace
+        self.ns_caps = {ns.name: actuator.capabilities_of([profile.joint_index(j) for j in ns.joints])
+                        for ns in profile.namespaces}
         self.namespaces: dict[str, NamespaceMotion] = {
             ns.name: NamespaceMotion(ns.name, [profile.joint_index(j) for j in ns.joints], profile, self.dt,
-                                     self.caps)
+                                     self.ns_caps[ns.name])
             for ns in profile.namespaces
         }
+        # servo_cv / interpolate_cv, mapped every cycle (core/twist.py); namespaces with kinematics
+        self.twist_motions = build_twist_motions(profile, self.namespaces)
         self.command = actuator.new_command()
         self.feedback = actuator.new_feedback()  # latest sample, copied in by on_read()
         self._fresh = actuator.new_feedback()  # the read that follows torque on
@@ -112,17 +118,29 @@ class Controller:
             "stamp": self.state_stamp,
         }
 
-    def can(self, need: str) -> bool:
-        c = self.caps
+    @staticmethod
+    def _allows(c: Capabilities, need: str) -> bool:
         return {"position": c.position, "velocity": c.velocity or c.position, "effort": c.effort,
                 "free": c.can_free}[need]
 
-    def supported_commands(self) -> list[str]:
-        """State commands and the motion commands the backend's capabilities allow.
+    def can(self, need: str, ns: str | None = None) -> bool:
+        """Whether namespace ``ns`` (None: every joint of the robot) can follow ``need`` commands."""
+        return self._allows(self.ns_caps[ns] if ns is not None else self.caps, need)
+
+    def supported_commands(self, ns: str | None = None) -> list[str]:
+        """State commands and the motion commands namespace ``ns``'s capabilities allow (None:
+        those some namespace allows).
 
         Velocity commands exist on position-only hardware too: the loop integrates them into
         position setpoints (crtk-spec 4.2.5). Effort commands need effort control."""
-        return list(STATE_COMMANDS) + [cmd for cmd, (_, need) in MOTION_COMMANDS.items() if self.can(need)]
+        names = [ns] if ns is not None else list(self.namespaces)
+        return list(STATE_COMMANDS) + [cmd for cmd, (_, need) in MOTION_COMMANDS.items()
+                                       if any(self.can(need, n) for n in names)]
+
+    def namespace_commands(self) -> dict[str, list[str]]:
+        """Every namespace's motion commands (what `list` advertises per namespace)."""
+        return {ns: [cmd for cmd, (_, need) in MOTION_COMMANDS.items() if self.can(need, ns)]
+                for ns in self.namespaces}
 
     # ------------------------------------------------------------------ events
     def _push_state(self) -> None:
@@ -160,16 +178,22 @@ class Controller:
         if cmd == "_client_lost":
             self._client_lost()
             return None
+        if cmd in TWIST_COMMANDS:
+            return self._twist_command(cmd, ns, data)
         if cmd not in MOTION_COMMANDS:
             raise Refused("unknown_command", f"{self.robot}: unknown command {cmd!r}")
         m = self.namespaces.get(ns)
         if m is None:
             raise Refused("unknown_namespace", f"{self.robot}: unknown namespace {ns!r} (have: {', '.join(self.namespaces)})")
         field, need = MOTION_COMMANDS[cmd]
-        if not self.can(need):
+        if not self.can(need, ns):
             what = {"position": "position control", "velocity": "velocity or position control",
                     "effort": "effort control", "free": "a way to switch torque off"}[need]
-            raise Refused("unsupported", f"{ns}: {cmd} is not supported: the {self.profile.backend_type} backend has no {what}")
+            lacking = [self.profile.joints[i].name for i in m.idx
+                       if not self._allows(self.actuator.joint_capabilities(int(i)), need)]
+            where = (f"joint{'s' if len(lacking) > 1 else ''} {', '.join(map(repr, lacking))}" if lacking
+                     else f"the {self.profile.backend_type} backend")
+            raise Refused("unsupported", f"{ns}: {cmd} is not supported: no {what} on {where}")
         self._check_can_move(ns, cmd)
         vec = self._vector(ns, cmd, m, data.get(field), field) if field else None
         now = self.clock()
@@ -177,11 +201,42 @@ class Controller:
         if leaving_free:
             m.reset(self.feedback.position[m.idx])  # start from where the joints are
         try:
-            return self._motion(cmd, m, vec, data, ns, now)
+            result = self._motion(cmd, m, vec, data, ns, now)
         except Refused:
             if leaving_free:
                 m.free()  # a refused command changes nothing: the joints stay free (torque off)
             raise
+        tm = self.twist_motions.get(ns)
+        if tm is not None:
+            tm.cancel()  # a joint command takes over from a twist stream
+        return result
+
+    def _twist_command(self, cmd: str, ns: Any, data: dict) -> None:
+        """servo_cv / interpolate_cv: the twist is kept and mapped every cycle (core/twist.py)."""
+        m = self.namespaces.get(ns)
+        if m is None:
+            raise Refused("unknown_namespace", f"{self.robot}: unknown namespace {ns!r} (have: {', '.join(self.namespaces)})")
+        tm = self.twist_motions.get(ns)
+        if tm is None:
+            raise Refused("unsupported", f"{ns}: {cmd} is not supported: the namespace has no kinematics section")
+        if not self.can("velocity"):
+            raise Refused("unsupported", f"{ns}: {cmd} is not supported: the {self.profile.backend_type} backend "
+                          "has no velocity or position control")
+        self._check_can_move(ns, cmd)
+        try:
+            twist, frame = parse_twist(ns, cmd, data)
+        except ValueError as exc:
+            raise Refused("bad_request", str(exc)) from None
+        if m.mode is Mode.FREE:
+            m.reset(self.feedback.position[m.idx])  # start from where the joints are
+        was_busy = self.is_busy
+        if cmd == "servo_cv":
+            tm.servo(twist, frame, self.clock())
+        else:
+            tm.interpolate(twist, frame, self.clock())
+        if was_busy and not self.is_busy:  # the stream pre-empted a move
+            self._push_state()
+        return None
 
     def _motion(self, cmd: str, m: NamespaceMotion, vec: np.ndarray | None, data: dict, ns: str, now: float) -> Any:
         was_busy = self.is_busy
@@ -348,7 +403,7 @@ class Controller:
         self._set_state(OperatingState.DISABLED)
 
     def _home(self) -> None:
-        if not self.caps.position:
+        if not all(c.position for c in self.ns_caps.values()):
             raise Refused("unsupported", f"{self.robot}: home unsupported without position control")
         now = self.clock()
         for m in self.namespaces.values():
@@ -406,12 +461,15 @@ class Controller:
                    for m in self.namespaces.values())
 
     def _client_lost(self) -> None:
-        """The controlling session went away: stop moves, hold servo streams."""
-        moving = [m.name for m in self.namespaces.values() if m.mode is Mode.MOVE or m.streaming]
-        if self.state is OperatingState.ENABLED and moving:
-            self._stop_all()
+        """The controlling session went away. Commands with an end (a move, home, an
+        interpolate_jp/jr goal) run to it; commands without one (servo streams, velocity and
+        effort setpoints and goals) stop and hold (docs/protocol.md, Client loss)."""
+        endless = [m for m in self.namespaces.values() if m.streaming and m.mode is not Mode.INTERP_P]
+        if self.state is OperatingState.ENABLED and endless:
+            for m in endless:
+                m.stop()
             self._event("warning", "control_released",
-                        f"{self.robot}: controlling client disconnected; holding {', '.join(moving)}")
+                        f"{self.robot}: controlling client disconnected; holding {', '.join(m.name for m in endless)}")
 
     def _enter_fault(self, fault: Fault) -> None:
         self.fault_cause = fault
@@ -500,6 +558,9 @@ class Controller:
         for m in self.namespaces.values():
             if m.mode is Mode.FREE:
                 m.setpoint_p[:] = measured[m.idx]  # follow the hand: leaving free is bumpless
+            tm = self.twist_motions.get(m.name)
+            if tm is not None:
+                tm.update()  # a twist stream: joint velocities mapped at this cycle's setpoint
             msg = m.step(now, measured[m.idx])
             if msg:
                 self._event("warning", "servo_timeout", msg, m.name)
