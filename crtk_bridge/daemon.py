@@ -20,10 +20,8 @@ import sys
 import tempfile
 import time
 
-import msgspec
-
 from . import systemd
-from .backends import create_backend
+from .backends import backend_class, create_backend
 from .client.paths import default_socket_path
 from .core.loop import control_main
 from .core.snapshot import Layout, SnapshotBuffer
@@ -34,8 +32,6 @@ from .server.server import Server
 
 log = logging.getLogger("crtk_bridge.daemon")
 
-#: backend type -> simulator name understood by ``crtk-sim``
-SIMULATORS = {"feetech": "feetech", "dynamixel": "dynamixel"}
 STARTUP_TIMEOUT_S = 20.0
 SHUTDOWN_TIMEOUT_S = 3.0  # below the unit's TimeoutStopSec=5, so our own clean-up runs
 
@@ -52,16 +48,13 @@ def _die_with_parent() -> None:
 
 
 class SimulatorProcess:
-    """``crtk-sim`` as a child process, serving a pty linked at ``link``."""
+    """``crtk-sim <device>`` as a child process, serving its endpoint at ``link`` (a pty link)."""
 
-    def __init__(self, profile_path: str, backend_type: str, workdir: str):
-        if backend_type not in SIMULATORS:
-            raise CrtkBridgeError(f"--sim: no simulator for backend {backend_type!r} "
-                                  f"(simulated backends: {', '.join(SIMULATORS)})")
+    def __init__(self, profile_path: str, device: str, workdir: str):
         self.link = os.path.join(workdir, "tty")
         self.control = os.path.join(workdir, "sim.sock")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "crtk_bridge.sim.cli", SIMULATORS[backend_type], "--profile", profile_path,
+            [sys.executable, "-m", "crtk_bridge.sim.cli", device, "--profile", profile_path,
              "--link", self.link, "--control", self.control],
             stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
             start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
@@ -154,9 +147,13 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
     simulator = None
     workdir = None
     if sim:
+        # the backend declares its simulator and how it is wired (actuator.SimWiring)
+        cls = backend_class(profile.backend_type, source)
+        if cls.simulator is None:
+            raise CrtkBridgeError(f"--sim: backend {profile.backend_type!r} has no simulator")
         workdir = tempfile.mkdtemp(prefix=f"crtk-bridge-{profile.name}-sim-")
-        simulator = SimulatorProcess(str(profile_path), profile.backend_type, workdir)
-        profile = msgspec.structs.replace(profile, backend={**profile.backend, "port": simulator.link})
+        simulator = SimulatorProcess(str(profile_path), cls.simulator.device, workdir)
+        profile = cls.sim_profile(profile, simulator.link)
         print(f"crtk-bridge: simulated {profile.backend_type} bus on {simulator.link} "
               f"(simulator control socket {simulator.control})", flush=True)
 

@@ -250,7 +250,9 @@ class Server:
             s.send(dict(reply, id=rid))
 
         try:
-            await self.link.request(cmd, ns, data, deliver=deliver)
+            # a state command may run a lifecycle transition: the loop replies by its time limit
+            timeout = max(10.0, self.link.transition_timeout_s) if cmd in STATE_COMMANDS else 10.0
+            await self.link.request(cmd, ns, data, timeout_s=timeout, deliver=deliver)
         except asyncio.TimeoutError:
             if not delivered:  # the reply and the timeout can land in the same loop pass
                 raise
@@ -277,7 +279,7 @@ class Server:
         rate = data.get("rate_hz", 10.0)
         if not isinstance(rate, (int, float)) or not rate > 0:
             raise ProtocolError("bad_request", f"rate_hz must be a number > 0, got {rate!r}")
-        rate = min(float(rate), self.profile.loop.rate_hz)
+        rate = min(float(rate), 1.0 / self.link.period_s)
         sub = next(self._subids)
         s.subs[sub] = asyncio.get_running_loop().create_task(self._stream(s, sub, topic, ns, 1.0 / rate))
         return {"sub": sub, "rate_hz": rate}
@@ -321,7 +323,7 @@ class Server:
                                       "frames": ["spatial", "body"]}
             namespaces.append(entry)
         return {"robot": self.robot, "protocol_version": PROTOCOL_VERSION, "daemon_version": __version__,
-                "backend": self.profile.backend_type, "rate_hz": self.profile.loop.rate_hz, "namespaces": namespaces}
+                "backend": self.profile.backend_type, "rate_hz": 1.0 / self.link.period_s, "namespaces": namespaces}
 
 
 _SENT = object()  # the reply was already delivered, in order with the loop's events

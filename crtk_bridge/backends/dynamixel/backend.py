@@ -68,7 +68,7 @@ from dynamixel_sdk import (
     PortHandler,
 )
 
-from ...core.actuator import Capabilities, CommandMode, Fault, JointCommand, JointFeedback
+from ...core.actuator import Capabilities, CommandMode, Fault, JointCommand, JointFeedback, SimWiring
 from ...errors import BackendError
 from ...profile import Profile
 from ..serial_servo import SerialPortFixes, SerialServoBackend
@@ -133,6 +133,7 @@ class DynamixelBackend(SerialServoBackend):
                                 measures_effort=False, needs_homing=False, can_free=True)
     extra = "dynamixel"
     vendor = "dynamixel"
+    simulator = SimWiring("dynamixel")  # crtk-sim dynamixel; --sim sets backend.port to its pty
     Config = Config
     MODEL_NUMBERS = T.MODEL_NUMBERS
     RESOLUTION = T.RESOLUTION
