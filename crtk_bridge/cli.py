@@ -15,7 +15,16 @@ from .errors import CrtkBridgeError
 
 
 def _run_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="crtk-bridge", description="Serve the CRTK robot API for the robot a profile describes.")
+    p = argparse.ArgumentParser(
+        prog="crtk-bridge",
+        usage="%(prog)s --profile FILE [--sim] [--socket PATH] [options]\n"
+              "       %(prog)s check --profile FILE",
+        description="Serve the CRTK robot API for the robot a profile describes.",
+        epilog="commands:\n"
+               "  check --profile FILE  validate a profile without opening the bus: every key, the\n"
+               "                        backend section, and the kinematics where it names a URDF\n"
+               "                        (frames and joints); exit 0 if valid",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--profile", required=True, help="robot profile (YAML), e.g. profiles/so101.yaml")
     p.add_argument("--sim", action="store_true", help="run on the built-in simulator instead of hardware")
     p.add_argument("--socket", help="Unix socket path (default: $XDG_RUNTIME_DIR/crtk-bridge/<robot>.sock)")

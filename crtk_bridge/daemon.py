@@ -15,6 +15,7 @@ import multiprocessing
 import os
 import signal
 import socket
+import stat
 import subprocess
 import sys
 import tempfile
@@ -34,6 +35,8 @@ log = logging.getLogger("crtk_bridge.daemon")
 
 STARTUP_TIMEOUT_S = 20.0
 SHUTDOWN_TIMEOUT_S = 3.0  # below the unit's TimeoutStopSec=5, so our own clean-up runs
+#: longest AF_UNIX socket path in bytes (Linux ``sun_path`` is 108 bytes with the final NUL)
+AF_UNIX_PATH_MAX = 107
 
 
 def _die_with_parent() -> None:
@@ -77,6 +80,44 @@ class SimulatorProcess:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
+
+
+def check_socket_path(path: str, robot: str) -> None:
+    """Fail at once, in one line, when the daemon could not serve ``path``: too long for AF_UNIX,
+    a file that is not a socket, a directory that cannot be created, or another daemon already
+    answering there. Creates the directory (mode 0750). Blocks for at most one local connect.
+    Called before the simulator and the control process start. Raises CrtkBridgeError."""
+    size = len(os.fsencode(path))
+    if size > AF_UNIX_PATH_MAX:
+        raise CrtkBridgeError(f"{robot}: socket path {path} is {size} bytes, longer than the AF_UNIX "
+                              f"limit of {AF_UNIX_PATH_MAX}: give a shorter --socket")
+    parent = os.path.dirname(os.path.abspath(path))
+    try:
+        os.makedirs(parent, mode=0o750, exist_ok=True)
+    except OSError as exc:
+        raise CrtkBridgeError(f"{robot}: cannot create the socket directory {parent}: "
+                              f"{exc.strerror or exc}") from None
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise CrtkBridgeError(f"{robot}: cannot create the socket {path}: no write permission on {parent}")
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise CrtkBridgeError(f"{robot}: cannot use the socket path {path}: {exc.strerror or exc}") from None
+    if not stat.S_ISSOCK(mode):
+        raise CrtkBridgeError(f"{robot}: {path} exists and is not a socket; not replacing it "
+                              f"(give another --socket)")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        probe.settimeout(1.0)
+        try:
+            probe.connect(path)
+        except TimeoutError:
+            pass  # a daemon too busy to accept is still a daemon
+        except OSError:
+            return  # a stale socket left by a daemon that died: the server replaces it
+    raise CrtkBridgeError(f"{robot}: another daemon is already serving {path} (stop it, or give "
+                          f"another --socket)")
 
 
 def _control_process(profile: Profile, source: str, chan: socket.socket, front: socket.socket,
@@ -143,6 +184,7 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
     # validate the backend section (and that its SDK is installed) before anything starts
     create_backend(profile, source=source)
     socket_path = socket_path or profile.server.socket or default_socket_path(profile.name)
+    check_socket_path(socket_path, profile.name)  # before the simulator and the control process
 
     simulator = None
     workdir = None

@@ -4,6 +4,8 @@ Messages name the robot, joint, register or profile key involved. Foreign except
 SDK, OS) are re-raised as one of these, chained with ``raise ... from exc``.
 """
 
+import math
+
 
 class CrtkBridgeError(Exception):
     """Root of every error crtk-bridge raises on purpose."""
@@ -28,3 +30,13 @@ class CommandError(CrtkBridgeError):
         super().__init__(message)
         self.code = code
         self.message = message
+
+
+def fmt_number(value: float, decimals: int = 4, sign: bool = False) -> str:
+    """A number as a message shows it: ``decimals`` fixed decimals while that stays short, else
+    scientific notation, so a hostile ``1e308`` prints as ``1e+308``, not as 309 digits."""
+    x = float(value)
+    plus = "+" if sign else ""
+    if not math.isfinite(x) or abs(x) < 1e6:
+        return f"{x:{plus}.{decimals}f}"
+    return f"{x:{plus}.{decimals}g}"

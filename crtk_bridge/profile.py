@@ -1,14 +1,16 @@
 """Robot profiles: YAML -> typed, validated model.
 
-A profile describes one robot: its backend and bus, its joints (with calibration and limits),
-how joints group into CRTK namespaces, the loop rate and the safety thresholds.
+A profile describes one robot: its backend and bus, its joints (with their limits), how joints
+group into CRTK namespaces, the loop rate and the safety thresholds.
 ``profiles/example.yaml`` documents every key.
 
 Validation is strict: an unknown key, a wrong type or an inconsistent value is a
 :class:`~crtk_bridge.errors.ProfileError` whose message names the file, the key path and what
 was expected. The ``backend`` section is validated in two steps: the common keys here, the
 backend's own keys by the backend's ``Config`` struct (see ``backends/``), so a backend's options
-live beside its code.
+live beside its code. Joints likewise: the generic keys (name, limits, home) are core's; every
+other key of a joint (a servo's id, model and tick calibration, a drive's node id...) belongs to
+the joint's backend, which validates it (:func:`joint_keys`).
 """
 
 from __future__ import annotations
@@ -30,18 +32,6 @@ class _Strict(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=T
     pass
 
 
-class Calibration(_Strict, kw_only=True):
-    """Device-unit calibration of one joint, applied inside its backend.
-
-    ``joint = direction * (raw - offset) * scale`` where ``scale`` is the backend's SI units per
-    raw unit (for the STS3215, 2*pi/4096 rad per tick).
-    """
-
-    offset: int = 0  # raw value at joint zero (e.g. 2048 = middle of an STS3215's turn)
-    direction: int = 1  # +1 or -1
-    range: tuple[int, int] | None = None  # valid raw range [min, max]; commands are clamped to it
-
-
 class JointLimits(_Strict, kw_only=True):
     """Joint limits in SI units (rad, rad/s, rad/s^2, rad/s^3, N*m)."""
 
@@ -54,13 +44,18 @@ class JointLimits(_Strict, kw_only=True):
 
 
 class Joint(_Strict, kw_only=True):
+    """A joint as core sees it. ``backend`` holds the joint's backend-owned keys, written in the
+    profile either beside the generic keys (as every shipped profile does) or nested under the
+    joint's ``backend:`` key; the backend validates them (``joint_keys``)."""
+
     name: str
-    id: int | None = None  # bus id (servo id, CANopen node id); backend-specific meaning
-    model: str | None = None  # device model, e.g. "sts3215"
-    calibration: Calibration = Calibration()
     limits: JointLimits
     home: float = 0.0  # rad: the position `home` moves to
-    effort_per_amp: float | None = None  # N*m per A, to report effort from current; None = no effort
+    backend: dict[str, Any] = {}
+
+
+#: the joint keys core owns; a joint's other keys go to its backend
+CORE_JOINT_KEYS = frozenset(Joint.__struct_fields__) - {"backend"}
 
 
 class KinematicsConfig(_Strict, kw_only=True):
@@ -125,14 +120,18 @@ class Profile(_Strict, kw_only=True):
         raise KeyError(name)
 
 
-def _format_msgspec_error(exc: msgspec.ValidationError) -> str:
+def _msgspec_error_path(exc: msgspec.ValidationError) -> tuple[str, str]:
+    """(key path, message) of a msgspec error: "... - at `$.joints[0].limits`" -> "joints[0].limits"."""
     msg = str(exc)
-    # msgspec says "... - at `$.joints[0].limits`"; turn the path into the profile's key path.
     m = re.search(r" - at `\$\.?(.*)`$", msg)
     if m:
-        path = m.group(1) or "(top level)"
-        return f"{path}: {msg[: m.start()]}"
-    return msg
+        return m.group(1), msg[: m.start()]
+    return "", msg
+
+
+def _format_msgspec_error(exc: msgspec.ValidationError) -> str:
+    path, msg = _msgspec_error_path(exc)
+    return f"{path or '(top level)'}: {msg}" if path or msg != str(exc) else msg
 
 
 def _check(profile: Profile) -> list[str]:
@@ -145,16 +144,11 @@ def _check(profile: Profile) -> list[str]:
     if not (0 < profile.loop.rate_hz <= 10000):
         problems.append(f"loop.rate_hz: {profile.loop.rate_hz} is not in (0, 10000]")
     seen: dict[str, int] = {}
-    ids: dict[int, str] = {}
     for i, j in enumerate(profile.joints):
         key = f"joints[{i}] ({j.name})"
         if j.name in seen:
             problems.append(f"{key}.name: duplicate joint name (also joints[{seen[j.name]}])")
         seen[j.name] = i
-        if j.id is not None:
-            if j.id in ids:
-                problems.append(f"{key}.id: bus id {j.id} is also used by joint {ids[j.id]!r}")
-            ids[j.id] = j.name
         lim = j.limits
         if not lim.position_min < lim.position_max:
             problems.append(f"{key}.limits: position_min must be < position_max")
@@ -164,11 +158,6 @@ def _check(profile: Profile) -> list[str]:
                 problems.append(f"{key}.limits.{field}: must be a finite number > 0, got {v}")
         if not lim.position_min <= j.home <= lim.position_max:
             problems.append(f"{key}.home: {j.home} is outside the position limits")
-        if j.calibration.direction not in (1, -1):
-            problems.append(f"{key}.calibration.direction: must be 1 or -1")
-        r = j.calibration.range
-        if r is not None and not r[0] < r[1]:
-            problems.append(f"{key}.calibration.range: min must be < max")
     used: dict[str, str] = {}
     ns_names = set()
     if not profile.namespaces:
@@ -195,12 +184,35 @@ def _check(profile: Profile) -> list[str]:
     return problems
 
 
+def _split_joint_keys(data: dict) -> dict:
+    """Move each joint's non-core keys into its ``backend`` mapping (a copy; ``data`` is kept)."""
+    joints = data.get("joints")
+    if not isinstance(joints, list):
+        return data  # msgspec reports the type error with its key path
+    out = []
+    for i, j in enumerate(joints):
+        if not isinstance(j, dict):
+            out.append(j)
+            continue
+        nested = j.get("backend", {})
+        if not isinstance(nested, dict):
+            raise ProfileError(f"joints[{i}].backend: expected a mapping of backend keys, "
+                               f"got {type(nested).__name__}")
+        flat = {k: v for k, v in j.items() if k not in CORE_JOINT_KEYS and k != "backend"}
+        both = sorted(set(flat) & set(nested))
+        if both:
+            raise ProfileError(f"joints[{i}].{both[0]}: given both beside the joint's keys and under "
+                               f"its backend: section")
+        out.append({**{k: v for k, v in j.items() if k in CORE_JOINT_KEYS}, "backend": {**flat, **nested}})
+    return {**data, "joints": out}
+
+
 def parse_profile(data: Any, source: str = "<profile>") -> Profile:
     """Validate already-parsed YAML data. Raises ProfileError naming ``source`` and the key."""
     if not isinstance(data, dict):
         raise ProfileError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
     try:
-        profile = msgspec.convert(data, Profile)
+        profile = msgspec.convert(_split_joint_keys(data), Profile)
     except msgspec.ValidationError as exc:
         raise ProfileError(f"{source}: {_format_msgspec_error(exc)}") from exc
     problems = _check(profile)
@@ -243,3 +255,28 @@ def backend_config(profile: Profile, config_type: type, source: str = "<profile>
         return msgspec.convert(data, config_type)
     except msgspec.ValidationError as exc:
         raise ProfileError(f"{source}: backend.{_format_msgspec_error(exc)}") from exc
+
+
+def joint_keys(profile: Profile, joint_type: type, owner: str, source: str = "<profile>") -> list[Any]:
+    """Convert every joint's backend-owned keys into the backend's ``joint_type`` struct.
+
+    ``owner`` names the backend in messages. Raises one ProfileError listing every joint's problem,
+    each with its key path as written in the profile (``joints[2] (elbow_flex).calibration``)."""
+    valid = [f for f in joint_type.__struct_fields__]
+    out, problems = [], []
+    for i, j in enumerate(profile.joints):
+        key = f"joints[{i}] ({j.name})"
+        unknown = sorted(set(j.backend) - set(valid))
+        for k in unknown:
+            problems.append(f"{key}.{k}: unknown joint key (core keys: {', '.join(sorted(CORE_JOINT_KEYS))}; "
+                            f"{owner} keys: {', '.join(valid) or 'none'})")
+        if unknown:
+            continue
+        try:
+            out.append(msgspec.convert(j.backend, joint_type))
+        except msgspec.ValidationError as exc:
+            path, msg = _msgspec_error_path(exc)
+            problems.append(f"{key}{'.' + path if path else ''}: {msg}")
+    if problems:
+        raise ProfileError(f"{source}: " + "; ".join(problems))
+    return out

@@ -91,8 +91,8 @@ class SimRobot:
                 f"{path}: SAFE_GOALS[{k!r}] = {g} is not inside the limits of {arm_ns.name}"
         return cls(id=id, profile=path, backend=p.backend_type, arm=arm_ns.name, gripper=grip_ns.name,
                    joint_names=tuple(arm_ns.joints), gripper_joint=grip.name,
-                   arm_ids=tuple(str(j.id) for j in arm), gripper_id=str(grip.id),
-                   servo_id={j.name: j.id for j in p.joints}, pos_min=lo, pos_max=hi,
+                   arm_ids=tuple(str(j.backend["id"]) for j in arm), gripper_id=str(grip.backend["id"]),
+                   servo_id={j.name: j.backend["id"] for j in p.joints}, pos_min=lo, pos_max=hi,
                    home=np.array([j.home for j in arm]), servo_timeout_s=p.safety.servo_timeout_s,
                    goals=goals)
 

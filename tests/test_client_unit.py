@@ -998,7 +998,9 @@ def test_cli_fk_and_ik(fake, cart, capsys):
     assert main(s + ["--json", "ik", "1.5", "0", "0.2", "0", "0", "0", "1"]) == 1
     captured = capsys.readouterr()
     assert json.loads(captured.out)["result"] is False
-    assert captured.err.count("\n") == 1 and "ik refused (ik_failed)" in captured.err and "residual" in captured.err
+    assert captured.err.count("\n") == 1  # --json: the error is one JSON object too
+    err = json.loads(captured.err)
+    assert err["error"] == "ik_failed" and err["cmd"] == "ik" and "residual" in err["message"]
 
 
 def test_success_reply_without_id_is_ignored_not_recorded_as_an_error(fake, robot):

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from crtk_bridge import profile as profile_mod
-from crtk_bridge.backends import BACKENDS, backend_class
+from crtk_bridge.backends import BACKENDS, backend_class, create_backend
 from crtk_bridge.errors import ProfileError
 from crtk_bridge.profile import Profile, backend_config, load_profile
 
@@ -32,7 +32,7 @@ def test_so101_loads():
                              "wrist_roll", "gripper"]
     assert [ns.name for ns in p.namespaces] == ["so101", "so101/gripper"]
     assert p.namespace("so101/gripper").joints == ["gripper"]
-    assert p.joints[0].calibration.range == (700, 3400)
+    assert p.joints[0].backend["calibration"]["range"] == [700, 3400]  # the backend's key, as written
 
 
 def test_example_loads():
@@ -75,9 +75,17 @@ def _yaml_keys(node: Any, out: set[str]) -> None:
             _yaml_keys(v, out)
 
 
+def _documented_structs() -> list[Any]:
+    """Core's profile schema and the schemas the example's backend owns (its joints' keys)."""
+    from crtk_bridge.backends.servo_keys import ServoJoint
+
+    return [Profile, ServoJoint]
+
+
 def test_example_documents_every_model_key():
     model_keys: set[str] = set()
-    _struct_keys(Profile, model_keys)
+    for t in _documented_structs():
+        _struct_keys(t, model_keys)
     example_keys: set[str] = set()
     _yaml_keys(yaml.safe_load(EXAMPLE.read_text()), example_keys)
     assert model_keys - example_keys == set(), "keys of profile.py missing from example.yaml"
@@ -87,7 +95,8 @@ def test_example_keys_all_commented():
     # Each key of the model appears in a line preceded by a comment somewhere in the file.
     text = EXAMPLE.read_text()
     model_keys: set[str] = set()
-    _struct_keys(Profile, model_keys)
+    for t in _documented_structs():
+        _struct_keys(t, model_keys)
     lines = text.splitlines()
     for key in model_keys:
         rows = [i for i, line in enumerate(lines) if re.match(rf"^\s*(- )?{key}:", line)]
@@ -119,11 +128,12 @@ def base() -> dict:
 
 
 def load_bad(tmp_path: Path, data: Any, name: str = "bad.yaml") -> str:
-    """Write ``data`` as YAML, load it, return the ProfileError message (which must name the file)."""
+    """Write ``data`` as YAML, load it and validate its backend section and backend-owned joint
+    keys (as ``crtk-bridge check`` does), return the ProfileError message (which must name the file)."""
     path = tmp_path / name
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     with pytest.raises(ProfileError) as info:
-        load_profile(path)
+        create_backend(load_profile(path), source=str(path))
     message = str(info.value)
     assert str(path) in message, message
     return message
@@ -235,7 +245,7 @@ def test_direction_not_plus_minus_one(tmp_path, base, direction):
 def test_direction_float_is_a_type_error(tmp_path, base):
     base["joints"][2]["calibration"]["direction"] = -1.5
     msg = load_bad(tmp_path, base)
-    assert "joints[2].calibration.direction" in msg and "Expected `int`" in msg
+    assert "joints[2] (elbow_flex).calibration.direction: Expected `int`" in msg
 
 
 def test_non_positive_velocity_limit(tmp_path, base):
@@ -300,10 +310,39 @@ def test_directory_instead_of_file(tmp_path):
 
 
 def test_parse_profile_names_its_source(base):
-    base["joints"][0]["bogus"] = 1
+    base["joints"][0]["limits"]["bogus"] = 1
     with pytest.raises(ProfileError) as info:
         profile_mod.parse_profile(copy.deepcopy(base), "robot.yaml")
-    assert str(info.value).startswith("robot.yaml: joints[0]: ")
+    assert str(info.value).startswith("robot.yaml: joints[0].limits: ")
+
+
+def test_unknown_joint_key_is_the_backends_to_refuse(tmp_path, base):
+    base["joints"][0]["bogus"] = 1
+    p = profile_mod.parse_profile(copy.deepcopy(base), "robot.yaml")  # core: not its key
+    assert p.joints[0].backend["bogus"] == 1
+    msg = load_bad(tmp_path, base)  # the feetech backend: not its key either
+    assert "joints[0] (shoulder_pan).bogus: unknown joint key (core keys: home, limits, name; " \
+           "feetech backend keys: id, model, calibration, effort_per_amp)" in msg
+
+
+def test_backend_keys_may_be_nested_under_the_joint(base):
+    j = base["joints"][0]
+    j["backend"] = {k: j.pop(k) for k in ("id", "model", "calibration")}
+    p = profile_mod.parse_profile(copy.deepcopy(base), "robot.yaml")
+    assert p.joints[0].backend["id"] == 1 and p.joints[0].backend["effort_per_amp"] == 0.95
+    assert create_backend(p).joint_keys[0].calibration.range == (700, 3400)
+    base["joints"][0]["id"] = 1  # both flat and nested: ambiguous
+    with pytest.raises(ProfileError, match=r"joints\[0\]\.id: given both"):
+        profile_mod.parse_profile(base, "robot.yaml")
+
+
+def test_joint_keys_are_validated_by_the_joints_backend(base):
+    """The same joint keys are a feetech servo's and a dynamixel servo's, checked against each
+    backend's own models: core's schema does not know them."""
+    p = profile_mod.parse_profile(copy.deepcopy(base), "robot.yaml")
+    with pytest.raises(ProfileError, match=r"joints\[0\] \(shoulder_pan\)\.model: unknown model 'sts3215' "
+                       r"for the dynamixel backend"):
+        create_backend(msgspec.structs.replace(p, backend={**p.backend, "type": "dynamixel"}), source="robot.yaml")
 
 
 def test_unknown_backend_type(tmp_path, base):

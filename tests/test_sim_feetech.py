@@ -314,10 +314,10 @@ def test_from_profile(tmp):
     profile = load_profile(SO101)
     with FeetechSimulator.from_profile(profile, link=tmp / "tty") as sim:
         assert sim.port == str(tmp / "tty") and os.readlink(tmp / "tty") == sim.pty_path
-        assert sim.ids == [j.id for j in profile.joints] and sim.baudrate == 1_000_000
+        assert sim.ids == [j.backend["id"] for j in profile.joints] and sim.baudrate == 1_000_000
         for j in profile.joints:
-            assert sim.servo(j.id).read("Present_Position") == j.calibration.offset
-            assert sim.servo(j.id).read("Model_Number") == 777
+            assert sim.servo(j.backend["id"]).read("Present_Position") == j.backend["calibration"]["offset"]
+            assert sim.servo(j.backend["id"]).read("Model_Number") == 777
     assert not (tmp / "tty").exists()
 
 

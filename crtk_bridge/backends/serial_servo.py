@@ -7,8 +7,8 @@ with ``ping`` / ``readNByteTxRx`` / ``writeNByteTxRx`` returning ``(value, resul
 * :class:`SerialPortFixes` -- a mixin that fixes both SDKs' serial-port gaps (stale input, busy
   polling, 34 ms packet timeouts, wall-clock deadlines); each vendor's ``port.py`` mixes it into
   its SDK's ``PortHandler``.
-* :class:`SerialServoBackend` -- profile validation (backend keys, joint ids and models,
-  calibration), the tick <-> rad calibration arrays, retried register reads/writes with errors
+* :class:`SerialServoBackend` -- profile validation (backend keys; the joints' servo keys,
+  ``servo_keys.py``), the tick <-> rad calibration arrays, retried register reads/writes with errors
   naming robot, joint, id, register and port, opening (ping every servo, check its model number),
   torque on (rolled back on failure) and off, close, and naming the first silent servo of a
   failed sync read.
@@ -34,6 +34,7 @@ import serial
 from ..core.actuator import Actuator, ActuatorInfo
 from ..errors import BackendError, ProfileError
 from ..profile import Profile, backend_config
+from .servo_keys import ServoJoint, servo_joints
 
 DEFAULT_MARGIN_MS = 10.0
 COMM_SUCCESS = 0  # the same value in scservo_sdk and dynamixel_sdk
@@ -212,28 +213,12 @@ class SerialServoBackend(Actuator):
         if cfg.baudrate not in self.SUPPORTED_BAUDS:
             raise ProfileError(f"{source}: backend.baudrate: {cfg.baudrate} is not supported; "
                                f"valid: {', '.join(map(str, self.SUPPORTED_BAUDS))}")
-        problems: list[str] = []
-        models = ", ".join(self.MODEL_NUMBERS)
-        for i, j in enumerate(profile.joints):
-            key = f"joints[{i}] ({j.name})"
-            if j.id is None:
-                problems.append(f"{key}.id: required by the {self.vendor} backend "
-                                f"(servo id 0-{self.MAX_ID})")
-            elif not 0 <= j.id <= self.MAX_ID:
-                problems.append(f"{key}.id: {j.id} is not a servo id (0-{self.MAX_ID})")
-            if j.model is None:
-                problems.append(f"{key}.model: required by the {self.vendor} backend (one of {models})")
-            elif j.model not in self.MODEL_NUMBERS:
-                problems.append(f"{key}.model: unknown model {j.model!r} for the {self.vendor} "
-                                f"backend (known: {models})")
-            else:
-                self._check_joint(i, key, problems)
-        if problems:
-            raise ProfileError(f"{source}: " + "; ".join(problems))
+        self.joint_keys = servo_joints(profile, self.vendor, self.MODEL_NUMBERS, self.MAX_ID, source,
+                                       self._check_joint)
 
-        joints = profile.joints
+        joints = self.joint_keys
         self._ids = [int(j.id) for j in joints]
-        self._label = [f"joint {j.name!r} (id {j.id})" for j in joints]
+        self._label = [f"joint {name!r} (id {j.id})" for name, j in zip(self.joint_names, joints)]
         res = np.array([self.RESOLUTION[j.model] for j in joints], dtype=float)
         self._direction = np.array([j.calibration.direction for j in joints], dtype=float)
         self._offset_ticks = np.array([j.calibration.offset for j in joints], dtype=float)
@@ -253,9 +238,9 @@ class SerialServoBackend(Actuator):
         self._details: dict = {}
 
     # ------------------------------------------------------------------ hooks
-    def _check_joint(self, i: int, key: str, problems: list[str]) -> None:
-        """Vendor checks of joint ``i`` (known model); append 'key: message' to ``problems``."""
-        j = self.profile.joints[i]
+    def _check_joint(self, i: int, key: str, j: ServoJoint, problems: list[str]) -> None:
+        """Vendor checks of joint ``i``'s servo keys ``j`` (known model); append 'key: message'
+        to ``problems``. Called while constructing: ``self.config`` is set, nothing else."""
         res = self.RESOLUTION[j.model]
         r = j.calibration.range
         if r is not None and not (0 <= r[0] and r[1] <= res - 1):
@@ -397,13 +382,13 @@ class SerialServoBackend(Actuator):
             raise
         self._details = {
             "port": cfg.port, "baudrate": cfg.baudrate, "ids": list(self._ids),
-            "models": {j.name: j.model for j in self.profile.joints},
+            "models": {name: j.model for name, j in zip(self.joint_names, self.joint_keys)},
             "packet_margin_ms": margin, **self._details,
         }
 
     def _check_servos(self) -> None:
         problems = []
-        for i, j in enumerate(self.profile.joints):
+        for i, j in enumerate(self.joint_keys):
             model, result, _ = self._txrx(self._ph.ping, self._ids[i])
             if result != COMM_SUCCESS:
                 problems.append(f"{self._label[i]} did not answer ping on {self._where}: "

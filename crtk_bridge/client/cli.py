@@ -24,15 +24,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import sys
 import time
 from typing import Sequence
 
+from crtk_bridge import __version__
+
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.client.device import (
     CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, FRAMES, JS_TOPICS, Device, Robot, connect, encode_pose)
-from crtk_bridge.errors import CommandError, CrtkBridgeError
+from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
 
 PROG = "crtk-ctl"
 GET_TOPICS = (*JS_TOPICS, *CARTESIAN_TOPICS, "operating_state", "period_statistics")
@@ -74,6 +77,36 @@ class Failure(Exception):
     """A command ran but did not achieve its aim (exit 1, one line on stderr)."""
 
 
+#: help of every joint-vector argument: how many values, in which order
+JOINT_VECTOR_HELP = ("one value per joint of the namespace (--ns; default: the first), in the order "
+                     "`crtk-ctl list` prints its joints, e.g. on the SO-101 arm: shoulder_pan "
+                     "shoulder_lift elbow_flex wrist_flex wrist_roll")
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with usage errors as one JSON line on stderr when ``--json`` is on the command
+    line (subparsers are made of the same class, so this holds for every subcommand)."""
+
+    json_errors = False
+
+    def error(self, message: str):
+        if Parser.json_errors:
+            _emit_json_error("usage", message)
+            self.exit(2)
+        super().error(message)
+
+
+def _positive_float(text: str) -> float:
+    """argparse type: a finite number > 0 (a timeout, a rate, a duration)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
 def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
     # The same options on the main parser and on every subparser, so that they are accepted
     # before or after the subcommand; SUPPRESS on the subparsers keeps a value given before.
@@ -87,7 +120,7 @@ def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
                    help="CRTK namespace, e.g. so101/gripper (default: the first one)")
     g.add_argument("--json", action="store_true", default=d(False),
                    help="print one JSON object per line")
-    g.add_argument("--timeout", metavar="S", type=float, default=d(None),
+    g.add_argument("--timeout", metavar="S", type=_positive_float, default=d(None),
                    help="reply timeout, and wait timeout of enable/home/move --wait (s)")
 
 
@@ -103,8 +136,9 @@ def _numbers_not_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _numbers_not_options(argparse.ArgumentParser(
+    parser = _numbers_not_options(Parser(
         prog=PROG, description="Command a robot served by the crtk-bridge daemon (CRTK API)."))
+    parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
     _add_globals(parser, suppress=False)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
@@ -130,21 +164,21 @@ def build_parser() -> argparse.ArgumentParser:
     add_frame(p)
     p = add("echo", "stream a topic until Ctrl-C or --count frames")
     p.add_argument("topic", choices=GET_TOPICS, metavar="TOPIC", help=", ".join(GET_TOPICS))
-    p.add_argument("--rate", metavar="HZ", type=float, default=10.0, help="frames/s (default 10)")
+    p.add_argument("--rate", metavar="HZ", type=_positive_float, default=10.0, help="frames/s (default 10)")
     p.add_argument("--count", metavar="N", type=int, default=None, help="stop after N frames")
     add_frame(p)
     for name, what in (("move_jp", "move to joint positions P (rad)"),
                        ("move_jr", "move by joint offsets P (rad)")):
         p = add(name, what)
-        p.add_argument("position", nargs="+", type=float, metavar="P")
+        p.add_argument("position", nargs="+", type=float, metavar="P", help=JOINT_VECTOR_HELP)
         p.add_argument("--wait", action="store_true", help="wait until the move has ended")
     for name, (what, meta) in STREAM_COMMANDS.items():
         p = add(name, what)
-        p.add_argument("values", nargs="+", type=float, metavar=meta)
+        p.add_argument("values", nargs="+", type=float, metavar=meta, help=JOINT_VECTOR_HELP)
         p.add_argument("--duration", metavar="S", type=float, default=0.0,
                        help="repeat the command at --rate for S seconds (default: send once; the "
                             "daemon holds when crtk-ctl disconnects, or after its servo timeout)")
-        p.add_argument("--rate", metavar="HZ", type=float, default=50.0,
+        p.add_argument("--rate", metavar="HZ", type=_positive_float, default=50.0,
                        help="repeat rate with --duration (default 50)")
     p = add("move_cp", "move the tip to the pose X Y Z (m) QX QY QZ QW (IK, then a joint "
                        "trajectory)")
@@ -170,16 +204,17 @@ def build_parser() -> argparse.ArgumentParser:
             add_frame(p)
         p.add_argument("--duration", metavar="S", type=float, default=0.0,
                        help="repeat the command at --rate for S seconds (default: send once)")
-        p.add_argument("--rate", metavar="HZ", type=float, default=50.0,
+        p.add_argument("--rate", metavar="HZ", type=_positive_float, default=50.0,
                        help="repeat rate with --duration (default 50)")
     p = add("fk", "forward kinematics: print the tip pose for joint positions J (rad)")
-    p.add_argument("values", nargs="+", type=float, metavar="J")
+    p.add_argument("values", nargs="+", type=float, metavar="J", help=JOINT_VECTOR_HELP)
     p = add("ik", "inverse kinematics: print the joint positions for the pose X Y Z QX QY QZ QW "
                   "(exit 1 with ik_failed when not reachable)")
     p.add_argument("values", nargs="+", type=float, metavar="POSE",
                        help="X Y Z (m) QX QY QZ QW: the tip frame in the base frame")
     p.add_argument("--seed", nargs="+", type=float, metavar="J",
-                   help="joint positions to start from (rad; default: the measured ones)")
+                   help="joint positions to start from (rad; default: the measured ones); "
+                        + JOINT_VECTOR_HELP)
     add("hold", "stop a move (decelerating) or a stream and hold the position")
     add("free", "torque off on the namespace's joints; the robot stays ENABLED")
     p = add("events", "print status/warning/error events as they arrive, until Ctrl-C or "
@@ -218,7 +253,7 @@ def _js_lines(dev: Device, topic: str, data: dict) -> list[str]:
         cols = []
         for vec, unit in ((pos, "rad"), (vel, "rad/s"), (eff, "N·m")):
             if i < len(vec):
-                cols.append(f"{vec[i]:+.4f} {unit}")
+                cols.append(f"{fmt_number(vec[i], sign=True)} {unit}")
         lines.append(f"  {name:<{width}}  " + "   ".join(cols))
     return lines
 
@@ -226,13 +261,14 @@ def _js_lines(dev: Device, topic: str, data: dict) -> list[str]:
 def _js_oneline(dev: Device, data: dict) -> str:
     names = list(data.get("name") or dev.joint_names)
     pos = list(data.get("position") or [])
-    vals = " ".join(f"{names[i] if i < len(names) else i}={p:+.4f}" for i, p in enumerate(pos))
+    vals = " ".join(f"{names[i] if i < len(names) else i}={fmt_number(p, sign=True)}"
+                    for i, p in enumerate(pos))
     stamp = float(data.get("stamp") or 0.0)
     return f"{stamp:.3f}  {vals}" if stamp else f"(invalid)  {vals}"
 
 
-def _vec_text(vec, fmt: str = "{:+.4f}") -> str:
-    return " ".join(fmt.format(v) for v in vec) if vec else "-"
+def _vec_text(vec) -> str:
+    return " ".join(fmt_number(v, sign=True) for v in vec) if vec else "-"
 
 
 def _cart_lines(dev: Device, topic: str, data: dict, frame: str = "spatial") -> list[str]:
@@ -489,7 +525,7 @@ def _run(args, robot: Robot) -> int:
                   f"{float(data.get('residual_position', 0.0)) * 1000:.3f} mm, "
                   f"{float(data.get('residual_orientation', 0.0)):.4f} rad")
             for i, q in enumerate(jp):
-                print(f"  {names[i] if i < len(names) else f'joint{i}':<{width}}  {q:+.4f} rad")
+                print(f"  {names[i] if i < len(names) else f'joint{i}':<{width}}  {fmt_number(q, sign=True)} rad")
         if not data.get("result"):
             raise CommandError("ik_failed", f"{dev.name}: {data.get('message') or 'IK did not converge'}")
         return 0
@@ -505,7 +541,12 @@ def _fmt_event(ev) -> str:
     extra = "".join(f"  {k}={d[k]}" for k in ("joint", "register", "value") if k in d)
     stamp = d.get("stamp")
     when = f"{stamp:.3f}" if isinstance(stamp, (int, float)) and stamp else "-"
-    return f"{when}  {ev.kind:<7} {d.get('code')}  {d.get('ns')}: {_one_line(d.get('message', ''))}{extra}"
+    message = _one_line(d.get("message", ""))
+    ns = d.get("ns")
+    # messages name their robot (or namespace) already: do not say it twice
+    if not ns or message.startswith(f"{ns}: ") or message.startswith(f"{str(ns).split('/')[0]}: "):
+        return f"{when}  {ev.kind:<7} {d.get('code')}  {message}{extra}"
+    return f"{when}  {ev.kind:<7} {d.get('code')}  {ns}: {message}{extra}"
 
 
 def _events(robot: Robot, args) -> int:
@@ -544,12 +585,30 @@ def _err(text: str) -> None:
     print(f"{PROG}: {_one_line(text)}", file=sys.stderr, flush=True)
 
 
+def _emit_json_error(code: str, message: str, cmd: str | None = None) -> None:
+    """An error as one JSON object on stderr (``--json``): ``{"error": code, "message": ...}``."""
+    obj = {"error": code, "message": _one_line(message)}
+    if cmd:
+        obj["cmd"] = cmd
+    print(json.dumps(obj, separators=(",", ":")), file=sys.stderr, flush=True)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``crtk-ctl`` with ``argv`` (default ``sys.argv[1:]``); return the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    Parser.json_errors = "--json" in argv
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as exc:  # --help (0) or a usage error (2, argparse printed why)
         return exc.code if isinstance(exc.code, int) else 2
+
+    def fail(code: str, text: str, status: int, cmd: str | None = None, message: str | None = None) -> int:
+        if args.json:
+            _emit_json_error(code, message or text, cmd or args.command)
+        else:
+            _err(text)
+        return status
+
     robot = None
     try:
         request_timeout = args.timeout if args.timeout is not None else 5.0
@@ -559,23 +618,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except CommandError as exc:
         what = getattr(exc, "cmd", None) or args.command
-        _err(f"{what} refused ({exc.code}): {exc.message}")
-        return 1
+        return fail(exc.code, f"{what} refused ({exc.code}): {exc.message}", 1, what, exc.message)
     except (DaemonConnectionError, ConnectionError) as exc:
-        _err(str(exc))
-        return 2
+        return fail("no_daemon", str(exc), 2)
     except TimeoutError as exc:
-        _err(str(exc))
-        return 1
+        return fail("timeout", str(exc), 1)
     except Failure as exc:
-        _err(str(exc))
-        return 1
+        return fail("failed", str(exc), 1)
     except KeyError as exc:  # unknown --ns
-        _err(exc.args[0] if exc.args else str(exc))
-        return 1
+        return fail("unknown_namespace", exc.args[0] if exc.args else str(exc), 1)
     except CrtkBridgeError as exc:
-        _err(str(exc))
-        return 1
+        return fail("error", str(exc), 1)
     except BrokenPipeError:  # `crtk-ctl echo ... | head`
         try:
             sys.stdout = open("/dev/null", "w")  # noqa: SIM115 - silence the flush at exit

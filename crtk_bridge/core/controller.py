@@ -37,7 +37,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..errors import BackendError
+from ..errors import BackendError, fmt_number
 from ..profile import Profile
 from .actuator import (
     Actuator,
@@ -310,8 +310,8 @@ class Controller:
         if step[worst] > self.safety.servo_step_max:
             raise Refused(
                 "step_too_large",
-                f"{m.name}: {cmd} refused: joint {m.joint_names[worst]!r} would jump {step[worst]:.4f} rad "
-                f"from {base[worst]:.4f} (safety.servo_step_max = {self.safety.servo_step_max})",
+                f"{m.name}: {cmd} refused: joint {m.joint_names[worst]!r} would jump {fmt_number(step[worst])} rad "
+                f"from {fmt_number(base[worst])} (safety.servo_step_max = {self.safety.servo_step_max})",
             )
 
     def _clip(self, m: NamespaceMotion, p: np.ndarray) -> np.ndarray:
@@ -322,8 +322,8 @@ class Controller:
             j = int(np.argmax(np.abs(clipped - p)))
             self._event(
                 "warning", "limit_clipped",
-                f"{m.name}: setpoint of joint {m.joint_names[j]!r} ({p[j]:.4f} rad) clipped to its limit "
-                f"[{m.pos_min[j]:.4f}, {m.pos_max[j]:.4f}]", m.name, joint=m.joint_names[j], value=float(p[j]),
+                f"{m.name}: setpoint of joint {m.joint_names[j]!r} ({fmt_number(p[j])} rad) clipped to its limit "
+                f"[{fmt_number(m.pos_min[j])}, {fmt_number(m.pos_max[j])}]", m.name, joint=m.joint_names[j], value=float(p[j]),
             )
         return clipped
 
@@ -333,8 +333,8 @@ class Controller:
             j = int(bad[0])
             raise Refused(
                 "out_of_limits",
-                f"{m.name}: move refused: goal {goal[j]:.4f} rad for joint {m.joint_names[j]!r} is outside "
-                f"its limits [{m.pos_min[j]:.4f}, {m.pos_max[j]:.4f}]",
+                f"{m.name}: move refused: goal {fmt_number(goal[j])} rad for joint {m.joint_names[j]!r} is outside "
+                f"its limits [{fmt_number(m.pos_min[j])}, {fmt_number(m.pos_max[j])}]",
             )
         if m.mode is Mode.FREE:
             m.reset(self.feedback.position[m.idx])
@@ -679,7 +679,7 @@ class Controller:
                     name = self.profile.joints[j].name
                     self._enter_fault(Fault(
                         "tracking_error",
-                        f"{self.robot}: joint {name!r} is {err[j]:.3f} rad from its setpoint {cmd.position[j]:.3f} "
+                        f"{self.robot}: joint {name!r} is {fmt_number(err[j], 3)} rad from its setpoint {fmt_number(cmd.position[j], 3)} "
                         f"(safety.tracking_error_max = {self.safety.tracking_error_max}): blocked or not following",
                         joint=name, value=float(err[j]), transient=False))
             else:

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
+from ..errors import CrtkBridgeError
 from .cartesian import FRAMED, CartesianSpace
 from .link import ControlLink, ControlLost
 from .protocol import (
@@ -101,7 +102,7 @@ class Server:
             try:
                 r, w = await asyncio.open_unix_connection(str(path))
                 w.close()
-                raise RuntimeError(f"{self.robot}: another daemon is already serving {path}")
+                raise CrtkBridgeError(f"{self.robot}: another daemon is already serving {path}")
             except (ConnectionRefusedError, FileNotFoundError):
                 path.unlink()
         # bind under a temporary name and rename: the socket file appears only once it listens,

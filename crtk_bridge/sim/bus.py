@@ -36,7 +36,8 @@ import time
 from pathlib import Path
 from typing import ClassVar
 
-from ..profile import Profile
+from ..backends.servo_keys import ServoJoint
+from ..profile import Profile, joint_keys
 from . import SimulatorError
 from .control import ControlServer
 from .pty import PtyPort
@@ -182,13 +183,19 @@ class BusSimulator:
         self.rx_bytes = 0
         self.tx_bytes = 0
 
+    @staticmethod
+    def _servo_keys(profile: Profile) -> list:
+        """Every joint's servo keys (id, model, calibration), as the serial-servo backends read them."""
+        return joint_keys(profile, ServoJoint, "servo simulator")
+
     @classmethod
     def _profile_joints(cls, profile: Profile) -> tuple[list, int]:
-        """(joints with a bus id, baud rate) of a profile for this vendor. Raises SimulatorError."""
+        """(servo keys of the joints with a bus id, baud rate) of a profile for this vendor.
+        Raises SimulatorError, or ProfileError for a joint key the servos do not have."""
         if profile.backend_type != cls.vendor:
             raise SimulatorError(f"profile {profile.name!r}: backend.type is "
                                  f"{profile.backend_type!r}, not {cls.vendor!r}")
-        joints = [j for j in profile.joints if j.id is not None]
+        joints = [j for j in cls._servo_keys(profile) if j.id is not None]
         if not joints:
             raise SimulatorError(f"profile {profile.name!r}: no joint has a bus id")
         baud = profile.backend.get("baudrate", 1_000_000)

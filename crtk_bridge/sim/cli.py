@@ -16,6 +16,7 @@ import logging
 import signal
 import sys
 
+from .. import __version__
 from ..errors import CrtkBridgeError, ProfileError
 from ..profile import load_profile
 
@@ -25,6 +26,7 @@ _HEALTH_CHECK_S = 0.5
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="crtk-sim", description="Run a wire-level device simulator.")
+    p.add_argument("--version", action="version", version=f"crtk-sim {__version__}")
     sub = p.add_subparsers(dest="device", required=True, metavar="DEVICE")
     for device, what in (("feetech", "Feetech STS3215 servo bus on a pseudo-terminal"),
                          ("dynamixel", "Dynamixel X-series (Protocol 2.0) bus on a pseudo-terminal")):

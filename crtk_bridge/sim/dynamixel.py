@@ -343,7 +343,7 @@ class DynamixelSimulator(BusSimulator):
         for j in joints:
             model = (j.model or "xm430-w350").lower()
             if model not in T.CONTROL_TABLES:
-                raise SimulatorError(f"profile {profile.name!r}: joint {j.name!r}: unknown model "
+                raise SimulatorError(f"profile {profile.name!r}: servo {j.id}: unknown model "
                                      f"{j.model!r} (known: {', '.join(T.CONTROL_TABLES)})")
             servos[j.id] = model
         return cls(servos, baudrate=baud, link=link, control=control, emulate_baud=emulate_baud,

@@ -72,6 +72,7 @@ from ...core.actuator import Capabilities, CommandMode, Fault, JointCommand, Joi
 from ...errors import BackendError
 from ...profile import Profile
 from ..serial_servo import SerialPortFixes, SerialServoBackend
+from ..servo_keys import ServoJoint
 from . import tables as T
 from .tables import OperatingMode
 
@@ -144,11 +145,11 @@ class DynamixelBackend(SerialServoBackend):
 
     def __init__(self, profile: Profile, *, source: str = "<profile>"):
         super().__init__(profile, source=source)
-        joints = profile.joints
+        joints = self.joint_keys
         n = self.n
         self._models = [j.model for j in joints]
         self._tables = [T.CONTROL_TABLES[m] for m in self._models]
-        self._pos_mode = [self._joint_position_mode(j.name) for j in joints]
+        self._pos_mode = [self._joint_position_mode(name) for name in self.joint_names]
         lo, hi = [], []
         for j, mode in zip(joints, self._pos_mode):
             span = (0, 4095) if mode is OperatingMode.POSITION else \
@@ -187,22 +188,22 @@ class DynamixelBackend(SerialServoBackend):
         return _POSITION_MODE[self.config.joint_position_modes.get(name, self.config.position_mode)]
 
     # ------------------------------------------------------------------ hooks
-    def _check_joint(self, i: int, key: str, problems: list[str]) -> None:
-        j = self.profile.joints[i]
+    def _check_joint(self, i: int, key: str, j: ServoJoint, problems: list[str]) -> None:
+        name = self.profile.joints[i].name
         cfg = self.config
         names = set(self.profile.joint_names)
         if i == 0:
-            for name in cfg.joint_position_modes:
-                if name not in names:
-                    problems.append(f"backend.joint_position_modes.{name}: unknown joint "
+            for other in cfg.joint_position_modes:
+                if other not in names:
+                    problems.append(f"backend.joint_position_modes.{other}: unknown joint "
                                     f"(joints: {', '.join(self.profile.joint_names)})")
-        mode = self._joint_position_mode(j.name)
+        mode = self._joint_position_mode(name)
         if mode not in T.OPERATING_MODES[j.model]:
-            where = (f"backend.joint_position_modes.{j.name}" if j.name in cfg.joint_position_modes
+            where = (f"backend.joint_position_modes.{name}" if name in cfg.joint_position_modes
                      else "backend.position_mode")
             problems.append(f"{where}: {mode.name.lower()} mode is not available on {key}, a {j.model}")
         if mode is OperatingMode.POSITION:
-            super()._check_joint(i, key, problems)
+            super()._check_joint(i, key, j, problems)
 
     def _make_port(self, margin_ms: float) -> FastPortHandler:
         return FastPortHandler(self.config.port, margin_ms=margin_ms)

@@ -130,7 +130,7 @@ class FeetechBackend(SerialServoBackend):
 
     def __init__(self, profile: Profile, *, source: str = "<profile>"):
         super().__init__(profile, source=source)
-        joints = profile.joints
+        joints = self.joint_keys
         n = self.n
         lo = [max(0, j.calibration.range[0]) if j.calibration.range else 0 for j in joints]
         hi = [min(tables.RESOLUTION[j.model] - 1, j.calibration.range[1]) if j.calibration.range

@@ -1,0 +1,173 @@
+"""What a new user meets at the command line: one-line errors (never a traceback), versions, help
+that says what to type, JSON errors under --json, messages that neither repeat the robot nor print
+309 digits."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import pytest
+
+from crtk_bridge import __version__
+from crtk_bridge.cli import main as bridge_main
+from crtk_bridge.client.cli import _fmt_event
+from crtk_bridge.client.cli import main as ctl_main
+from crtk_bridge.client.connection import Event
+from crtk_bridge.daemon import AF_UNIX_PATH_MAX
+from crtk_bridge.errors import fmt_number
+
+from .conftest import ROOT, SO101, only_on
+
+
+def run(module: str, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True,
+                          cwd=ROOT, timeout=timeout, stdin=subprocess.DEVNULL)
+
+
+def one_line_error(proc: subprocess.CompletedProcess) -> str:
+    """The process failed with exactly one line on stderr and no traceback; return the line."""
+    assert proc.returncode != 0, proc
+    assert "Traceback" not in proc.stderr, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    return lines[0]
+
+
+def ctl(capsys, *args):
+    code = ctl_main(list(args))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+# ---------------------------------------------------------------- versions and help
+
+@pytest.mark.parametrize("module, prog", [("crtk_bridge.cli", "crtk-bridge"),
+                                          ("crtk_bridge.client.cli", "crtk-ctl"),
+                                          ("crtk_bridge.sim.cli", "crtk-sim")])
+def test_every_tool_prints_its_version(module, prog):
+    proc = run(module, "--version")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == f"{prog} {__version__}"
+
+
+def test_bridge_help_lists_check(capsys):
+    with pytest.raises(SystemExit) as info:
+        bridge_main(["--help"])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    assert "crtk-bridge check --profile FILE" in out
+    assert "check --profile FILE  validate a profile" in out
+
+
+@pytest.mark.parametrize("cmd", ["move_jp", "move_jr", "servo_jp", "interpolate_jv", "fk"])
+def test_joint_vector_help_says_how_many_values_in_which_order(cmd, capsys):
+    assert ctl_main([cmd, "-h"]) == 0
+    out = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    assert "one value per joint of the namespace" in out
+    assert "in the order `crtk-ctl list` prints its joints" in out
+    assert "shoulder_pan shoulder_lift elbow_flex wrist_flex wrist_roll" in out
+
+
+# ---------------------------------------------------------------- crtk-ctl argument errors
+
+@pytest.mark.parametrize("option, value", [("--timeout", "-1"), ("--timeout", "0"), ("--timeout", "inf"),
+                                           ("--timeout", "nan"), ("--timeout", "soon")])
+def test_bad_timeout_is_a_usage_error_not_a_traceback(option, value):
+    # validated before any connection: no daemon is needed, and none is contacted
+    proc = run("crtk_bridge.client.cli", "--socket", "/nonexistent/x.sock", option, value, "state")
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith(f"crtk-ctl: error: argument {option}: ")
+
+
+def test_bad_rate_is_a_usage_error(capsys):
+    code, _, err = ctl(capsys, "--socket", "/nonexistent/x.sock", "echo", "measured_js", "--rate", "-5")
+    assert code == 2 and "argument --rate: must be a finite number > 0, got -5" in err
+
+
+def test_json_usage_error_is_json(capsys):
+    code, out, err = ctl(capsys, "--json", "--timeout", "-1", "state")
+    assert code == 2 and out == ""
+    obj = json.loads(err)
+    assert obj["error"] == "usage" and "--timeout" in obj["message"]
+
+
+def test_json_connection_error_is_json(short_tmp, capsys):
+    code, out, err = ctl(capsys, "--json", "--socket", str(short_tmp / "none.sock"), "state")
+    assert code == 2 and out == ""
+    obj = json.loads(err)
+    assert obj == {"error": "no_daemon", "message": obj["message"], "cmd": "state"}
+    assert "none.sock" in obj["message"]
+
+
+# ---------------------------------------------------------------- message formatting
+
+def test_fmt_number_keeps_huge_values_short():
+    assert fmt_number(1.5) == "1.5000"
+    assert fmt_number(-0.25, sign=True) == "-0.2500"
+    assert fmt_number(1e308) == "1e+308"
+    assert fmt_number(-1.2345678e9, sign=True) == "-1.235e+09"
+    assert fmt_number(float("inf")) == "inf"
+    assert fmt_number(float("nan")) == "nan"
+
+
+def test_event_line_names_the_robot_once():
+    ev = Event("status", {"stamp": 12.5, "ns": "so101", "code": "state_changed", "message": "so101: DISABLED"})
+    assert _fmt_event(ev) == "12.500  status  state_changed  so101: DISABLED"
+    # a message that does not name its namespace gets it in front
+    ev = Event("warning", {"stamp": 1.0, "ns": "so101/gripper", "code": "x", "message": "held"})
+    assert _fmt_event(ev) == "1.000  warning x  so101/gripper: held"
+
+
+# ---------------------------------------------------------------- against a daemon
+
+@only_on("so101-feetech")
+def test_ctl_refusals_are_short_and_json_under_json(sim_daemon, capsys):
+    sock = str(sim_daemon.socket_path)
+    assert ctl(capsys, "--socket", sock, "enable")[0] == 0
+    code, _, err = ctl(capsys, "--socket", sock, "move_jp", "1e308", "0", "0", "0", "0")
+    assert code == 1 and len(err.strip().splitlines()) == 1
+    assert "goal 1e+308 rad for joint 'shoulder_pan' is outside its limits [-1.9199, 1.9199]" in err
+    assert len(err) < 300, err
+
+    code, out, err = ctl(capsys, "--socket", sock, "--json", "servo_jp", "1e300", "0", "0", "0", "0")
+    assert code == 1 and out == ""
+    obj = json.loads(err)
+    assert obj["error"] == "step_too_large" and obj["cmd"] == "servo_jp"
+    assert "would jump 1e+300 rad" in obj["message"] and len(obj["message"]) < 200
+
+    code, out, err = ctl(capsys, "--socket", sock, "--json", "--ns", "nowhere", "state")
+    assert code == 1 and json.loads(err)["error"] == "unknown_namespace"
+    assert ctl(capsys, "--socket", sock, "disable")[0] == 0
+
+
+@only_on("so101-feetech")
+def test_second_daemon_on_a_served_socket_fails_at_once_in_one_line(sim_daemon):
+    t0 = time.monotonic()
+    proc = run("crtk_bridge.cli", "--profile", str(SO101), "--sim", "--socket", str(sim_daemon.socket_path))
+    line = one_line_error(proc)
+    assert line == (f"crtk-bridge: so101: another daemon is already serving {sim_daemon.socket_path} "
+                    f"(stop it, or give another --socket)")
+    # checked before the simulator and the control process: neither started
+    assert "simulated" not in proc.stdout and proc.stdout == ""
+    assert time.monotonic() - t0 < 20
+    assert sim_daemon.proc.poll() is None and sim_daemon.socket_path.exists()  # the first one serves on
+
+
+def test_socket_path_over_the_af_unix_limit_is_one_line(short_tmp):
+    path = str(short_tmp / ("s" * AF_UNIX_PATH_MAX)) + ".sock"
+    proc = run("crtk_bridge.cli", "--profile", str(SO101), "--sim", "--socket", path)
+    line = one_line_error(proc)
+    assert f"socket path {path} is {len(path)} bytes, longer than the AF_UNIX limit of 107" in line
+    assert proc.stdout == ""  # nothing started
+
+
+def test_socket_path_naming_a_regular_file_is_refused_and_kept(short_tmp):
+    victim = short_tmp / "notes.txt"
+    victim.write_text("keep me")
+    proc = run("crtk_bridge.cli", "--profile", str(SO101), "--sim", "--socket", str(victim))
+    assert f"{victim} exists and is not a socket" in one_line_error(proc)
+    assert victim.read_text() == "keep me"
