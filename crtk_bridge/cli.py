@@ -39,16 +39,19 @@ def _check(argv: list[str]) -> int:
     p.add_argument("--profile", required=True)
     args = p.parse_args(argv)
     from .backends import create_backend
+    from .core.kinematics_check import check_kinematics
     from .profile import load_profile
 
     try:
         profile = load_profile(args.profile)
         create_backend(profile, source=args.profile)
+        cartesian = check_kinematics(profile, args.profile)
     except CrtkBridgeError as exc:
         print(f"crtk-bridge: {exc}", file=sys.stderr)
         return 1
     print(f"{args.profile}: valid profile for robot {profile.name!r} ({profile.backend_type}, "
-          f"{len(profile.joints)} joints, namespaces {', '.join(ns.name for ns in profile.namespaces)})")
+          f"{len(profile.joints)} joints, namespaces {', '.join(ns.name for ns in profile.namespaces)}"
+          f"{'; kinematics ' + ', '.join(cartesian) if cartesian else ''})")
     return 0
 
 

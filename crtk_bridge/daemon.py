@@ -24,6 +24,7 @@ import time
 from . import systemd
 from .backends import backend_class, create_backend
 from .client.paths import default_socket_path
+from .core.kinematics_check import check_kinematics
 from .core.loop import control_main
 from .core.snapshot import Layout, SnapshotBuffer
 from .errors import CrtkBridgeError
@@ -183,6 +184,7 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
     source = str(profile_path)
     # validate the backend section (and that its SDK is installed) before anything starts
     create_backend(profile, source=source)
+    check_kinematics(profile, source)  # a wrong frame or joint name, said with its profile key
     socket_path = socket_path or profile.server.socket or default_socket_path(profile.name)
     check_socket_path(socket_path, profile.name)  # before the simulator and the control process
 

@@ -15,6 +15,7 @@ the joint's backend, which validates it (:func:`joint_keys`).
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
 from pathlib import Path
@@ -129,9 +130,71 @@ def _msgspec_error_path(exc: msgspec.ValidationError) -> tuple[str, str]:
     return "", msg
 
 
-def _format_msgspec_error(exc: msgspec.ValidationError) -> str:
-    path, msg = _msgspec_error_path(exc)
-    return f"{path or '(top level)'}: {msg}" if path or msg != str(exc) else msg
+_PATH_TOKEN = re.compile(r"\.?([^.\[\]]+)|\[(\d+)\]")
+
+
+def _named_path(path: str, data: Any) -> str:
+    """``joints[0].limits`` -> ``joints[0] (shoulder_pan).limits``: list items that have a ``name``
+    in ``data`` are named, so a message points at the joint or namespace, not only an index."""
+    out = []
+    node = data
+    for m in _PATH_TOKEN.finditer(path):
+        key, index = m.group(1), m.group(2)
+        if index is None:
+            out.append(("." if out else "") + key)
+            node = node.get(key) if isinstance(node, dict) else None
+            continue
+        out.append(f"[{index}]")
+        node = node[int(index)] if isinstance(node, list) and int(index) < len(node) else None
+        if isinstance(node, dict) and isinstance(node.get("name"), str):
+            out.append(f" ({node['name']})")
+    return "".join(out)
+
+
+def _struct_keys_at(root: type, path: str) -> list[str] | None:
+    """The keys the struct at ``path`` (a msgspec error path below ``root``) accepts, or None."""
+    info: Any = msgspec.inspect.type_info(root)
+    for m in _PATH_TOKEN.finditer(path):
+        while isinstance(info, msgspec.inspect.UnionType):  # optional sections: X | None
+            inner = [t for t in info.types if not isinstance(t, msgspec.inspect.NoneType)]
+            if len(inner) != 1:
+                return None
+            info = inner[0]
+        if m.group(2) is not None:
+            info = getattr(info, "item_type", None)
+        elif isinstance(info, msgspec.inspect.StructType):
+            info = next((f.type for f in info.fields if f.encode_name == m.group(1)), None)
+        else:
+            return None
+    while isinstance(info, msgspec.inspect.UnionType):
+        inner = [t for t in info.types if not isinstance(t, msgspec.inspect.NoneType)]
+        info = inner[0] if len(inner) == 1 else None
+    if isinstance(info, msgspec.inspect.StructType):
+        return [f.encode_name for f in info.fields]
+    return None
+
+
+def unknown_key_message(key: str, valid: list[str], owner: str = "") -> str:
+    """'unknown key[ for OWNER]; valid keys, nearest first: a, b, c' (nearest by difflib's
+    similarity ratio, so a typo's intended key comes first)."""
+    ranked = sorted(valid, key=lambda k: -difflib.SequenceMatcher(None, key, k).ratio())
+    return f"unknown key{' for ' + owner if owner else ''}; valid keys, nearest first: {', '.join(ranked)}"
+
+
+def _format_msgspec_error(exc: msgspec.ValidationError, data: Any = None, root: type | None = None) -> str:
+    """msgspec's "... - at `$.joints[0].limits`" as "joints[0] (shoulder_pan).limits: ...": the
+    profile's key path with list items named; an unknown key lists the valid ones, nearest first."""
+    path, text = _msgspec_error_path(exc)
+    unknown = re.fullmatch(r"Object contains unknown field `(.*)`", text)
+    if unknown and root is not None:
+        valid = _struct_keys_at(root, path)
+        if valid is not None:
+            key = unknown.group(1)
+            named = _named_path(path, data)
+            return f"{named + '.' if named else ''}{key}: {unknown_key_message(key, valid)}"
+    if not path and text == str(exc):
+        return text
+    return f"{_named_path(path, data) or '(top level)'}: {text}"
 
 
 def _check(profile: Profile) -> list[str]:
@@ -214,11 +277,23 @@ def parse_profile(data: Any, source: str = "<profile>") -> Profile:
     try:
         profile = msgspec.convert(_split_joint_keys(data), Profile)
     except msgspec.ValidationError as exc:
-        raise ProfileError(f"{source}: {_format_msgspec_error(exc)}") from exc
+        raise ProfileError(f"{source}: {_format_msgspec_error(exc, data, Profile)}") from exc
     problems = _check(profile)
     if problems:
         raise ProfileError(f"{source}: " + "; ".join(problems))
     return profile
+
+
+def _yaml_error_text(exc: yaml.MarkedYAMLError) -> str:
+    """'line 3, column 5: not valid YAML: expected ...' (1-based, as editors count): one line with
+    the place, instead of PyYAML's several lines naming "<unicode string>"."""
+    mark = exc.problem_mark or exc.context_mark
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+    text = f"{where}not valid YAML: {exc.problem or exc.context or 'syntax error'}"
+    if exc.problem and exc.context:
+        started = f" at line {exc.context_mark.line + 1}" if exc.context_mark else ""
+        text += f" ({exc.context}{started})"
+    return text
 
 
 def load_profile(path: str | Path) -> Profile:
@@ -232,8 +307,10 @@ def load_profile(path: str | Path) -> Profile:
         raise ProfileError(f"{path}: not a text (UTF-8) file: {exc.reason} at byte {exc.start}") from exc
     try:
         data = yaml.safe_load(text)
+    except yaml.MarkedYAMLError as exc:
+        raise ProfileError(f"{path}: {_yaml_error_text(exc)}") from exc
     except yaml.YAMLError as exc:
-        raise ProfileError(f"{path}: not valid YAML: {exc}") from exc
+        raise ProfileError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from exc
     profile = parse_profile(data, str(path))
     # URDF paths are relative to the profile file: resolve them now, so the daemon can chdir
     namespaces = []
@@ -254,7 +331,7 @@ def backend_config(profile: Profile, config_type: type, source: str = "<profile>
     try:
         return msgspec.convert(data, config_type)
     except msgspec.ValidationError as exc:
-        raise ProfileError(f"{source}: backend.{_format_msgspec_error(exc)}") from exc
+        raise ProfileError(f"{source}: backend.{_format_msgspec_error(exc, data, config_type)}") from exc
 
 
 def joint_keys(profile: Profile, joint_type: type, owner: str, source: str = "<profile>") -> list[Any]:
@@ -268,15 +345,16 @@ def joint_keys(profile: Profile, joint_type: type, owner: str, source: str = "<p
         key = f"joints[{i}] ({j.name})"
         unknown = sorted(set(j.backend) - set(valid))
         for k in unknown:
-            problems.append(f"{key}.{k}: unknown joint key (core keys: {', '.join(sorted(CORE_JOINT_KEYS))}; "
-                            f"{owner} keys: {', '.join(valid) or 'none'})")
+            problems.append(f"{key}.{k}: "
+                            f"{unknown_key_message(k, [*sorted(CORE_JOINT_KEYS), *valid], f'a {owner} joint')}")
         if unknown:
             continue
         try:
             out.append(msgspec.convert(j.backend, joint_type))
         except msgspec.ValidationError as exc:
-            path, msg = _msgspec_error_path(exc)
-            problems.append(f"{key}{'.' + path if path else ''}: {msg}")
+            path, text = _msgspec_error_path(exc)
+            problems.append(f"{key}.{_format_msgspec_error(exc, j.backend, joint_type)}" if path
+                            else f"{key}: {text}")
     if problems:
         raise ProfileError(f"{source}: " + "; ".join(problems))
     return out

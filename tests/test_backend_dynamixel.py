@@ -73,11 +73,15 @@ def reg(sim, sid, name):
 
 # ---------------------------------------------------------------- profile and capabilities
 
-def test_koch_capabilities_conservative_effort_rule():
+def test_koch_capabilities_effort_per_joint():
     b = create_backend(parse_profile(koch()))
-    c = b.capabilities
+    c = b.capabilities  # the whole robot: only what every joint can do
     assert isinstance(b, DynamixelBackend)
     assert (c.position, c.velocity, c.effort, c.measures_effort, c.can_free) == (True, True, False, False, True)
+    # per joint: the XL430 shoulders have no current sensing; the XL330s with effort_per_amp have it
+    assert [b.joint_capabilities(i).effort for i in range(6)] == [False, False, True, True, True, True]
+    assert [b.joint_capabilities(i).measures_effort for i in range(6)] == [False, False, True, True, True, True]
+    assert b.capabilities_of([5]).effort and not b.capabilities_of([0, 1, 2, 3, 4]).effort
     c = DynamixelBackend(parse_profile(all_xl330())).capabilities
     assert c.effort and c.measures_effort
     data = all_xl330()

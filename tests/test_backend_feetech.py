@@ -100,7 +100,8 @@ def read_ok(b, fb):
 # ---------------------------------------------------------------- profile validation (no bus)
 
 def test_bad_backend_key_names_it():
-    with pytest.raises(ProfileError, match=r"so101\.yaml: backend\.baud_rate: unknown key"):
+    with pytest.raises(ProfileError, match=r"so101\.yaml: backend\.baud_rate: unknown key for the feetech "
+                                           r"backend; valid keys, nearest first: baudrate, "):
         FeetechBackend(parse_profile(profile_data(baud_rate=1)), source="so101.yaml")
 
 

@@ -26,7 +26,7 @@ def test_check_rejects_an_invalid_profile_naming_key(tmp_path, capsys):
     bad.write_text(yaml.safe_dump(data))
     assert bridge_main(["check", "--profile", str(bad)]) == 1
     err = capsys.readouterr().err
-    assert str(bad) in err and "joints[1].limits.velocity_max" in err
+    assert str(bad) in err and "joints[1] (shoulder_lift).limits.velocity_max" in err
 
 
 def test_check_rejects_unknown_backend_key(tmp_path, capsys):

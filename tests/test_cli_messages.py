@@ -171,3 +171,70 @@ def test_socket_path_naming_a_regular_file_is_refused_and_kept(short_tmp):
     proc = run("crtk_bridge.cli", "--profile", str(SO101), "--sim", "--socket", str(victim))
     assert f"{victim} exists and is not a socket" in one_line_error(proc)
     assert victim.read_text() == "keep me"
+
+
+# ---------------------------------------------------------------- crtk-bridge check: kinematics
+
+def _check_with(tmp_path, capsys, edit) -> tuple[int, str]:
+    import yaml
+
+    from .conftest import so101_data
+
+    data = so101_data()
+    edit(data)
+    path = tmp_path / "arm.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    code = bridge_main(["check", "--profile", str(path)])
+    captured = capsys.readouterr()
+    return code, captured.err.strip() or captured.out.strip()
+
+
+def test_check_names_the_tip_frame_key_when_the_urdf_lacks_it(tmp_path, capsys):
+    code, err = _check_with(tmp_path, capsys,
+                            lambda d: d["namespaces"][0]["kinematics"].update(tip_frame="gripper_tip"))
+    assert code == 1 and len(err.splitlines()) == 1
+    assert f"{tmp_path / 'arm.yaml'}: namespaces[0] (so101).kinematics.tip_frame: 'gripper_tip' is not a " \
+           "link of " in err
+    assert "(its links: base_link, " in err and "gripper_frame_link" in err
+
+
+def test_check_names_the_base_frame_key(tmp_path, capsys):
+    code, err = _check_with(tmp_path, capsys,
+                            lambda d: d["namespaces"][0]["kinematics"].update(base_frame="world"))
+    assert code == 1 and "namespaces[0] (so101).kinematics.base_frame: 'world' is not a link of " in err
+
+
+def test_check_names_a_joint_missing_from_the_urdf(tmp_path, capsys):
+    def rename(d):
+        d["joints"][0]["name"] = "shoulder_yaw"
+        d["namespaces"][0]["joints"][0] = "shoulder_yaw"
+
+    code, err = _check_with(tmp_path, capsys, rename)
+    assert code == 1 and len(err.splitlines()) == 1
+    assert "namespaces[0] (so101).joints: 'shoulder_yaw' not a joint of " in err
+    assert "(its joints: shoulder_pan, shoulder_lift" in err
+
+
+def test_check_names_a_base_frame_moved_by_a_joint(tmp_path, capsys):
+    code, err = _check_with(tmp_path, capsys,
+                            lambda d: d["namespaces"][0]["kinematics"].update(base_frame="upper_arm_link"))
+    assert code == 1 and "namespaces[0] (so101).kinematics: " in err and "must be fixed to the URDF root" in err
+
+
+def test_check_reports_the_kinematics_it_validated(capsys):
+    assert bridge_main(["check", "--profile", str(SO101)]) == 0
+    assert "kinematics so101: base_link -> gripper_frame_link" in capsys.readouterr().out
+
+
+def test_daemon_refuses_a_bad_tip_frame_before_starting_anything(tmp_path, short_tmp):
+    import yaml
+
+    from .conftest import so101_data
+
+    data = so101_data()
+    data["namespaces"][0]["kinematics"]["tip_frame"] = "gripper_tip"
+    path = tmp_path / "arm.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    proc = run("crtk_bridge.cli", "--profile", str(path), "--sim", "--socket", str(short_tmp / "a.sock"))
+    assert "namespaces[0] (so101).kinematics.tip_frame" in one_line_error(proc)
+    assert proc.stdout == ""  # neither the simulator nor the control process started

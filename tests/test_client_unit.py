@@ -22,7 +22,7 @@ import pytest
 from crtk_bridge.client import (
     connect, default_socket_path, matrix_from_quaternion, pose_matrix, pose_pq, quaternion_from_matrix)
 from crtk_bridge.client.cli import main
-from crtk_bridge.client.connection import Connection, DaemonConnectionError
+from crtk_bridge.client.connection import PROTOCOL_VERSION, Connection, DaemonConnectionError
 from crtk_bridge.errors import CommandError
 
 JOINTS = ["shoulder_pan", "elbow"]
@@ -69,7 +69,7 @@ class FakeDaemon:
         self.sessions: list[socket.socket] = []
         self.handlers = {
             "list": lambda r, s: s.send(ok(r, {
-                "robot": self.robot, "protocol_version": 1, "daemon_version": "0.1.0",
+                "robot": self.robot, "protocol_version": PROTOCOL_VERSION, "daemon_version": "0.1.0",
                 "namespaces": [
                     {"name": "so101", "joints": JOINTS, "commands": ARM_COMMANDS,
                      "queries": ["measured_js"], "topics": ["measured_js"]},
@@ -607,7 +607,7 @@ def test_unlisted_commands_refused_locally_naming_command_and_namespace(fake, ro
 
 def test_daemon_unsupported_reply_raises_too(fake, robot):
     fake.handlers["list"] = lambda r, s: s.send(ok(r, {  # an older daemon: no commands listed
-        "robot": "so101", "protocol_version": 1, "namespaces": [{"name": "so101", "joints": JOINTS}]}))
+        "robot": "so101", "protocol_version": PROTOCOL_VERSION, "namespaces": [{"name": "so101", "joints": JOINTS}]}))
     fake.handlers["servo_jf"] = lambda r, s: s.send(err(r, "unsupported",
                                                         "so101: servo_jf is not supported by this robot"))
     r2 = connect(socket=fake.path, timeout=3.0)
@@ -661,7 +661,12 @@ def test_wait_for_event_sees_only_new_matching_events(fake, robot):
 def test_cli_new_stream_commands_hold_free(fake, capsys):
     for cmd in ("servo_jv", "interpolate_jp", "interpolate_jv", "hold", "free"):
         fake.handlers[cmd] = lambda r, s: s.send(ok(r))
-    assert main(["--socket", fake.path, "servo_jv", "0.1", "-0.1"]) == 0
+    n = len(fake.requests)
+    # a one-shot velocity command would stop as crtk-ctl disconnects: refused locally, nothing sent
+    assert main(["--socket", fake.path, "servo_jv", "0.1", "-0.1"]) == 2
+    assert "servo_jv needs --duration" in capsys.readouterr().err
+    assert not [r for r in fake.requests[n:] if r["cmd"] == "servo_jv"]
+    assert main(["--socket", fake.path, "servo_jv", "0.1", "-0.1", "--duration", "0.02"]) == 0
     assert fake.requests[-1]["data"] == {"velocity": [0.1, -0.1]}
     assert "servo_jv sent" in capsys.readouterr().out
     assert main(["--socket", fake.path, "interpolate_jp", "0.5", "0.25", "--json"]) == 0
@@ -677,7 +682,7 @@ def test_cli_new_stream_commands_hold_free(fake, capsys):
     assert main(["--socket", fake.path, "free"]) == 0
     assert fake.requests[-1]["cmd"] == "free"
     capsys.readouterr()
-    assert main(["--socket", fake.path, "servo_jf", "0.1", "0.1"]) == 1
+    assert main(["--socket", fake.path, "servo_jf", "0.1", "0.1", "--duration", "0.1"]) == 1
     assert "servo_jf refused (unsupported)" in capsys.readouterr().err
     assert main(["--socket", fake.path, "servo_jv", "0.1"]) == 1  # wrong length, caught locally
     assert "bad_request" in capsys.readouterr().err
@@ -721,7 +726,7 @@ QUAT_Y90 = [0.0, math.sqrt(0.5), 0.0, math.sqrt(0.5)]
 
 def cart_list(fake):
     return lambda r, s: s.send(ok(r, {
-        "robot": "so101", "protocol_version": 1, "daemon_version": "0.1.0",
+        "robot": "so101", "protocol_version": PROTOCOL_VERSION, "daemon_version": "0.1.0",
         "namespaces": [
             {"name": "so101", "joints": JOINTS, "commands": CART_COMMANDS, "queries": CART_QUERIES,
              "topics": CART_QUERIES[:-2],
@@ -960,7 +965,10 @@ def test_cli_cartesian_commands(fake, cart, capsys):
     capsys.readouterr()
     assert main(s + ["servo_cp", "0.3", "0", "0.2", "0", "0", "0", "1"]) == 0
     assert fake.requests[-1]["cmd"] == "servo_cp" and "servo_cp sent" in capsys.readouterr().out
-    assert main(s + ["servo_cv", "0", "0", "0.02", "0", "0", "0", "--frame", "body", "--json"]) == 0
+    assert main(s + ["servo_cv", "0", "0", "0.02", "0", "0", "0", "--frame", "body"]) == 2  # one-shot
+    assert "servo_cv needs --duration" in capsys.readouterr().err
+    assert main(s + ["servo_cv", "0", "0", "0.02", "0", "0", "0", "--frame", "body", "--json",
+                     "--duration", "0.02"]) == 0
     assert json.loads(capsys.readouterr().out) == {"cmd": "servo_cv", "ns": "so101", "ok": True, "frame": "body"}
     assert fake.requests[-1]["ns"] == "so101/body"
     assert fake.requests[-1]["data"] == {"linear": [0.0, 0.0, 0.02], "angular": [0.0, 0.0, 0.0]}
@@ -970,7 +978,7 @@ def test_cli_cartesian_commands(fake, cart, capsys):
     assert "bad_request" in capsys.readouterr().err
     assert main(s + ["move_cp", "0.3", "0", "0.2"]) == 1  # 7 numbers needed
     assert "move_cp needs X Y Z QX QY QZ QW" in capsys.readouterr().err
-    assert main(s + ["servo_cf", "0", "0", "0", "0", "0", "0"]) == 1
+    assert main(s + ["servo_cf", "0", "0", "0", "0", "0", "0", "--duration", "0.1"]) == 1
     assert "servo_cf refused (unsupported)" in capsys.readouterr().err
 
 

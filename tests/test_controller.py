@@ -249,6 +249,9 @@ def test_servo_jp_latest_wins_step_limit_and_clipping(rig):
     for k in range(1, 11):
         assert req("servo_jp", "so101", position=[0.01 * k, 0, 0, 0, 0])["ok"]
     cycle()
+    v_max = PROFILE.joints[0].limits.velocity_max
+    assert act.pos[0] == pytest.approx(v_max * c.dt)  # the latest target, followed at velocity_max
+    cycle(6)
     assert act.pos[0] == pytest.approx(0.10)
     assert not c.is_busy
     r = req("servo_jp", "so101", position=[1.0, 0, 0, 0, 0])
@@ -257,7 +260,7 @@ def test_servo_jp_latest_wins_step_limit_and_clipping(rig):
     c.outbox.clear()
     for k in range(1, 40):
         req("servo_jp", "so101/gripper", position=[min(0.1 * k, 1.9)])
-        cycle()
+        cycle(6)  # 0.1 rad in 6 cycles: within the gripper's velocity_max
     assert act.pos[5] == pytest.approx(PROFILE.joints[5].limits.position_max)
     warnings = [m for m in c.outbox if m.get("event") == "warning" and m["data"]["code"] == "limit_clipped"]
     assert len(warnings) == 1 and "gripper" in warnings[0]["data"]["message"]
@@ -269,8 +272,8 @@ def test_servo_jr_adds_to_setpoint_and_setpoint_fields(rig):
     m = c.namespaces["so101"]
     assert m.setpoint_fields() == (False, False, False)  # no command yet: invalid
     assert req("servo_jr", "so101", position=[0.05, 0.05, 0, 0, 0])["ok"]
-    assert req("servo_jr", "so101", position=[0.05, 0, 0, 0, 0])["ok"]
-    cycle()
+    assert req("servo_jr", "so101", position=[0.05, 0, 0, 0, 0])["ok"]  # adds to the first's target
+    cycle(7)  # 0.1 rad at velocity_max 3 rad/s, 0.015 rad per cycle
     np.testing.assert_allclose(act.pos[:2], [0.10, 0.05])
     assert m.setpoint_fields() == (True, False, False)  # servo_jp: position only
     assert req("servo_jp", "so101", position=[0.1, 0.05, 0, 0, 0], velocity=[0.2, 0, 0, 0, 0])["ok"]

@@ -104,12 +104,22 @@ def test_second_session_is_read_only_while_first_holds_control(sim_daemon):
     try:
         assert a.device(ns).enable(5.0)
         with pytest.raises(CommandError) as err:
-            b.device(ns).disable()
+            b.device(ns).move_jr([0.0] * sim_daemon.robot.n)
         assert err.value.code == "read_only"
         pos, ts = b.device(ns).measured_jp()  # queries stay open to everyone
         assert ts > 0
+        assert b.device(ns).disable(5.0)  # but a stop is never refused (docs/protocol.md, Control)
         a.close()
-        assert wait_until(lambda: b.device(ns).disable(1.0), 5, what="control freed on disconnect")
+
+        def enabled_by_b():
+            try:
+                return b.device(ns).enable(1.0)
+            except CommandError as exc:
+                assert exc.code == "read_only"
+                return False
+
+        assert wait_until(enabled_by_b, 5, what="control freed on disconnect")
+        assert b.device(ns).disable(5.0)
     finally:
         a.close()
         b.close()

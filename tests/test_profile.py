@@ -142,26 +142,43 @@ def load_bad(tmp_path: Path, data: Any, name: str = "bad.yaml") -> str:
 def test_unknown_top_level_key(tmp_path, base):
     base["colour"] = "red"
     msg = load_bad(tmp_path, base)
-    assert msg.endswith("bad.yaml: Object contains unknown field `colour`")
+    assert msg.endswith("bad.yaml: colour: unknown key; valid keys, nearest first: loop, description, "
+                        "server, joints, backend, namespaces, name, safety")
 
 
 def test_unknown_nested_key(tmp_path, base):
     base["joints"][2]["limits"]["bogus"] = 1.0
     msg = load_bad(tmp_path, base)
-    assert "joints[2].limits" in msg
-    assert "unknown field `bogus`" in msg
+    assert "joints[2] (elbow_flex).limits.bogus: unknown key; valid keys, nearest first: " in msg
+    valid = msg.rsplit(": ", 1)[1].split(", ")
+    assert sorted(valid) == sorted(["position_min", "position_max", "velocity_max", "acceleration_max",
+                                    "jerk_max", "effort_max"])
 
 
 def test_unknown_key_in_section(tmp_path, base):
     base["safety"]["servo_timeout"] = 1.0  # the real key is servo_timeout_s
     msg = load_bad(tmp_path, base)
-    assert "safety" in msg and "unknown field `servo_timeout`" in msg
+    assert "safety.servo_timeout: unknown key; valid keys, nearest first: servo_timeout_s, " in msg
+
+
+@pytest.mark.parametrize("where, typo, nearest", [
+    (("joints", 2, "calibration"), "ofset", "offset"),
+    (("namespaces", 0, "kinematics"), "tip", "tip_frame"),
+    (("loop",), "rate", "rate_hz"),
+])
+def test_unknown_key_lists_the_intended_key_first(tmp_path, base, where, typo, nearest):
+    node = base
+    for k in where:
+        node = node[k]
+    node[typo] = 1
+    msg = load_bad(tmp_path, base)
+    assert f".{typo}: unknown key; valid keys, nearest first: {nearest}," in msg, msg
 
 
 def test_wrong_type(tmp_path, base):
     base["joints"][0]["limits"]["position_min"] = "minus one"
     msg = load_bad(tmp_path, base)
-    assert "joints[0].limits.position_min" in msg
+    assert "joints[0] (shoulder_pan).limits.position_min" in msg
     assert "Expected `float`, got `str`" in msg
 
 
@@ -180,8 +197,7 @@ def test_missing_required_top_level_key(tmp_path, base):
 def test_missing_required_nested_key(tmp_path, base):
     del base["joints"][1]["limits"]["velocity_max"]
     msg = load_bad(tmp_path, base)
-    assert "joints[1].limits" in msg
-    assert "missing required field `velocity_max`" in msg
+    assert "joints[1] (shoulder_lift).limits: Object missing required field `velocity_max`" in msg
 
 
 def test_missing_backend_type(tmp_path, base):
@@ -261,13 +277,25 @@ def test_all_problems_reported_at_once(tmp_path, base):
     assert "calibration.direction" in msg and "bus id 1" in msg
 
 
-def test_not_yaml(tmp_path):
+def yaml_error(tmp_path: Path, text: str) -> tuple[Path, str]:
     path = tmp_path / "broken.yaml"
-    path.write_text("name: so101\njoints: [unclosed\n  - {name: a\n")
+    path.write_text(text)
     with pytest.raises(ProfileError) as info:
         load_profile(path)
-    msg = str(info.value)
-    assert str(path) in msg and "not valid YAML" in msg
+    return path, str(info.value)
+
+
+def test_not_yaml(tmp_path):
+    path, msg = yaml_error(tmp_path, "name: so101\njoints: [unclosed\n  - {name: a\n")
+    # the file, then the line and column (1-based), one line; never PyYAML's "<unicode string>"
+    assert msg == (f"{path}: line 3, column 5: not valid YAML: expected ',' or ']', but got '{{' "
+                   "(while parsing a flow sequence at line 2)")
+
+
+def test_yaml_error_names_file_and_line(tmp_path):
+    path, msg = yaml_error(tmp_path, "name: so101\nbackend:\n  type: feetech\n   port: /dev/ttyACM0\n")
+    assert msg.startswith(f"{path}: line 4, column ") and "not valid YAML" in msg
+    assert "<unicode string>" not in msg and "\n" not in msg
 
 
 def test_yaml_that_is_not_a_mapping(tmp_path):
@@ -313,7 +341,7 @@ def test_parse_profile_names_its_source(base):
     base["joints"][0]["limits"]["bogus"] = 1
     with pytest.raises(ProfileError) as info:
         profile_mod.parse_profile(copy.deepcopy(base), "robot.yaml")
-    assert str(info.value).startswith("robot.yaml: joints[0].limits: ")
+    assert str(info.value).startswith("robot.yaml: joints[0] (shoulder_pan).limits.bogus: unknown key; ")
 
 
 def test_unknown_joint_key_is_the_backends_to_refuse(tmp_path, base):
@@ -321,8 +349,17 @@ def test_unknown_joint_key_is_the_backends_to_refuse(tmp_path, base):
     p = profile_mod.parse_profile(copy.deepcopy(base), "robot.yaml")  # core: not its key
     assert p.joints[0].backend["bogus"] == 1
     msg = load_bad(tmp_path, base)  # the feetech backend: not its key either
-    assert "joints[0] (shoulder_pan).bogus: unknown joint key (core keys: home, limits, name; " \
-           "feetech backend keys: id, model, calibration, effort_per_amp)" in msg
+    assert "joints[0] (shoulder_pan).bogus: unknown key for a feetech backend joint; valid keys, nearest " \
+           "first: " in msg
+    valid = msg.split("nearest first: ", 1)[1].split(", ")
+    assert sorted(valid) == sorted(["home", "limits", "name", "id", "model", "calibration", "effort_per_amp"])
+
+
+def test_unknown_joint_key_lists_the_intended_key_first(tmp_path, base):
+    base["joints"][1]["modle"] = base["joints"][1].pop("model")
+    msg = load_bad(tmp_path, base)
+    assert "joints[1] (shoulder_lift).modle: unknown key for a feetech backend joint; valid keys, nearest " \
+           "first: model, " in msg
 
 
 def test_backend_keys_may_be_nested_under_the_joint(base):

@@ -33,7 +33,8 @@ import serial
 
 from ..core.actuator import Actuator, ActuatorInfo
 from ..errors import BackendError, ProfileError
-from ..profile import Profile, backend_config
+from ..profile import Profile, backend_config, unknown_key_message
+from .port_errors import open_error_reason, silent_bus_hint
 from .servo_keys import ServoJoint, servo_joints
 
 DEFAULT_MARGIN_MS = 10.0
@@ -203,8 +204,8 @@ class SerialServoBackend(Actuator):
         given = set(profile.backend) - {"type"}
         fields = self.Config.__struct_fields__
         for key in sorted(given - set(fields)):
-            raise ProfileError(f"{source}: backend.{key}: unknown key for the {self.vendor} backend "
-                               f"(valid: {', '.join(fields)})")
+            raise ProfileError(f"{source}: backend.{key}: "
+                               f"{unknown_key_message(key, ['type', *fields], f'the {self.vendor} backend')}")
         if "port" not in given:
             raise ProfileError(f"{source}: backend.port: required, the serial device "
                                f"(e.g. /dev/ttyACM0)")
@@ -368,7 +369,8 @@ class SerialServoBackend(Actuator):
         try:
             ok = port.openPort()
         except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
-            raise BackendError(f"{self.robot}: cannot open port {cfg.port}: {exc}") from exc
+            raise BackendError(f"{self.robot}: cannot open port {cfg.port}: "
+                               f"{open_error_reason(cfg.port, exc)}") from exc
         if not ok:
             raise BackendError(f"{self.robot}: cannot open port {cfg.port} at {cfg.baudrate} baud")
         self._port = port
@@ -388,14 +390,18 @@ class SerialServoBackend(Actuator):
 
     def _check_servos(self) -> None:
         problems = []
+        answered = False
         for i, j in enumerate(self.joint_keys):
             model, result, _ = self._txrx(self._ph.ping, self._ids[i])
+            answered = answered or result == COMM_SUCCESS
             if result != COMM_SUCCESS:
                 problems.append(f"{self._label[i]} did not answer ping on {self._where}: "
                                 f"{self._result_text(result)}")
             elif model != self.MODEL_NUMBERS[j.model]:
                 problems.append(f"{self._label[i]} on {self._where} is model number {model}, "
                                 f"expected {self.MODEL_NUMBERS[j.model]} ({j.model})")
+        if problems and len(problems) == self.n and not answered:
+            problems.append(silent_bus_hint(self.config.baudrate, self._ids))
         if problems:
             raise BackendError(f"{self.robot}: " + "; ".join(problems))
 

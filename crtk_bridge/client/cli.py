@@ -30,6 +30,8 @@ import sys
 import time
 from typing import Sequence
 
+import numpy as np
+
 from crtk_bridge import __version__
 
 from crtk_bridge.client.connection import DaemonConnectionError
@@ -72,9 +74,24 @@ CART_STREAM_COMMANDS = {
                        "wrench"),
 }
 
+#: stream commands without an end: the daemon stops them when crtk-ctl disconnects (client loss),
+#: so sent once they would do nothing; they need --duration
+ENDLESS_COMMANDS = ("servo_jv", "servo_jf", "interpolate_jv", "interpolate_jf",
+                    "servo_cv", "interpolate_cv", "servo_cf", "interpolate_cf")
+#: relative stream commands: with --duration each sample carries its share of the offset, so the
+#: whole stream moves by the given offset in total
+RELATIVE_COMMANDS = ("servo_jr", "interpolate_jr", "servo_cr", "interpolate_cr")
+_DURATION_HELP = ("send the command at --rate for S seconds (default: send once). A relative command "
+                  "(_jr, _cr) moves by the given offset in total; a velocity or effort command needs "
+                  "it (it has no end: the daemon stops it when crtk-ctl disconnects)")
+
 
 class Failure(Exception):
     """A command ran but did not achieve its aim (exit 1, one line on stderr)."""
+
+
+class UsageError(Exception):
+    """The arguments cannot do what was asked (exit 2, one line on stderr)."""
 
 
 #: help of every joint-vector argument: how many values, in which order
@@ -175,9 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (what, meta) in STREAM_COMMANDS.items():
         p = add(name, what)
         p.add_argument("values", nargs="+", type=float, metavar=meta, help=JOINT_VECTOR_HELP)
-        p.add_argument("--duration", metavar="S", type=float, default=0.0,
-                       help="repeat the command at --rate for S seconds (default: send once; the "
-                            "daemon holds when crtk-ctl disconnects, or after its servo timeout)")
+        p.add_argument("--duration", metavar="S", type=float, default=0.0, help=_DURATION_HELP)
         p.add_argument("--rate", metavar="HZ", type=_positive_float, default=50.0,
                        help="repeat rate with --duration (default 50)")
     p = add("move_cp", "move the tip to the pose X Y Z (m) QX QY QZ QW (IK, then a joint "
@@ -202,8 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("values", nargs="+", type=float, metavar=meta, help=helptext)
         if kind in ("twist", "wrench"):
             add_frame(p)
-        p.add_argument("--duration", metavar="S", type=float, default=0.0,
-                       help="repeat the command at --rate for S seconds (default: send once)")
+        p.add_argument("--duration", metavar="S", type=float, default=0.0, help=_DURATION_HELP)
         p.add_argument("--rate", metavar="HZ", type=_positive_float, default=50.0,
                        help="repeat rate with --duration (default 50)")
     p = add("fk", "forward kinematics: print the tip pose for joint positions J (rad)")
@@ -329,6 +343,36 @@ def _pose_arg(dev: Device, cmd: str, values: Sequence[float], relative: bool) ->
     return values[:3], values[3:]
 
 
+def _samples(args) -> int:
+    """How many times a stream command is sent: once, or at --rate over --duration (both ends)."""
+    if args.command in ENDLESS_COMMANDS and args.duration <= 0:
+        raise UsageError(f"{args.command} needs --duration S: a velocity or effort command has no end, "
+                         "and the daemon stops it when crtk-ctl disconnects")
+    return 1 + int(round(max(0.0, args.duration) * args.rate))
+
+
+def _repeat(send, n: int, rate: float) -> None:
+    """Call ``send()`` ``n`` times at ``rate`` Hz, the first at once."""
+    t0 = time.monotonic()
+    for k in range(n):
+        time.sleep(max(0.0, t0 + k / rate - time.monotonic()))
+        send()
+
+
+def _pose_share(delta: tuple, n: int) -> tuple:
+    """One ``n``-th of a relative pose: the translation divided by ``n``, the rotation's angle
+    too (same axis), so ``n`` of them in a row make ``delta``."""
+    dp, dq = np.asarray(delta[0], float), np.asarray(delta[1], float)
+    dq = dq / np.linalg.norm(dq)
+    if dq[3] < 0:
+        dq = -dq
+    s = float(np.linalg.norm(dq[:3]))
+    angle = 2.0 * math.atan2(s, float(dq[3])) / n
+    axis = dq[:3] / s if s > 0 else np.zeros(3)
+    q = [*(axis * math.sin(angle / 2)), math.cos(angle / 2)]
+    return (dp / n).tolist(), q
+
+
 def _last_error(robot: Robot, since: int) -> str:
     evs = list(robot.connection.events)[since:]
     for ev in reversed(evs):
@@ -452,16 +496,9 @@ def _run(args, robot: Robot) -> int:
     if cmd in STREAM_COMMANDS or cmd in ("hold", "free"):
         if cmd in STREAM_COMMANDS:
             _check_len(dev, cmd, args.values)
-            if args.rate <= 0:
-                raise CommandError("bad_request", f"--rate must be > 0, got {args.rate:g}")
-            send = getattr(dev, cmd)
-            send(args.values)
-            n = int(round(max(0.0, args.duration) * args.rate))
-            if n:
-                t0 = time.monotonic()
-                for k in range(1, n + 1):
-                    time.sleep(max(0.0, t0 + k / args.rate - time.monotonic()))
-                    send(args.values)
+            n = _samples(args)
+            values = [v / n for v in args.values] if cmd in RELATIVE_COMMANDS else args.values
+            _repeat(lambda: getattr(dev, cmd)(values), n, args.rate)
         else:
             getattr(dev, cmd)()
         _emit_json({"cmd": cmd, "ns": dev.name, "ok": True}) if out_json else print(
@@ -470,24 +507,20 @@ def _run(args, robot: Robot) -> int:
 
     if cmd in CART_STREAM_COMMANDS:
         kind = CART_STREAM_COMMANDS[cmd][1]
-        if args.rate <= 0:
-            raise CommandError("bad_request", f"--rate must be > 0, got {args.rate:g}")
         if kind in ("pose", "delta"):
             payload = _pose_arg(dev, cmd, args.values, kind == "delta")
+            n = _samples(args)
+            if cmd in RELATIVE_COMMANDS:
+                payload = _pose_share(payload, n)
             send = lambda: getattr(dev, cmd)(payload)  # noqa: E731
         else:
             if len(args.values) != 6:
                 raise CommandError("bad_request", f"{dev.name}: {cmd} needs 6 values "
                                    f"({'VX VY VZ WX WY WZ' if kind == 'twist' else 'FX FY FZ TX TY TZ'}), "
                                    f"got {len(args.values)}")
+            n = _samples(args)
             send = lambda: getattr(dev, cmd)(args.values, frame=args.frame)  # noqa: E731
-        send()
-        n = int(round(max(0.0, args.duration) * args.rate))
-        if n:
-            t0 = time.monotonic()
-            for k in range(1, n + 1):
-                time.sleep(max(0.0, t0 + k / args.rate - time.monotonic()))
-                send()
+        _repeat(send, n, args.rate)
         obj = {"cmd": cmd, "ns": dev.name, "ok": True}
         if kind in ("twist", "wrench"):
             obj["frame"] = args.frame
@@ -625,6 +658,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail("timeout", str(exc), 1)
     except Failure as exc:
         return fail("failed", str(exc), 1)
+    except UsageError as exc:
+        return fail("usage", str(exc), 2)
     except KeyError as exc:  # unknown --ns
         return fail("unknown_namespace", exc.args[0] if exc.args else str(exc), 1)
     except CrtkBridgeError as exc:

@@ -28,7 +28,7 @@ from crtk_bridge.errors import CommandError, CrtkBridgeError
 
 log = logging.getLogger(__name__)
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 
 _encode = msgspec.json.encode
 _decode = msgspec.json.decode

@@ -58,7 +58,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Sequence
 
 import msgspec
 import numpy as np
@@ -69,7 +69,8 @@ from ..profile import Profile
 
 @dataclass(frozen=True)
 class Capabilities:
-    """What a backend can do; the server advertises only the CRTK commands these allow."""
+    """What a backend, a joint or a group of joints can do; the server advertises per namespace
+    only the CRTK commands its joints' capabilities allow (:func:`combine_capabilities`)."""
 
     position: bool = True  # accepts joint position setpoints
     velocity: bool = False  # accepts joint velocity setpoints
@@ -79,6 +80,20 @@ class Capabilities:
     needs_homing: bool = False  # incremental encoders: is_homed starts False
     can_free: bool = True  # torque can be switched off with the robot powered (`free`)
     native_rate_hz: float | None = None  # rate the hardware paces (CANopen SYNC, RTDE); None = any
+
+
+def combine_capabilities(caps: Sequence[Capabilities]) -> Capabilities:
+    """What a group of joints (a namespace, a robot) can do together: a command is offered only
+    if every joint can follow it, and the group needs homing if any joint does."""
+    if not caps:
+        return Capabilities()
+    rates = [c.native_rate_hz for c in caps if c.native_rate_hz is not None]
+    return Capabilities(
+        position=all(c.position for c in caps), velocity=all(c.velocity for c in caps),
+        effort=all(c.effort for c in caps), measures_velocity=all(c.measures_velocity for c in caps),
+        measures_effort=all(c.measures_effort for c in caps), needs_homing=any(c.needs_homing for c in caps),
+        can_free=all(c.can_free for c in caps), native_rate_hz=rates[0] if rates else None,
+    )
 
 
 class CommandMode(enum.IntEnum):
@@ -448,6 +463,15 @@ class Actuator(abc.ABC):
             return self._write(command)
         except Exception as exc:
             return Fault("backend_exception", f"{self.robot}: write failed: {exc!r}", transient=False)
+
+    def joint_capabilities(self, i: int) -> Capabilities:
+        """What joint ``i`` can do. Default: the backend's :attr:`capabilities`; a backend that
+        knows per joint (a current-sensing servo beside one without) overrides it."""
+        return self.capabilities
+
+    def capabilities_of(self, joints: Sequence[int]) -> Capabilities:
+        """What the joints ``joints`` (indices) can do together, e.g. one namespace's."""
+        return combine_capabilities([self.joint_capabilities(i) for i in joints])
 
     def new_feedback(self) -> JointFeedback:
         z = np.zeros(self.n)

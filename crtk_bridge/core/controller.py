@@ -41,6 +41,7 @@ from ..errors import BackendError, fmt_number
 from ..profile import Profile
 from .actuator import (
     Actuator,
+    Capabilities,
     CommandMode,
     DeviceStatus,
     Fault,
@@ -128,9 +129,12 @@ class Controller:
         self._busy_reported = False
         self.state_stamp = clock()
         self.outbox: list[dict] = []
+        #: what each namespace's joints can do together: commands are offered and refused per namespace
+        self.ns_caps = {ns.name: actuator.capabilities_of([profile.joint_index(j) for j in ns.joints])
+                        for ns in profile.namespaces}
         self.namespaces: dict[str, NamespaceMotion] = {
             ns.name: NamespaceMotion(ns.name, [profile.joint_index(j) for j in ns.joints], profile, self.dt,
-                                     self.caps)
+                                     self.ns_caps[ns.name])
             for ns in profile.namespaces
         }
         self.command = actuator.new_command()
@@ -161,17 +165,29 @@ class Controller:
             "stamp": self.state_stamp,
         }
 
-    def can(self, need: str) -> bool:
-        c = self.caps
+    @staticmethod
+    def _allows(c: Capabilities, need: str) -> bool:
         return {"position": c.position, "velocity": c.velocity or c.position, "effort": c.effort,
                 "free": c.can_free}[need]
 
-    def supported_commands(self) -> list[str]:
-        """State commands and the motion commands the backend's capabilities allow.
+    def can(self, need: str, ns: str | None = None) -> bool:
+        """Whether namespace ``ns`` (None: every joint of the robot) can follow ``need`` commands."""
+        return self._allows(self.ns_caps[ns] if ns is not None else self.caps, need)
+
+    def supported_commands(self, ns: str | None = None) -> list[str]:
+        """State commands and the motion commands namespace ``ns``'s capabilities allow (None:
+        those some namespace allows).
 
         Velocity commands exist on position-only hardware too: the loop integrates them into
         position setpoints (crtk-spec 4.2.5). Effort commands need effort control."""
-        return list(STATE_COMMANDS) + [cmd for cmd, (_, need) in MOTION_COMMANDS.items() if self.can(need)]
+        names = [ns] if ns is not None else list(self.namespaces)
+        return list(STATE_COMMANDS) + [cmd for cmd, (_, need) in MOTION_COMMANDS.items()
+                                       if any(self.can(need, n) for n in names)]
+
+    def namespace_commands(self) -> dict[str, list[str]]:
+        """Every namespace's motion commands (what `list` advertises per namespace)."""
+        return {ns: [cmd for cmd, (_, need) in MOTION_COMMANDS.items() if self.can(need, ns)]
+                for ns in self.namespaces}
 
     # ------------------------------------------------------------------ events
     def _push_state(self) -> None:
@@ -217,10 +233,14 @@ class Controller:
         if m is None:
             raise Refused("unknown_namespace", f"{self.robot}: unknown namespace {ns!r} (have: {', '.join(self.namespaces)})")
         field, need = MOTION_COMMANDS[cmd]
-        if not self.can(need):
+        if not self.can(need, ns):
             what = {"position": "position control", "velocity": "velocity or position control",
                     "effort": "effort control", "free": "a way to switch torque off"}[need]
-            raise Refused("unsupported", f"{ns}: {cmd} is not supported: the {self.profile.backend_type} backend has no {what}")
+            lacking = [self.profile.joints[i].name for i in m.idx
+                       if not self._allows(self.actuator.joint_capabilities(int(i)), need)]
+            where = (f"joint{'s' if len(lacking) > 1 else ''} {', '.join(map(repr, lacking))}" if lacking
+                     else f"the {self.profile.backend_type} backend")
+            raise Refused("unsupported", f"{ns}: {cmd} is not supported: no {what} on {where}")
         self._check_can_move(ns, cmd)
         vec = self._vector(ns, cmd, m, data.get(field), field) if field else None
         now = self.clock()
@@ -242,7 +262,8 @@ class Controller:
             self._check_step(m, vec, m.setpoint_p, cmd)
             m.servo_p(self._clip(m, vec), v, now)
         elif cmd == "servo_jr":
-            p = m.setpoint_p + vec
+            # relative to the latest servo target (the setpoint follows it at velocity_max)
+            p = (m.servo_target if m.mode is Mode.SERVO_P else m.setpoint_p) + vec
             self._check_step(m, p, m.setpoint_p, cmd)
             m.servo_p(self._clip(m, p), None, now)
         elif cmd == "servo_jv":
@@ -532,7 +553,7 @@ class Controller:
 
             self._stop_all()
             return self._start(self.actuator.begin(Lifecycle.HOME), homed, failed)
-        if not self.caps.position:
+        if not all(c.position for c in self.ns_caps.values()):
             raise Refused("unsupported", f"{self.robot}: home unsupported without position control")
         now = self.clock()
         for m in self.namespaces.values():
@@ -561,12 +582,15 @@ class Controller:
             self._push_state()
 
     def _client_lost(self) -> None:
-        """The controlling session went away: stop moves, hold servo streams."""
-        moving = [m.name for m in self.namespaces.values() if m.mode is Mode.MOVE or m.streaming]
-        if self.state is OperatingState.ENABLED and moving:
-            self._stop_all()
+        """The controlling session went away. Commands with an end (a move, home, an
+        interpolate_jp/jr goal) run to it; commands without one (servo streams, velocity and
+        effort setpoints and goals) stop and hold (docs/protocol.md, Client loss)."""
+        endless = [m for m in self.namespaces.values() if m.streaming and m.mode is not Mode.INTERP_P]
+        if self.state is OperatingState.ENABLED and endless:
+            for m in endless:
+                m.stop()
             self._event("warning", "control_released",
-                        f"{self.robot}: controlling client disconnected; holding {', '.join(moving)}")
+                        f"{self.robot}: controlling client disconnected; holding {', '.join(m.name for m in endless)}")
 
     def _enter_fault(self, fault: Fault) -> None:
         """FAULT with ``fault`` as the cause, and the backend's fault reaction."""

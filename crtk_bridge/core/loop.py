@@ -283,12 +283,19 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
     caps = actuator.capabilities
     loop = ControlLoop(profile, actuator, chan, snapshot, realtime=realtime)
     loop_ref["loop"] = loop
+    c = loop.controller
+
+    def as_dict(cap: Any) -> dict:
+        return {k: getattr(cap, k) for k in cap.__dataclass_fields__}
+
     ready = {"event": "_ready", "data": {
-        "commands": loop.controller.supported_commands(),
+        "commands": c.supported_commands(),  # what some namespace offers
+        "capabilities": as_dict(caps),
         "period_s": loop.period,  # the ONE effective period: the front's rates and statistics
         # the longest a state command may take before the loop itself replies (its time limit)
         "transition_timeout_s": max(actuator.transition_timeout_s(k) for k in Lifecycle) * 2,
-        "capabilities": {k: getattr(caps, k) for k in caps.__dataclass_fields__},
+        "namespace_commands": c.namespace_commands(),  # motion commands per namespace
+        "namespace_capabilities": {ns: as_dict(cap) for ns, cap in c.ns_caps.items()},
     }}
     if stop["flag"]:
         loop.running = False

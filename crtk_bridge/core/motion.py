@@ -8,7 +8,7 @@ Levels and what they produce each cycle (crtk-spec 4.1.1, setpoint fields per 4.
 
 | mode | source | setpoint_js fields | native command |
 |---|---|---|---|
-| SERVO_P  | latest servo_jp / servo_jr (+ optional velocity feed-forward) | p (+v) | position |
+| SERVO_P  | latest servo_jp / servo_jr (+ optional velocity feed-forward), followed at <= velocity_max | p (+v) | position |
 | SERVO_V  | latest servo_jv; integrated into p on position-only hardware | v (+p) | velocity or position |
 | SERVO_F  | latest servo_jf | f | effort |
 | INTERP_P | linear interpolation from the setpoint to each interpolate_jp goal over one estimated command period | p, v | position |
@@ -18,6 +18,13 @@ Levels and what they produce each cycle (crtk-spec 4.1.1, setpoint fields per 4.
 | STOP     | ruckig decelerates to rest (pause, hold, client loss), then HOLD | p, v | position |
 | HOLD     | the last position setpoint | p | position |
 | FREE     | nothing: torque off on these joints (`free`) | – | free |
+
+Velocity bounds, on every path: every velocity that enters this layer (servo_jv, interpolate_jv
+goals, the servo_jp feed-forward, the velocity a new interpolate_jv ramp or move starts from) is
+clipped to each joint's ``velocity_max``, and the position setpoint never moves faster than
+``velocity_max``: servo_jp / servo_jr targets are followed at most ``velocity_max * dt`` per
+cycle (a 500 Hz stream is otherwise bounded only per message by ``safety.servo_step_max``),
+interpolate_jp likewise, velocity integration clips its velocity, ruckig plans within the limits.
 
 Interpolation latency: an interpolate_jp goal is reached one estimated command period after it
 arrives (an exponential average of the inter-arrival times, clamped to [loop period,
@@ -78,6 +85,8 @@ class NamespaceMotion:
         self.setpoint_v = np.zeros(n)
         self.setpoint_f = np.zeros(n)
         self.has_v_ff = False  # servo_jp carried a velocity feed-forward
+        self.servo_target = np.zeros(n)  # latest servo_jp / servo_jr position; setpoint_p follows it
+        self.servo_rate = np.zeros(n)  # rad/s the position setpoint really moved at last cycle (SERVO_P)
         self.setpoint_stamp = 0.0
         self.goal_p = np.zeros(n)
         self.goal_v = np.zeros(n)
@@ -97,6 +106,7 @@ class NamespaceMotion:
         self.inp.max_jerk = [j.limits.jerk_max for j in joints]
         self._zeros = np.zeros(n)
         self._tmp = np.zeros(n)
+        self._step_max = self.vel_max * dt  # rad: the farthest a position setpoint moves in one cycle
 
     # ------------------------------------------------------------------ fields (spec 4.2.5)
     def setpoint_fields(self) -> tuple[bool, bool, bool]:
@@ -171,10 +181,17 @@ class NamespaceMotion:
         self.setpoint_stamp = now
 
     def servo_p(self, p: np.ndarray, v: np.ndarray | None, now: float) -> None:
+        """A servo_jp target: the position setpoint follows it at most ``velocity_max`` per
+        second (see :meth:`_step_servo_p`); the feed-forward is clipped to ``velocity_max``."""
+        if self.mode is not Mode.SERVO_P:
+            self.servo_rate[:] = 0.0
         self._enter(Mode.SERVO_P, now)
-        self.setpoint_p[:] = p
+        self.servo_target[:] = p
         self.has_v_ff = v is not None
-        self.setpoint_v[:] = v if v is not None else 0.0
+        if v is not None:
+            np.clip(v, -self.vel_max, self.vel_max, out=self.setpoint_v)
+        else:
+            self.setpoint_v[:] = 0.0
         self.goal_level = None
         self.goal_stamp = 0.0
 
@@ -199,6 +216,9 @@ class NamespaceMotion:
         self.goal_stamp = now
 
     def interpolate_v(self, goal: np.ndarray, now: float) -> None:
+        if self.mode is not Mode.INTERP_V:
+            # the ramp starts from the velocity the setpoint really has, never from a feed-forward
+            self.setpoint_v[:] = self.carried_velocity()
         self._enter(Mode.INTERP_V, now)
         np.clip(goal, -self.vel_max, self.vel_max, out=self.goal_v)
         self.goal_level = Mode.INTERP_V
@@ -221,8 +241,7 @@ class NamespaceMotion:
         else:
             inp.current_position = self.setpoint_p
             # start from the current setpoint velocity (a servo/interpolate stream in progress)
-            inp.current_velocity = np.clip(self.setpoint_v, -self.vel_max, self.vel_max) \
-                if self.mode in (Mode.SERVO_V, Mode.INTERP_V, Mode.INTERP_P) else self._zeros
+            inp.current_velocity = self.carried_velocity()
             inp.current_acceleration = self._zeros
         inp.control_interface = ControlInterface.Position
         inp.target_position = goal
@@ -234,6 +253,19 @@ class NamespaceMotion:
         self.mode = Mode.MOVE
         self.level = Mode.MOVE
         self.setpoint_f[:] = 0.0
+
+    def carried_velocity(self) -> np.ndarray:
+        """The velocity the position setpoint really has now, within ``velocity_max``: what a new
+        interpolate_jv ramp or move starts from. A servo_jp feed-forward is a claim, not motion:
+        what counts is how fast the rate-limited setpoint moved."""
+        mode = self.mode
+        if mode is Mode.SERVO_P:
+            src = self.servo_rate
+        elif mode in (Mode.SERVO_V, Mode.INTERP_V, Mode.INTERP_P, Mode.MOVE, Mode.STOP):
+            src = self.setpoint_v
+        else:
+            return np.zeros(self.n)
+        return np.clip(src, -self.vel_max, self.vel_max)
 
     def stop(self) -> None:
         """Come to rest: a move decelerates (jerk-limited), streams hold where they are."""
@@ -295,6 +327,8 @@ class NamespaceMotion:
             self._step_trajectory(now)
         elif mode is Mode.INTERP_P:
             self._step_interpolate_p(now)
+        elif mode is Mode.SERVO_P:
+            self._step_servo_p(now)
         elif mode is Mode.SERVO_V:
             self._integrate(now)
         elif mode is Mode.INTERP_V:
@@ -309,6 +343,8 @@ class NamespaceMotion:
         return msg
 
     def _integrate(self, now: float) -> None:
+        # whatever the velocity came from (a command, a ramp, a mode switch): within velocity_max
+        np.clip(self.setpoint_v, -self.vel_max, self.vel_max, out=self.setpoint_v)
         if self.caps.velocity:
             # native velocity control: nothing to integrate, but the position limits still hold:
             # brake so that the joint can stop at its limit (v <= sqrt(2 a d)), zero beyond it
@@ -323,6 +359,15 @@ class NamespaceMotion:
         at_limit = (p <= self.pos_min) | (p >= self.pos_max)
         np.clip(p, self.pos_min, self.pos_max, out=p)
         self.setpoint_v[at_limit] = 0.0
+        self.setpoint_stamp = now
+
+    def _step_servo_p(self, now: float) -> None:
+        """Move the position setpoint toward the servo target, at most ``velocity_max * dt``."""
+        step = self._tmp
+        np.subtract(self.servo_target, self.setpoint_p, out=step)
+        np.clip(step, -self._step_max, self._step_max, out=step)
+        self.setpoint_p += step
+        np.divide(step, self.dt, out=self.servo_rate)
         self.setpoint_stamp = now
 
     def _step_interpolate_p(self, now: float) -> None:

@@ -47,6 +47,10 @@ class ControlLink:
         #: the loop's ONE effective period (s) and a state command's longest run, from ``_ready``
         self.period_s = 1.0 / profile.loop.rate_hz
         self.transition_timeout_s = 10.0
+        #: per namespace (from the control process's _ready): what its joints measure, its motion commands
+        self.ns_measures_velocity = {ns: True for ns in self.ns_index}
+        self.ns_measures_effort = {ns: False for ns in self.ns_index}
+        self.ns_commands: dict[str, list[str]] = {ns: [] for ns in self.ns_index}
 
     # ---------------------------------------------------------------- start-up
     def wait_ready(self, timeout_s: float) -> dict:
@@ -66,6 +70,10 @@ class ControlLink:
                     self.period_s = float(msg["data"].get("period_s", self.period_s))
                     self.transition_timeout_s = float(msg["data"].get("transition_timeout_s",
                                                                       self.transition_timeout_s))
+                    for ns, c in msg["data"]["namespace_capabilities"].items():
+                        self.ns_measures_velocity[ns] = c["measures_velocity"]
+                        self.ns_measures_effort[ns] = c["measures_effort"]
+                    self.ns_commands.update(msg["data"]["namespace_commands"])
                     return msg["data"]
                 if ev == "_startup_failed":
                     raise RuntimeError(msg["data"]["message"])
@@ -172,8 +180,8 @@ class ControlLink:
             return {
                 "stamp": float(buf[s["measured_stamp"]][0]), "frame_id": ns, "name": names,
                 "position": buf[s["measured_p"]][idx].tolist(),
-                "velocity": buf[s["measured_v"]][idx].tolist() if self.measures_velocity else [],
-                "effort": buf[s["measured_f"]][idx].tolist() if self.measures_effort else [],
+                "velocity": buf[s["measured_v"]][idx].tolist() if self.ns_measures_velocity[ns] else [],
+                "effort": buf[s["measured_f"]][idx].tolist() if self.ns_measures_effort[ns] else [],
             }
         if topic == "setpoint_js":
             has_p, has_v, has_f = (bool(buf[s[f]][k]) for f in ("ns_has_p", "ns_has_v", "ns_has_f"))
@@ -202,7 +210,7 @@ class ControlLink:
             "measured_stamp": float(buf[s["measured_stamp"]][0]),
             "measured_p": buf[s["measured_p"]][idx], "measured_v": buf[s["measured_v"]][idx],
             "measured_f": buf[s["measured_f"]][idx],
-            "measures_velocity": self.measures_velocity, "measures_effort": self.measures_effort,
+            "measures_velocity": self.ns_measures_velocity[ns], "measures_effort": self.ns_measures_effort[ns],
             "setpoint_stamp": float(buf[s["ns_setpoint_stamp"]][k]),
             "setpoint_p": buf[s["setpoint_p"]][idx], "setpoint_v": buf[s["setpoint_v"]][idx],
             "setpoint_f": buf[s["setpoint_f"]][idx],

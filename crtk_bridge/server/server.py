@@ -9,6 +9,8 @@ import asyncio
 import itertools
 import logging
 import os
+import socket
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -17,15 +19,14 @@ from ..errors import CrtkBridgeError
 from .cartesian import FRAMED, CartesianSpace
 from .link import ControlLink, ControlLost
 from .protocol import (
-    JOINT_QUERIES, PROTOCOL_VERSION, ROBOT_QUERIES, STATE_COMMANDS, TOPICS, ProtocolError, decode_request,
-    encode, error, ok,
+    JOINT_QUERIES, JOINT_VECTORS, MAX_LINE, PAYLOADS, PROTOCOL_VERSION, ROBOT_QUERIES, SESSION_COMMANDS,
+    STATE_COMMANDS, STOP_COMMANDS, TOPICS, ProtocolError, decode_payload, decode_request, encode, error, ok,
 )
 
 log = logging.getLogger("crtk_bridge.server")
 
 #: a session's unsent bytes above which stream frames are dropped (replies and events never are)
 SEND_BUFFER_LIMIT = 256 * 1024
-MAX_LINE = 1 << 16  # bytes per request line; a motion command is a few hundred
 
 
 class Session:
@@ -35,6 +36,11 @@ class Session:
         self.subs: dict[int, asyncio.Task] = {}
         self.dropped = 0
         self.closed = False
+        self.peer = _peer(writer)
+
+    def describe(self) -> str:
+        """Who this session is, for refusals: ``session 3 (pid 1234 python3, uid 1000)``."""
+        return f"session {self.id} ({self.peer})" if self.peer else f"session {self.id}"
 
     def send(self, msg: Any) -> None:
         if not self.closed:
@@ -57,7 +63,8 @@ class Server:
         self.robot = self.profile.name
         self.commands = commands  # motion and state commands the control process supports
         self.cartesian: dict[str, CartesianSpace] = {
-            ns.name: CartesianSpace(self.profile, ns.name, ns.kinematics, commands, link.measures_effort)
+            ns.name: CartesianSpace(self.profile, ns.name, ns.kinematics, link.ns_commands[ns.name],
+                                    link.ns_measures_effort[ns.name])
             for ns in self.profile.namespaces if ns.kinematics is not None
         }
         self.socket_path = socket_path
@@ -69,6 +76,9 @@ class Server:
         self._server: asyncio.base_events.Server | None = None
         self.control_lost = asyncio.Event()
         self.shutting_down = False  # set before the control process is asked to stop
+        #: every command and query this daemon knows (data typed by protocol.PAYLOADS, else none)
+        self._known = set(self.commands) | set(TOPICS) | set(SESSION_COMMANDS) | {
+            c for cs in self.cartesian.values() for c in cs.commands + cs.queries}
 
     # ---------------------------------------------------------------- events from the loop
     def on_event(self, msg: dict) -> None:
@@ -142,15 +152,14 @@ class Server:
         try:
             while True:
                 try:
-                    line = await reader.readline()
-                except (asyncio.LimitOverrunError, ValueError):
-                    s.send(error(None, "bad_request", f"request longer than {MAX_LINE} bytes"))
-                    break
-                except ConnectionError:
-                    break
-                if not line:
-                    break
-                if line.strip():
+                    line = await reader.readuntil(b"\n")
+                except asyncio.LimitOverrunError:
+                    s.send(error(None, "bad_request", f"request line longer than {MAX_LINE} bytes; discarded"))
+                    await _discard_line(reader)
+                    continue
+                except (asyncio.IncompleteReadError, ConnectionError):
+                    break  # closed; a last line without its newline is not a request
+                if line.strip():  # blank lines are ignored (no reply)
                     await self._handle(s, line)
                 if writer.transport.get_write_buffer_size() > 4 * SEND_BUFFER_LIMIT:
                     await writer.drain()  # replies pile up: the client is not reading
@@ -165,19 +174,36 @@ class Server:
             writer.close()
 
     async def _handle(self, s: Session, line: bytes) -> None:
+        rid = None  # the reply's id: null until the envelope (id, cmd, ns) is valid
         try:
             req = decode_request(line)
-            result = await self._dispatch(s, req.id, req.cmd, req.ns, req.data if req.data is not None else {})
+            rid = req.id
+            data = self._payload(req)
+            result = await self._dispatch(s, rid, req.cmd, req.ns, data)
             if result is not _SENT:
-                s.send(ok(req.id, result))
+                s.send(ok(rid, result))
         except ProtocolError as exc:
-            s.send(error(exc.rid if exc.rid is not None else _rid(line), exc.code, str(exc)))
+            s.send(error(exc.rid if exc.rid is not None else rid, exc.code, str(exc)))
         except ControlLost:
-            s.send(error(_rid(line), "internal", f"{self.robot}: the control process is not running"))
+            s.send(error(rid, "internal", f"{self.robot}: the control process is not running"))
         except asyncio.TimeoutError:
-            s.send(error(_rid(line), "internal", f"{self.robot}: the control process did not answer"))
-        except (OverflowError, TypeError, ValueError) as exc:  # data the wire codec cannot carry
-            s.send(error(_rid(line), "bad_request", f"{self.robot}: request data not acceptable: {exc}"))
+            s.send(error(rid, "internal", f"{self.robot}: the control process did not answer"))
+
+    def _payload(self, req: Any) -> dict:
+        """The typed payload of a request (docs/protocol.md, Payloads); joint vectors have one
+        entry per joint of the namespace. Nothing ill-typed goes further."""
+        if req.cmd not in PAYLOADS and req.cmd not in self._known:
+            return {}  # unknown command: refused by _dispatch, its data never looked at
+        who = req.ns or self.robot
+        data = decode_payload(req, who)
+        joints = self.link.ns_names.get(req.ns) if req.cmd in JOINT_VECTORS else None
+        if joints is not None:
+            for field, values in data.items():
+                if len(values) != len(joints):
+                    raise ProtocolError("bad_request", f"{who}: {req.cmd} refused: Expected `array` of {len(joints)} "
+                                        f"numbers ({', '.join(joints)}), got {len(values)} - at `data.{field}`",
+                                        req.id)
+        return data
 
     def _check_ns(self, cmd: str, ns: str | None, required: bool) -> str | None:
         if ns is None:
@@ -224,7 +250,7 @@ class Server:
         if cmd == "subscribe":
             return self._subscribe(s, ns, data)
         if cmd == "unsubscribe":
-            sub = data.get("sub") if isinstance(data, dict) else None
+            sub = data["sub"]
             task = s.subs.pop(sub, None)
             if task is None:
                 raise ProtocolError("bad_request", f"no subscription {sub!r} in this session")
@@ -238,12 +264,12 @@ class Server:
                 self.controller = None
             return None
         if cmd not in self.commands:
-            known = set(self.commands) | set(TOPICS) | {"list", "subscribe", "unsubscribe", "acquire", "release"}
-            if _is_crtk_command(cmd) and cmd not in known:
+            if _is_crtk_command(cmd) and cmd not in self._known:
                 raise ProtocolError("unsupported", f"{ns or self.robot}: {cmd} is not supported by this robot")
             raise ProtocolError("unknown_command", f"{self.robot}: unknown command {cmd!r}")
         self._check_ns(cmd, ns, cmd not in STATE_COMMANDS)
-        self._take_control(s, cmd)
+        if cmd not in STOP_COMMANDS:  # a stop is never refused, and takes nobody's control
+            self._take_control(s, cmd)
         delivered = []
 
         def deliver(reply: dict) -> None:
@@ -263,24 +289,20 @@ class Server:
         if self.controller is None or self.controller.closed:
             self.controller = s
         elif self.controller is not s:
-            raise ProtocolError("read_only", f"{self.robot}: {cmd} refused: another session holds control "
-                                "(it must release or disconnect)")
+            raise ProtocolError("read_only", f"{self.robot}: {cmd} refused: {self.controller.describe()} holds "
+                                f"control (it must release or disconnect; {', '.join(STOP_COMMANDS)} are "
+                                "accepted from any session)")
 
-    def _subscribe(self, s: Session, ns: str | None, data: Any) -> dict:
-        if not isinstance(data, dict):
-            raise ProtocolError("bad_request", "subscribe needs data {\"topic\": ..., \"rate_hz\": ...}")
-        topic = data.get("topic")
-        base, _ = self._frame(topic if isinstance(topic, str) else "", ns)
+    def _subscribe(self, s: Session, ns: str | None, data: dict) -> dict:
+        topic = data["topic"]  # typed by protocol.Subscribe: a str, and rate_hz a number > 0
+        base, _ = self._frame(topic, ns)
         cs = self.cartesian.get(base) if base else None
         cart_topics = [q for q in cs.queries if q.startswith(("measured_", "setpoint_", "goal_"))] if cs else []
         if topic not in TOPICS and topic not in cart_topics:
             raise ProtocolError("bad_request", f"unknown topic {topic!r} for {ns or self.robot} "
                                 f"(topics: {', '.join(list(TOPICS) + cart_topics)})")
         self._check_ns("subscribe", base, topic in JOINT_QUERIES or topic in cart_topics)
-        rate = data.get("rate_hz", 10.0)
-        if not isinstance(rate, (int, float)) or not rate > 0:
-            raise ProtocolError("bad_request", f"rate_hz must be a number > 0, got {rate!r}")
-        rate = min(float(rate), 1.0 / self.link.period_s)
+        rate = min(data["rate_hz"], 1.0 / self.link.period_s)
         sub = next(self._subids)
         s.subs[sub] = asyncio.get_running_loop().create_task(self._stream(s, sub, topic, ns, 1.0 / rate))
         return {"sub": sub, "rate_hz": rate}
@@ -315,7 +337,7 @@ class Server:
             entry = {
                 "name": ns.name,
                 "joints": list(ns.joints),
-                "commands": list(self.commands) + (cs.commands if cs else []),
+                "commands": list(STATE_COMMANDS) + self.link.ns_commands[ns.name] + (cs.commands if cs else []),
                 "queries": list(JOINT_QUERIES + ROBOT_QUERIES) + cart_q,
                 "topics": list(TOPICS) + [q for q in cart_q if not q.endswith("kinematics")],
             }
@@ -335,11 +357,28 @@ def _is_crtk_command(cmd: str) -> bool:
     return cmd.startswith(_CRTK_PREFIXES) or cmd in ("hold", "free")
 
 
-def _rid(line: bytes) -> Any:
-    try:
-        import json
+async def _discard_line(reader: asyncio.StreamReader) -> None:
+    """Drop the rest of an over-long line, up to and including its newline (or until EOF)."""
+    while True:
+        try:
+            await reader.readuntil(b"\n")
+            return
+        except asyncio.LimitOverrunError as exc:
+            await reader.readexactly(exc.consumed)
+        except (asyncio.IncompleteReadError, ConnectionError):
+            return
 
-        obj = json.loads(line)
-        return obj.get("id") if isinstance(obj, dict) else None
-    except ValueError:
-        return None
+
+def _peer(writer: asyncio.StreamWriter) -> str:
+    """``pid 1234 python3, uid 1000`` of the process at the other end (SO_PEERCRED), or ""."""
+    sock = writer.get_extra_info("socket")
+    try:
+        pid, uid, _ = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i")))
+    except (AttributeError, OSError):
+        return ""
+    try:
+        with open(f"/proc/{pid}/comm") as f:
+            name = " " + f.read().strip()
+    except OSError:
+        name = ""
+    return f"pid {pid}{name}, uid {uid}"

@@ -39,11 +39,11 @@ Units (raw units never leave this module), per joint with the profile's ``calibr
 * effort commands: Goal_Current = effort / effort_per_amp / unit, clamped to Current_Limit.
 * velocity commands: Goal_Velocity in 0.229 rev/min, clamped to Velocity_Limit.
 
-Capabilities (per robot, because :class:`Capabilities` is per robot): position and velocity
-always; ``effort`` and ``measures_effort`` only if EVERY joint has current control (not the
-XL430) and an ``effort_per_amp`` -- the conservative rule: a Koch v1.1 (two XL430s) therefore has
-no servo_jf / interpolate_jf, and reports no measured effort; an all-XL330/XM430 arm with
-``effort_per_amp`` on every joint has both.
+Capabilities per joint (:meth:`joint_capabilities`): position and velocity always; ``effort``
+and ``measures_effort`` on a joint with current control (not the XL430) and an
+``effort_per_amp``. Core offers a namespace the commands all its joints can follow: on a Koch
+v1.1 the gripper (XL330) has servo_jf / interpolate_jf and measured effort, the arm (two XL430s)
+has neither; an all-XL330/XM430 arm with ``effort_per_amp`` on every joint has both.
 
 Hardware errors: a status packet's Alert bit (0x80) means Hardware_Error_Status (70) is set; the
 backend then reads register 70 of that servo (one extra transaction, only when the Alert first
@@ -68,7 +68,15 @@ from dynamixel_sdk import (
     PortHandler,
 )
 
-from ...core.actuator import Capabilities, CommandMode, Fault, JointCommand, JointFeedback, SimWiring
+from ...core.actuator import (
+    Capabilities,
+    CommandMode,
+    Fault,
+    JointCommand,
+    JointFeedback,
+    SimWiring,
+    combine_capabilities,
+)
 from ...errors import BackendError
 from ...profile import Profile
 from ..serial_servo import SerialPortFixes, SerialServoBackend
@@ -160,16 +168,17 @@ class DynamixelBackend(SerialServoBackend):
         self._goal_min = np.array(lo, dtype=float)
         self._goal_max = np.array(hi, dtype=float)
         self._has_current = [T.CURRENT_UNIT_A[m] is not None for m in self._models]
-        epa = [j.effort_per_amp for j in joints]
-        effort = all(self._has_current) and all(e is not None for e in epa)
+        # effort per joint: current control (not the XL430) and an effort_per_amp
+        self._effort_j = [c and j.effort_per_amp is not None for c, j in zip(self._has_current, joints)]
         unit = np.array([T.CURRENT_UNIT_A[m] or 0.0 for m in self._models])
-        self._nm_per_unit = self._direction * unit * np.array([e or 0.0 for e in epa]) if effort \
-            else np.zeros(n)
+        epa = np.array([j.effort_per_amp or 0.0 for j in joints])
+        self._nm_per_unit = np.where(self._effort_j, self._direction * unit * epa, 0.0)
         self._unit_per_nm = np.divide(1.0, self._nm_per_unit, out=np.zeros(n), where=self._nm_per_unit != 0)
-        self._effort = effort
-        self.capabilities = Capabilities(position=True, velocity=True, effort=effort,
-                                         measures_velocity=True, measures_effort=effort,
-                                         needs_homing=False, can_free=True)
+        self._effort = any(self._effort_j)  # some joint reports effort: decode currents
+        self._joint_caps = [Capabilities(position=True, velocity=True, effort=e, measures_velocity=True,
+                                         measures_effort=e, needs_homing=False, can_free=True)
+                            for e in self._effort_j]
+        self.capabilities = combine_capabilities(self._joint_caps)
         self._vel_per_rad_s = self._direction / T.VELOCITY_UNIT_RAD_S
         self._rad_s_per_vel = self._direction * T.VELOCITY_UNIT_RAD_S
         self._vel_limit = np.array([T.VELOCITY_LIMIT_DEFAULT[m] for m in self._models], dtype=float)
@@ -183,6 +192,9 @@ class DynamixelBackend(SerialServoBackend):
         self._fast_reply_len = (_BLOCK_LEN + 4) * n
         length = 1 + self._fast_reply_len  # the status packet's LEN field
         self._fast_header = [0xFF, 0xFF, 0xFD, 0x00, T.BROADCAST_ID, length & 0xFF, length >> 8, T.INST_STATUS]
+
+    def joint_capabilities(self, i: int) -> Capabilities:
+        return self._joint_caps[i]
 
     def _joint_position_mode(self, name: str) -> OperatingMode:
         return _POSITION_MODE[self.config.joint_position_modes.get(name, self.config.position_mode)]
@@ -464,7 +476,7 @@ class DynamixelBackend(SerialServoBackend):
                 value = command.velocity[i]
                 lim = self._vel_limit[i]
                 g = min(max(round(value * self._vel_per_rad_s[i]), -lim), lim) if value == value else 0
-            elif m == _EFFORT and self._effort:
+            elif m == _EFFORT and self._effort_j[i]:
                 want = OperatingMode.CURRENT
                 value = command.effort[i]
                 lim = self._cur_limit[i]
