@@ -153,9 +153,12 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
     # control process first: motion stops, torque off; then the socket goes
     server.shutting_down = True
     link.send_nowait("_shutdown")
-    await loop.run_in_executor(None, proc.join, SHUTDOWN_TIMEOUT_S)
+    # a shutdown park (profile shutdown.action: park) runs within shutdown.timeout_s before torque off
+    sd = server.profile.shutdown
+    limit = SHUTDOWN_TIMEOUT_S + (sd.timeout_s if sd.action == "park" else 0.0)
+    await loop.run_in_executor(None, proc.join, limit)
     if proc.is_alive():
-        log.error("%s: the control process did not stop in %s s; killing it", server.robot, SHUTDOWN_TIMEOUT_S)
+        log.error("%s: the control process did not stop in %s s; killing it", server.robot, limit)
         proc.kill()
         proc.join()
         status = 1

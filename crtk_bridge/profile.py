@@ -19,7 +19,7 @@ import difflib
 import math
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import msgspec
 import yaml
@@ -88,6 +88,20 @@ class Safety(_Strict, kw_only=True):
     bus_errors_max: int = 5  # consecutive failed cycles before FAULT
 
 
+SHUTDOWN_TIMEOUT_MAX_S = 10.0  # the systemd unit's TimeoutStopSec leaves room for this plus clean-up
+
+
+class Shutdown(_Strict, kw_only=True):
+    """What the daemon does with a robot that is ENABLED (or PAUSED) when it stops (SIGTERM,
+    SIGINT, loss of the front process): ``torque_off`` at once (an arm without brakes drops), or
+    ``park``: a jerk-limited move of every torqued joint to ``rest`` within ``timeout_s``, then
+    torque off (at once if the move faults or runs out of time)."""
+
+    action: Literal["torque_off", "park"] = "torque_off"
+    timeout_s: float = 4.0  # s: the park's time limit
+    rest: dict[str, float] = {}  # joint name -> rad: the rest pose (required for park); others stay put
+
+
 class Server(_Strict, kw_only=True):
     socket: str | None = None  # default: $XDG_RUNTIME_DIR/crtk-bridge/<name>.sock
 
@@ -99,6 +113,7 @@ class Profile(_Strict, kw_only=True):
     loop: Loop = Loop()
     safety: Safety = Safety()
     server: Server = Server()
+    shutdown: Shutdown = Shutdown()
     joints: list[Joint]
     namespaces: list[Namespace]
 
@@ -244,6 +259,25 @@ def _check(profile: Profile) -> list[str]:
     for jn in seen:
         if jn not in used:
             problems.append(f"namespaces: joint {jn!r} belongs to no namespace")
+    problems += _check_shutdown(profile)
+    return problems
+
+
+def _check_shutdown(profile: Profile) -> list[str]:
+    sd = profile.shutdown
+    problems = []
+    if not (0 < sd.timeout_s <= SHUTDOWN_TIMEOUT_MAX_S):
+        problems.append(f"shutdown.timeout_s: {sd.timeout_s} is not in (0, {SHUTDOWN_TIMEOUT_MAX_S:g}]")
+    by_name = {j.name: j for j in profile.joints}
+    for name, value in sd.rest.items():
+        j = by_name.get(name)
+        if j is None:
+            problems.append(f"shutdown.rest.{name}: unknown joint (known: {', '.join(by_name)})")
+        elif not j.limits.position_min <= value <= j.limits.position_max:
+            problems.append(f"shutdown.rest.{name}: {value} is outside the position limits "
+                            f"[{j.limits.position_min}, {j.limits.position_max}]")
+    if sd.action == "park" and not sd.rest:
+        problems.append("shutdown.rest: park needs a rest pose (joint name: rad)")
     return problems
 
 

@@ -143,7 +143,7 @@ def test_unknown_top_level_key(tmp_path, base):
     base["colour"] = "red"
     msg = load_bad(tmp_path, base)
     assert msg.endswith("bad.yaml: colour: unknown key; valid keys, nearest first: loop, description, "
-                        "server, joints, backend, namespaces, name, safety")
+                        "server, joints, backend, shutdown, namespaces, name, safety")
 
 
 def test_unknown_nested_key(tmp_path, base):
