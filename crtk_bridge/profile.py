@@ -73,6 +73,7 @@ class Namespace(_Strict, kw_only=True):
     name: str  # CRTK namespace, e.g. "so101" or "so101/gripper"
     joints: list[str]
     kinematics: KinematicsConfig | None = None  # cartesian commands and queries; None = joint only
+    backend: str | None = None  # the bus (a name in ``backends``) its joints live on; several buses only
 
 
 class Loop(_Strict, kw_only=True):
@@ -109,7 +110,8 @@ class Server(_Strict, kw_only=True):
 class Profile(_Strict, kw_only=True):
     name: str
     description: str = ""
-    backend: dict[str, Any]
+    backend: dict[str, Any] | None = None  # one bus: its backend section
+    backends: dict[str, dict[str, Any]] | None = None  # several buses, by name (one loop serves all)
     loop: Loop = Loop()
     safety: Safety = Safety()
     server: Server = Server()
@@ -120,7 +122,32 @@ class Profile(_Strict, kw_only=True):
     # --- derived helpers (no state of their own) ---
     @property
     def backend_type(self) -> str:
-        return str(self.backend["type"])
+        """The backend's name; with several buses, their distinct names joined by '+'."""
+        if self.backends is None:
+            return str(self.backend["type"])
+        return "+".join(dict.fromkeys(str(b["type"]) for b in self.backends.values()))
+
+    @property
+    def bus_names(self) -> list[str]:
+        """The buses' names (``backends`` keys); empty for a one-bus profile."""
+        return list(self.backends or ())
+
+    def namespace_bus(self, ns: Namespace) -> str:
+        """The bus a namespace's joints live on (several buses only)."""
+        if ns.backend is not None:
+            return ns.backend
+        return next(iter(self.backends))  # validated: only one bus then
+
+    def bus_profile(self, bus: str) -> Profile:
+        """A one-bus profile of bus ``bus``: its backend section, its namespaces and their joints
+        (in the robot's joint order). The robot's name, loop and safety are kept, so its backend's
+        messages name the robot."""
+        spaces = [ns for ns in self.namespaces if self.namespace_bus(ns) == bus]
+        names = {j for ns in spaces for j in ns.joints}
+        return msgspec.structs.replace(
+            self, backend=self.backends[bus], backends=None,
+            joints=[j for j in self.joints if j.name in names],
+            namespaces=[msgspec.structs.replace(ns, backend=None) for ns in spaces])
 
     @property
     def joint_names(self) -> list[str]:
@@ -217,8 +244,18 @@ def _check(profile: Profile) -> list[str]:
     problems = []
     if not _NAME_RE.match(profile.name) or "/" in profile.name:
         problems.append(f"name: {profile.name!r} is not a valid robot name (letters, digits, _ -)")
-    if "type" not in profile.backend or not isinstance(profile.backend["type"], str):
-        problems.append("backend.type: required, a backend name such as 'feetech'")
+    if (profile.backend is None) == (profile.backends is None):
+        problems.append("backend: required: `backend` for a robot on one bus, or `backends` (by name) "
+                        "for several, not both")
+    buses = {"backend": profile.backend} if profile.backend is not None else {
+        f"backends.{name}": section for name, section in (profile.backends or {}).items()}
+    if profile.backends is not None and not profile.backends:
+        problems.append("backends: name at least one bus")
+    for key, section in buses.items():
+        if key != "backend" and (not _NAME_RE.match(key[9:]) or "/" in key[9:]):
+            problems.append(f"{key}: {key[9:]!r} is not a valid bus name (letters, digits, _ -)")
+        if "type" not in section or not isinstance(section["type"], str):
+            problems.append(f"{key}.type: required, a backend name such as 'feetech'")
     if not (0 < profile.loop.rate_hz <= 10000):
         problems.append(f"loop.rate_hz: {profile.loop.rate_hz} is not in (0, 10000]")
     seen: dict[str, int] = {}
@@ -259,7 +296,29 @@ def _check(profile: Profile) -> list[str]:
     for jn in seen:
         if jn not in used:
             problems.append(f"namespaces: joint {jn!r} belongs to no namespace")
+    problems += _check_buses(profile)
     problems += _check_shutdown(profile)
+    return problems
+
+
+def _check_buses(profile: Profile) -> list[str]:
+    """Each namespace's joints live on one bus: a namespace names its bus when there are several."""
+    problems = []
+    names = profile.bus_names
+    used = set()
+    for i, ns in enumerate(profile.namespaces):
+        key = f"namespaces[{i}] ({ns.name}).backend"
+        if ns.backend is None:
+            if len(names) > 1:
+                problems.append(f"{key}: required with several buses, one of {', '.join(names)}")
+        elif profile.backends is None:
+            problems.append(f"{key}: only with `backends` (several buses); this profile has one `backend`")
+        elif ns.backend not in profile.backends:
+            problems.append(f"{key}: unknown bus {ns.backend!r} (backends: {', '.join(names)})")
+        used.add(ns.backend if ns.backend is not None else (names[0] if len(names) == 1 else None))
+    for name in names:
+        if name not in used:
+            problems.append(f"backends.{name}: no namespace lives on this bus")
     return problems
 
 
