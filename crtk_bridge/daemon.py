@@ -24,8 +24,9 @@ import time
 import msgspec
 
 from . import systemd
-from .backends import create_backend
+from .backends import backend_class, create_backend
 from .client.paths import default_socket_path
+from .core.actuator import SimWiring
 from .core.kinematics_check import check_kinematics
 from .core.loop import control_main
 from .core.snapshot import Layout, SnapshotBuffer
@@ -36,8 +37,6 @@ from .server.server import Server
 
 log = logging.getLogger("crtk_bridge.daemon")
 
-#: backend type -> simulator name understood by ``crtk-sim``
-SIMULATORS = {"feetech": "feetech", "dynamixel": "dynamixel"}
 STARTUP_TIMEOUT_S = 20.0
 SHUTDOWN_TIMEOUT_S = 3.0  # below the unit's TimeoutStopSec=5, so our own clean-up runs
 #: longest AF_UNIX socket path in bytes (Linux ``sun_path`` is 108 bytes with the final NUL)
@@ -56,17 +55,15 @@ def _die_with_parent() -> None:
 
 
 class SimulatorProcess:
-    """``crtk-sim`` as a child process, serving a pty linked at ``link``."""
+    """``crtk-sim <device>`` as a child process, serving its endpoint at ``link`` (a pty link)."""
 
-    def __init__(self, profile_path: str, backend_type: str, workdir: str):
-        if backend_type not in SIMULATORS:
-            raise CrtkBridgeError(f"--sim: no simulator for backend {backend_type!r} "
-                                  f"(simulated backends: {', '.join(SIMULATORS)})")
-        self.link = os.path.join(workdir, "tty")
-        self.control = os.path.join(workdir, "sim.sock")
+    def __init__(self, profile_path: str, device: str, workdir: str, bus: str | None = None):
+        tag = f"-{bus}" if bus else ""  # several buses: one simulator each
+        self.link = os.path.join(workdir, f"tty{tag}")
+        self.control = os.path.join(workdir, f"sim{tag}.sock")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "crtk_bridge.sim.cli", SIMULATORS[backend_type], "--profile", profile_path,
-             "--link", self.link, "--control", self.control],
+            [sys.executable, "-m", "crtk_bridge.sim.cli", device, "--profile", profile_path,
+             "--link", self.link, "--control", self.control, *(["--bus", bus] if bus else [])],
             stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
             start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
             preexec_fn=_die_with_parent,  # ...but a daemon killed outright must not leave it running
@@ -160,9 +157,12 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
     # control process first: motion stops, torque off; then the socket goes
     server.shutting_down = True
     link.send_nowait("_shutdown")
-    await loop.run_in_executor(None, proc.join, SHUTDOWN_TIMEOUT_S)
+    # a shutdown park (profile shutdown.action: park) runs within shutdown.timeout_s before torque off
+    sd = server.profile.shutdown
+    limit = SHUTDOWN_TIMEOUT_S + (sd.timeout_s if sd.action == "park" else 0.0)
+    await loop.run_in_executor(None, proc.join, limit)
     if proc.is_alive():
-        log.error("%s: the control process did not stop in %s s; killing it", server.robot, SHUTDOWN_TIMEOUT_S)
+        log.error("%s: the control process did not stop in %s s; killing it", server.robot, limit)
         proc.kill()
         proc.join()
         status = 1
@@ -185,6 +185,29 @@ async def _watchdog(link: ControlLink, period: float) -> None:
             last = cycles
 
 
+def _sim_wiring(backend_type: str, source: str) -> SimWiring:
+    """How --sim wires backend ``backend_type``: the backend declares it (actuator.SimWiring)."""
+    wiring = backend_class(backend_type, source).simulator
+    if wiring is None:
+        raise CrtkBridgeError(f"--sim: backend {backend_type!r} has no simulator")
+    return wiring
+
+
+def _simulate_buses(profile: Profile, profile_path: str, workdir: str,
+                    simulators: list[SimulatorProcess]) -> Profile:
+    """--sim with several buses: one simulator per bus; the profile wired to their ports.
+    Appends each started simulator to ``simulators`` (so they are stopped however this ends)."""
+    backends = {}
+    for bus, section in profile.backends.items():
+        wiring = _sim_wiring(str(section["type"]), profile_path)
+        simulator = SimulatorProcess(profile_path, wiring.device, workdir, bus=bus)
+        simulators.append(simulator)
+        backends[bus] = {**section, wiring.endpoint_key: simulator.link}
+        print(f"crtk-bridge: simulated {section['type']} bus {bus!r} on {simulator.link} "
+              f"(simulator control socket {simulator.control})", flush=True)
+    return msgspec.structs.replace(profile, backends=backends)
+
+
 def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None, realtime: bool = True) -> int:
     """Run the daemon in the foreground until SIGTERM / SIGINT. Returns the exit status."""
     profile = load_profile(profile_path)
@@ -195,14 +218,19 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
     socket_path = socket_path or profile.server.socket or default_socket_path(profile.name)
     check_socket_path(socket_path, profile.name)  # before the simulator and the control process
 
-    simulator = None
     workdir = None
+    simulators: list[SimulatorProcess] = []
     if sim:
         workdir = tempfile.mkdtemp(prefix=f"crtk-bridge-{profile.name}-sim-")
-        simulator = SimulatorProcess(str(profile_path), profile.backend_type, workdir)
-        profile = msgspec.structs.replace(profile, backend={**profile.backend, "port": simulator.link})
-        print(f"crtk-bridge: simulated {profile.backend_type} bus on {simulator.link} "
-              f"(simulator control socket {simulator.control})", flush=True)
+        if profile.backends is None:
+            simulator = SimulatorProcess(str(profile_path), _sim_wiring(profile.backend_type, source).device,
+                                         workdir)
+            simulators.append(simulator)
+            profile = backend_class(profile.backend_type, source).sim_profile(profile, simulator.link)
+            print(f"crtk-bridge: simulated {profile.backend_type} bus on {simulator.link} "
+                  f"(simulator control socket {simulator.control})", flush=True)
+        else:
+            profile = _simulate_buses(profile, str(profile_path), workdir, simulators)
 
     snap = SnapshotBuffer(Layout(len(profile.joints), len(profile.namespaces)), create=True)
     front, back = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -241,7 +269,7 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
             proc.join(SHUTDOWN_TIMEOUT_S)
         front.close()
         snap.close(unlink=True)
-        if simulator:
+        for simulator in simulators:
             simulator.stop()
         if workdir:
             for name in os.listdir(workdir):

@@ -1,14 +1,17 @@
 """The control process: the real-time loop around the backend and the controller.
 
-Each cycle, at the profile's rate: read -> requests + state machine -> motion -> limits -> write
+Each cycle, at the ONE effective period (:func:`~crtk_bridge.core.actuator.effective_period_s`:
+the profile's rate, or the hardware's when the backend paces the cycle): read -> requests + state machine -> motion -> limits -> write
 -> publish snapshot -> send replies and events. It asks for SCHED_FIFO and mlockall (and says once,
 with a ``realtime_unavailable`` warning, when it cannot), freezes the GC after start-up, and keeps
 logging, allocation-heavy work and blocking I/O out of the cycle.
 
 It talks to the front process over one SOCK_SEQPACKET socketpair (msgpack messages, never the
 network) and publishes state through :class:`~crtk_bridge.core.snapshot.SnapshotBuffer`.
-If the front process goes away (EOF on the pair), the loop stops safely: torque off, exit.
-SIGTERM / SIGINT do the same.
+If the front process goes away (EOF on the pair), the loop stops safely, as on SIGTERM / SIGINT
+or the front's ``_shutdown``: with ``shutdown.action: park`` an ENABLED (or PAUSED) robot first
+moves to its rest pose, the cycle running on (see :meth:`ControlLoop._parking`); then torque off,
+exit. A second signal, or a stop command (disable, pause, hold), cuts the park short.
 """
 
 from __future__ import annotations
@@ -27,13 +30,15 @@ import msgspec
 
 from ..errors import CrtkBridgeError
 from ..profile import Profile
-from .actuator import Actuator, Fault
+from .actuator import Actuator, Fault, Lifecycle, effective_period_s
 from .controller import Controller
 from .snapshot import RING, SnapshotBuffer
+from .state import OperatingState
 
 _encode = msgspec.msgpack.Encoder().encode
 _decode = msgspec.msgpack.Decoder().decode
 MAX_REQUESTS_PER_CYCLE = 64
+_STOPS = ("disable", "pause", "hold")  # accepted during a shutdown park: a stop is never refused
 MAX_MESSAGE = 1 << 17  # bytes; the front refuses request lines above server.MAX_LINE (64 KiB)
 
 
@@ -70,13 +75,16 @@ class ControlLoop:
         self.chan = chan
         self.snap = snapshot
         self.realtime = realtime
-        self.period = 1.0 / profile.loop.rate_hz
-        self.controller = Controller(profile, actuator, time.time)
+        self.period = effective_period_s(profile, actuator)  # computed once; everyone uses it
+        self.controller = Controller(profile, actuator, time.time, self.period)
         self.feedback = actuator.new_feedback()
         self._bus_errors_max = profile.safety.bus_errors_max
         self.pending: deque[bytes] = deque()  # messages the pair could not take yet
         self.running = True
         self.front_alive = True
+        self._park_deadline: float | None = None  # perf_counter time limit of a shutdown park
+        self._park_t0 = 0.0
+        self.abort_park = False  # a second signal: torque off now
         ns = list(self.controller.namespaces.values())
         self._ns = ns
         v = snapshot.views
@@ -129,6 +137,12 @@ class ControlLoop:
             if msg.get("cmd") == "_shutdown":
                 self.running = False
                 return
+            if self._park_deadline is not None and msg.get("cmd") not in _STOPS:
+                if msg.get("cmd") != "_client_lost":  # a client leaving must not cut the park short
+                    self.controller.outbox.append({"id": msg.get("id"), "ok": False, "error": {
+                        "code": "invalid_state",
+                        "message": f"{self.profile.name}: shutting down (parking); only disable, pause or hold"}})
+                continue
             self.controller.handle(msg)
 
     # ---------------------------------------------------------------- snapshot
@@ -188,13 +202,17 @@ class ControlLoop:
         lateness = v["lateness"]
         compute = v["compute"]
         period = self.period
+        paced = self.actuator.paces_cycle
+        wait_cycle = self.actuator.wait_cycle
         clock = time.perf_counter
         next_t = clock() + period
         i = 0
-        while self.running and self.front_alive:
+        while (self.running and self.front_alive) or self._parking():
             now = clock()
             delay = next_t - now
-            if delay > 0:
+            if paced:  # the hardware says when the cycle starts (its packet, its SYNC)
+                wait_cycle(max(delay, 0.0) + period)
+            elif delay > 0:
                 time.sleep(delay)
             t0 = clock()
             late = t0 - next_t
@@ -203,7 +221,7 @@ class ControlLoop:
                 fault = self.actuator.read(self.feedback)
                 c.on_read(self.feedback, fault)
                 self._receive()
-                if c.step():
+                if c.step():  # also advances a lifecycle transition by one step
                     c.on_write(self.actuator.write(c.command))
             except Exception as exc:  # a bug must fault the robot, not kill the loop
                 c._enter_fault(Fault("internal", f"{self.profile.name}: control loop error: {exc!r}",
@@ -218,16 +236,66 @@ class ControlLoop:
             self._publish()
             self._flush()
             # -- schedule the next cycle; after an overrun, skip ahead instead of bursting --
-            next_t += period
+            # (paced: the next beat is expected one period after this one started)
+            next_t = (t0 if paced else next_t) + period
             if clock() > next_t:
                 overruns[0] += 1
-                missed = int((clock() - next_t) / period) + 1
-                next_t += missed * period
+                if not paced:
+                    missed = int((clock() - next_t) / period) + 1
+                    next_t += missed * period
         self.shutdown()
         return 0
 
+    def _parking(self) -> bool:
+        """Called once the loop was asked to end: start the shutdown park, or say whether the one
+        running goes on (True: run another cycle). Its start and end are status / warning events."""
+        c = self.controller
+        sd = self.profile.shutdown
+        name = self.profile.name
+        now = time.perf_counter()
+        if self._park_deadline is None:
+            active = c.state in (OperatingState.ENABLED, OperatingState.PAUSED)
+            if sd.action != "park" or self.abort_park or not active or not c.park():
+                if active:
+                    c._event("status", "shutdown_torque_off", f"{name}: shutting down: torque off "
+                             f"(shutdown.action: {sd.action})")
+                return False
+            self._park_t0 = now
+            self._park_deadline = now + sd.timeout_s
+            c._event("status", "shutdown_park", f"{name}: shutting down: parking at the rest pose "
+                     f"(shutdown.action: park, within {sd.timeout_s:g} s), then torque off")
+            return True
+        took = now - self._park_t0
+        if c.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
+            c._event("warning", "shutdown_park_aborted", f"{name}: park ended by {c.state.value} after {took:.2f} s; "
+                     "torque off")
+        elif self.abort_park:
+            c._event("warning", "shutdown_park_aborted", f"{name}: park cut short by a second signal after "
+                     f"{took:.2f} s; torque off")
+        elif now > self._park_deadline:
+            c._event("warning", "shutdown_park_timeout", f"{name}: the rest pose was not reached within "
+                     f"shutdown.timeout_s = {sd.timeout_s:g} s; torque off")
+        elif c.in_motion():
+            return True
+        elif c.at_rest_pose():
+            c._event("status", "shutdown_parked", f"{name}: parked at the rest pose in {took:.2f} s; torque off")
+        else:
+            c._event("warning", "shutdown_park_aborted", f"{name}: park stopped short of the rest pose after "
+                     f"{took:.2f} s (a stop command); torque off")
+        return False
+
+    def request_stop(self) -> None:
+        """SIGTERM / SIGINT: end the loop; a second one during the park: torque off now."""
+        if not self.running:
+            self.abort_park = True
+        self.running = False
+
     def shutdown(self) -> None:
         """Stop motion and switch torque off. Never raises."""
+        try:
+            self.controller.abort_transition()
+        except Exception:
+            pass
         try:
             self.actuator.disable()
         except Exception:
@@ -254,7 +322,7 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
     def on_signal(signum: int, frame: Any) -> None:
         stop["flag"] = True
         if "loop" in loop_ref:
-            loop_ref["loop"].running = False
+            loop_ref["loop"].request_stop()
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
@@ -280,6 +348,9 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
     ready = {"event": "_ready", "data": {
         "commands": c.supported_commands(),  # what some namespace offers
         "capabilities": as_dict(caps),
+        "period_s": loop.period,  # the ONE effective period: the front's rates and statistics
+        # the longest a state command may take before the loop itself replies (its time limit)
+        "transition_timeout_s": max(actuator.transition_timeout_s(k) for k in Lifecycle) * 2,
         "namespace_commands": c.namespace_commands(),  # motion commands per namespace
         "namespace_capabilities": {ns: as_dict(cap) for ns, cap in c.ns_caps.items()},
     }}

@@ -44,6 +44,9 @@ class ControlLink:
         self.ns_names = {ns.name: list(ns.joints) for ns in profile.namespaces}
         self.measures_velocity = True
         self.measures_effort = False
+        #: the loop's ONE effective period (s) and a state command's longest run, from ``_ready``
+        self.period_s = 1.0 / profile.loop.rate_hz
+        self.transition_timeout_s = 10.0
         #: per namespace (from the control process's _ready): what its joints measure, its motion commands
         self.ns_measures_velocity = {ns: True for ns in self.ns_index}
         self.ns_measures_effort = {ns: False for ns in self.ns_index}
@@ -64,6 +67,9 @@ class ControlLink:
                     caps = msg["data"]["capabilities"]
                     self.measures_velocity = caps["measures_velocity"]
                     self.measures_effort = caps["measures_effort"]
+                    self.period_s = float(msg["data"].get("period_s", self.period_s))
+                    self.transition_timeout_s = float(msg["data"].get("transition_timeout_s",
+                                                                      self.transition_timeout_s))
                     for ns, c in msg["data"]["namespace_capabilities"].items():
                         self.ns_measures_velocity[ns] = c["measures_velocity"]
                         self.ns_measures_effort[ns] = c["measures_effort"]
@@ -225,7 +231,7 @@ class ControlLink:
         comp = buf[s["compute"]][:RING]
         if n < RING:  # ring slots 1..n hold samples
             late, comp = late[1 : n + 1], comp[1 : n + 1]
-        stats = {"rate_hz": self.profile.loop.rate_hz, "period_s": 1.0 / self.profile.loop.rate_hz,
+        stats = {"rate_hz": 1.0 / self.period_s, "period_s": self.period_s,
                  "cycles": cycles, "overruns": int(buf[s["overruns"]][0]), "samples": int(n)}
         if n:
             p = np.percentile(late, [50, 99])
