@@ -5,17 +5,15 @@ no IK, and it supplies measured_cp itself. Driven cycle by cycle with a fake bac
 from __future__ import annotations
 
 import asyncio
-import itertools
 
 import numpy as np
 import pytest
 
 from crtk_bridge.core.actuator import FRAME_BODY, Capabilities, CartesianMode, CommandMode
-from crtk_bridge.core.controller import Controller
 from crtk_bridge.core.state import OperatingState
 from crtk_bridge.server.cartesian import CartesianSpace
 
-from .test_controller import PROFILE, Clock, FakeActuator
+from .test_controller import PROFILE, FakeActuator, make_rig
 
 ARM = "so101"
 ARM_IDX = np.array([PROFILE.joint_index(j) for j in PROFILE.namespace(ARM).joints])
@@ -67,30 +65,10 @@ class FakeNativeArm(FakeActuator):
 
 @pytest.fixture
 def native():
-    act = FakeNativeArm(PROFILE)
-    clock = Clock()
-    c = Controller(PROFILE, act, clock)
-    ids = itertools.count(1)
-    fb = act.new_feedback()
-
-    def cycle(n=1):
-        for _ in range(n):
-            clock.t += c.dt
-            c.on_read(fb, act.read(fb))
-            if c.step():
-                c.on_write(act.write(c.command))
-
-    def req(cmd, ns=None, **data):
-        rid = next(ids)
-        c.handle({"id": rid, "cmd": cmd, "ns": ns, "data": data})
-        replies = [m for m in c.outbox if m.get("id") == rid]
-        assert len(replies) == 1, "exactly one reply per request"
-        return replies[0]
-
-    cycle()
+    c, act, clock, cycle, req = rig = make_rig(FakeNativeArm(PROFILE))
     assert req("enable")["ok"]
     cycle(2)
-    return c, act, clock, cycle, req
+    return rig
 
 
 POSE = {"position": [0.25, 0.05, 0.15], "orientation": [0.0, 0.0, 0.0, 1.2]}  # normalised on the way

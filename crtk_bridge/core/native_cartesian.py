@@ -23,7 +23,7 @@ import numpy as np
 
 from .actuator import FRAME_BODY, FRAME_SPATIAL, CartesianCommand, CartesianFeedback, CartesianMode, CommandMode
 from .motion import NamespaceMotion
-from .twist import parse_twist
+from .twist import parse_twist, parse_vectors
 
 POSE_COMMANDS = ("servo_cp", "interpolate_cp", "move_cp")
 NATIVE_COMMANDS = POSE_COMMANDS + ("servo_cv", "interpolate_cv")
@@ -110,20 +110,7 @@ class NativeCartesian:
 def parse_pose(ns: str, cmd: str, data: Any) -> tuple[np.ndarray, np.ndarray]:
     """``{"position": [3], "orientation": [4]}`` -> (position, unit quaternion [x, y, z, w]).
     Raises ValueError naming the namespace and field."""
-    if not isinstance(data, dict):
-        raise ValueError(f"{ns}: {cmd} needs data {{\"position\": [x, y, z], \"orientation\": [x, y, z, w]}}")
-    out = []
-    for field, n in (("position", 3), ("orientation", 4)):
-        values = data.get(field)
-        if not isinstance(values, (list, tuple)) or len(values) != n:
-            raise ValueError(f"{ns}: {cmd} needs {field!r} with {n} numbers")
-        try:
-            vec = np.array(values, dtype=float)
-        except (TypeError, ValueError):
-            raise ValueError(f"{ns}: {cmd} {field} must be numbers") from None
-        if not np.all(np.isfinite(vec)):
-            raise ValueError(f"{ns}: {cmd} {field} contains a non-finite value")
-        out.append(vec)
+    out = parse_vectors(ns, cmd, data, (("position", 3), ("orientation", 4)))
     norm = float(np.linalg.norm(out[1]))
     if not 0.5 < norm < 1.5:
         raise ValueError(f"{ns}: {cmd} orientation must be a unit quaternion [x, y, z, w]")
