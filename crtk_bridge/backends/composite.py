@@ -163,6 +163,11 @@ class CompositeActuator(Actuator):
     def joint_capabilities(self, i: int) -> Capabilities:
         return self._joint_caps[i]
 
+    def cartesian_namespaces(self) -> list[str]:
+        # cartesian command rows are not forwarded to the buses (yet): every namespace of a
+        # composite robot goes through the daemon's own IK and twist mapping
+        return []
+
     def info(self) -> ActuatorInfo:
         details: dict[str, Any] = {name: p.info().details for name, p in zip(self.bus_names, self.parts)}
         return ActuatorInfo(list(self.joint_names), self.capabilities, {"buses": details})
