@@ -1,0 +1,78 @@
+"""Safety review: setpoints on every path stay bounded by the joint limits and velocity_max
+without jumps, and a stop is never refused (nor ignored). Driven through the controller with the
+fake actuator of test_controller (measured = last commanded)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crtk_bridge.core.state import OperatingState
+
+from .test_controller import PROFILE, FakeActuator, make_rig
+
+
+@pytest.fixture
+def rig():
+    return make_rig(FakeActuator(PROFILE))
+
+
+def _max_step_ratio(c, act, cycle, n):
+    """Cycle ``n`` times; the largest per-cycle change of any joint's written position setpoint,
+    as a fraction of that joint's ``velocity_max * dt``."""
+    vmax = np.array([j.limits.velocity_max for j in PROFILE.joints])
+    worst = 0.0
+    last = act.pos.copy()
+    for _ in range(n):
+        cycle()
+        worst = max(worst, float(np.max(np.abs(act.pos - last) / (vmax * c.dt))))
+        last = act.pos.copy()
+    return worst
+
+
+GRIPPER = PROFILE.joint_index("gripper")
+G_MIN = PROFILE.joints[GRIPPER].limits.position_min
+
+
+@pytest.mark.parametrize("command", ["move_jp", "servo_jp", "interpolate_jp", "interpolate_jv", "servo_jv"])
+def test_a_joint_enabled_outside_its_limits_is_brought_back_without_a_jump(rig, command):
+    """A gripper squeezed (or moved by hand) 0.3 rad past its lower limit, then enabled: the first
+    command that moves it must bring it back at velocity_max at most, never snap it to the limit
+    in one cycle."""
+    c, act, clock, cycle, req = rig
+    act.pos[GRIPPER] = G_MIN - 0.3
+    cycle()
+    assert req("enable")["ok"]
+    cycle(3)
+    assert act.pos[GRIPPER] == pytest.approx(G_MIN - 0.3)  # enable holds it where it is
+    target = [G_MIN + 0.02]  # within safety.servo_step_max of where it is
+    if command == "interpolate_jv" or command == "servo_jv":
+        r = req(command, "so101/gripper", velocity=[1.0])
+    else:
+        r = req(command, "so101/gripper", position=target)
+    assert r["ok"], r
+    ratio = _max_step_ratio(c, act, cycle, 30)
+    assert ratio <= 1.0 + 1e-6, f"{command}: the gripper setpoint moved {ratio:.0f}x velocity_max in one cycle"
+    assert act.pos[GRIPPER] > G_MIN - 0.3  # and it does come back
+
+
+def test_park_of_a_joint_outside_its_limits_does_not_jump(rig):
+    c, act, clock, cycle, req = rig
+    act.pos[GRIPPER] = G_MIN - 0.3
+    cycle()
+    assert req("enable")["ok"]
+    cycle()
+    assert c.park()
+    ratio = _max_step_ratio(c, act, cycle, 30)
+    assert ratio <= 1.0 + 1e-6, f"park moved the gripper {ratio:.0f}x velocity_max in one cycle"
+
+
+def test_a_joint_outside_its_limits_is_not_driven_farther_out(rig):
+    c, act, clock, cycle, req = rig
+    act.pos[GRIPPER] = G_MIN - 0.3
+    cycle()
+    assert req("enable")["ok"]
+    cycle()
+    assert req("servo_jv", "so101/gripper", velocity=[-1.0])["ok"]
+    cycle(20)
+    assert act.pos[GRIPPER] == pytest.approx(G_MIN - 0.3)
