@@ -76,3 +76,52 @@ def test_a_joint_outside_its_limits_is_not_driven_farther_out(rig):
     assert req("servo_jv", "so101/gripper", velocity=[-1.0])["ok"]
     cycle(20)
     assert act.pos[GRIPPER] == pytest.approx(G_MIN - 0.3)
+
+
+# ---------------------------------------------------------------- a stop is never refused (nor ignored)
+HOME = np.array([j.home for j in PROFILE.joints])
+
+
+def _arm_moving(act, cycle):
+    before = act.pos.copy()
+    cycle()
+    return bool(np.any(act.pos != before))
+
+
+@pytest.mark.parametrize("homed", [True, False])
+def test_hold_during_home_is_accepted_and_stops_it(rig, homed):
+    c, act, clock, cycle, req = rig
+    act.pos[:] = 0.8
+    cycle()
+    assert req("enable")["ok"]
+    if not homed:
+        assert req("unhome")["ok"]
+    assert req("home")["ok"]
+    cycle(20)
+    assert _arm_moving(act, cycle)
+    c.outbox.clear()
+    r = req("hold", "so101")
+    assert r["ok"], r
+    cycle(400)
+    assert not _arm_moving(act, cycle), "the home move went on after hold"
+    assert np.abs(act.pos - HOME).max() > 0.3  # stopped short of home
+    assert not c.is_busy and c.is_homed is homed  # an interrupted home homes nothing
+    assert [s["data"]["is_busy"] for s in c.outbox if s.get("event") == "operating_state"][-1] is False
+
+
+@pytest.mark.parametrize("stop", ["pause", "hold"])
+def test_a_stop_ends_a_shutdown_park_of_a_paused_arm(rig, stop):
+    """SIGTERM with the arm PAUSED parks it (torque off would drop it); a pause or hold sent
+    meanwhile must stop that motion like it does from ENABLED."""
+    c, act, clock, cycle, req = rig
+    assert req("enable")["ok"]
+    assert req("pause")["ok"] and c.state is OperatingState.PAUSED
+    assert c.park()
+    cycle(20)
+    assert _arm_moving(act, cycle)
+    r = req(stop, "so101" if stop == "hold" else None)
+    assert r["ok"], r
+    cycle(400)
+    assert not c.in_motion() and not _arm_moving(act, cycle), f"{stop} did not stop the park"
+    rest = np.array([PROFILE.shutdown.rest[j.name] for j in PROFILE.joints])
+    assert np.abs(act.pos - rest).max() > 0.3

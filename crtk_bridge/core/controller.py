@@ -253,6 +253,8 @@ class Controller:
             where = (f"joint{'s' if len(lacking) > 1 else ''} {', '.join(map(repr, lacking))}" if lacking
                      else f"the {self.profile.backend_type} backend")
             raise Refused("unsupported", f"{ns}: {cmd} is not supported: no {what} on {where}")
+        if cmd == "hold" and self._hold_anyway(ns):
+            return None
         self._check_can_move(ns, cmd)
         vec = self._vector(ns, cmd, m, data.get(field), field) if field else None
         now = self.clock()
@@ -372,6 +374,21 @@ class Controller:
             self._push_state()
         return None
 
+    def _hold_anyway(self, ns: str) -> bool:
+        """``hold`` where motion commands are refused (homing, a lifecycle transition under way,
+        not homed, PAUSED): a stop is never refused. What moves there is robot-wide (home, a
+        shutdown park), so it all stops; a native home is aborted. True: handled (reply ok)."""
+        if self.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
+            return False  # torque is off or going off: nothing to stop, refused as before
+        run = self._running
+        if not (self.homing or run is not None or not self.is_homed or self.state is OperatingState.PAUSED):
+            return False  # the ordinary hold
+        if run is not None and run.transition.kind is Lifecycle.HOME:
+            self._abort_running("home aborted by hold")
+        self._stop_all()
+        self._end_cartesian(ns)
+        return True
+
     def _check_can_move(self, ns: str, cmd: str) -> None:
         if self.state is not OperatingState.ENABLED:
             hint = {"DISABLED": "enable it first", "PAUSED": "resume it first", "FAULT": "enable to retry"}
@@ -470,6 +487,7 @@ class Controller:
                 self._stop_all()
                 self.homing = False
                 return self._start(self.actuator.begin(Lifecycle.PAUSE), self._paused, self._pause_failed)
+            self._stop_all()  # PAUSED: whatever moves (a shutdown park) stops too
         elif cmd is StateCommand.RESUME:
             return self._start(self.actuator.begin(Lifecycle.RESUME), self._resumed, self._resume_failed)
         elif cmd is StateCommand.HOME:
