@@ -56,12 +56,16 @@ def test_a_joint_enabled_outside_its_limits_is_brought_back_without_a_jump(rig, 
     assert act.pos[GRIPPER] > G_MIN - 0.3  # and it does come back
 
 
-def test_park_of_a_joint_outside_its_limits_does_not_jump(rig):
-    c, act, clock, cycle, req = rig
+def _enable_with_gripper_outside(act, cycle, req):
     act.pos[GRIPPER] = G_MIN - 0.3
     cycle()
     assert req("enable")["ok"]
     cycle()
+
+
+def test_park_of_a_joint_outside_its_limits_does_not_jump(rig):
+    c, act, clock, cycle, req = rig
+    _enable_with_gripper_outside(act, cycle, req)
     assert c.park()
     ratio = _max_step_ratio(c, act, cycle, 30)
     assert ratio <= 1.0 + 1e-6, f"park moved the gripper {ratio:.0f}x velocity_max in one cycle"
@@ -69,10 +73,7 @@ def test_park_of_a_joint_outside_its_limits_does_not_jump(rig):
 
 def test_a_joint_outside_its_limits_is_not_driven_farther_out(rig):
     c, act, clock, cycle, req = rig
-    act.pos[GRIPPER] = G_MIN - 0.3
-    cycle()
-    assert req("enable")["ok"]
-    cycle()
+    _enable_with_gripper_outside(act, cycle, req)
     assert req("servo_jv", "so101/gripper", velocity=[-1.0])["ok"]
     cycle(20)
     assert act.pos[GRIPPER] == pytest.approx(G_MIN - 0.3)
@@ -125,3 +126,31 @@ def test_a_stop_ends_a_shutdown_park_of_a_paused_arm(rig, stop):
     assert not c.in_motion() and not _arm_moving(act, cycle), f"{stop} did not stop the park"
     rest = np.array([PROFILE.shutdown.rest[j.name] for j in PROFILE.joints])
     assert np.abs(act.pos - rest).max() > 0.3
+
+
+# ---------------------------------------------------------------- servo_cv / interpolate_cv: huge twists
+@pytest.mark.parametrize("command", ["servo_cv", "interpolate_cv"])
+def test_a_huge_twist_moves_at_velocity_max_in_its_direction_never_nan(rig, command):
+    """A finite but huge twist (1e308 m/s) overflowed the Jacobian solve: NaN setpoints went to
+    the backend and the next cycle's SVD raised (the loop faults the robot: torque off, the arm
+    drops). It is followed like any too-fast twist: at the joints' velocity limit, same direction."""
+    c, act, clock, cycle, req = rig
+    act.pos[:] = [0.1, 0.5, 0.5, 0.3, 0.1, 0.2]
+    cycle()
+    assert req("enable")["ok"]
+    start = act.pos.copy()
+    assert req(command, "so101", linear=[0.0, 1e308, 0.0], angular=[0.0, 0.0, 0.0])["ok"]
+    cycle(10)
+    huge = act.pos - start
+    assert np.all(np.isfinite(act.pos)) and c.state is OperatingState.ENABLED
+    assert _max_step_ratio(c, act, cycle, 5) <= 1.0 + 1e-6
+    # the same direction as a modest twist along y
+    assert req("hold", "so101")["ok"]
+    cycle(200)
+    act.pos[:] = start
+    assert req("disable")["ok"] and req("enable")["ok"]
+    assert req(command, "so101", linear=[0.0, 1.0, 0.0], angular=[0.0, 0.0, 0.0])["ok"]
+    cycle(10)
+    modest = act.pos - start
+    cos = huge[:5] @ modest[:5] / (np.linalg.norm(huge[:5]) * np.linalg.norm(modest[:5]))
+    assert cos > 0.99
