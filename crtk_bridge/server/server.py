@@ -140,6 +140,8 @@ class Server:
                 await asyncio.wait_for(self._server.wait_closed(), 1.0)
             except (asyncio.TimeoutError, Exception):
                 pass
+        for cs in self.cartesian.values():
+            cs.close()
         try:
             os.unlink(self.socket_path)
         except FileNotFoundError:
@@ -234,11 +236,11 @@ class Server:
             if cmd == "forward_kinematics":
                 return cs.forward_kinematics(data)
             if cmd == "inverse_kinematics":
-                return cs.inverse_kinematics(data, self.link.ns_arrays(ns))
+                return await cs.inverse_kinematics(data, self.link.ns_arrays(ns))  # IK off the loop
             if cmd in cs.queries:
                 return cs.query(cmd, self.link.ns_arrays(ns), frame)
             self._take_control(s, cmd)
-            cmd, data = cs.translate(cmd, data, self.link.ns_arrays(ns), frame, self.state.get("is_busy", False))
+            cmd, data = await cs.translate(cmd, data, self.link.ns_arrays(ns), frame, self.state.get("is_busy", False))
             return await self._forward(s, rid, cmd, ns, data)
         if cmd in JOINT_QUERIES:
             return self.link.joint_state(cmd, self._check_ns(cmd, ns, True))
