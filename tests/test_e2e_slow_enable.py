@@ -98,7 +98,7 @@ def test_a_3s_enable_keeps_the_loop_cycling_and_replies_once_at_the_end(sim_daem
         (t_reply, reply), = a.replies(100)
 
         # one reply, at the end, once torque is on: ENABLED only then
-        assert reply["ok"] and reply["data"]["state"] == "ENABLED" and not reply["data"]["is_busy"]
+        assert reply["ok"] and reply["data"]["state"] == "ENABLED" and not reply["data"]["is_busy"], reply
         assert t_reply - t_enable >= DELAY_S - 0.2, t_reply - t_enable
         assert len(states) > 20 and all(s["state"] == "DISABLED" and s["is_busy"] for s in states[5:]), states[:8]
         dump = control_request(sim, {"cmd": "dump"})

@@ -445,12 +445,11 @@ class SerialServoBackend(Actuator):
         self._free = [False] * self.n
         try:
             for i in range(self.n):
-                self._hold_here(i)
-                self._write_register(i, "Torque_Enable", 1, check_error=True)
+                yield from self._retrying(self._hold_and_torque, i)
                 yield
             i = 0
             while i < self.n:  # the servos say torque is on, in joint order
-                if self._read_register(i, "Torque_Enable") == 1:
+                if (yield from self._retrying(self._read_register, i, "Torque_Enable")) == 1:
                     i += 1
                 else:
                     yield
@@ -460,6 +459,25 @@ class SerialServoBackend(Actuator):
             except BackendError:
                 pass
             raise
+
+    #: cycles a transition step's transactions are tried (each with the lifecycle attempts)
+    #: before the transition fails: a late reply on a loaded host must not fail a long enable
+    STEP_CYCLES = 3
+
+    def _retrying(self, fn, *args) -> Steps:
+        """Steps running ``fn(*args)`` (idempotent bus transactions) and returning its value; a
+        BackendError is retried in the next cycle, up to STEP_CYCLES cycles, then raised."""
+        for cycle in range(self.STEP_CYCLES):
+            try:
+                return fn(*args)
+            except BackendError:
+                if cycle == self.STEP_CYCLES - 1:
+                    raise
+            yield
+
+    def _hold_and_torque(self, i: int) -> None:
+        self._hold_here(i)
+        self._write_register(i, "Torque_Enable", 1, check_error=True)
 
     def _before_enable(self) -> Steps:
         """Vendor steps before any servo is held and torqued (Dynamixel: reboot servos in

@@ -288,7 +288,7 @@ class DynamixelBackend(SerialServoBackend):
         configuration again (a reboot restores RAM defaults). Raises BackendError naming the
         joint and the error."""
         for i in range(self.n):
-            bits = self._read_register(i, "Hardware_Error_Status")
+            bits = yield from self._retrying(self._read_register, i, "Hardware_Error_Status")
             if bits:
                 yield from self._reboot(i, bits)
             yield
