@@ -45,6 +45,11 @@ What else a backend declares (class attributes, refined per profile in ``__init_
   statistics use, computed once at start-up.
 * ``simulator`` (:class:`SimWiring`): how ``--sim`` wires the backend to its wire-level
   simulator (which ``crtk-sim`` device, which backend key takes the simulator's endpoint).
+* Native cartesian control (``Capabilities.native_cartesian``): a controller with its own
+  cartesian control and TCP pose (UR ``servoL`` / ``speedL`` / ``moveL``) receives cartesian
+  setpoints in :attr:`JointCommand.cartesian` (one row per namespace of
+  :meth:`Actuator.cartesian_namespaces`; the joints of a row are then in CommandMode.NONE) and
+  supplies the measured tip pose in :attr:`JointFeedback.cartesian`, so core does no IK for them.
 
 Buffers are pre-allocated (:meth:`Actuator.new_feedback`, :meth:`Actuator.new_command`) and filled
 in place every cycle.
@@ -80,6 +85,7 @@ class Capabilities:
     needs_homing: bool = False  # incremental encoders: is_homed starts False
     can_free: bool = True  # torque can be switched off with the robot powered (`free`)
     native_rate_hz: float | None = None  # rate the hardware paces (CANopen SYNC, RTDE); None = any
+    native_cartesian: bool = False  # follows cartesian setpoints and measures the tip pose itself
 
 
 def combine_capabilities(caps: Sequence[Capabilities]) -> Capabilities:
@@ -93,6 +99,7 @@ def combine_capabilities(caps: Sequence[Capabilities]) -> Capabilities:
         effort=all(c.effort for c in caps), measures_velocity=all(c.measures_velocity for c in caps),
         measures_effort=all(c.measures_effort for c in caps), needs_homing=any(c.needs_homing for c in caps),
         can_free=all(c.can_free for c in caps), native_rate_hz=rates[0] if rates else None,
+        native_cartesian=all(c.native_cartesian for c in caps),
     )
 
 
@@ -106,6 +113,50 @@ class CommandMode(enum.IntEnum):
     FREE = 4  # torque off on this joint while the robot is enabled (`free`)
 
 
+class CartesianMode(enum.IntEnum):
+    """Per-row mode of a :class:`CartesianCommand` (native cartesian backends)."""
+
+    NONE = 0  # no cartesian setpoint: the row's joints follow the joint command
+    POSE = 1  # servo_cp / interpolate_cp: track ``position`` / ``orientation`` now (servoL)
+    TWIST = 2  # servo_cv / interpolate_cv: follow ``linear`` / ``angular`` in ``frame`` (speedL)
+    MOVE = 3  # move_cp: go to the pose, ending at rest (moveL); report ``done_seq`` = ``seq`` at the end
+
+
+FRAME_SPATIAL, FRAME_BODY = 0, 1  # CartesianCommand.frame: base frame's axes / tip frame's axes
+
+
+@dataclass
+class CartesianCommand:
+    """One cycle's cartesian setpoints for a native cartesian backend, one row per namespace of
+    :meth:`Actuator.cartesian_namespaces`. Poses are the tip in the base frame (m, quaternion
+    ``[x, y, z, w]``), twists m/s and rad/s. ``seq[k]`` numbers the row's MOVE goals."""
+
+    mode: np.ndarray  # CartesianMode per row (uint8)
+    position: np.ndarray  # (k, 3)
+    orientation: np.ndarray  # (k, 4)
+    linear: np.ndarray  # (k, 3)
+    angular: np.ndarray  # (k, 3)
+    frame: np.ndarray  # (k,) FRAME_SPATIAL / FRAME_BODY of the twist
+    seq: np.ndarray  # (k,) int64
+
+
+@dataclass
+class CartesianFeedback:
+    """The tip pose a native cartesian backend measures (its TCP pose), one row per namespace of
+    :meth:`Actuator.cartesian_namespaces`, and ``done_seq[k]``: the last MOVE goal it finished."""
+
+    position: np.ndarray  # (k, 3) m, base frame
+    orientation: np.ndarray  # (k, 4) quaternion [x, y, z, w]
+    done_seq: np.ndarray  # (k,) int64
+    stamp: float = 0.0  # time of measurement; 0 = no valid pose
+
+    def copy_from(self, other: "CartesianFeedback") -> None:
+        self.position[:] = other.position
+        self.orientation[:] = other.orientation
+        self.done_seq[:] = other.done_seq
+        self.stamp = other.stamp
+
+
 @dataclass
 class JointFeedback:
     """One cycle's measured joint state, SI units, filled in place by ``Actuator.read``."""
@@ -114,6 +165,7 @@ class JointFeedback:
     velocity: np.ndarray
     effort: np.ndarray
     stamp: float = 0.0  # time of measurement, seconds since the Unix epoch
+    cartesian: CartesianFeedback | None = None  # native cartesian backends only
 
 
 @dataclass
@@ -127,6 +179,7 @@ class JointCommand:
     position: np.ndarray
     velocity: np.ndarray
     effort: np.ndarray
+    cartesian: CartesianCommand | None = None  # native cartesian backends only
 
 
 @dataclass(frozen=True)
@@ -473,13 +526,28 @@ class Actuator(abc.ABC):
         """What the joints ``joints`` (indices) can do together, e.g. one namespace's."""
         return combine_capabilities([self.joint_capabilities(i) for i in joints])
 
+    def cartesian_namespaces(self) -> list[str]:
+        """The namespaces this backend controls in cartesian space itself, in the order of the
+        rows of :class:`CartesianCommand` / :class:`CartesianFeedback`. Default: with
+        ``capabilities.native_cartesian``, every namespace with a ``kinematics`` section."""
+        if not self.capabilities.native_cartesian:
+            return []
+        return [ns.name for ns in self.profile.namespaces if ns.kinematics is not None]
+
     def new_feedback(self) -> JointFeedback:
         z = np.zeros(self.n)
-        return JointFeedback(z.copy(), z.copy(), z.copy(), 0.0)
+        k = len(self.cartesian_namespaces())
+        cart = CartesianFeedback(np.zeros((k, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (k, 1)),
+                                 np.zeros(k, dtype=np.int64)) if k else None
+        return JointFeedback(z.copy(), z.copy(), z.copy(), 0.0, cart)
 
     def new_command(self) -> JointCommand:
         z = np.zeros(self.n)
-        return JointCommand(np.zeros(self.n, dtype=np.uint8), z.copy(), z.copy(), z.copy())
+        k = len(self.cartesian_namespaces())
+        cart = CartesianCommand(np.zeros(k, dtype=np.uint8), np.zeros((k, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (k, 1)),
+                                np.zeros((k, 3)), np.zeros((k, 3)), np.zeros(k, dtype=np.uint8),
+                                np.zeros(k, dtype=np.int64)) if k else None
+        return JointCommand(np.zeros(self.n, dtype=np.uint8), z.copy(), z.copy(), z.copy(), cart)
 
     def info(self) -> ActuatorInfo:
         return ActuatorInfo(list(self.joint_names), self.capabilities)

@@ -10,7 +10,9 @@ Messages (dicts, see docs/protocol.md):
 * events appended to ``outbox`` in causal order: ``{"event": "operating_state", "data"}``,
   ``{"event": "warning"|"error"|"status", "data": {"stamp", "ns", "code", "message"}}``.
 
-Motion per namespace lives in ``motion.py``. Safety here:
+Motion per namespace lives in ``motion.py``; twists (``servo_cv``, ``interpolate_cv``) are mapped
+to joint velocities every cycle by ``twist.py``; the namespaces of a backend with its own
+cartesian control get cartesian setpoints from ``native_cartesian.py``. Safety here:
 * servo and interpolate positions outside the joint limits are clipped with a rate-limited
   warning; a ``servo_jp`` / ``interpolate_jp`` step larger than ``safety.servo_step_max`` from the
   last setpoint (or goal) is refused; a stream silent for ``safety.servo_timeout_s`` holds;
@@ -53,6 +55,7 @@ from .actuator import (
 )
 from .motion import Mode, NamespaceMotion
 from .state import DEVICE_STATUS, OperatingState, StateCommand, transition
+from .native_cartesian import NATIVE_COMMANDS, build_native_cartesian
 from .twist import TWIST_COMMANDS, build_twist_motions, parse_twist
 
 STATE_COMMANDS = tuple(c.value for c in StateCommand)
@@ -140,6 +143,9 @@ class Controller:
         }
         # servo_cv / interpolate_cv, mapped every cycle (core/twist.py); namespaces with kinematics
         self.twist_motions = build_twist_motions(profile, self.namespaces)
+        # namespaces the backend controls in cartesian space itself (core/native_cartesian.py)
+        self.native_cartesian = build_native_cartesian(self.namespaces, actuator.cartesian_namespaces(),
+                                                       profile.safety.servo_timeout_s)
         self.command = actuator.new_command()
         self.feedback = actuator.new_feedback()  # latest sample, copied in by on_read()
         self._fresh = actuator.new_feedback()  # the read that follows torque on
@@ -157,7 +163,8 @@ class Controller:
     # ------------------------------------------------------------------ queries
     @property
     def is_busy(self) -> bool:
-        return self.homing or self._running is not None or any(m.busy for m in self.namespaces.values())
+        return self.homing or self._running is not None or any(m.busy for m in self.namespaces.values()) \
+            or any(nc.busy for nc in self.native_cartesian.values())
 
     def operating_state(self) -> dict[str, Any]:
         return {
@@ -230,6 +237,8 @@ class Controller:
         if cmd == "_client_lost":
             self._client_lost()
             return None
+        if cmd in NATIVE_COMMANDS and ns in self.native_cartesian:
+            return self._native_cartesian_command(cmd, ns, data)
         if cmd in TWIST_COMMANDS:
             return self._twist_command(cmd, ns, data)
         if cmd not in MOTION_COMMANDS:
@@ -258,10 +267,44 @@ class Controller:
             if leaving_free:
                 m.free()  # a refused command changes nothing: the joints stay free (torque off)
             raise
+        self._end_cartesian(ns)  # a joint command takes over from a cartesian one
+        return result
+
+    def _end_cartesian(self, ns: str) -> None:
         tm = self.twist_motions.get(ns)
         if tm is not None:
-            tm.cancel()  # a joint command takes over from a twist stream
-        return result
+            tm.cancel()
+        nc = self.native_cartesian.get(ns)
+        if nc is not None:
+            was_busy = self.is_busy
+            nc.cancel()
+            if was_busy and not self.is_busy:  # the command pre-empted a native move
+                self._push_state()
+
+    def _native_cartesian_command(self, cmd: str, ns: str, data: dict) -> Any:
+        """A cartesian command for a backend that does cartesian control itself: no IK, no
+        mapping; the backend receives the pose or twist (core/native_cartesian.py)."""
+        nc = self.native_cartesian[ns]
+        self._check_can_move(ns, cmd)
+        m = nc.motion
+        was_busy = self.is_busy
+        was_free = m.mode is Mode.FREE
+        try:
+            nc.command(cmd, data, self.clock())  # the joints hold: the backend drives them now
+        except ValueError as exc:
+            raise Refused("bad_request", str(exc)) from None
+        if was_free:
+            m.setpoint_p[:] = self.feedback.position[m.idx]
+        tm = self.twist_motions.get(ns)
+        if tm is not None:
+            tm.cancel()
+        if cmd == "move_cp":
+            self.busy_seq += 1
+            self._push_state()  # busy=True edge, before the reply
+            return {"busy_seq": self.busy_seq}
+        if was_busy and not self.is_busy:  # a stream pre-empted a move
+            self._push_state()
+        return None
 
     def _twist_command(self, cmd: str, ns: Any, data: dict) -> None:
         """servo_cv / interpolate_cv: the twist is kept and mapped every cycle (core/twist.py)."""
@@ -271,9 +314,8 @@ class Controller:
         tm = self.twist_motions.get(ns)
         if tm is None:
             raise Refused("unsupported", f"{ns}: {cmd} is not supported: the namespace has no kinematics section")
-        if not self.can("velocity"):
-            raise Refused("unsupported", f"{ns}: {cmd} is not supported: the {self.profile.backend_type} backend "
-                          "has no velocity or position control")
+        if not self.can("velocity", ns):
+            raise Refused("unsupported", f"{ns}: {cmd} is not supported: no velocity or position control")
         self._check_can_move(ns, cmd)
         try:
             twist, frame = parse_twist(ns, cmd, data)
@@ -620,9 +662,10 @@ class Controller:
     def park(self) -> bool:
         """Shutdown park (``shutdown.action: park``): a jerk-limited move of every torqued
         namespace to the profile's rest pose, with busy edges. Returns False (nothing started)
-        unless the robot is ENABLED or PAUSED; a namespace left ``free`` stays free."""
-        if self.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
-            return False
+        unless the robot is ENABLED or PAUSED with no lifecycle transition under way; a namespace
+        left ``free`` stays free."""
+        if self.state not in (OperatingState.ENABLED, OperatingState.PAUSED) or self._running is not None:
+            return False  # (a lifecycle transition under way: the shutdown aborts it, torque off)
         rest = self.profile.shutdown.rest
         now = self.clock()
         self.homing = False
@@ -652,11 +695,15 @@ class Controller:
         interpolate_jp/jr goal) run to it; commands without one (servo streams, velocity and
         effort setpoints and goals) stop and hold (docs/protocol.md, Client loss)."""
         endless = [m for m in self.namespaces.values() if m.streaming and m.mode is not Mode.INTERP_P]
-        if self.state is OperatingState.ENABLED and endless:
+        native = [nc for nc in self.native_cartesian.values() if nc.active and not nc.busy]  # a native move runs on
+        if self.state is OperatingState.ENABLED and (endless or native):
             for m in endless:
                 m.stop()
+            for nc in native:
+                nc.cancel()
+            names = [m.name for m in endless] + [nc.motion.name for nc in native]
             self._event("warning", "control_released",
-                        f"{self.robot}: controlling client disconnected; holding {', '.join(m.name for m in endless)}")
+                        f"{self.robot}: controlling client disconnected; holding {', '.join(names)}")
 
     def _enter_fault(self, fault: Fault) -> None:
         """FAULT with ``fault`` as the cause, and the backend's fault reaction."""
@@ -758,6 +805,8 @@ class Controller:
         f.velocity[:] = feedback.velocity
         f.effort[:] = feedback.effort
         f.stamp = feedback.stamp
+        if f.cartesian is not None and feedback.cartesian is not None:
+            f.cartesian.copy_from(feedback.cartesian)  # the tip pose a native cartesian backend measures
         if active and self._written:
             cmd = self.command
             err = np.abs(f.position - cmd.position)
@@ -796,10 +845,15 @@ class Controller:
         run = self._running
         if run is not None and run.stepped != self._cycle:
             self._advance(run)
+        if self.state is not OperatingState.ENABLED:
+            for nc in self.native_cartesian.values():
+                nc.cancel()  # paused, disabled, fault: the backend gets no cartesian setpoint
         if self.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
             self._written = False
             if self.actuator.cyclic_write:
                 self.command.mode[:] = _NONE
+                if self.command.cartesian is not None:
+                    self.command.cartesian.mode[:] = _NONE
                 return True
             return False
         now = self.clock()
@@ -811,10 +865,17 @@ class Controller:
             tm = self.twist_motions.get(m.name)
             if tm is not None:
                 tm.update()  # a twist stream: joint velocities mapped at this cycle's setpoint
+            nc = self.native_cartesian.get(m.name)
+            if nc is not None:
+                msg = nc.update(now, measured[m.idx], self.feedback.cartesian)
+                if msg:
+                    self._event("warning", "servo_timeout", msg, m.name)
             msg = m.step(now, measured[m.idx])
             if msg:
                 self._event("warning", "servo_timeout", msg, m.name)
             m.fill(cmd)
+            if nc is not None:
+                nc.fill(cmd.mode, cmd.cartesian)  # the backend's cartesian row; its joints left to it
         if self.homing and not any(m.busy for m in self.namespaces.values()):
             self.homing = False
             self.is_homed = True

@@ -87,6 +87,8 @@ class ControlLoop:
         self.abort_park = False  # a second signal: torque off now
         ns = list(self.controller.namespaces.values())
         self._ns = ns
+        self._native_rows = [(k, self.controller.native_cartesian[m.name].row) for k, m in enumerate(ns)
+                             if m.name in self.controller.native_cartesian]
         v = snapshot.views
         self._v = v
 
@@ -171,6 +173,11 @@ class ControlLoop:
             v["ns_goal_has_p"][k] = g_p
             v["ns_goal_has_v"][k] = g_v
             v["ns_goal_has_f"][k] = g_f
+        fc = fb.cartesian
+        for k, row in self._native_rows:  # measured_cp straight from a native cartesian backend
+            v["ns_cart_stamp"][k] = fc.stamp if c._consecutive_bus_errors < self._bus_errors_max else 0.0
+            v["ns_cart_p"][3 * k:3 * k + 3] = fc.position[row]
+            v["ns_cart_q"][4 * k:4 * k + 4] = fc.orientation[row]
         self.snap.end()
 
     # ---------------------------------------------------------------- the loop
@@ -353,6 +360,7 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
         "transition_timeout_s": max(actuator.transition_timeout_s(k) for k in Lifecycle) * 2,
         "namespace_commands": c.namespace_commands(),  # motion commands per namespace
         "namespace_capabilities": {ns: as_dict(cap) for ns, cap in c.ns_caps.items()},
+        "native_cartesian": list(c.native_cartesian),  # namespaces whose backend does cartesian control
     }}
     if stop["flag"]:
         loop.running = False

@@ -8,6 +8,11 @@ Jᵀ·wrench, ..., and the loop's limits, watchdog, busy edges and faults apply 
 Twists (``servo_cv``, ``interpolate_cv``) are only validated here: a twist holds at one
 configuration only, so the control process maps it every cycle (core/twist.py).
 
+A namespace whose backend does cartesian control itself (``native_cartesian``: a UR's
+``servoL`` / ``speedL`` / ``moveL``) gets its pose and twist commands passed through unchanged
+(relative ones composed with the pose the backend measures), no IK, and its ``measured_cp`` is
+the backend's own tip pose.
+
 IK never runs on the front's event loop: position-level commands and ``inverse_kinematics`` run
 on one worker thread per namespace (FIFO, so a namespace's IK requests keep their order) with
 their own pinocchio model and data (a ``Kinematics`` is not thread-safe), while the loop goes on
@@ -49,14 +54,17 @@ JOINT_EQUIVALENT = {
     "servo_cv": "servo_jv", "interpolate_cv": "interpolate_jv",
     "servo_cf": "servo_jf", "interpolate_cf": "interpolate_jf",
 }
+#: what a native cartesian backend receives (relative commands arrive composed, as *_cp)
+NATIVE_ROUTED = POSE_CMDS + RELATIVE_CMDS + TWIST_CMDS
 FRAMED = ("measured_cv", "measured_cf", "setpoint_cv", "setpoint_cf", "goal_cv") + TWIST_CMDS + WRENCH_CMDS
 
 
 class CartesianSpace:
     def __init__(self, profile: Profile, ns: str, config: KinematicsConfig, joint_commands: list[str],
-                 measures_effort: bool):
+                 measures_effort: bool, native: bool = False):
         self.ns = ns
         self.cfg = config
+        self.native = native  # the backend takes cartesian setpoints and measures the tip pose
         spec = profile.namespace(ns)
         idx = [profile.joint_index(j) for j in spec.joints]
         lower = [profile.joints[i].limits.position_min for i in idx]
@@ -85,6 +93,12 @@ class CartesianSpace:
         return {"stamp": stamp, "frame_id": self.cfg.base_frame, "child_frame_id": self.cfg.tip_frame,
                 "position": p.tolist(), "orientation": quat.tolist()}
 
+    def _native_pose(self, st: dict) -> dict:
+        ok = st["native_stamp"] > 0
+        return {"stamp": st["native_stamp"], "frame_id": self.cfg.base_frame, "child_frame_id": self.cfg.tip_frame,
+                "position": st["native_p"].tolist() if ok else [],
+                "orientation": quaternion_from_matrix(matrix_from_quaternion(st["native_q"])).tolist() if ok else []}
+
     def _six(self, kind: str, stamp: float, vec: np.ndarray | None, frame: str) -> dict:
         a, b = ("linear", "angular") if kind == "twist" else ("force", "torque")
         base = {"stamp": stamp if vec is not None else 0.0,
@@ -100,6 +114,8 @@ class CartesianSpace:
     def query(self, cmd: str, st: dict, frame: str) -> dict:
         """``st`` is the namespace's joint state from one snapshot read (see ControlLink.ns_arrays)."""
         if cmd == "measured_cp":
+            if self.native:  # the backend's own TCP pose, with the stamp of its sample
+                return self._native_pose(st)
             return self._pose(st["measured_stamp"], st["measured_p"] if st["measured_stamp"] else None)
         if cmd == "measured_cv":
             ok = st["measured_stamp"] and st["measures_velocity"]
@@ -158,6 +174,8 @@ class CartesianSpace:
         """The command the control process runs for cartesian ``cmd``: the joint equivalent of a
         pose (IK on the worker) or wrench, or the validated twist itself. ``st`` is the joint
         state when the command arrived. Raises ProtocolError (ik_failed, bad_request)."""
+        if self.native and cmd in NATIVE_ROUTED:
+            return self._native_command(cmd, data, st, frame)
         if cmd in POSE_CMDS or cmd in RELATIVE_CMDS:
             return await self._off_loop(self._translate_pose, cmd, data, st, busy)
         if cmd in TWIST_CMDS:  # mapped every cycle in the control process (core/twist.py)
@@ -166,6 +184,21 @@ class CartesianSpace:
         wrench = np.concatenate([self._vec(data, "force", 3, cmd), self._vec(data, "torque", 3, cmd)])
         J = self.kin.jacobian(st["measured_p"], frame)
         return JOINT_EQUIVALENT[cmd], {"effort": (J.T @ wrench).tolist()}
+
+    def _native_command(self, cmd: str, data: Any, st: dict, frame: str) -> tuple[str, dict]:
+        """For a native cartesian backend: the pose or twist itself, validated; a relative
+        command composed (base frame, as everywhere) with the pose the backend measures."""
+        if cmd in TWIST_CMDS:
+            return cmd, {"linear": self._vec(data, "linear", 3, cmd).tolist(),
+                         "angular": self._vec(data, "angular", 3, cmd).tolist(), "frame": frame}
+        p, quat = self._target(data, cmd)
+        if cmd in RELATIVE_CMDS:
+            if not st["native_stamp"] > 0:
+                raise ProtocolError("invalid_state", f"{self.ns}: {cmd} refused: no measured pose to be relative to")
+            p = st["native_p"] + p
+            quat = quaternion_from_matrix(matrix_from_quaternion(quat) @ matrix_from_quaternion(st["native_q"]))
+            cmd = cmd[:-1] + "p"  # servo_cr -> servo_cp ...
+        return cmd, {"position": p.tolist(), "orientation": quat.tolist()}
 
     def _translate_pose(self, cmd: str, data: Any, st: dict, busy: bool) -> tuple[str, dict]:  # IK worker
         joint_cmd = JOINT_EQUIVALENT[cmd]

@@ -51,6 +51,8 @@ class ControlLink:
         self.ns_measures_velocity = {ns: True for ns in self.ns_index}
         self.ns_measures_effort = {ns: False for ns in self.ns_index}
         self.ns_commands: dict[str, list[str]] = {ns: [] for ns in self.ns_index}
+        #: namespaces whose backend does cartesian control and measures the tip pose itself
+        self.native_cartesian: set[str] = set()
 
     # ---------------------------------------------------------------- start-up
     def wait_ready(self, timeout_s: float) -> dict:
@@ -74,6 +76,7 @@ class ControlLink:
                         self.ns_measures_velocity[ns] = c["measures_velocity"]
                         self.ns_measures_effort[ns] = c["measures_effort"]
                     self.ns_commands.update(msg["data"]["namespace_commands"])
+                    self.native_cartesian = set(msg["data"].get("native_cartesian", ()))
                     return msg["data"]
                 if ev == "_startup_failed":
                     raise RuntimeError(msg["data"]["message"])
@@ -220,6 +223,10 @@ class ControlLink:
             "goal_p": buf[s["goal_p"]][idx], "goal_v": buf[s["goal_v"]][idx], "goal_f": buf[s["goal_f"]][idx],
             "goal_has_p": bool(buf[s["ns_goal_has_p"]][k]), "goal_has_v": bool(buf[s["ns_goal_has_v"]][k]),
             "goal_has_f": bool(buf[s["ns_goal_has_f"]][k]),
+            # the tip pose a native cartesian backend measures itself (stamp 0 for the others)
+            "native_stamp": float(buf[s["ns_cart_stamp"]][k]),
+            "native_p": buf[s["ns_cart_p"]][3 * k:3 * k + 3].copy(),
+            "native_q": buf[s["ns_cart_q"]][4 * k:4 * k + 4].copy(),
         }
 
     def period_statistics(self) -> dict:
