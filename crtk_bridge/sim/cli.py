@@ -1,7 +1,7 @@
 """``crtk-sim``: run a simulated device in the foreground until SIGTERM / SIGINT.
 
     crtk-sim feetech --profile profiles/so101.yaml --link /tmp/ttySIM [--control /tmp/sim.sock]
-                     [--emulate-baud] [--log-level info]
+                     [--emulate-baud] [--torque-delay S] [--log-level info]
     crtk-sim dynamixel --profile profiles/koch.yaml --link /tmp/ttySIM [...same options]
     crtk-sim feetech --profile profiles/bimanual_so101.yaml --bus left --link /tmp/ttyLEFT
 
@@ -38,6 +38,8 @@ def _parser() -> argparse.ArgumentParser:
         d.add_argument("--emulate-baud", action="store_true",
                        help="delay replies by the wire time at the profile's baud rate")
         d.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
+        d.add_argument("--torque-delay", type=float, default=0.0, metavar="S",
+                       help="a torque-on takes S seconds to take effect (a slow device; default 0)")
         d.add_argument("--log-level", default="warning",
                        choices=["debug", "info", "warning", "error"], help="default: warning")
     return p
@@ -69,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         sim = Simulator.from_profile(
             profile, link=args.link, control=args.control, emulate_baud=args.emulate_baud)
+        sim.set_torque_delay(args.torque_delay)
         sim.start()
     except CrtkBridgeError as exc:
         print(f"crtk-sim: {exc}", file=sys.stderr)
