@@ -154,3 +154,30 @@ def test_a_huge_twist_moves_at_velocity_max_in_its_direction_never_nan(rig, comm
     modest = act.pos - start
     cos = huge[:5] @ modest[:5] / (np.linalg.norm(huge[:5]) * np.linalg.norm(modest[:5]))
     assert cos > 0.99
+
+
+# ---------------------------------------------------------------- native move_cp: is_busy never stuck
+@pytest.mark.parametrize("how", ["pause", "fault", "disable"])
+def test_a_native_move_interrupted_by_a_stop_or_fault_ends_busy_for_subscribers(how):
+    """A running move_cp (native cartesian backend) that a pause, a fault or a disable ends must
+    push is_busy false: it was pushed true in the new state and never corrected (clients waiting
+    for the move's end hung)."""
+    from crtk_bridge.core.actuator import Fault
+
+    from .test_native_cartesian import POSE, FakeNativeArm
+
+    c, act, clock, cycle, req = make_rig(FakeNativeArm(PROFILE))
+    assert req("enable")["ok"]
+    cycle(2)
+    assert req("move_cp", "so101", **POSE)["ok"]
+    cycle(3)
+    assert c.is_busy
+    c.outbox.clear()
+    if how == "fault":
+        c.on_read(act.new_feedback(), Fault("bus_timeout", "so101: no reply", transient=False))
+    else:
+        assert req(how)["ok"]
+    cycle(5)
+    pushed = [m["data"] for m in c.outbox if m.get("event") == "operating_state"]
+    assert not c.is_busy
+    assert pushed and pushed[-1]["is_busy"] is False, pushed

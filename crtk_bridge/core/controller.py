@@ -666,6 +666,8 @@ class Controller:
         self.homing = False
         for m in self.namespaces.values():
             m.invalidate()
+        for nc in self.native_cartesian.values():
+            nc.cancel()  # a native move ends too: the push that follows carries is_busy false
         if was_busy:
             self._busy_reported = False
 
