@@ -181,3 +181,32 @@ def test_a_native_move_interrupted_by_a_stop_or_fault_ends_busy_for_subscribers(
     pushed = [m["data"] for m in c.outbox if m.get("event") == "operating_state"]
     assert not c.is_busy
     assert pushed and pushed[-1]["is_busy"] is False, pushed
+
+
+@pytest.mark.parametrize("how", ["park", "slow pause"])
+def test_a_native_cartesian_stream_ends_at_once_on_park_and_on_pause(how):
+    """A servo_cv stream on a native cartesian backend kept going to the backend during a
+    shutdown park (the park's joint trajectory then started from a stale position) and during a
+    pause transition that takes cycles (a pause must stop the motion when it is asked)."""
+    from crtk_bridge.core.actuator import CartesianMode
+
+    from .test_native_cartesian import FakeNativeArm
+
+    class SlowPause(FakeNativeArm):
+        def _pause_steps(self):
+            for _ in range(5):
+                yield
+
+    c, act, clock, cycle, req = make_rig(SlowPause(PROFILE))
+    assert req("enable")["ok"]
+    cycle(2)
+    assert req("servo_cv", "so101", linear=[0.0, 0.02, 0.0], angular=[0.0, 0.0, 0.0])["ok"]
+    cycle(2)
+    assert act.writes[-1][0] is CartesianMode.TWIST
+    if how == "park":
+        assert c.park()
+    else:
+        c.handle({"id": 99, "cmd": "pause", "ns": None, "data": {}})
+        assert c.state is OperatingState.ENABLED and c.is_busy  # the pause transition runs
+    cycle()
+    assert act.writes[-1][0] is CartesianMode.NONE, f"the twist still went out after {how}"

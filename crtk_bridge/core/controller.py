@@ -675,6 +675,8 @@ class Controller:
         was_busy = self.is_busy
         for m in self.namespaces.values():
             m.stop()
+        for nc in self.native_cartesian.values():
+            nc.cancel()  # the backend's cartesian motion stops now, not when a transition ends
         self.homing = False
         if was_busy:
             self._push_state()
@@ -689,6 +691,8 @@ class Controller:
         rest = self.profile.shutdown.rest
         now = self.clock()
         self.homing = False
+        for nc in self.native_cartesian.values():
+            nc.cancel()  # the joints park from where the backend left them
         started = False
         for m in self.namespaces.values():
             if m.mode is Mode.FREE:
