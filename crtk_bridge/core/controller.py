@@ -378,9 +378,12 @@ class Controller:
 
     def _hold_anyway(self, ns: str) -> bool:
         """``hold`` where motion commands are refused (homing, a lifecycle transition under way,
-        not homed, PAUSED): a stop is never refused. What moves there is robot-wide (home, a
+        not homed, PAUSED with something moving): a stop is never refused. What moves there is robot-wide (home, a
         shutdown park), so it all stops; a native home is aborted. True: handled (reply ok)."""
-        if self.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
+        if self.state is OperatingState.PAUSED:
+            if not self.in_motion():
+                return False  # nothing moves: refused as every motion command ("resume it first")
+        elif self.state is not OperatingState.ENABLED:
             return False  # torque is off or going off: nothing to stop, refused as before
         run = self._running
         if not (self.homing or run is not None or not self.is_homed or self.state is OperatingState.PAUSED):
