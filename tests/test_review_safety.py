@@ -9,6 +9,7 @@ import pytest
 
 from crtk_bridge.core.state import OperatingState
 
+from .conftest import only_on, wait_until
 from .test_controller import PROFILE, FakeActuator, make_rig
 
 
@@ -210,3 +211,33 @@ def test_a_native_cartesian_stream_ends_at_once_on_park_and_on_pause(how):
         assert c.state is OperatingState.ENABLED and c.is_busy  # the pause transition runs
     cycle()
     assert act.writes[-1][0] is CartesianMode.NONE, f"the twist still went out after {how}"
+
+
+# ---------------------------------------------------------------- huge efforts on a joint with no effort_max
+@only_on("koch-dynamixel")
+def test_a_huge_effort_is_limited_by_the_servo_not_a_fault(sim_daemon):
+    """The Koch gripper (no effort_max in the profile) offers servo_jf. servo_jf 1e308 N*m passed
+    the controller (finite, clipped to an infinite effort_max) and overflowed in the Dynamixel
+    backend's conversion (round(inf)): backend_exception FAULT, torque off on the whole arm. It is
+    sent as the servo's Current_Limit."""
+    from crtk_bridge.client import connect
+    from crtk_bridge.sim.control import control_request
+
+    bot = sim_daemon.robot
+    gid = bot.servo_id[bot.gripper_joint]
+    sim = sim_daemon.sim_control_path()
+    robot = connect(socket=str(sim_daemon.socket_path))
+    try:
+        arm, gripper = robot.device("koch"), robot.device("koch/gripper")
+        assert arm.enable(5.0)
+        gripper.servo_jf([1e308])
+        dump = lambda: control_request(sim, {"cmd": "dump"})["servos"][str(gid)]  # noqa: E731
+        wait_until(lambda: dump()["operating_mode"] == 0 and dump()["goal_current"] > 0, 3.0,
+                   what="gripper in current mode with a positive Goal_Current")
+        assert arm.is_enabled(), "a huge effort faulted the robot"
+        gripper.servo_jf([-1e308])
+        wait_until(lambda: dump()["goal_current"] < 0, 3.0, what="a negative Goal_Current")
+        assert arm.is_enabled()
+        assert arm.disable(5.0)
+    finally:
+        robot.close()
