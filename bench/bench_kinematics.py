@@ -5,7 +5,9 @@ Times FK (``fk``, ``fk_matrix``), the Jacobian (spatial, body), ``twist``, and I
 from a nearby q (as ``servo_cp`` from the last setpoint: the target is FK of q + a small step)
 and cold (from q = 0, random valid targets over the inner 80 % of each range). Prints the median
 and p99 per call and each as a fraction of a 1 ms (1 kHz) and a 5 ms (200 Hz, the SO-101
-profile's rate) cycle, plus IK iteration counts and success rates. Figures only; nothing is
+profile's rate) cycle, plus IK iteration counts and success rates. Also the per-cycle cost of a
+``servo_cv`` stream in the control process (core/twist.py: the twist mapped to joint velocities
+at the setpoint, bounded, every cycle), as a fraction of the profile's cycle period. Figures only; nothing is
 asserted (DESIGN.md: "IK per cycle as a fraction of the cycle period, goal under 10 %"). Usage:
 
     python bench/bench_kinematics.py [--calls 20000] [--ik-calls 3000]
@@ -24,7 +26,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from crtk_bridge.core.actuator import Capabilities  # noqa: E402
 from crtk_bridge.core.kinematics import Kinematics  # noqa: E402
+from crtk_bridge.core.motion import NamespaceMotion  # noqa: E402
+from crtk_bridge.core.twist import build_twist_motions  # noqa: E402
+from crtk_bridge.profile import load_profile  # noqa: E402
 
 URDF = ROOT / "profiles" / "urdf" / "so101.urdf"
 ARM = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"]
@@ -83,6 +89,9 @@ def main(argv=None) -> int:
     row("jacobian(q, 'body')", time_calls(kin.jacobian, [(q, "body") for q in qs]))
     row("twist(q, qd)", time_calls(kin.twist, [(q, qd) for q, qd in zip(qs, qds)]))
     row("wrench_from_efforts(q, tau)", time_calls(kin.wrench_from_efforts, [(q, qd) for q, qd in zip(qs, qds)]))
+    twists = [np.concatenate([rng.normal(0, 0.05, 3), rng.normal(0, 0.2, 3)]) for _ in range(args.calls)]
+    row("joint_velocity(q, twist)", time_calls(kin.joint_velocity, list(zip(qs, twists))))
+    cycle_cost = bench_twist_cycle(args.calls, rng)
 
     for name, cases, restarts in (
         ("ik warm (restarts=0)", warm, 0),
@@ -100,7 +109,37 @@ def main(argv=None) -> int:
         row(name, t, f"ok {oks / len(cases):.1%}, iterations med {np.median(it):.0f} p99 {np.percentile(it, 99):.0f}")
     far = [(p + np.array([1.0, 0.0, 0.0]), quat, q) for p, quat, q in warm[:300]]
     row("ik unreachable (1 m away)", time_calls(kin.ik, far))
+    profile_rate, t = cycle_cost
+    period = 1.0 / profile_rate
+    print(f"per-cycle servo_cv mapping (TwistMotion.update + motion step) at profiles/so101.yaml's "
+          f"{profile_rate:g} Hz: median {np.median(t) * 1e6:.1f} us = {np.median(t) / period:.2%} of the "
+          f"{period * 1e3:g} ms period, p99 {np.percentile(t, 99) * 1e6:.1f} us = "
+          f"{np.percentile(t, 99) / period:.2%}; at 1 kHz: median {np.median(t) / 1e-3:.1%}")
     return 0
+
+
+def bench_twist_cycle(calls: int, rng) -> tuple[float, np.ndarray]:
+    """One servo_cv stream on the so101 arm as the controller runs it: every cycle the twist is
+    re-mapped at the setpoint and integrated (the motion step). Returns (profile rate, times)."""
+    profile = load_profile(ROOT / "profiles" / "so101.yaml")
+    spec = profile.namespace("so101")
+    dt = 1.0 / profile.loop.rate_hz
+    m = NamespaceMotion("so101", [profile.joint_index(j) for j in spec.joints], profile, dt, Capabilities())
+    tm = build_twist_motions(profile, {"so101": m})["so101"]
+    out = np.empty(calls)
+    clock = time.perf_counter
+    now = 1000.0
+    for i in range(calls):
+        if i % 200 == 0:  # a fresh start pose and twist now and then, inside the workspace
+            m.reset(rng.uniform(m.pos_min * 0.5, m.pos_max * 0.5))
+            tm.servo(np.concatenate([rng.normal(0, 0.03, 3), rng.normal(0, 0.1, 3)]), "spatial", now)
+        now += dt
+        m.last_cmd_time = now  # the stream keeps arriving (no watchdog stop mid-bench)
+        t0 = clock()
+        tm.update()
+        m.step(now, m.setpoint_p)
+        out[i] = clock() - t0
+    return profile.loop.rate_hz, out
 
 
 if __name__ == "__main__":

@@ -259,13 +259,13 @@ def _split_joint_keys(data: dict) -> dict:
             continue
         nested = j.get("backend", {})
         if not isinstance(nested, dict):
-            raise ProfileError(f"joints[{i}].backend: expected a mapping of backend keys, "
-                               f"got {type(nested).__name__}")
+            raise ProfileError(f"{_named_path(f'joints[{i}]', data)}.backend: expected a mapping of "
+                               f"backend keys, got {type(nested).__name__}")
         flat = {k: v for k, v in j.items() if k not in CORE_JOINT_KEYS and k != "backend"}
         both = sorted(set(flat) & set(nested))
         if both:
-            raise ProfileError(f"joints[{i}].{both[0]}: given both beside the joint's keys and under "
-                               f"its backend: section")
+            raise ProfileError(f"{_named_path(f'joints[{i}]', data)}.{both[0]}: given both beside the "
+                               f"joint's keys and under its backend: section")
         out.append({**{k: v for k, v in j.items() if k in CORE_JOINT_KEYS}, "backend": {**flat, **nested}})
     return {**data, "joints": out}
 
@@ -276,6 +276,8 @@ def parse_profile(data: Any, source: str = "<profile>") -> Profile:
         raise ProfileError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
     try:
         profile = msgspec.convert(_split_joint_keys(data), Profile)
+    except ProfileError as exc:  # from _split_joint_keys: the key, but not yet the file
+        raise ProfileError(f"{source}: {exc}") from exc
     except msgspec.ValidationError as exc:
         raise ProfileError(f"{source}: {_format_msgspec_error(exc, data, Profile)}") from exc
     problems = _check(profile)

@@ -238,3 +238,11 @@ def test_daemon_refuses_a_bad_tip_frame_before_starting_anything(tmp_path, short
     proc = run("crtk_bridge.cli", "--profile", str(path), "--sim", "--socket", str(short_tmp / "a.sock"))
     assert "namespaces[0] (so101).kinematics.tip_frame" in one_line_error(proc)
     assert proc.stdout == ""  # neither the simulator nor the control process started
+
+
+@pytest.mark.parametrize("profile", sorted((ROOT / "profiles").glob("*.yaml")), ids=lambda p: p.name)
+def test_every_shipped_profile_passes_check_with_its_kinematics(profile, capsys):
+    assert bridge_main(["check", "--profile", str(profile)]) == 0, capsys.readouterr().err
+    out = capsys.readouterr().out
+    if "kinematics:" in profile.read_text():
+        assert "; kinematics " in out

@@ -192,7 +192,9 @@ def test_servo_cv_body_and_spatial_frames_go_to_their_namespaces(arm, daemon, ca
 
     # the body-frame twist query is the spatial one in the tip's axes
     arm.servo_cv([0, 0, v, 0, 0, 0], frame="spatial")
-    vs, ts = arm.setpoint_cv()
+    # the joint velocity reaches the twist within a few cycles (acceleration-limited ramp)
+    vs, ts = wait_until(lambda: (lambda r: r if r[0][2] > 0.02 else None)(arm.setpoint_cv()), 0.4,
+                        what="setpoint_cv at the commanded twist")
     vb, tb = arm.setpoint_cv(frame="body")
     arm.hold()
     assert ts > 0 and tb > 0 and vs[2] > 0.02

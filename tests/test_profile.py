@@ -369,7 +369,14 @@ def test_backend_keys_may_be_nested_under_the_joint(base):
     assert p.joints[0].backend["id"] == 1 and p.joints[0].backend["effort_per_amp"] == 0.95
     assert create_backend(p).joint_keys[0].calibration.range == (700, 3400)
     base["joints"][0]["id"] = 1  # both flat and nested: ambiguous
-    with pytest.raises(ProfileError, match=r"joints\[0\]\.id: given both"):
+    with pytest.raises(ProfileError, match=r"^robot\.yaml: joints\[0\] \(shoulder_pan\)\.id: given both"):
+        profile_mod.parse_profile(base, "robot.yaml")
+
+
+def test_a_joint_backend_section_that_is_not_a_mapping_names_file_and_joint(base):
+    base["joints"][2]["backend"] = 5
+    with pytest.raises(ProfileError, match=r"^robot\.yaml: joints\[2\] \(elbow_flex\)\.backend: expected a "
+                                           r"mapping of backend keys, got int$"):
         profile_mod.parse_profile(base, "robot.yaml")
 
 

@@ -31,6 +31,7 @@ from ..profile import Profile
 from .actuator import Actuator, Capabilities, CommandMode, Fault, JointFeedback
 from .motion import Mode, NamespaceMotion
 from .state import OperatingState, StateCommand, transition
+from .twist import TWIST_COMMANDS, build_twist_motions, parse_twist
 
 STATE_COMMANDS = tuple(c.value for c in StateCommand)
 #: joint motion commands -> (payload field, capability needed: "position" / "velocity" / "effort" / "free")
@@ -90,6 +91,8 @@ class Controller:
                                      self.ns_caps[ns.name])
             for ns in profile.namespaces
         }
+        # servo_cv / interpolate_cv, mapped every cycle (core/twist.py); namespaces with kinematics
+        self.twist_motions = build_twist_motions(profile, self.namespaces)
         self.command = actuator.new_command()
         self.feedback = actuator.new_feedback()  # latest sample, copied in by on_read()
         self._fresh = actuator.new_feedback()  # the read that follows torque on
@@ -175,6 +178,8 @@ class Controller:
         if cmd == "_client_lost":
             self._client_lost()
             return None
+        if cmd in TWIST_COMMANDS:
+            return self._twist_command(cmd, ns, data)
         if cmd not in MOTION_COMMANDS:
             raise Refused("unknown_command", f"{self.robot}: unknown command {cmd!r}")
         m = self.namespaces.get(ns)
@@ -196,11 +201,42 @@ class Controller:
         if leaving_free:
             m.reset(self.feedback.position[m.idx])  # start from where the joints are
         try:
-            return self._motion(cmd, m, vec, data, ns, now)
+            result = self._motion(cmd, m, vec, data, ns, now)
         except Refused:
             if leaving_free:
                 m.free()  # a refused command changes nothing: the joints stay free (torque off)
             raise
+        tm = self.twist_motions.get(ns)
+        if tm is not None:
+            tm.cancel()  # a joint command takes over from a twist stream
+        return result
+
+    def _twist_command(self, cmd: str, ns: Any, data: dict) -> None:
+        """servo_cv / interpolate_cv: the twist is kept and mapped every cycle (core/twist.py)."""
+        m = self.namespaces.get(ns)
+        if m is None:
+            raise Refused("unknown_namespace", f"{self.robot}: unknown namespace {ns!r} (have: {', '.join(self.namespaces)})")
+        tm = self.twist_motions.get(ns)
+        if tm is None:
+            raise Refused("unsupported", f"{ns}: {cmd} is not supported: the namespace has no kinematics section")
+        if not self.can("velocity"):
+            raise Refused("unsupported", f"{ns}: {cmd} is not supported: the {self.profile.backend_type} backend "
+                          "has no velocity or position control")
+        self._check_can_move(ns, cmd)
+        try:
+            twist, frame = parse_twist(ns, cmd, data)
+        except ValueError as exc:
+            raise Refused("bad_request", str(exc)) from None
+        if m.mode is Mode.FREE:
+            m.reset(self.feedback.position[m.idx])  # start from where the joints are
+        was_busy = self.is_busy
+        if cmd == "servo_cv":
+            tm.servo(twist, frame, self.clock())
+        else:
+            tm.interpolate(twist, frame, self.clock())
+        if was_busy and not self.is_busy:  # the stream pre-empted a move
+            self._push_state()
+        return None
 
     def _motion(self, cmd: str, m: NamespaceMotion, vec: np.ndarray | None, data: dict, ns: str, now: float) -> Any:
         was_busy = self.is_busy
@@ -492,6 +528,9 @@ class Controller:
         for m in self.namespaces.values():
             if m.mode is Mode.FREE:
                 m.setpoint_p[:] = measured[m.idx]  # follow the hand: leaving free is bumpless
+            tm = self.twist_motions.get(m.name)
+            if tm is not None:
+                tm.update()  # a twist stream: joint velocities mapped at this cycle's setpoint
             msg = m.step(now, measured[m.idx])
             if msg:
                 self._event("warning", "servo_timeout", msg, m.name)

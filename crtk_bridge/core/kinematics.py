@@ -65,6 +65,12 @@ _PROGRESS_MIN = 1e-7  # m (+ 0.1 m/rad of orientation): less improvement than th
 _PROGRESS_O_WEIGHT = 0.1
 _PROGRESS_PATIENCE = 4  # iterations without progress before giving up
 _RANK_TOL = 1e-9
+# Twist -> joint velocity (joint_velocity): damping only near a position singularity, where the
+# smallest singular value of the position Jacobian falls below the band; there the joint speeds
+# stay bounded (at most 1 / (2 sqrt(lam)) rad/s per m/s) at the price of a tip-speed shortfall.
+_TWIST_SINGULAR_BAND = 0.02  # m/rad
+_TWIST_DAMP_P = 1e-4  # m^2 at the singularity
+_TWIST_DAMP_O = 1e-4  # rad^2, orientation in the nullspace (as the IK floor)
 _BEYOND_REACH_ITER = 10  # singular values below this are treated as 0 for the nullspace projector
 
 
@@ -294,6 +300,27 @@ class Kinematics:
         J = self.jacobian(q, frame)
         return np.linalg.pinv(J.T, rcond=1e-6) @ np.asarray(tau, dtype=float)
 
+    def joint_velocity(self, q: np.ndarray, twist: np.ndarray, frame: str = "spatial",
+                       frozen: np.ndarray | None = None) -> np.ndarray:
+        """Joint velocities (rad/s, ``joint_names`` order) giving the tip ``twist`` ``[v; w]``
+        (m/s, rad/s, in ``frame``'s axes, see :meth:`jacobian`) at ``q``.
+
+        The same task priority as :meth:`ik`: the linear velocity is the primary task, solved
+        exactly wherever the position Jacobian has full rank (damped only within 2 cm/rad of a
+        position singularity, so the joint speeds stay bounded there); the angular velocity is
+        fitted in the least-squares sense in that task's nullspace. On the 5-joint SO-101 that
+        means the tip follows the commanded linear velocity and the orientation follows the
+        commanded angular velocity as far as the two remaining joints allow (docs/cartesian.md).
+        ``frozen`` (bool per joint) marks joints that must not move, e.g. resting on a limit:
+        the others do the work. Real-time safe: no logging, a few small arrays, microseconds
+        (bench/bench_kinematics.py).
+        """
+        J = self.jacobian(q, frame)
+        if frozen is not None and frozen.any():
+            J[:, frozen] = 0.0
+        tw = np.asarray(twist, dtype=float)
+        return self._priority_solve(J, tw[:3], tw[3:], _TWIST_DAMP_P, _TWIST_DAMP_O, _TWIST_SINGULAR_BAND)
+
     # ------------------------------------------------------------------ IK
     def ik(
         self,
@@ -456,18 +483,31 @@ class Kinematics:
 
     def _ik_step(self, J: np.ndarray, e_p: np.ndarray, e_o: np.ndarray, err_p: float, err_o: float) -> np.ndarray:
         """One task-priority damped least-squares step (model order)."""
+        lam_p = _DAMP_P_FLOOR + _DAMP_P_GAIN * err_p * err_p
+        lam_o = _DAMP_O_FLOOR + _DAMP_O_GAIN * err_o * err_o
+        return self._priority_solve(J, e_p, e_o, lam_p, lam_o)
+
+    def _priority_solve(self, J: np.ndarray, e_p: np.ndarray, e_o: np.ndarray, lam_p: float, lam_o: float,
+                        singular_band: float = 0.0) -> np.ndarray:
+        """``dq`` with ``Jp dq = e_p`` (damped least squares, primary) and ``Jo dq ~ e_o`` in the
+        nullspace of ``Jp`` (secondary). Column order in = order out. With ``singular_band`` > 0
+        (m/rad) the position damping ``lam_p`` applies only as the smallest singular value of
+        ``Jp`` drops below the band, growing to ``lam_p`` at the singularity (Nakamura-Hanafusa /
+        Chiaverini); away from it the primary task is solved exactly."""
         Jp = J[:3]
         Jo = J[3:]
         U, s, Vt = np.linalg.svd(Jp, full_matrices=True)  # Jp = U diag(s) Vt[:3]
-        lam_p = _DAMP_P_FLOOR + _DAMP_P_GAIN * err_p * err_p
-        dq = Vt[:3].T @ ((s / (s * s + lam_p)) * (U.T @ e_p))
+        if singular_band > 0.0:
+            closeness = 1.0 - (s[-1] / singular_band) ** 2
+            lam_p = lam_p * closeness if closeness > 0.0 else 0.0
+        dq = Vt[:3].T @ ((s / (s * s + lam_p)) * (U.T @ e_p)) if lam_p > 0.0 else \
+            Vt[:3].T @ (np.divide(1.0, s, out=np.zeros_like(s), where=s > _RANK_TOL) * (U.T @ e_p))
         r = int(np.count_nonzero(s > _RANK_TOL))
         # Exact nullspace of Jp: the right singular vectors with zero singular value.
         Nb = Vt[r:]  # (n - r) x n basis, rows orthonormal
         if Nb.shape[0]:
             A = Jo @ Nb.T  # 3 x (n - r)
             e2 = e_o - Jo @ dq
-            lam_o = _DAMP_O_FLOOR + _DAMP_O_GAIN * err_o * err_o
             # damped least squares in nullspace coordinates: (A^T A + lam I) z = A^T e2
             z = np.linalg.solve(A.T @ A + lam_o * self._eyes[A.shape[1]], A.T @ e2)
             dq += Nb.T @ z

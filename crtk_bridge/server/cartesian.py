@@ -1,11 +1,12 @@
-"""Cartesian CRTK for one namespace, in the front process: queries from the snapshot, commands
-translated to joint commands before they reach the control loop.
+"""Cartesian CRTK for one namespace, in the front process: queries from the snapshot, position-
+and effort-level commands translated to joint commands before they reach the control loop.
 
-Why here and not in the loop: IK costs 0.1 ms warm and up to tens of ms cold (bench/), which the
-real-time loop must not pay; FK and Jacobians for queries are pure functions of a joint sample. So a
-cartesian command becomes the equivalent joint command (``servo_cp`` -> ``servo_jp`` of the IK
-solution, ``servo_cv`` -> ``servo_jv`` of J⁺·twist, ...), and the loop's limits, watchdog, busy
-edges and faults apply unchanged.
+Why IK here and not in the loop: IK costs 0.1 ms warm and up to tens of ms cold (bench/), which
+the real-time loop must not pay; FK and Jacobians for queries are pure functions of a joint
+sample. So ``servo_cp`` becomes ``servo_jp`` of the IK solution, ``servo_cf`` ``servo_jf`` of
+Jᵀ·wrench, ..., and the loop's limits, watchdog, busy edges and faults apply unchanged.
+Twists (``servo_cv``, ``interpolate_cv``) are only validated here: a twist holds at one
+configuration only, so the control process maps it every cycle (core/twist.py).
 
 Conventions (docs/protocol.md, "Cartesian"):
 * poses are the tip frame in the base frame, ``position`` [m] + ``orientation`` quaternion
@@ -42,7 +43,6 @@ JOINT_EQUIVALENT = {
     "servo_cf": "servo_jf", "interpolate_cf": "interpolate_jf",
 }
 FRAMED = ("measured_cv", "measured_cf", "setpoint_cv", "setpoint_cf", "goal_cv") + TWIST_CMDS + WRENCH_CMDS
-_DAMPING = 1e-3  # damped least squares for J⁺ (5-DOF arm: no exact twist inverse)
 
 
 class CartesianSpace:
@@ -150,11 +150,9 @@ class CartesianSpace:
             if cmd == "servo_cr":
                 return joint_cmd, {"position": (q - current).tolist()}  # accumulates in the loop
             return joint_cmd, {"position": q.tolist()}
-        if cmd in TWIST_CMDS:
-            twist = np.concatenate([self._vec(data, "linear", 3, cmd), self._vec(data, "angular", 3, cmd)])
-            J = self.kin.jacobian(current, frame)
-            qd = J.T @ np.linalg.solve(J @ J.T + _DAMPING * np.eye(6), twist)
-            return joint_cmd, {"velocity": qd.tolist()}
+        if cmd in TWIST_CMDS:  # mapped every cycle in the control process (core/twist.py)
+            return cmd, {"linear": self._vec(data, "linear", 3, cmd).tolist(),
+                         "angular": self._vec(data, "angular", 3, cmd).tolist(), "frame": frame}
         wrench = np.concatenate([self._vec(data, "force", 3, cmd), self._vec(data, "torque", 3, cmd)])
         J = self.kin.jacobian(st["measured_p"], frame)
         return joint_cmd, {"effort": (J.T @ wrench).tolist()}

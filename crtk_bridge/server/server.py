@@ -242,6 +242,7 @@ class Server:
                 return cs.query(cmd, self.link.ns_arrays(ns), frame)
             self._take_control(s, cmd)
             cmd, data = cs.translate(cmd, data, self.link.ns_arrays(ns), frame, self.state.get("is_busy", False))
+            return await self._forward(s, rid, cmd, ns, data)
         if cmd in JOINT_QUERIES:
             return self.link.joint_state(cmd, self._check_ns(cmd, ns, True))
         if cmd == "operating_state":
@@ -273,6 +274,10 @@ class Server:
         self._check_ns(cmd, ns, cmd not in STATE_COMMANDS)
         if cmd not in STOP_COMMANDS:  # a stop is never refused, and takes nobody's control
             self._take_control(s, cmd)
+        return await self._forward(s, rid, cmd, ns, data)
+
+    async def _forward(self, s: Session, rid: int, cmd: str, ns: str | None, data: Any) -> Any:
+        """Send a command to the control process; its reply goes to ``s`` in order with events."""
         delivered = []
 
         def deliver(reply: dict) -> None:
