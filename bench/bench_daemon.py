@@ -28,11 +28,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+import sim_daemon  # noqa: E402  (bench/, beside this script)
 from crtk_bridge.client import connect  # noqa: E402
 
 
@@ -173,24 +173,10 @@ def main() -> int:
     args = ap.parse_args()
 
     tmp = Path(tempfile.mkdtemp(prefix="crtk-bench-"))
-    data = yaml.safe_load((ROOT / "profiles" / "so101.yaml").read_text())
-    data["loop"]["rate_hz"] = 1000
-    for ns in data["namespaces"]:
-        if "kinematics" in ns:
-            ns["kinematics"]["urdf"] = str(ROOT / "profiles" / "urdf" / "so101.urdf")
-    prof = tmp / "so101-1khz.yaml"
-    prof.write_text(yaml.safe_dump(data))
-    sock = tmp / "so101.sock"
-    daemon = subprocess.Popen([sys.executable, "-m", "crtk_bridge.cli", "--profile", str(prof), "--sim",
-                               "--socket", str(sock), "--log-level", "ERROR"], stdout=subprocess.DEVNULL)
+    daemon, sock = sim_daemon.start(1000, tmp)
     echo_path = str(tmp / "echo.sock")
     echo = echo_server(echo_path)
     try:
-        deadline = time.monotonic() + 30
-        while not sock.exists():
-            if daemon.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError("daemon did not start")
-            time.sleep(0.05)
         robot = connect(socket=str(sock))
         arm = robot.device("so101")
         assert arm.enable(5.0), "enable failed"

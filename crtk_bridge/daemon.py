@@ -58,15 +58,16 @@ def _die_with_parent() -> None:
 class SimulatorProcess:
     """``crtk-sim`` as a child process, serving a pty linked at ``link``."""
 
-    def __init__(self, profile_path: str, backend_type: str, workdir: str):
+    def __init__(self, profile_path: str, backend_type: str, workdir: str, bus: str | None = None):
         if backend_type not in SIMULATORS:
             raise CrtkBridgeError(f"--sim: no simulator for backend {backend_type!r} "
                                   f"(simulated backends: {', '.join(SIMULATORS)})")
-        self.link = os.path.join(workdir, "tty")
-        self.control = os.path.join(workdir, "sim.sock")
+        tag = f"-{bus}" if bus else ""  # several buses: one simulator each
+        self.link = os.path.join(workdir, f"tty{tag}")
+        self.control = os.path.join(workdir, f"sim{tag}.sock")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "crtk_bridge.sim.cli", SIMULATORS[backend_type], "--profile", profile_path,
-             "--link", self.link, "--control", self.control],
+             "--link", self.link, "--control", self.control, *(["--bus", bus] if bus else [])],
             stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
             start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
             preexec_fn=_die_with_parent,  # ...but a daemon killed outright must not leave it running
@@ -160,9 +161,12 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
     # control process first: motion stops, torque off; then the socket goes
     server.shutting_down = True
     link.send_nowait("_shutdown")
-    await loop.run_in_executor(None, proc.join, SHUTDOWN_TIMEOUT_S)
+    # a shutdown park (profile shutdown.action: park) runs within shutdown.timeout_s before torque off
+    sd = server.profile.shutdown
+    limit = SHUTDOWN_TIMEOUT_S + (sd.timeout_s if sd.action == "park" else 0.0)
+    await loop.run_in_executor(None, proc.join, limit)
     if proc.is_alive():
-        log.error("%s: the control process did not stop in %s s; killing it", server.robot, SHUTDOWN_TIMEOUT_S)
+        log.error("%s: the control process did not stop in %s s; killing it", server.robot, limit)
         proc.kill()
         proc.join()
         status = 1
@@ -185,6 +189,20 @@ async def _watchdog(link: ControlLink, period: float) -> None:
             last = cycles
 
 
+def _simulate_buses(profile: Profile, profile_path: str, workdir: str,
+                    simulators: list[SimulatorProcess]) -> Profile:
+    """--sim with several buses: one simulator per bus; the profile wired to their ports.
+    Appends each started simulator to ``simulators`` (so they are stopped however this ends)."""
+    backends = {}
+    for bus, section in profile.backends.items():
+        simulator = SimulatorProcess(profile_path, str(section["type"]), workdir, bus=bus)
+        simulators.append(simulator)
+        backends[bus] = {**section, "port": simulator.link}
+        print(f"crtk-bridge: simulated {section['type']} bus {bus!r} on {simulator.link} "
+              f"(simulator control socket {simulator.control})", flush=True)
+    return msgspec.structs.replace(profile, backends=backends)
+
+
 def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None, realtime: bool = True) -> int:
     """Run the daemon in the foreground until SIGTERM / SIGINT. Returns the exit status."""
     profile = load_profile(profile_path)
@@ -195,14 +213,18 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
     socket_path = socket_path or profile.server.socket or default_socket_path(profile.name)
     check_socket_path(socket_path, profile.name)  # before the simulator and the control process
 
-    simulator = None
     workdir = None
+    simulators: list[SimulatorProcess] = []
     if sim:
         workdir = tempfile.mkdtemp(prefix=f"crtk-bridge-{profile.name}-sim-")
-        simulator = SimulatorProcess(str(profile_path), profile.backend_type, workdir)
-        profile = msgspec.structs.replace(profile, backend={**profile.backend, "port": simulator.link})
-        print(f"crtk-bridge: simulated {profile.backend_type} bus on {simulator.link} "
-              f"(simulator control socket {simulator.control})", flush=True)
+        if profile.backends is None:
+            simulator = SimulatorProcess(str(profile_path), profile.backend_type, workdir)
+            simulators.append(simulator)
+            profile = msgspec.structs.replace(profile, backend={**profile.backend, "port": simulator.link})
+            print(f"crtk-bridge: simulated {profile.backend_type} bus on {simulator.link} "
+                  f"(simulator control socket {simulator.control})", flush=True)
+        else:
+            profile = _simulate_buses(profile, str(profile_path), workdir, simulators)
 
     snap = SnapshotBuffer(Layout(len(profile.joints), len(profile.namespaces)), create=True)
     front, back = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -241,7 +263,7 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
             proc.join(SHUTDOWN_TIMEOUT_S)
         front.close()
         snap.close(unlink=True)
-        if simulator:
+        for simulator in simulators:
             simulator.stop()
         if workdir:
             for name in os.listdir(workdir):

@@ -19,7 +19,7 @@ import difflib
 import math
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import msgspec
 import yaml
@@ -73,6 +73,7 @@ class Namespace(_Strict, kw_only=True):
     name: str  # CRTK namespace, e.g. "so101" or "so101/gripper"
     joints: list[str]
     kinematics: KinematicsConfig | None = None  # cartesian commands and queries; None = joint only
+    backend: str | None = None  # the bus (a name in ``backends``) its joints live on; several buses only
 
 
 class Loop(_Strict, kw_only=True):
@@ -88,6 +89,20 @@ class Safety(_Strict, kw_only=True):
     bus_errors_max: int = 5  # consecutive failed cycles before FAULT
 
 
+SHUTDOWN_TIMEOUT_MAX_S = 10.0  # the systemd unit's TimeoutStopSec leaves room for this plus clean-up
+
+
+class Shutdown(_Strict, kw_only=True):
+    """What the daemon does with a robot that is ENABLED (or PAUSED) when it stops (SIGTERM,
+    SIGINT, loss of the front process): ``torque_off`` at once (an arm without brakes drops), or
+    ``park``: a jerk-limited move of every torqued joint to ``rest`` within ``timeout_s``, then
+    torque off (at once if the move faults or runs out of time)."""
+
+    action: Literal["torque_off", "park"] = "torque_off"
+    timeout_s: float = 4.0  # s: the park's time limit
+    rest: dict[str, float] = {}  # joint name -> rad: the rest pose (required for park); others stay put
+
+
 class Server(_Strict, kw_only=True):
     socket: str | None = None  # default: $XDG_RUNTIME_DIR/crtk-bridge/<name>.sock
 
@@ -95,17 +110,44 @@ class Server(_Strict, kw_only=True):
 class Profile(_Strict, kw_only=True):
     name: str
     description: str = ""
-    backend: dict[str, Any]
+    backend: dict[str, Any] | None = None  # one bus: its backend section
+    backends: dict[str, dict[str, Any]] | None = None  # several buses, by name (one loop serves all)
     loop: Loop = Loop()
     safety: Safety = Safety()
     server: Server = Server()
+    shutdown: Shutdown = Shutdown()
     joints: list[Joint]
     namespaces: list[Namespace]
 
     # --- derived helpers (no state of their own) ---
     @property
     def backend_type(self) -> str:
-        return str(self.backend["type"])
+        """The backend's name; with several buses, their distinct names joined by '+'."""
+        if self.backends is None:
+            return str(self.backend["type"])
+        return "+".join(dict.fromkeys(str(b["type"]) for b in self.backends.values()))
+
+    @property
+    def bus_names(self) -> list[str]:
+        """The buses' names (``backends`` keys); empty for a one-bus profile."""
+        return list(self.backends or ())
+
+    def namespace_bus(self, ns: Namespace) -> str:
+        """The bus a namespace's joints live on (several buses only)."""
+        if ns.backend is not None:
+            return ns.backend
+        return next(iter(self.backends))  # validated: only one bus then
+
+    def bus_profile(self, bus: str) -> Profile:
+        """A one-bus profile of bus ``bus``: its backend section, its namespaces and their joints
+        (in the robot's joint order). The robot's name, loop and safety are kept, so its backend's
+        messages name the robot."""
+        spaces = [ns for ns in self.namespaces if self.namespace_bus(ns) == bus]
+        names = {j for ns in spaces for j in ns.joints}
+        return msgspec.structs.replace(
+            self, backend=self.backends[bus], backends=None,
+            joints=[j for j in self.joints if j.name in names],
+            namespaces=[msgspec.structs.replace(ns, backend=None) for ns in spaces])
 
     @property
     def joint_names(self) -> list[str]:
@@ -202,8 +244,18 @@ def _check(profile: Profile) -> list[str]:
     problems = []
     if not _NAME_RE.match(profile.name) or "/" in profile.name:
         problems.append(f"name: {profile.name!r} is not a valid robot name (letters, digits, _ -)")
-    if "type" not in profile.backend or not isinstance(profile.backend["type"], str):
-        problems.append("backend.type: required, a backend name such as 'feetech'")
+    if (profile.backend is None) == (profile.backends is None):
+        problems.append("backend: required: `backend` for a robot on one bus, or `backends` (by name) "
+                        "for several, not both")
+    buses = {"backend": profile.backend} if profile.backend is not None else {
+        f"backends.{name}": section for name, section in (profile.backends or {}).items()}
+    if profile.backends is not None and not profile.backends:
+        problems.append("backends: name at least one bus")
+    for key, section in buses.items():
+        if key != "backend" and (not _NAME_RE.match(key[9:]) or "/" in key[9:]):
+            problems.append(f"{key}: {key[9:]!r} is not a valid bus name (letters, digits, _ -)")
+        if "type" not in section or not isinstance(section["type"], str):
+            problems.append(f"{key}.type: required, a backend name such as 'feetech'")
     if not (0 < profile.loop.rate_hz <= 10000):
         problems.append(f"loop.rate_hz: {profile.loop.rate_hz} is not in (0, 10000]")
     seen: dict[str, int] = {}
@@ -244,6 +296,47 @@ def _check(profile: Profile) -> list[str]:
     for jn in seen:
         if jn not in used:
             problems.append(f"namespaces: joint {jn!r} belongs to no namespace")
+    problems += _check_buses(profile)
+    problems += _check_shutdown(profile)
+    return problems
+
+
+def _check_buses(profile: Profile) -> list[str]:
+    """Each namespace's joints live on one bus: a namespace names its bus when there are several."""
+    problems = []
+    names = profile.bus_names
+    used = set()
+    for i, ns in enumerate(profile.namespaces):
+        key = f"namespaces[{i}] ({ns.name}).backend"
+        if ns.backend is None:
+            if len(names) > 1:
+                problems.append(f"{key}: required with several buses, one of {', '.join(names)}")
+        elif profile.backends is None:
+            problems.append(f"{key}: only with `backends` (several buses); this profile has one `backend`")
+        elif ns.backend not in profile.backends:
+            problems.append(f"{key}: unknown bus {ns.backend!r} (backends: {', '.join(names)})")
+        used.add(ns.backend if ns.backend is not None else (names[0] if len(names) == 1 else None))
+    for name in names:
+        if name not in used:
+            problems.append(f"backends.{name}: no namespace lives on this bus")
+    return problems
+
+
+def _check_shutdown(profile: Profile) -> list[str]:
+    sd = profile.shutdown
+    problems = []
+    if not (0 < sd.timeout_s <= SHUTDOWN_TIMEOUT_MAX_S):
+        problems.append(f"shutdown.timeout_s: {sd.timeout_s} is not in (0, {SHUTDOWN_TIMEOUT_MAX_S:g}]")
+    by_name = {j.name: j for j in profile.joints}
+    for name, value in sd.rest.items():
+        j = by_name.get(name)
+        if j is None:
+            problems.append(f"shutdown.rest.{name}: unknown joint (known: {', '.join(by_name)})")
+        elif not j.limits.position_min <= value <= j.limits.position_max:
+            problems.append(f"shutdown.rest.{name}: {value} is outside the position limits "
+                            f"[{j.limits.position_min}, {j.limits.position_max}]")
+    if sd.action == "park" and not sd.rest:
+        problems.append("shutdown.rest: park needs a rest pose (joint name: rad)")
     return problems
 
 

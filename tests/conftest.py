@@ -177,8 +177,24 @@ class DaemonProcess:
         self.proc.send_signal(signal.SIGTERM)
         return self.proc.wait(timeout)
 
+    def _disable_quietly(self) -> None:
+        """Teardown: disable (torque off) first, so that SIGTERM does not park an arm a test left
+        ENABLED (profiles with shutdown.action: park); tests of shutdown use :meth:`terminate`."""
+        try:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+                s.settimeout(3.0)
+                s.connect(str(self.socket_path))
+                s.sendall(b'{"id": 1, "cmd": "disable"}\n')
+                f = s.makefile("rb")
+                for line in f:
+                    if json.loads(line).get("id") == 1:
+                        break
+        except (OSError, ValueError):
+            pass  # the daemon is gone or busy: SIGTERM still stops it safely
+
     def stop(self) -> None:
         if self.proc.poll() is None:
+            self._disable_quietly()
             self.proc.send_signal(signal.SIGTERM)
             try:
                 self.proc.wait(15)

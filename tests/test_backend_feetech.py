@@ -25,6 +25,8 @@ from crtk_bridge.core.actuator import CommandMode
 from crtk_bridge.errors import BackendError, ProfileError
 from crtk_bridge.profile import parse_profile
 
+from .conftest import wait_until
+
 with open("profiles/so101.yaml") as f:
     SO101 = yaml.safe_load(f)
 TICK = 2 * math.pi / 4096
@@ -34,17 +36,6 @@ def profile_data(**backend) -> dict:
     data = copy.deepcopy(SO101)
     data["backend"].update(backend)
     return data
-
-
-def wait_for(cond, timeout=5.0, what="condition"):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = cond()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.002)
 
 
 # ---------------------------------------------------------------- simulator helpers
@@ -60,9 +51,9 @@ def sim_reg(sim, sid: int, name: str) -> int:
 
 def wait_goals(sim, goals: dict[int, int]) -> None:
     """A sync write has no reply: wait (with a deadline) until the sim has applied it."""
-    wait_for(lambda: all(sim_reg(sim, sid, "Goal_Position") == g for sid, g in goals.items()),
-             2.0, f"sim goals {goals}, got "
-             f"{ {sid: sim_reg(sim, sid, 'Goal_Position') for sid in goals} }")
+    wait_until(lambda: all(sim_reg(sim, sid, "Goal_Position") == g for sid, g in goals.items()),
+               2.0, what=f"sim goals {goals}, got "
+               f"{ {sid: sim_reg(sim, sid, 'Goal_Position') for sid in goals} }")
 
 
 @pytest.fixture
@@ -204,7 +195,7 @@ def test_write_position_sets_goal_and_converges(sim, backend):
         err = np.abs(fb.position - np.where(cmd.mode == CommandMode.POSITION, cmd.position, 0.0))
         return np.all(err < 3 * TICK)
 
-    wait_for(converged, 10.0, "positions to converge to the command")
+    wait_until(converged, 10.0, what="positions to converge to the command")
 
 
 def test_out_of_range_commands_clamp_to_calibration_range(sim, backend):
@@ -311,8 +302,8 @@ def test_effort_estimate_follows_current_with_load_sign(sim, backend):
     cmd.position[0], cmd.position[1] = 1.0, -1.0  # pushing + on joint 0, - on joint 1
     assert backend.write(cmd) is None
     max_nm = 300 * tables.CURRENT_UNIT_A * 0.95  # sim's stall current
-    wait_for(lambda: read_ok(backend, fb).effort[0] > 0.1 and fb.effort[1] < -0.1, 2.0,
-             "effort to follow the pushing direction")
+    wait_until(lambda: read_ok(backend, fb).effort[0] > 0.1 and fb.effort[1] < -0.1, 2.0,
+               what="effort to follow the pushing direction")
     assert fb.effort[0] <= max_nm and fb.effort[1] >= -max_nm
 
 
@@ -425,7 +416,7 @@ def test_stale_input_bytes_do_not_answer_the_next_request(pty_pair, handler, foo
         ph = PacketHandler(0)
         # a late reply of a previous transaction (same id) plus line noise, already queued
         os.write(master, b"\x13\x37" + status_packet(1, (1111).to_bytes(2, "little")))
-        wait_for(lambda: port.getBytesAvailable() > 0, 2.0, "stale bytes to arrive")
+        wait_until(lambda: port.getBytesAvailable() > 0, 2.0, what="stale bytes to arrive")
         t = answer_one_read(master, 2222)
         value, result, _ = ph.read2ByteTxRx(port, 1, 56)
         t.join()

@@ -208,6 +208,7 @@ def test_check_names_a_joint_missing_from_the_urdf(tmp_path, capsys):
     def rename(d):
         d["joints"][0]["name"] = "shoulder_yaw"
         d["namespaces"][0]["joints"][0] = "shoulder_yaw"
+        d["shutdown"]["rest"]["shoulder_yaw"] = d["shutdown"]["rest"].pop("shoulder_pan")  # renamed everywhere
 
     code, err = _check_with(tmp_path, capsys, rename)
     assert code == 1 and len(err.splitlines()) == 1

@@ -25,20 +25,13 @@ from crtk_bridge.client.cli import main
 from crtk_bridge.client.connection import PROTOCOL_VERSION, Connection, DaemonConnectionError
 from crtk_bridge.errors import CommandError
 
+from .conftest import wait_until
+
 JOINTS = ["shoulder_pan", "elbow"]
 #: what a position-only backend lists: no servo_jf / interpolate_jf
 ARM_COMMANDS = ["enable", "disable", "pause", "resume", "home", "unhome", "servo_jp", "servo_jr",
                 "servo_jv", "interpolate_jp", "interpolate_jr", "interpolate_jv", "move_jp",
                 "move_jr", "hold", "free"]
-
-
-def wait_until(pred, timeout=3.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.005)
-    return pred()
 
 
 def state(name="DISABLED", homed=True, busy=False, seq=0):
@@ -313,9 +306,10 @@ def test_move_handle_ignores_stale_idle_and_waits_for_its_own_busy_seq(fake, rob
     assert handle.wait(timeout=0.3) is False
     assert handle.is_busy()
     done = []
-    threading.Thread(target=lambda: done.append(handle.wait(timeout=5.0))).start()
-    time.sleep(0.05)
-    assert not done
+    waiter = threading.Thread(target=lambda: done.append(handle.wait(timeout=5.0)))
+    waiter.start()
+    waiter.join(0.05)  # the window in which wait() must not return: the move is still busy
+    assert waiter.is_alive() and not done
     fake.set_state(is_busy=False, busy_seq=5)
     assert wait_until(lambda: done)
     assert done == [True] and not handle.is_busy()

@@ -26,18 +26,12 @@ from crtk_bridge.sim import SimulatorError
 from crtk_bridge.sim.control import control_request
 from crtk_bridge.sim.feetech import VELOCITY_MAX_TPS, FeetechSimulator
 
+from .conftest import wait_until
+
 ROOT = Path(__file__).resolve().parent.parent
 SO101 = ROOT / "profiles" / "so101.yaml"
 IDS = [1, 2, 3, 4, 5, 6]
 BLOCK = (T.PRESENT_BLOCK_START, T.PRESENT_BLOCK_LEN)  # 56, 15
-
-
-def wait_for(predicate, timeout_s=5.0, what="condition"):
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.005)
 
 
 def checksum(body: bytes) -> int:
@@ -177,10 +171,10 @@ def test_sync_write_goal_with_torque_on_converges(sim, bus):
                             group.getData(1, 69, 2)))
         return group.getData(1, 56, 2) == 4000 and group.getData(2, 56, 2) == 800
 
-    wait_for(arrived, 5.0, "servos 1 and 2 at their goals")
+    wait_until(arrived, 5.0, what="servos 1 and 2 at their goals")
     assert any(m == 1 and v > 0 and cur > 0 for m, v, cur in seen_moving), seen_moving
     assert max(v for _, v, _ in seen_moving) <= VELOCITY_MAX_TPS
-    wait_for(lambda: sim.servo(1).read("Moving") == 0, 2.0, "servo 1 settled")
+    wait_until(lambda: sim.servo(1).read("Moving") == 0, 2.0, what="servo 1 settled")
     assert sim.servo(1).read("Present_Velocity") == 0
 
 
@@ -230,15 +224,15 @@ def test_reg_write_applies_only_on_action(sim, bus):
         assert ph.regWriteTxRx(port, sid, 40, 1, [1])[0] == sdk.COMM_SUCCESS
     assert sim.servo(4).read("Torque_Enable") == 0
     assert ph.action(port, sdk.BROADCAST_ID) == sdk.COMM_SUCCESS
-    wait_for(lambda: sim.servo(4).read("Torque_Enable") == sim.servo(5).read("Torque_Enable") == 1, 2.0,
-             "broadcast ACTION applied")
+    wait_until(lambda: sim.servo(4).read("Torque_Enable") == sim.servo(5).read("Torque_Enable") == 1, 2.0,
+               what="broadcast ACTION applied")
     assert sim.servo(6).read("Torque_Enable") == 0
 
 
 def test_broadcast_write_and_status_level_zero(sim, bus):
     port, ph = bus
     assert ph.write1ByteTxRx(port, sdk.BROADCAST_ID, 8, 0)[0] == sdk.COMM_SUCCESS  # no reply awaited
-    wait_for(lambda: all(sim.servo(i).read("Response_Status_Level") == 0 for i in IDS), 2.0, "broadcast write")
+    wait_until(lambda: all(sim.servo(i).read("Response_Status_Level") == 0 for i in IDS), 2.0, what="broadcast write")
     # level 0: a write is applied but not acknowledged; reads and pings still answer
     assert ph.write1ByteTxRx(port, 1, 40, 1)[0] == sdk.COMM_RX_TIMEOUT
     assert sim.servo(1).read("Torque_Enable") == 1

@@ -38,5 +38,12 @@ def backend_class(name: str, source: str = "<profile>") -> type:
 
 
 def create_backend(profile, *, source: str = "<profile>"):
-    """Construct (not open) the backend a profile names. Validates its ``backend`` section."""
+    """Construct (not open) the backend a profile names. Validates its ``backend`` section.
+
+    A profile with several buses (``backends``) gets one backend per bus behind a
+    :class:`~.composite.CompositeActuator`."""
+    if profile.backends is not None:
+        from .composite import create_composite
+
+        return create_composite(profile, lambda bus, src: create_backend(bus, source=src), source)
     return backend_class(profile.backend_type, source)(profile, source=source)

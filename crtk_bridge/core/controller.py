@@ -430,6 +430,36 @@ class Controller:
         if was_busy:
             self._push_state()
 
+    def park(self) -> bool:
+        """Shutdown park (``shutdown.action: park``): a jerk-limited move of every torqued
+        namespace to the profile's rest pose, with busy edges. Returns False (nothing started)
+        unless the robot is ENABLED or PAUSED; a namespace left ``free`` stays free."""
+        if self.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
+            return False
+        rest = self.profile.shutdown.rest
+        now = self.clock()
+        self.homing = False
+        started = False
+        for m in self.namespaces.values():
+            if m.mode is Mode.FREE:
+                continue
+            here = m.setpoint_p  # a joint the rest pose does not name stops where it is
+            m.start_move(np.array([rest.get(name, here[k]) for k, name in enumerate(m.joint_names)]), now)
+            started = True
+        if started:
+            self.busy_seq += 1
+            self._push_state()
+        return started
+
+    def in_motion(self) -> bool:
+        """A move runs or a namespace is still braking (after pause, hold)."""
+        return self.is_busy or any(m.mode is Mode.STOP for m in self.namespaces.values())
+
+    def at_rest_pose(self) -> bool:
+        """Every parked namespace's setpoint is at its move goal (the park move finished)."""
+        return all(m.mode is Mode.FREE or np.allclose(m.setpoint_p, m.goal_p, atol=1e-6)
+                   for m in self.namespaces.values())
+
     def _client_lost(self) -> None:
         """The controlling session went away. Commands with an end (a move, home, an
         interpolate_jp/jr goal) run to it; commands without one (servo streams, velocity and

@@ -7,8 +7,10 @@ logging, allocation-heavy work and blocking I/O out of the cycle.
 
 It talks to the front process over one SOCK_SEQPACKET socketpair (msgpack messages, never the
 network) and publishes state through :class:`~crtk_bridge.core.snapshot.SnapshotBuffer`.
-If the front process goes away (EOF on the pair), the loop stops safely: torque off, exit.
-SIGTERM / SIGINT do the same.
+If the front process goes away (EOF on the pair), the loop stops safely, as on SIGTERM / SIGINT
+or the front's ``_shutdown``: with ``shutdown.action: park`` an ENABLED (or PAUSED) robot first
+moves to its rest pose, the cycle running on (see :meth:`ControlLoop._parking`); then torque off,
+exit. A second signal, or a stop command (disable, pause, hold), cuts the park short.
 """
 
 from __future__ import annotations
@@ -30,10 +32,12 @@ from ..profile import Profile
 from .actuator import Actuator, Fault
 from .controller import Controller
 from .snapshot import RING, SnapshotBuffer
+from .state import OperatingState
 
 _encode = msgspec.msgpack.Encoder().encode
 _decode = msgspec.msgpack.Decoder().decode
 MAX_REQUESTS_PER_CYCLE = 64
+_STOPS = ("disable", "pause", "hold")  # accepted during a shutdown park: a stop is never refused
 MAX_MESSAGE = 1 << 17  # bytes; the front refuses request lines above server.MAX_LINE (64 KiB)
 
 
@@ -77,6 +81,9 @@ class ControlLoop:
         self.pending: deque[bytes] = deque()  # messages the pair could not take yet
         self.running = True
         self.front_alive = True
+        self._park_deadline: float | None = None  # perf_counter time limit of a shutdown park
+        self._park_t0 = 0.0
+        self.abort_park = False  # a second signal: torque off now
         ns = list(self.controller.namespaces.values())
         self._ns = ns
         v = snapshot.views
@@ -129,6 +136,12 @@ class ControlLoop:
             if msg.get("cmd") == "_shutdown":
                 self.running = False
                 return
+            if self._park_deadline is not None and msg.get("cmd") not in _STOPS:
+                if msg.get("cmd") != "_client_lost":  # a client leaving must not cut the park short
+                    self.controller.outbox.append({"id": msg.get("id"), "ok": False, "error": {
+                        "code": "invalid_state",
+                        "message": f"{self.profile.name}: shutting down (parking); only disable, pause or hold"}})
+                continue
             self.controller.handle(msg)
 
     # ---------------------------------------------------------------- snapshot
@@ -191,7 +204,7 @@ class ControlLoop:
         clock = time.perf_counter
         next_t = clock() + period
         i = 0
-        while self.running and self.front_alive:
+        while (self.running and self.front_alive) or self._parking():
             now = clock()
             delay = next_t - now
             if delay > 0:
@@ -226,6 +239,50 @@ class ControlLoop:
         self.shutdown()
         return 0
 
+    def _parking(self) -> bool:
+        """Called once the loop was asked to end: start the shutdown park, or say whether the one
+        running goes on (True: run another cycle). Its start and end are status / warning events."""
+        c = self.controller
+        sd = self.profile.shutdown
+        name = self.profile.name
+        now = time.perf_counter()
+        if self._park_deadline is None:
+            active = c.state in (OperatingState.ENABLED, OperatingState.PAUSED)
+            if sd.action != "park" or self.abort_park or not active or not c.park():
+                if active:
+                    c._event("status", "shutdown_torque_off", f"{name}: shutting down: torque off "
+                             f"(shutdown.action: {sd.action})")
+                return False
+            self._park_t0 = now
+            self._park_deadline = now + sd.timeout_s
+            c._event("status", "shutdown_park", f"{name}: shutting down: parking at the rest pose "
+                     f"(shutdown.action: park, within {sd.timeout_s:g} s), then torque off")
+            return True
+        took = now - self._park_t0
+        if c.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
+            c._event("warning", "shutdown_park_aborted", f"{name}: park ended by {c.state.value} after {took:.2f} s; "
+                     "torque off")
+        elif self.abort_park:
+            c._event("warning", "shutdown_park_aborted", f"{name}: park cut short by a second signal after "
+                     f"{took:.2f} s; torque off")
+        elif now > self._park_deadline:
+            c._event("warning", "shutdown_park_timeout", f"{name}: the rest pose was not reached within "
+                     f"shutdown.timeout_s = {sd.timeout_s:g} s; torque off")
+        elif c.in_motion():
+            return True
+        elif c.at_rest_pose():
+            c._event("status", "shutdown_parked", f"{name}: parked at the rest pose in {took:.2f} s; torque off")
+        else:
+            c._event("warning", "shutdown_park_aborted", f"{name}: park stopped short of the rest pose after "
+                     f"{took:.2f} s (a stop command); torque off")
+        return False
+
+    def request_stop(self) -> None:
+        """SIGTERM / SIGINT: end the loop; a second one during the park: torque off now."""
+        if not self.running:
+            self.abort_park = True
+        self.running = False
+
     def shutdown(self) -> None:
         """Stop motion and switch torque off. Never raises."""
         try:
@@ -254,7 +311,7 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
     def on_signal(signum: int, frame: Any) -> None:
         stop["flag"] = True
         if "loop" in loop_ref:
-            loop_ref["loop"].running = False
+            loop_ref["loop"].request_stop()
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)

@@ -3,6 +3,7 @@
     crtk-sim feetech --profile profiles/so101.yaml --link /tmp/ttySIM [--control /tmp/sim.sock]
                      [--emulate-baud] [--log-level info]
     crtk-sim dynamixel --profile profiles/koch.yaml --link /tmp/ttySIM [...same options]
+    crtk-sim feetech --profile profiles/bimanual_so101.yaml --bus left --link /tmp/ttyLEFT
 
 Prints one line once the port (and control socket) exist, then serves until signalled; exits 0
 after removing the link and the control socket. Exit 2: bad arguments or profile; 1: the
@@ -36,6 +37,7 @@ def _parser() -> argparse.ArgumentParser:
         d.add_argument("--control", help="serve the JSON-lines control socket at this path")
         d.add_argument("--emulate-baud", action="store_true",
                        help="delay replies by the wire time at the profile's baud rate")
+        d.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
         d.add_argument("--log-level", default="warning",
                        choices=["debug", "info", "warning", "error"], help="default: warning")
     return p
@@ -49,6 +51,12 @@ def main(argv: list[str] | None = None) -> int:
     except ProfileError as exc:
         print(f"crtk-sim: {exc}", file=sys.stderr)
         return 2
+    if profile.backends is not None or args.bus is not None:
+        if args.bus not in profile.bus_names:
+            print(f"crtk-sim: {args.profile}: --bus must name one of the profile's buses "
+                  f"({', '.join(profile.bus_names) or 'it has one backend: leave --bus out'})", file=sys.stderr)
+            return 2
+        profile = profile.bus_profile(args.bus)  # one simulator per bus
 
     if args.device == "dynamixel":
         from .dynamixel import DynamixelSimulator as Simulator

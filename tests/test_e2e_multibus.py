@@ -1,0 +1,167 @@
+"""Several buses in one robot (issue 8 item 5): profiles/bimanual_so101.yaml, two SO-101 arms on two
+Feetech buses, run with --sim (one simulator per bus). One operating state covers both arms: one
+enable powers both buses; each arm moves on its own bus with move_jp; a fault on one bus faults the
+robot, names the bus and the joint, and switches torque off on both. Plus the profile rules of
+``backends`` (each namespace on one named bus) and key paths of a bus's backend errors."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from crtk_bridge.backends import create_backend
+from crtk_bridge.backends.composite import CompositeActuator
+from crtk_bridge.client import connect
+from crtk_bridge.errors import ProfileError
+from crtk_bridge.profile import load_profile, parse_profile
+from crtk_bridge.sim.control import control_request
+
+from .conftest import ROOT, DaemonProcess, wait_until
+
+BIMANUAL = ROOT / "profiles" / "bimanual_so101.yaml"
+LEFT_GOAL = np.array([0.4, 0.3, -0.3, 0.2, 0.0])
+RIGHT_GOAL = np.array([-0.5, -0.2, 0.4, 0.0, 0.3])
+
+
+def ticks(rad: np.ndarray) -> np.ndarray:
+    return 2048 + rad * 4096 / (2 * math.pi)  # STS3215, offset 2048, direction +1 (the profile's)
+
+
+class Bimanual:
+    def __init__(self, daemon: DaemonProcess):
+        self.daemon = daemon
+        self.sims = {}
+        for line in daemon.output().splitlines():
+            if "simulator control socket" in line:
+                bus = line.split("bus '", 1)[1].split("'", 1)[0]
+                self.sims[bus] = line.rsplit(" ", 1)[-1].rstrip(")")
+        assert set(self.sims) == {"left", "right"}, daemon.output()
+
+    def servos(self, bus: str) -> dict:
+        reply = control_request(self.sims[bus], {"cmd": "dump"})
+        assert reply.get("ok"), reply
+        return reply["servos"]
+
+    def torque(self, bus: str) -> list[int]:
+        return [s["torque_enable"] for _, s in sorted(self.servos(bus).items())]
+
+    def arm_ticks(self, bus: str) -> np.ndarray:
+        s = self.servos(bus)
+        return np.array([s[str(i)]["present_position"] for i in range(1, 6)], dtype=float)
+
+
+@pytest.fixture
+def bimanual(short_tmp):
+    d = DaemonProcess(["--profile", str(BIMANUAL), "--sim"], short_tmp / "bimanual.sock", short_tmp / "daemon.log")
+    robot = connect(socket=str(d.socket_path))
+    try:
+        yield Bimanual(d), robot
+    finally:
+        robot.close()
+        d.stop()
+
+
+def test_both_arms_enable_together_move_independently_share_one_state(bimanual):
+    sims, robot = bimanual
+    assert [ns["name"] for ns in robot.list()["namespaces"]] == ["left", "left/gripper", "right", "right/gripper"]
+    left, right = robot.device("left"), robot.device("right")
+    assert sims.torque("left") == [0] * 6 and sims.torque("right") == [0] * 6  # starts DISABLED
+    assert left.enable(5.0)  # ONE enable: the whole robot, both buses
+    wait_until(lambda: sims.torque("left") == [1] * 6 and sims.torque("right") == [1] * 6, 3,
+               what="torque on every servo of both buses")
+    assert right.operating_state() == "ENABLED" and robot.device("right/gripper").operating_state() == "ENABLED"
+    # common stamps: both arms' samples come from the same cycle
+    assert left.measured_js()[3] > 0
+    wait_until(lambda: left.measured_js()[3] == right.measured_js()[3], 2, what="one stamp for both buses")
+    # independent motion, at the same time, each on its own bus
+    hl, hr = left.move_jp(LEFT_GOAL), right.move_jp(RIGHT_GOAL)
+    assert hl.wait(timeout=15.0) and hr.wait(timeout=15.0)
+    wait_until(lambda: np.allclose(left.measured_js()[0], LEFT_GOAL, atol=0.02)
+               and np.allclose(right.measured_js()[0], RIGHT_GOAL, atol=0.02), 5, what="both arms at their goals")
+    # ... and the right servos really moved on the right bus, the left on the left
+    assert np.allclose(sims.arm_ticks("left"), ticks(LEFT_GOAL), atol=15)
+    assert np.allclose(sims.arm_ticks("right"), ticks(RIGHT_GOAL), atol=15)
+    # one operating state: disabling from the right arm disables the left too, both buses off
+    assert right.disable(5.0)
+    assert left.operating_state() == "DISABLED"
+    wait_until(lambda: sims.torque("left") == [0] * 6 and sims.torque("right") == [0] * 6, 3,
+               what="torque off on both buses")
+
+
+def test_a_fault_on_one_bus_faults_the_robot_naming_bus_and_joint(bimanual):
+    sims, robot = bimanual
+    left, right = robot.device("left"), robot.device("right")
+    assert left.enable(5.0)
+    mark = robot.connection.event_count
+    reply = control_request(sims.sims["right"], {"cmd": "fault", "id": 3, "kind": "silent"})
+    assert reply.get("ok"), reply
+    ev = robot.wait_for_event("bus_timeout", 5.0, kind="error", since=mark)
+    assert ev is not None, list(robot.connection.events_since(mark))
+    assert "bus 'right'" in ev.data["message"], ev.data
+    assert ev.data["joint"] in ("right_shoulder_pan", "right_shoulder_lift", "right_elbow_flex"), ev.data
+    wait_until(left.is_fault, 3, what="the LEFT arm in FAULT too (one operating state)")
+    assert right.is_fault()
+    wait_until(lambda: sims.torque("left") == [0] * 6, 3, what="torque off on the healthy bus")
+
+
+# ---------------------------------------------------------------- profile rules
+
+
+def bimanual_data() -> dict:
+    return yaml.safe_load(BIMANUAL.read_text())
+
+
+def test_profile_builds_one_backend_per_bus():
+    p = load_profile(BIMANUAL)
+    assert p.bus_names == ["left", "right"] and p.backend_type == "feetech"
+    right = p.bus_profile("right")
+    assert right.backend["port"] == p.backends["right"]["port"]
+    assert right.joint_names == [f"right_{n}" for n in ("shoulder_pan", "shoulder_lift", "elbow_flex",
+                                                         "wrist_flex", "wrist_roll", "gripper")]
+    b = create_backend(p)
+    assert isinstance(b, CompositeActuator) and b.bus_names == ["left", "right"] and b.n == 12
+    assert [part.joint_keys[0].id for part in b.parts] == [1, 1]  # servo ids are per bus
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d["namespaces"][0].pop("backend"),
+     "namespaces[0] (left).backend: required with several buses, one of left, right"),
+    (lambda d: d["namespaces"][2].update(backend="middle"),
+     "namespaces[2] (right).backend: unknown bus 'middle' (backends: left, right)"),
+    (lambda d: d.update(backend={"type": "feetech", "port": "/dev/x"}),
+     "backend: required: `backend` for a robot on one bus, or `backends`"),
+    (lambda d: d["backends"].update(spare={"type": "feetech", "port": "/dev/y"}),
+     "backends.spare: no namespace lives on this bus"),
+    (lambda d: d["backends"]["left"].pop("type"), "backends.left.type: required"),
+])
+def test_bus_rules_name_the_key(edit, message):
+    data = bimanual_data()
+    edit(data)
+    with pytest.raises(ProfileError) as info:
+        parse_profile(data, "bimanual.yaml")
+    assert message in str(info.value)
+
+
+def test_a_bus_backend_error_names_the_robot_profile_key():
+    data = bimanual_data()
+    del data["backends"]["right"]["port"]
+    data["joints"][8]["calibration"]["direction"] = 3  # right_elbow_flex: the robot's joints[8]
+    with pytest.raises(ProfileError) as info:
+        create_backend(parse_profile(copy.deepcopy(data), "bimanual.yaml"), source="bimanual.yaml")
+    assert "backends.right.port: required" in str(info.value)
+    del data["backends"]["right"]
+    data["backends"]["right"] = {"type": "feetech", "port": "/dev/ttyACM1"}
+    with pytest.raises(ProfileError) as info:
+        create_backend(parse_profile(data, "bimanual.yaml"), source="bimanual.yaml")
+    assert "joints[8] (right_elbow_flex).calibration.direction: must be 1 or -1" in str(info.value)
+
+
+def test_a_one_bus_profile_cannot_name_a_bus():
+    data = yaml.safe_load((ROOT / "profiles" / "so101.yaml").read_text())
+    data["namespaces"][0]["backend"] = "left"
+    with pytest.raises(ProfileError, match=r"namespaces\[0\] \(so101\)\.backend: only with `backends`"):
+        parse_profile(data, "so101.yaml")
