@@ -60,59 +60,42 @@ def start_sims(workdir: str, profile_file: Path) -> tuple[list[subprocess.Popen]
     return procs, ports
 
 
-def cycle_rate(actuator, cycles: int) -> tuple[float, int]:
-    """Open, enable, run ``cycles`` read + write cycles back to back; (cycles/s, faults)."""
-    actuator.open()
-    try:
-        actuator.configure()
-        fb, cmd = actuator.new_feedback(), actuator.new_command()
-        actuator.enable(fb)
-        cmd.mode[:] = CommandMode.POSITION
-        for _ in range(50):  # warm up (and start the composite's worker threads)
-            actuator.read(fb)
-            actuator.write(cmd)
-        faults = []
-        t0 = time.perf_counter()
-        for k in range(cycles):
-            f = actuator.read(fb)
-            if f is not None:
-                faults.append(f)
-            cmd.position[:] = 0.05 * ((k // 100) % 2)
-            f = actuator.write(cmd)
-            if f is not None:
-                faults.append(f)
-        rate = cycles / (time.perf_counter() - t0)
-        for f in faults[:2]:
-            print(f"  fault: {f.message}", file=sys.stderr)
-        return rate, len(faults)
-    finally:
-        actuator.close()
-        time.sleep(0.1)  # replies the simulator still sends to the closed port must not meet the next open
+def cycle_rate(actuator, fb, cmd, cycles: int) -> tuple[float, int]:
+    """``cycles`` real-time cycles (read + write) back to back: (cycles/s, faults)."""
+    faults = []
+    t0 = time.perf_counter()
+    for k in range(cycles):
+        f = actuator.read(fb)
+        if f is not None:
+            faults.append(f)
+        cmd.position[:] = 0.05 * ((k // 100) % 2)  # goals change: the writes are real
+        f = actuator.write(cmd)
+        if f is not None:
+            faults.append(f)
+    rate = cycles / (time.perf_counter() - t0)
+    return rate, len(faults)
 
 
-class Sequential:
-    """The composite's buses served one after the other (the baseline concurrency beats)."""
+def sequential(composite):
+    """The composite's buses served one after the other (what the concurrency beats)."""
 
-    def __init__(self, composite):
-        self.c = composite
+    class Sequential:
+        def read(self, fb):
+            faults = [p.read(composite._fb[b]) for b, p in enumerate(composite.parts)]
+            for b, idx in enumerate(composite._idx):
+                fb.position[idx] = composite._fb[b].position
+            return next((f for f in faults if f is not None), None)
 
-    def __getattr__(self, name):
-        return getattr(self.c, name)
+        def write(self, cmd):
+            faults = []
+            for b, (p, idx) in enumerate(zip(composite.parts, composite._idx)):
+                c = composite._cmd[b]
+                c.mode[:] = cmd.mode[idx]
+                c.position[:] = cmd.position[idx]
+                faults.append(p.write(c))
+            return next((f for f in faults if f is not None), None)
 
-    def read(self, fb):
-        faults = [p.read(self.c._fb[b]) for b, p in enumerate(self.c.parts)]
-        for b, idx in enumerate(self.c._idx):
-            fb.position[idx] = self.c._fb[b].position
-        return next((f for f in faults if f is not None), None)
-
-    def write(self, cmd):
-        faults = []
-        for b, (p, idx) in enumerate(zip(self.c.parts, self.c._idx)):
-            c = self.c._cmd[b]
-            c.mode[:] = cmd.mode[idx]
-            c.position[:] = cmd.position[idx]
-            faults.append(p.write(c))
-        return next((f for f in faults if f is not None), None)
+    return Sequential()
 
 
 def main(argv=None) -> int:
@@ -137,23 +120,29 @@ def main(argv=None) -> int:
             wired = copy.deepcopy(data)
             for bus, port in ports.items():
                 wired["backends"][bus]["port"] = port
-            robot = parse_profile(wired)
-            one = robot.bus_profile("left")
-            rows: dict[str, list[float]] = {"one bus (6 servos)": [], "two buses (2 x 6), concurrent": []}
+            robot = create_backend(parse_profile(wired))  # the composite: both buses
+            robot.open()
+            robot.configure()
+            robot.enable(robot.new_feedback())
+            # one bus = the composite's left bus alone (the same open FeetechBackend), so nothing
+            # is reopened between rounds and both configurations share the same ports
+            left = robot.parts[0]
+            configs = {"one bus (6 servos)": (left, left.new_feedback(), left.new_command()),
+                       "two buses (2 x 6), concurrent": (robot, robot.new_feedback(), robot.new_command())}
             if args.sequential:
-                rows["two buses, sequential"] = []
-            faults = {k: 0 for k in rows}
+                configs["two buses, sequential"] = (sequential(robot), robot.new_feedback(), robot.new_command())
+            rows: dict[str, list[float]] = {k: [] for k in configs}
+            faults = {k: 0 for k in configs}
+            for _, fb, cmd in configs.values():
+                cmd.mode[:] = CommandMode.POSITION
+            for act, fb, cmd in configs.values():  # warm up (and start the composite's workers)
+                cycle_rate(act, fb, cmd, 50)
             for _ in range(args.rounds):
-                rate, f = cycle_rate(create_backend(one), args.cycles)
-                rows["one bus (6 servos)"].append(rate)
-                faults["one bus (6 servos)"] += f
-                rate, f = cycle_rate(create_backend(robot), args.cycles)
-                rows["two buses (2 x 6), concurrent"].append(rate)
-                faults["two buses (2 x 6), concurrent"] += f
-                if args.sequential:
-                    rate, f = cycle_rate(Sequential(create_backend(robot)), args.cycles)
-                    rows["two buses, sequential"].append(rate)
-                    faults["two buses, sequential"] += f
+                for label, (act, fb, cmd) in configs.items():
+                    rate, f = cycle_rate(act, fb, cmd, args.cycles)
+                    rows[label].append(rate)
+                    faults[label] += f
+            robot.close()
         finally:
             for p in procs:
                 p.terminate()

@@ -24,8 +24,9 @@ import time
 import msgspec
 
 from . import systemd
-from .backends import create_backend
+from .backends import backend_class, create_backend
 from .client.paths import default_socket_path
+from .core.actuator import SimWiring
 from .core.kinematics_check import check_kinematics
 from .core.loop import control_main
 from .core.snapshot import Layout, SnapshotBuffer
@@ -36,8 +37,6 @@ from .server.server import Server
 
 log = logging.getLogger("crtk_bridge.daemon")
 
-#: backend type -> simulator name understood by ``crtk-sim``
-SIMULATORS = {"feetech": "feetech", "dynamixel": "dynamixel"}
 STARTUP_TIMEOUT_S = 20.0
 SHUTDOWN_TIMEOUT_S = 3.0  # below the unit's TimeoutStopSec=5, so our own clean-up runs
 #: longest AF_UNIX socket path in bytes (Linux ``sun_path`` is 108 bytes with the final NUL)
@@ -56,17 +55,14 @@ def _die_with_parent() -> None:
 
 
 class SimulatorProcess:
-    """``crtk-sim`` as a child process, serving a pty linked at ``link``."""
+    """``crtk-sim <device>`` as a child process, serving its endpoint at ``link`` (a pty link)."""
 
-    def __init__(self, profile_path: str, backend_type: str, workdir: str, bus: str | None = None):
-        if backend_type not in SIMULATORS:
-            raise CrtkBridgeError(f"--sim: no simulator for backend {backend_type!r} "
-                                  f"(simulated backends: {', '.join(SIMULATORS)})")
+    def __init__(self, profile_path: str, device: str, workdir: str, bus: str | None = None):
         tag = f"-{bus}" if bus else ""  # several buses: one simulator each
         self.link = os.path.join(workdir, f"tty{tag}")
         self.control = os.path.join(workdir, f"sim{tag}.sock")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "crtk_bridge.sim.cli", SIMULATORS[backend_type], "--profile", profile_path,
+            [sys.executable, "-m", "crtk_bridge.sim.cli", device, "--profile", profile_path,
              "--link", self.link, "--control", self.control, *(["--bus", bus] if bus else [])],
             stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
             start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
@@ -189,15 +185,24 @@ async def _watchdog(link: ControlLink, period: float) -> None:
             last = cycles
 
 
+def _sim_wiring(backend_type: str, source: str) -> SimWiring:
+    """How --sim wires backend ``backend_type``: the backend declares it (actuator.SimWiring)."""
+    wiring = backend_class(backend_type, source).simulator
+    if wiring is None:
+        raise CrtkBridgeError(f"--sim: backend {backend_type!r} has no simulator")
+    return wiring
+
+
 def _simulate_buses(profile: Profile, profile_path: str, workdir: str,
                     simulators: list[SimulatorProcess]) -> Profile:
     """--sim with several buses: one simulator per bus; the profile wired to their ports.
     Appends each started simulator to ``simulators`` (so they are stopped however this ends)."""
     backends = {}
     for bus, section in profile.backends.items():
-        simulator = SimulatorProcess(profile_path, str(section["type"]), workdir, bus=bus)
+        wiring = _sim_wiring(str(section["type"]), profile_path)
+        simulator = SimulatorProcess(profile_path, wiring.device, workdir, bus=bus)
         simulators.append(simulator)
-        backends[bus] = {**section, "port": simulator.link}
+        backends[bus] = {**section, wiring.endpoint_key: simulator.link}
         print(f"crtk-bridge: simulated {section['type']} bus {bus!r} on {simulator.link} "
               f"(simulator control socket {simulator.control})", flush=True)
     return msgspec.structs.replace(profile, backends=backends)
@@ -218,9 +223,10 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
     if sim:
         workdir = tempfile.mkdtemp(prefix=f"crtk-bridge-{profile.name}-sim-")
         if profile.backends is None:
-            simulator = SimulatorProcess(str(profile_path), profile.backend_type, workdir)
+            simulator = SimulatorProcess(str(profile_path), _sim_wiring(profile.backend_type, source).device,
+                                         workdir)
             simulators.append(simulator)
-            profile = msgspec.structs.replace(profile, backend={**profile.backend, "port": simulator.link})
+            profile = backend_class(profile.backend_type, source).sim_profile(profile, simulator.link)
             print(f"crtk-bridge: simulated {profile.backend_type} bus on {simulator.link} "
                   f"(simulator control socket {simulator.control})", flush=True)
         else:

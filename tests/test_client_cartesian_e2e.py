@@ -191,10 +191,12 @@ def test_servo_cv_body_and_spatial_frames_go_to_their_namespaces(arm, daemon, ca
     assert d[2] < 0  # went down: the body frame was used, not the spatial one
 
     # the body-frame twist query is the spatial one in the tip's axes
-    arm.servo_cv([0, 0, v, 0, 0, 0], frame="spatial")
-    # the joint velocity reaches the twist within a few cycles (acceleration-limited ramp)
-    vs, ts = wait_until(lambda: (lambda r: r if r[0][2] > 0.02 else None)(arm.setpoint_cv()), 0.4,
-                        what="setpoint_cv at the commanded twist")
+    def streaming_at_twist():  # the joint velocity reaches the twist in a few cycles (acceleration-limited)
+        arm.servo_cv([0, 0, v, 0, 0, 0], frame="spatial")
+        r = arm.setpoint_cv()
+        return r if r[0][2] > 0.02 else None
+
+    vs, ts = wait_until(streaming_at_twist, 3, what="setpoint_cv at the commanded twist")
     vb, tb = arm.setpoint_cv(frame="body")
     arm.hold()
     assert ts > 0 and tb > 0 and vs[2] > 0.02

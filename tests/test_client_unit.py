@@ -424,7 +424,8 @@ def test_cli_refusal_exits_1_with_one_line_reason(fake, capsys):
     code = main(["move_jp", "0.1", "-0.2", "--socket", fake.path])
     out = capsys.readouterr()
     assert code == 1
-    assert out.err == ("crtk-ctl: move_jp refused (invalid_state): so101: move_jp refused: "
+    # "refused" once: the daemon's own "move_jp refused: " is not repeated
+    assert out.err == ("crtk-ctl: move_jp refused (invalid_state): so101: "
                        "robot is DISABLED (enable it first)\n")
 
 

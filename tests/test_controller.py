@@ -67,7 +67,11 @@ class Clock:
 
 @pytest.fixture
 def rig():
-    act = FakeActuator(PROFILE)
+    return make_rig(FakeActuator(PROFILE))
+
+
+def make_rig(act):
+    """(controller, actuator, clock, cycle(n), req(cmd, ns, **data)) around fake actuator ``act``."""
     clock = Clock()
     c = Controller(PROFILE, act, clock)
     ids = itertools.count(1)

@@ -14,10 +14,20 @@ are pre-allocated and gathered / scattered with index arrays. The cycle's stamp 
 bus's (the sample is at least that old). A fault on any bus is the robot's, its message naming
 the bus (and the bus's backend names the joint).
 
-Lifecycle: ``open`` / ``configure`` / ``close`` run bus by bus (``open`` closes the buses already
-opened when one fails). ``enable`` enables every bus; if one fails, the buses already enabled are
-disabled again and the error names the bus. ``disable`` tries every bus and names those that did
-not confirm.
+Start-up: ``open`` / ``configure`` / ``close`` run bus by bus (``open`` closes the buses already
+opened when one fails). Lifecycle transitions (enable, disable, pause, resume, fault reset) run on
+every bus together: each cycle steps every bus's :class:`~crtk_bridge.core.actuator.Transition`
+once, so a bus that takes many cycles (a CiA 402 controlword walk) never holds the others back,
+and the robot's transition ends when the last bus's does. Enable is all or none (a bus that fails
+gets the others disabled again, the error naming the bus); disable goes on on every bus and names
+those that did not confirm.
+
+What the buses declare becomes the robot's: device status (the most severe bus's, its cause
+naming the bus), ``cyclic_write`` (if any bus needs it; the others are written only while
+enabled), pacing (by the one bus that paces; two pacing buses are refused), and the fault
+reaction (torque off if any bus needs it: a UR arm that stops itself beside a servo gripper that
+must be switched off gets the DISABLE transition on both -- per-bus fault reactions are not
+modelled yet). Native homing on one bus is not offered through the composite yet.
 """
 
 from __future__ import annotations
@@ -32,15 +42,20 @@ from ..core.actuator import (
     Actuator,
     ActuatorInfo,
     Capabilities,
+    DeviceStatus,
     Fault,
+    FaultReaction,
     JointCommand,
     JointFeedback,
+    Lifecycle,
+    Steps,
     combine_capabilities,
 )
 from ..errors import BackendError, ProfileError
 from ..profile import Profile
 
 _READ, _WRITE, _STOP = 1, 2, 3
+_SEVERITY = {DeviceStatus.OK: 0, DeviceStatus.PAUSED: 1, DeviceStatus.POWERED_OFF: 2, DeviceStatus.FAULT: 3}
 
 
 class _BusWorker:
@@ -114,10 +129,39 @@ class CompositeActuator(Actuator):
         self._cmd = [p.new_command() for p in self.parts]
         self._workers: list[_BusWorker] | None = None  # started at the first cycle (see _start_workers)
         self._where = [f"bus {name!r}" for name in self.bus_names]
+        # what the buses declare, for the robot: written every cycle if any bus needs it (the
+        # others are then skipped while not enabled); paced by the one bus that paces, if any;
+        # the fault reaction that leaves nothing powered that needs switching off
+        self.cyclic_write = any(p.cyclic_write for p in self.parts)
+        self._cyclic = [p.cyclic_write for p in self.parts]
+        pacers = [p for p in self.parts if p.paces_cycle]
+        if len(pacers) > 1:
+            raise ProfileError(f"{source}: backends: buses {', '.join(self._bus_of(pacers))} both pace the "
+                               f"control loop; at most one bus of a robot may")
+        self._pacer = pacers[0] if pacers else None
+        self.paces_cycle = self._pacer is not None
+        reactions = {p.fault_reaction for p in self.parts}
+        self.fault_reaction = next(r for r in (FaultReaction.TORQUE_OFF, FaultReaction.HOLD, FaultReaction.NONE)
+                                   if r in reactions)
+
+    def _bus_of(self, parts: list[Actuator]) -> list[str]:
+        return [repr(name) for name, p in zip(self.bus_names, self.parts) if p in parts]
+
+    # ---------------------------------------------------------------- pacing
+    def cycle_period_s(self) -> float | None:
+        return self._pacer.cycle_period_s() if self._pacer is not None else None
+
+    def wait_cycle(self, timeout_s: float) -> bool:
+        return self._pacer.wait_cycle(timeout_s)
 
     # ---------------------------------------------------------------- capabilities
     def joint_capabilities(self, i: int) -> Capabilities:
         return self._joint_caps[i]
+
+    def cartesian_namespaces(self) -> list[str]:
+        # cartesian command rows are not forwarded to the buses (yet): every namespace of a
+        # composite robot goes through the daemon's own IK and twist mapping
+        return []
 
     def info(self) -> ActuatorInfo:
         details: dict[str, Any] = {name: p.info().details for name, p in zip(self.bus_names, self.parts)}
@@ -127,8 +171,8 @@ class CompositeActuator(Actuator):
     def _open_hook(self) -> None:
         opened = []
         try:
-            for name, p in zip(self.bus_names, self.parts):
-                self._on_bus(name, p.open)
+            for b, p in enumerate(self.parts):
+                self._on_bus(b, p.open)
                 opened.append(p)
         except BaseException:
             for p in opened:
@@ -136,36 +180,79 @@ class CompositeActuator(Actuator):
             raise
 
     def _configure_hook(self) -> None:
-        for name, p in zip(self.bus_names, self.parts):
-            self._on_bus(name, p.configure)
+        for b, p in enumerate(self.parts):
+            self._on_bus(b, p.configure)
 
-    def _enable_hook(self, feedback: JointFeedback) -> None:
-        """Enable every bus, each holding its joints where they are; all or none."""
-        enabled = []
-        try:
-            for b, (name, p) in enumerate(zip(self.bus_names, self.parts)):
+    # ---- lifecycle transitions: every bus's, stepped together ----
+    def _enable_steps(self, feedback: JointFeedback) -> Steps:
+        return self._together(Lifecycle.ENABLE, feedback)
+
+    def _disable_steps(self) -> Steps:
+        return self._together(Lifecycle.DISABLE)
+
+    def _pause_steps(self) -> Steps:
+        return self._together(Lifecycle.PAUSE)
+
+    def _resume_steps(self) -> Steps:
+        return self._together(Lifecycle.RESUME)
+
+    def _fault_reset_steps(self) -> Steps:
+        return self._together(Lifecycle.FAULT_RESET)
+
+    def transition_timeout_s(self, kind: Lifecycle) -> float:
+        # the buses' steps share the loop's thread, so in the worst case their times add up
+        return sum(p.transition_timeout_s(kind) for p in self.parts)
+
+    def _together(self, kind: Lifecycle, feedback: JointFeedback | None = None) -> Steps:
+        """Steps of transition ``kind`` on every bus at once: each cycle steps every unfinished
+        bus transition once, until all are done. A failure names its bus. ENABLE is all or
+        none: when one bus fails, the others are stopped and disabled again. DISABLE goes on
+        on every bus when one fails, then names every bus that did not confirm."""
+        transitions = []
+        for b, p in enumerate(self.parts):
+            fb = None
+            if feedback is not None:
                 fb = self._fb[b]
                 np.take(feedback.position, self._idx[b], out=fb.position)
-                self._on_bus(name, lambda: p.enable(fb))
-                enabled.append(p)
-        except BaseException:
-            for p in enabled:
-                try:
-                    p.disable()
-                except Exception:  # best effort: the error raised names the bus that failed
-                    pass
+                np.take(feedback.velocity, self._idx[b], out=fb.velocity)
+                np.take(feedback.effort, self._idx[b], out=fb.effort)
+            transitions.append((b, p.begin(kind, fb)))
+        failed: list[str] = []
+        try:
+            pending = transitions
+            while pending:
+                running = []
+                for b, t in pending:
+                    try:
+                        if not t.step():
+                            running.append((b, t))
+                    except Exception as exc:
+                        if kind is not Lifecycle.DISABLE:
+                            raise self._named(b, exc) from exc
+                        failed.append(str(self._named(b, exc)).removeprefix(f"{self.robot}: "))
+                pending = running
+                if pending:
+                    yield
+        except Exception:
+            if kind is Lifecycle.ENABLE:  # no bus stays powered unsaid (an abandoned enable: core disables)
+                for _, t in transitions:
+                    t.abort()
+                for p in self.parts:
+                    if p.is_enabled:
+                        try:
+                            p.disable()
+                        except Exception:  # the error raised names the bus that failed
+                            pass
             raise
-
-    def _disable_hook(self) -> None:
-        """Torque off on every bus; raises naming every bus that did not confirm."""
-        failed = []
-        for name, p in zip(self.bus_names, self.parts):
-            try:
-                self._on_bus(name, p.disable)
-            except BackendError as exc:
-                failed.append(str(exc).removeprefix(f"{self.robot}: "))
+        finally:
+            for _, t in transitions:
+                t.abort()  # a no-op on finished ones; stops the others when this is abandoned
         if failed:
             raise BackendError(f"{self.robot}: " + "; ".join(failed))
+
+    def _named(self, b: int, exc: BaseException) -> BackendError:
+        """A bus's lifecycle error, re-raised naming the bus."""
+        return BackendError(f"{self.robot}: bus {self.bus_names[b]!r}: {str(exc).removeprefix(f'{self.robot}: ')}")
 
     def _close_hook(self) -> None:
         if self._workers is not None:
@@ -175,12 +262,12 @@ class CompositeActuator(Actuator):
         for p in self.parts:
             p.close()
 
-    def _on_bus(self, name: str, fn) -> None:
-        """Run a bus's lifecycle call; its BackendError is re-raised naming the bus."""
+    def _on_bus(self, b: int, fn) -> None:
+        """Run a bus's start-up call; its BackendError is re-raised naming the bus."""
         try:
             fn()
         except BackendError as exc:
-            raise BackendError(f"{self.robot}: bus {name!r}: {str(exc).removeprefix(f'{self.robot}: ')}") from exc
+            raise self._named(b, exc) from exc
 
     # ---------------------------------------------------------------- real-time path
     def _start_workers(self) -> list[_BusWorker]:
@@ -202,6 +289,13 @@ class CompositeActuator(Actuator):
             f = w.join()
             if f is not None:
                 faults = (faults or []) + [(b, f)]
+        news = None
+        for b, p in enumerate(self.parts):  # device status: the robot's is the most severe bus's
+            n = p.take_status()
+            if n is not None:
+                news = (b, n)
+        if news is not None:
+            self._forward_status(*news)
         if faults is not None:
             return self._bus_fault(faults)
         stamp = self._fb[0].stamp
@@ -223,15 +317,30 @@ class CompositeActuator(Actuator):
             np.take(command.velocity, idx, out=c.velocity)
             np.take(command.effort, idx, out=c.effort)
         workers = self._workers if self._workers is not None else self._start_workers()
-        for w in workers:
-            w.start(_WRITE)
-        fault = self.parts[0].write(self._cmd[0])
+        parts, cyclic = self.parts, self._cyclic
+        for b, w in enumerate(workers, 1):  # a bus that is not written outside ENABLED / PAUSED is skipped
+            if cyclic[b] or parts[b].is_enabled:
+                w.start(_WRITE)
+        fault = parts[0].write(self._cmd[0]) if cyclic[0] or parts[0].is_enabled else None
         faults = [(0, fault)] if fault is not None else None
         for b, w in enumerate(workers, 1):
-            f = w.join()
-            if f is not None:
-                faults = (faults or []) + [(b, f)]
+            if cyclic[b] or parts[b].is_enabled:
+                f = w.join()
+                if f is not None:
+                    faults = (faults or []) + [(b, f)]
         return self._bus_fault(faults) if faults is not None else None
+
+    def _forward_status(self, b: int, news: tuple[DeviceStatus, Fault | None]) -> None:
+        """A bus reported a device status: report the robot's, the most severe of all buses'
+        (a fault cleared on one bus is the robot's only when no other bus is in fault)."""
+        worst = max((p.device_status for p in self.parts), key=_SEVERITY.__getitem__)
+        cause = news[1]
+        if cause is not None:
+            cause = self._bus_fault([(b, cause)])
+        if worst is DeviceStatus.OK and self.device_status is DeviceStatus.FAULT:
+            self.report_status(DeviceStatus.FAULT_CLEARED, cause)
+        else:
+            self.report_status(worst, cause)
 
     def _bus_fault(self, faults: list[tuple[int, Fault]]) -> Fault:
         """The robot's fault for this cycle: a non-transient one first, its message naming the bus

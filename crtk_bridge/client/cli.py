@@ -614,6 +614,12 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
+def _without_refused(message: str) -> str:
+    """'so101: move_jp refused: robot is DISABLED' -> 'so101: robot is DISABLED': the line already
+    says '<cmd> refused (<code>)', so the daemon's own 'refused' is not repeated."""
+    return re.sub(r"^([^:\s]+: )[\w ]{1,40}? refused: ", r"\1", message, count=1)
+
+
 def _err(text: str) -> None:
     print(f"{PROG}: {_one_line(text)}", file=sys.stderr, flush=True)
 
@@ -651,7 +657,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except CommandError as exc:
         what = getattr(exc, "cmd", None) or args.command
-        return fail(exc.code, f"{what} refused ({exc.code}): {exc.message}", 1, what, exc.message)
+        return fail(exc.code, f"{what} refused ({exc.code}): {_without_refused(exc.message)}", 1, what,
+                    exc.message)
     except (DaemonConnectionError, ConnectionError) as exc:
         return fail("no_daemon", str(exc), 2)
     except TimeoutError as exc:

@@ -3,14 +3,53 @@
 A backend turns its bus into joint-space SI quantities (rad, rad/s, N*m) and back. Raw device
 units (ticks, counts, RTDE vectors) never leave it; calibration from the profile is applied inside.
 
-Two paths, as in ros2_control hardware components:
+Three paths, as in ros2_control hardware components:
 
-* Lifecycle path -- ``open()`` -> ``configure()`` -> ``enable()`` / ``disable()`` -> ``close()``.
-  May block on the bus, raises :class:`~crtk_bridge.errors.BackendError`; each call is idempotent.
+* Start-up path -- ``open()`` -> ``configure()``, before the loop runs; ``close()`` after it.
+  May block on the bus, raises :class:`~crtk_bridge.errors.BackendError`; idempotent.
+* Lifecycle transitions -- enable, disable (also the torque-off of a fault), pause, resume,
+  fault reset and, where the backend homes natively, home. They take as long as the hardware
+  needs but never block the cycle: :meth:`Actuator.begin` returns a :class:`Transition` that the
+  loop advances with ONE :meth:`Transition.step` per cycle, after that cycle's ``read``, until it
+  reports done (or raises, or exceeds the backend's time limit, :meth:`Actuator.transition_timeout_s`).
+  Meanwhile the loop keeps reading and publishing, the CRTK state stays as it was and ``is_busy``
+  is true. A backend writes a transition as a generator (``_enable_steps`` ...): each ``yield``
+  hands the cycle back and resumes one cycle later, so a CiA 402 controlword walk or "torque on,
+  then wait until the servo confirms" interleaves with the cycle's own bus traffic on the same
+  thread (a serial bus is used by one thread at a time). Blocking vendor calls that cannot be
+  split go to :func:`on_worker`, a step generator that runs them on a thread and yields until
+  they return. Backends with no steps of their own implement the blocking ``_enable_hook`` /
+  ``_disable_hook`` instead, run in one step.
 * Real-time path -- ``read(feedback)`` and ``write(command)``. Bounded time, never sleeps on
   purpose, never raises: they return ``None`` when all went well, else a :class:`Fault` naming the
   cause. Backends implement the hooks ``_read`` / ``_write``; the public methods turn any exception
   a hook lets escape into a Fault, so a backend bug faults the robot instead of killing the loop.
+  ``write`` is called only while ENABLED or PAUSED unless the backend sets ``cyclic_write``
+  (a CiA 402 chain needs SYNC, RPDOs and the controlword every cycle in every state); then it is
+  called every cycle, with every joint in :attr:`CommandMode.NONE` outside ENABLED / PAUSED.
+
+What else a backend declares (class attributes, refined per profile in ``__init__`` if needed):
+
+* ``fault_reaction`` (:class:`FaultReaction`): what core does to the device when the robot
+  enters FAULT -- switch torque off (serial servos), leave it holding, or nothing because the
+  device already stopped itself.
+* Device status (:class:`DeviceStatus`): a backend reports what the device says about itself
+  (paused by the device, powered off by the device, fault with cause, fault cleared) with
+  :meth:`Actuator.report_status` from its ``_read``; core takes it once per cycle
+  (:meth:`Actuator.take_status`) and maps it onto the CRTK states with ONE table
+  (``core/state.py``, ``DEVICE_STATUS``). A non-transient :class:`Fault` from ``read`` is a
+  device FAULT too.
+* Pacing: ``paces_cycle`` and :meth:`Actuator.wait_cycle` let the hardware pace the loop (wait for
+  its next packet, or produce the SYNC); otherwise the loop sleeps to its own clock.
+  :func:`effective_period_s` is the ONE period the loop, motion, the server's rates and the
+  statistics use, computed once at start-up.
+* ``simulator`` (:class:`SimWiring`): how ``--sim`` wires the backend to its wire-level
+  simulator (which ``crtk-sim`` device, which backend key takes the simulator's endpoint).
+* Native cartesian control (``Capabilities.native_cartesian``): a controller with its own
+  cartesian control and TCP pose (UR ``servoL`` / ``speedL`` / ``moveL``) receives cartesian
+  setpoints in :attr:`JointCommand.cartesian` (one row per namespace of
+  :meth:`Actuator.cartesian_namespaces`; the joints of a row are then in CommandMode.NONE) and
+  supplies the measured tip pose in :attr:`JointFeedback.cartesian`, so core does no IK for them.
 
 Buffers are pre-allocated (:meth:`Actuator.new_feedback`, :meth:`Actuator.new_command`) and filled
 in place every cycle.
@@ -20,12 +59,16 @@ from __future__ import annotations
 
 import abc
 import enum
+import threading
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Sequence
 
+import msgspec
 import numpy as np
 
+from ..errors import BackendError
 from ..profile import Profile
 
 
@@ -42,6 +85,7 @@ class Capabilities:
     needs_homing: bool = False  # incremental encoders: is_homed starts False
     can_free: bool = True  # torque can be switched off with the robot powered (`free`)
     native_rate_hz: float | None = None  # rate the hardware paces (CANopen SYNC, RTDE); None = any
+    native_cartesian: bool = False  # follows cartesian setpoints and measures the tip pose itself
 
 
 def combine_capabilities(caps: Sequence[Capabilities]) -> Capabilities:
@@ -55,6 +99,7 @@ def combine_capabilities(caps: Sequence[Capabilities]) -> Capabilities:
         effort=all(c.effort for c in caps), measures_velocity=all(c.measures_velocity for c in caps),
         measures_effort=all(c.measures_effort for c in caps), needs_homing=any(c.needs_homing for c in caps),
         can_free=all(c.can_free for c in caps), native_rate_hz=rates[0] if rates else None,
+        native_cartesian=all(c.native_cartesian for c in caps),
     )
 
 
@@ -68,6 +113,50 @@ class CommandMode(enum.IntEnum):
     FREE = 4  # torque off on this joint while the robot is enabled (`free`)
 
 
+class CartesianMode(enum.IntEnum):
+    """Per-row mode of a :class:`CartesianCommand` (native cartesian backends)."""
+
+    NONE = 0  # no cartesian setpoint: the row's joints follow the joint command
+    POSE = 1  # servo_cp / interpolate_cp: track ``position`` / ``orientation`` now (servoL)
+    TWIST = 2  # servo_cv / interpolate_cv: follow ``linear`` / ``angular`` in ``frame`` (speedL)
+    MOVE = 3  # move_cp: go to the pose, ending at rest (moveL); report ``done_seq`` = ``seq`` at the end
+
+
+FRAME_SPATIAL, FRAME_BODY = 0, 1  # CartesianCommand.frame: base frame's axes / tip frame's axes
+
+
+@dataclass
+class CartesianCommand:
+    """One cycle's cartesian setpoints for a native cartesian backend, one row per namespace of
+    :meth:`Actuator.cartesian_namespaces`. Poses are the tip in the base frame (m, quaternion
+    ``[x, y, z, w]``), twists m/s and rad/s. ``seq[k]`` numbers the row's MOVE goals."""
+
+    mode: np.ndarray  # CartesianMode per row (uint8)
+    position: np.ndarray  # (k, 3)
+    orientation: np.ndarray  # (k, 4)
+    linear: np.ndarray  # (k, 3)
+    angular: np.ndarray  # (k, 3)
+    frame: np.ndarray  # (k,) FRAME_SPATIAL / FRAME_BODY of the twist
+    seq: np.ndarray  # (k,) int64
+
+
+@dataclass
+class CartesianFeedback:
+    """The tip pose a native cartesian backend measures (its TCP pose), one row per namespace of
+    :meth:`Actuator.cartesian_namespaces`, and ``done_seq[k]``: the last MOVE goal it finished."""
+
+    position: np.ndarray  # (k, 3) m, base frame
+    orientation: np.ndarray  # (k, 4) quaternion [x, y, z, w]
+    done_seq: np.ndarray  # (k,) int64
+    stamp: float = 0.0  # time of measurement; 0 = no valid pose
+
+    def copy_from(self, other: "CartesianFeedback") -> None:
+        self.position[:] = other.position
+        self.orientation[:] = other.orientation
+        self.done_seq[:] = other.done_seq
+        self.stamp = other.stamp
+
+
 @dataclass
 class JointFeedback:
     """One cycle's measured joint state, SI units, filled in place by ``Actuator.read``."""
@@ -76,6 +165,7 @@ class JointFeedback:
     velocity: np.ndarray
     effort: np.ndarray
     stamp: float = 0.0  # time of measurement, seconds since the Unix epoch
+    cartesian: CartesianFeedback | None = None  # native cartesian backends only
 
 
 @dataclass
@@ -89,6 +179,7 @@ class JointCommand:
     position: np.ndarray
     velocity: np.ndarray
     effort: np.ndarray
+    cartesian: CartesianCommand | None = None  # native cartesian backends only
 
 
 @dataclass(frozen=True)
@@ -112,17 +203,154 @@ class ActuatorInfo:
     details: dict[str, Any] = field(default_factory=dict)  # model numbers, firmware, port...
 
 
+class Lifecycle(str, enum.Enum):
+    """The lifecycle transitions a backend may take cycles over (see the module docstring)."""
+
+    ENABLE = "enable"
+    DISABLE = "disable"  # also the torque-off of a fault (FaultReaction.TORQUE_OFF)
+    PAUSE = "pause"
+    RESUME = "resume"
+    FAULT_RESET = "fault_reset"  # before ENABLE when leaving FAULT
+    HOME = "home"  # only where the backend homes natively (``native_homing``)
+
+
+class DeviceStatus(str, enum.Enum):
+    """What the device reports about itself; core maps it onto CRTK states (state.DEVICE_STATUS)."""
+
+    OK = "ok"
+    PAUSED = "paused"  # the device paused itself (UR safeguard stop)
+    POWERED_OFF = "powered_off"  # the device removed power itself (e-stop, power button)
+    FAULT = "fault"  # with a cause (a Fault)
+    FAULT_CLEARED = "fault_cleared"  # the cause of a reported fault went away
+
+
+class FaultReaction(str, enum.Enum):
+    """What core does to the device when the robot enters FAULT."""
+
+    TORQUE_OFF = "torque_off"  # run the DISABLE transition (serial servos: nothing holds them safely)
+    HOLD = "hold"  # leave the device powered: it holds its position itself (drive quick stop)
+    NONE = "none"  # nothing: the device already stopped itself (UR protective stop)
+
+
+@dataclass(frozen=True)
+class SimWiring:
+    """How ``--sim`` runs a backend on its simulator (no port patching in the entry layer).
+
+    ``device`` is the ``crtk-sim`` device name (``crtk_bridge.sim.cli``); the simulator prints or
+    links an endpoint (a pty path, an address) that :meth:`Actuator.sim_profile` writes into the
+    backend key ``endpoint_key`` of the profile the backend is then built from.
+    """
+
+    device: str
+    endpoint_key: str = "port"
+
+
+Steps = Iterator[None]
+
+
+class Transition:
+    """One lifecycle transition in progress. The loop calls :meth:`step` once per cycle.
+
+    ``step()`` returns True once the transition is complete; it raises whatever the backend's
+    steps raise (a BackendError naming robot, joint and register) when it failed. ``abort()``
+    abandons it (closes the step generator, so its ``finally`` clauses run; idempotent).
+    ``timeout_s`` is the backend's limit; enforcing it is the caller's job (core faults the robot
+    naming the transition, :meth:`Actuator.run` raises).
+    """
+
+    __slots__ = ("robot", "kind", "timeout_s", "done", "_steps", "_on_finish")
+
+    def __init__(self, robot: str, kind: Lifecycle, steps: Steps, timeout_s: float,
+                 on_finish: Callable[[], None] | None = None):
+        self.robot = robot
+        self.kind = kind
+        self.timeout_s = float(timeout_s)
+        self.done = False
+        self._steps = steps
+        self._on_finish = on_finish
+
+    def step(self) -> bool:
+        if self.done:
+            return True
+        try:
+            next(self._steps)
+        except StopIteration:
+            self.done = True
+            if self._on_finish is not None:
+                self._on_finish()
+            return True
+        except BaseException:
+            self.done = True  # a failed transition is over; it is never stepped again
+            raise
+        return False
+
+    def abort(self) -> None:
+        if not self.done:
+            self.done = True
+            self._steps.close()
+
+    def __repr__(self) -> str:
+        return f"Transition({self.robot!r}, {self.kind.value}, done={self.done})"
+
+
+def on_worker(fn: Callable[[], Any], name: str = "transition") -> Steps:
+    """Steps that run the blocking call ``fn()`` on a worker thread, yielding every cycle until it
+    returns; its exception is re-raised in the cycle that notices it. For vendor SDK calls that
+    cannot be split (a UR power-on). Never for a bus the cycle's read also uses: a serial bus is
+    one thread's at a time, so serial backends split their transitions into steps instead."""
+    box: dict[str, BaseException] = {}
+
+    def run() -> None:
+        try:
+            fn()
+        except BaseException as exc:  # carried to the stepping thread
+            box["exc"] = exc
+
+    worker = threading.Thread(target=run, name=name, daemon=True)
+    worker.start()
+    while worker.is_alive():
+        yield
+    if "exc" in box:
+        raise box["exc"]
+
+
+def effective_period_s(profile: Profile, actuator: "Actuator") -> float:
+    """The ONE cycle period (s): the hardware's when the backend paces the cycle, else the
+    profile's ``loop.rate_hz``. Computed once at start-up; the loop, motion, the server's rates
+    and the statistics all use it."""
+    hw = actuator.cycle_period_s()
+    return float(hw) if hw is not None else 1.0 / profile.loop.rate_hz
+
+
+#: default time limits (s) of lifecycle transitions; a backend overrides ``transition_timeouts_s``
+DEFAULT_TRANSITION_TIMEOUTS_S: dict[Lifecycle, float] = {
+    Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 2.0, Lifecycle.RESUME: 2.0,
+    Lifecycle.FAULT_RESET: 5.0, Lifecycle.HOME: 60.0,
+}
+
+
 class Actuator(abc.ABC):
     """Base class of every backend. Subclasses fill the ``_hooks``; see the module docstring.
 
-    Lifecycle methods are legal in this order: open -> configure -> (enable <-> disable)* ->
-    close. ``close`` is legal at any time and idempotent; the backend is also a context manager.
+    Order: open -> configure -> (ENABLE <-> DISABLE transitions, PAUSE / RESUME while enabled)*
+    -> close. ``close`` is legal at any time and idempotent; the backend is also a context manager.
     """
 
     #: capabilities of this backend type (a subclass may refine them per profile in __init__)
     capabilities: ClassVar[Capabilities] = Capabilities()
     #: the pip extra that installs this backend's SDK, named in BackendUnavailableError
     extra: ClassVar[str | None] = None
+    #: what core does to the device when the robot enters FAULT
+    fault_reaction: ClassVar[FaultReaction] = FaultReaction.TORQUE_OFF
+    #: True: ``write`` every cycle in every state (SYNC, RPDOs, controlword); False: only while
+    #: ENABLED / PAUSED (serial servos: nothing goes on the bus while disabled)
+    cyclic_write: ClassVar[bool] = False
+    #: True: the hardware paces the loop through :meth:`wait_cycle` (and :meth:`cycle_period_s`)
+    paces_cycle: ClassVar[bool] = False
+    #: how ``--sim`` wires this backend to its simulator; None: no simulator
+    simulator: ClassVar[SimWiring | None] = None
+    #: time limit (s) of each lifecycle transition; exceeding it faults the robot
+    transition_timeouts_s: ClassVar[dict[Lifecycle, float]] = DEFAULT_TRANSITION_TIMEOUTS_S
 
     def __init__(self, profile: Profile, *, source: str = "<profile>"):
         self.profile = profile
@@ -131,8 +359,11 @@ class Actuator(abc.ABC):
         self.n = len(self.joint_names)
         self._open = False
         self._enabled = False
+        #: the device's last reported status (see :meth:`report_status`)
+        self.device_status = DeviceStatus.OK
+        self._status_news: tuple[DeviceStatus, Fault | None] | None = None
 
-    # ---- lifecycle path (may block, raises BackendError) ----
+    # ---- start-up path (may block, raises BackendError) ----
     def open(self) -> None:
         """Open the bus and check every device answers. Blocks. Raises BackendError."""
         if not self._open:
@@ -143,25 +374,12 @@ class Actuator(abc.ABC):
         """Write the device configuration from the profile; torque stays off. Blocks."""
         self._configure_hook()
 
-    def enable(self, feedback: JointFeedback) -> None:
-        """Power the joints, holding them where they are (no surprise motion). Blocks.
-
-        ``feedback`` is the latest measured state; backends write it as the goal before torque on.
-        """
-        self._enable_hook(feedback)
-        self._enabled = True
-
-    def disable(self) -> None:
-        """Torque off on every joint. Blocks. Raises BackendError if a joint did not confirm."""
-        self._disable_hook()
-        self._enabled = False
-
     def close(self) -> None:
         """Torque off (best effort) and release the bus. Idempotent, never raises."""
         if not self._open:
             return
         try:
-            self._disable_hook()
+            self.disable()
         except Exception:  # best effort on the way out
             pass
         try:
@@ -181,6 +399,108 @@ class Actuator(abc.ABC):
     @property
     def is_enabled(self) -> bool:
         return self._enabled
+
+    # ---- lifecycle transitions (advanced one step per cycle; steps raise BackendError) ----
+    def begin(self, kind: Lifecycle, feedback: JointFeedback | None = None) -> Transition:
+        """Start transition ``kind``; advance it with :meth:`Transition.step` once per cycle.
+
+        ENABLE holds the joints where they are (no surprise motion): ``feedback`` is the latest
+        measured state; backends set fresh goals from the device itself before torque on.
+        DISABLE stops the real-time writes at once (before its first step). HOME is legal only
+        when :attr:`native_homing`. Does not touch the bus itself; the first step does.
+        """
+        on_finish = None
+        if kind is Lifecycle.ENABLE:
+            steps = self._enable_steps(feedback if feedback is not None else self.new_feedback())
+            on_finish = self._finished_enable
+        elif kind is Lifecycle.DISABLE:
+            self._enabled = False  # no goal goes out from now on
+            steps = self._disable_steps()
+        elif kind is Lifecycle.PAUSE:
+            steps = self._pause_steps()
+        elif kind is Lifecycle.RESUME:
+            steps = self._resume_steps()
+        elif kind is Lifecycle.FAULT_RESET:
+            steps = self._fault_reset_steps()
+        elif kind is Lifecycle.HOME:
+            if not self.native_homing:
+                raise BackendError(f"{self.robot}: the backend does not home natively")
+            steps = self._home_steps()
+        else:  # pragma: no cover - Lifecycle is closed
+            raise ValueError(kind)
+        return Transition(self.robot, kind, steps, self.transition_timeout_s(kind), on_finish)
+
+    def _finished_enable(self) -> None:
+        self._enabled = True
+
+    def transition_timeout_s(self, kind: Lifecycle) -> float:
+        """The backend's time limit (s) for transition ``kind`` (may depend on the profile)."""
+        return self.transition_timeouts_s.get(kind, DEFAULT_TRANSITION_TIMEOUTS_S[kind])
+
+    @property
+    def native_homing(self) -> bool:
+        """True when the backend homes itself (``_home_steps`` implemented)."""
+        return type(self)._home_steps is not Actuator._home_steps
+
+    def run(self, transition: Transition, interval_s: float = 0.001) -> None:
+        """Run ``transition`` to its end outside the loop (start-up, shutdown, tests). Blocks;
+        sleeps ``interval_s`` between steps. Raises what a step raises, or BackendError after the
+        transition's time limit (the transition is aborted)."""
+        deadline = time.monotonic() + transition.timeout_s
+        while not transition.step():
+            if time.monotonic() > deadline:
+                transition.abort()
+                raise BackendError(f"{self.robot}: {transition.kind.value} did not finish within "
+                                   f"{transition.timeout_s:g} s")
+            time.sleep(interval_s)
+
+    def enable(self, feedback: JointFeedback) -> None:
+        """The ENABLE transition run to its end (:meth:`run`). Blocks. Raises BackendError."""
+        self.run(self.begin(Lifecycle.ENABLE, feedback))
+
+    def disable(self) -> None:
+        """The DISABLE transition run to its end. Blocks. Raises BackendError if a joint did not
+        confirm torque off."""
+        self.run(self.begin(Lifecycle.DISABLE))
+
+    # ---- device status (backend -> core) ----
+    def report_status(self, status: DeviceStatus, cause: Fault | None = None) -> None:
+        """Called by the backend (from ``_read`` or a step) when the device's status changes.
+        Core takes the latest report once per cycle; a report of the current status is ignored."""
+        if status is not self.device_status or status is DeviceStatus.FAULT_CLEARED:
+            self.device_status = DeviceStatus.OK if status is DeviceStatus.FAULT_CLEARED else status
+            self._status_news = (status, cause)
+
+    def take_status(self) -> tuple[DeviceStatus, Fault | None] | None:
+        """The status reported since the last call (and its cause), or None. Core calls it once
+        per cycle after ``read``."""
+        news = self._status_news
+        if news is not None:
+            self._status_news = None
+        return news
+
+    # ---- pacing ----
+    def cycle_period_s(self) -> float | None:
+        """The hardware's cycle period (s) when it paces the loop, else None (the profile's
+        ``loop.rate_hz`` rules). Default: ``1 / capabilities.native_rate_hz`` when
+        ``paces_cycle``."""
+        rate = self.capabilities.native_rate_hz
+        return 1.0 / rate if self.paces_cycle and rate else None
+
+    def wait_cycle(self, timeout_s: float) -> bool:
+        """Block until the hardware's next cycle (its next packet arrived, or the SYNC went
+        out), at most ``timeout_s``. Returns False on timeout (the read that follows reports
+        the cause). Called by the loop instead of sleeping when ``paces_cycle``."""
+        raise NotImplementedError(f"{type(self).__name__} sets paces_cycle but has no wait_cycle")
+
+    # ---- simulator wiring ----
+    @classmethod
+    def sim_profile(cls, profile: Profile, endpoint: str) -> Profile:
+        """``profile`` wired to a running simulator at ``endpoint`` (see :class:`SimWiring`)."""
+        if cls.simulator is None:
+            raise BackendError(f"{profile.name}: backend {profile.backend_type!r} has no simulator")
+        return msgspec.structs.replace(
+            profile, backend={**profile.backend, cls.simulator.endpoint_key: endpoint})
 
     # ---- real-time path (bounded, returns a Fault instead of raising) ----
     def read(self, feedback: JointFeedback) -> Fault | None:
@@ -206,13 +526,28 @@ class Actuator(abc.ABC):
         """What the joints ``joints`` (indices) can do together, e.g. one namespace's."""
         return combine_capabilities([self.joint_capabilities(i) for i in joints])
 
+    def cartesian_namespaces(self) -> list[str]:
+        """The namespaces this backend controls in cartesian space itself, in the order of the
+        rows of :class:`CartesianCommand` / :class:`CartesianFeedback`. Default: with
+        ``capabilities.native_cartesian``, every namespace with a ``kinematics`` section."""
+        if not self.capabilities.native_cartesian:
+            return []
+        return [ns.name for ns in self.profile.namespaces if ns.kinematics is not None]
+
     def new_feedback(self) -> JointFeedback:
         z = np.zeros(self.n)
-        return JointFeedback(z.copy(), z.copy(), z.copy(), 0.0)
+        k = len(self.cartesian_namespaces())
+        cart = CartesianFeedback(np.zeros((k, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (k, 1)),
+                                 np.zeros(k, dtype=np.int64)) if k else None
+        return JointFeedback(z.copy(), z.copy(), z.copy(), 0.0, cart)
 
     def new_command(self) -> JointCommand:
         z = np.zeros(self.n)
-        return JointCommand(np.zeros(self.n, dtype=np.uint8), z.copy(), z.copy(), z.copy())
+        k = len(self.cartesian_namespaces())
+        cart = CartesianCommand(np.zeros(k, dtype=np.uint8), np.zeros((k, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (k, 1)),
+                                np.zeros((k, 3)), np.zeros((k, 3)), np.zeros(k, dtype=np.uint8),
+                                np.zeros(k, dtype=np.int64)) if k else None
+        return JointCommand(np.zeros(self.n, dtype=np.uint8), z.copy(), z.copy(), z.copy(), cart)
 
     def info(self) -> ActuatorInfo:
         return ActuatorInfo(list(self.joint_names), self.capabilities)
@@ -228,11 +563,42 @@ class Actuator(abc.ABC):
     def _configure_hook(self) -> None:
         pass
 
-    @abc.abstractmethod
-    def _enable_hook(self, feedback: JointFeedback) -> None: ...
+    def _enable_steps(self, feedback: JointFeedback) -> Steps:
+        """Steps of ENABLE. Default: the blocking :meth:`_enable_hook` in one step."""
+        self._enable_hook(feedback)
+        yield from ()
 
-    @abc.abstractmethod
-    def _disable_hook(self) -> None: ...
+    def _disable_steps(self) -> Steps:
+        """Steps of DISABLE (torque off on every joint). Default: :meth:`_disable_hook` in one
+        step."""
+        self._disable_hook()
+        yield from ()
+
+    def _pause_steps(self) -> Steps:
+        """Steps of PAUSE (core already holds every joint). Default: nothing to do."""
+        yield from ()
+
+    def _resume_steps(self) -> Steps:
+        """Steps of RESUME. Default: nothing to do."""
+        yield from ()
+
+    def _fault_reset_steps(self) -> Steps:
+        """Steps that clear a device fault, run before ENABLE when leaving FAULT. Default: none."""
+        yield from ()
+
+    def _home_steps(self) -> Steps:
+        """Steps of native homing (incremental encoders). Not implemented = core homes by moving
+        to the profile's ``home`` positions."""
+        raise NotImplementedError
+        yield  # pragma: no cover
+
+    def _enable_hook(self, feedback: JointFeedback) -> None:
+        """Blocking enable, for backends without ``_enable_steps`` of their own."""
+        raise NotImplementedError(f"{type(self).__name__} implements neither _enable_steps nor _enable_hook")
+
+    def _disable_hook(self) -> None:
+        """Blocking torque off, for backends without ``_disable_steps`` of their own."""
+        raise NotImplementedError(f"{type(self).__name__} implements neither _disable_steps nor _disable_hook")
 
     @abc.abstractmethod
     def _close_hook(self) -> None: ...

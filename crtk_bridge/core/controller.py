@@ -16,21 +16,44 @@ Motion per namespace lives in ``motion.py``. Safety here:
   last setpoint (or goal) is refused; a stream silent for ``safety.servo_timeout_s`` holds;
 * move goals outside the joint limits are refused naming joint and limit;
 * faults (bus, servo error bits, tracking error beyond ``safety.tracking_error_max``) put the
-  robot in FAULT with the cause in an ``error`` event, torque off.
+  robot in FAULT with the cause in an ``error`` event, and the backend's ``fault_reaction``
+  (serial servos: torque off).
+
+Lifecycle transitions (enable, disable, the torque-off of a fault, pause, resume, native home)
+run as the backend's :class:`~crtk_bridge.core.actuator.Transition`, one step per cycle after the
+cycle's read (:meth:`Controller.step`): the state stays as it was and ``is_busy`` is true until
+it ends, its requests get their one reply then, and a transition that outlives the backend's time
+limit faults the robot naming it. A stop (``disable``, ``pause``) is never refused: it aborts a
+running enable / resume / home (whose requests get an ``aborted`` error). What the device reports
+about itself (:class:`~crtk_bridge.core.actuator.DeviceStatus`) goes through ONE table,
+``state.DEVICE_STATUS``.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 
 from ..errors import BackendError, fmt_number
 from ..profile import Profile
-from .actuator import Actuator, Capabilities, CommandMode, Fault, JointFeedback
+from .actuator import (
+    Actuator,
+    Capabilities,
+    CommandMode,
+    DeviceStatus,
+    Fault,
+    FaultReaction,
+    JointFeedback,
+    Lifecycle,
+    Steps,
+    Transition,
+)
 from .motion import Mode, NamespaceMotion
-from .state import OperatingState, StateCommand, transition
+from .state import DEVICE_STATUS, OperatingState, StateCommand, transition
+from .native_cartesian import NATIVE_COMMANDS, build_native_cartesian
 from .twist import TWIST_COMMANDS, build_twist_motions, parse_twist
 
 STATE_COMMANDS = tuple(c.value for c in StateCommand)
@@ -49,8 +72,31 @@ MOTION_COMMANDS: dict[str, tuple[str | None, str]] = {
     "hold": (None, "position"),
     "free": (None, "free"),
 }
+_STATUS_TEXT = {
+    DeviceStatus.OK: "the device reports it is ok again",
+    DeviceStatus.PAUSED: "the device paused itself",
+    DeviceStatus.POWERED_OFF: "the device powered itself off",
+    DeviceStatus.FAULT: "the device reports a fault",
+    DeviceStatus.FAULT_CLEARED: "the device's fault cleared (enable or disable to go on)",
+}
 _WARN_INTERVAL_S = 1.0  # at most one clipping warning per namespace per second
 TRACKING_CYCLES = 3  # consecutive cycles beyond the bound before FAULT (one glitch is not a fault)
+
+
+_DEFERRED = object()  # _dispatch: the reply comes when the transition ends
+_NONE = int(CommandMode.NONE)
+
+
+@dataclass
+class _Running:
+    """A lifecycle transition in progress and who waits for it."""
+
+    transition: Transition
+    deadline: float  # controller clock
+    on_done: Callable[[], Any]  # -> reply data; may raise Refused
+    on_fail: Callable[[Exception], "Refused"]  # handles the failure; -> the waiting requests' error
+    rids: list = field(default_factory=list)  # requests answered when it ends
+    stepped: int = -1  # cycle of the last step (one step per cycle)
 
 
 class Refused(Exception):
@@ -68,13 +114,15 @@ class Controller:
     the loop does the real-time read and write.
     """
 
-    def __init__(self, profile: Profile, actuator: Actuator, clock: Callable[[], float]):
+    def __init__(self, profile: Profile, actuator: Actuator, clock: Callable[[], float],
+                 period_s: float | None = None):
         self.profile = profile
         self.actuator = actuator
         self.caps = actuator.capabilities
         self.clock = clock
         self.robot = profile.name
-        self.dt = 1.0 / profile.loop.rate_hz
+        #: the cycle period (s): actuator.effective_period_s, passed in by the loop
+        self.dt = period_s if period_s is not None else 1.0 / profile.loop.rate_hz
         self.safety = profile.safety
         self.state = OperatingState.DISABLED
         self.is_homed = not self.caps.needs_homing
@@ -93,6 +141,9 @@ class Controller:
         }
         # servo_cv / interpolate_cv, mapped every cycle (core/twist.py); namespaces with kinematics
         self.twist_motions = build_twist_motions(profile, self.namespaces)
+        # namespaces the backend controls in cartesian space itself (core/native_cartesian.py)
+        self.native_cartesian = build_native_cartesian(self.namespaces, actuator.cartesian_namespaces(),
+                                                       profile.safety.servo_timeout_s)
         self.command = actuator.new_command()
         self.feedback = actuator.new_feedback()  # latest sample, copied in by on_read()
         self._fresh = actuator.new_feedback()  # the read that follows torque on
@@ -103,11 +154,15 @@ class Controller:
         self._torque_unconfirmed = False  # a fault's torque off did not reach the bus
         self._last_torque_retry = -math.inf
         self._consecutive_write_errors = 0
+        self._running: _Running | None = None  # the lifecycle transition in progress
+        self._cycle = 0  # counts on_read calls: one transition step per cycle
+        self._rid: Any = None  # id of the request being handled
 
     # ------------------------------------------------------------------ queries
     @property
     def is_busy(self) -> bool:
-        return self.homing or any(m.busy for m in self.namespaces.values())
+        return self.homing or self._running is not None or any(m.busy for m in self.namespaces.values()) \
+            or any(nc.busy for nc in self.native_cartesian.values())
 
     def operating_state(self) -> dict[str, Any]:
         return {
@@ -163,6 +218,7 @@ class Controller:
     def handle(self, request: dict) -> None:
         """Handle one request; appends exactly one reply (after any events it caused)."""
         rid = request.get("id")
+        self._rid = rid
         try:
             data = self._dispatch(request.get("cmd"), request.get("ns"), request.get("data") or {})
         except Refused as exc:
@@ -170,7 +226,8 @@ class Controller:
         except Exception as exc:  # a bug must not kill the loop: report it
             self.outbox.append({"id": rid, "ok": False, "error": {"code": "internal", "message": f"{self.robot}: {exc!r}"}})
         else:
-            self.outbox.append({"id": rid, "ok": True, "data": data})
+            if data is not _DEFERRED:  # else the transition's end replies
+                self.outbox.append({"id": rid, "ok": True, "data": data})
 
     def _dispatch(self, cmd: Any, ns: Any, data: dict) -> Any:
         if cmd in STATE_COMMANDS:
@@ -178,6 +235,8 @@ class Controller:
         if cmd == "_client_lost":
             self._client_lost()
             return None
+        if cmd in NATIVE_COMMANDS and ns in self.native_cartesian:
+            return self._native_cartesian_command(cmd, ns, data)
         if cmd in TWIST_COMMANDS:
             return self._twist_command(cmd, ns, data)
         if cmd not in MOTION_COMMANDS:
@@ -206,10 +265,44 @@ class Controller:
             if leaving_free:
                 m.free()  # a refused command changes nothing: the joints stay free (torque off)
             raise
+        self._end_cartesian(ns)  # a joint command takes over from a cartesian one
+        return result
+
+    def _end_cartesian(self, ns: str) -> None:
         tm = self.twist_motions.get(ns)
         if tm is not None:
-            tm.cancel()  # a joint command takes over from a twist stream
-        return result
+            tm.cancel()
+        nc = self.native_cartesian.get(ns)
+        if nc is not None:
+            was_busy = self.is_busy
+            nc.cancel()
+            if was_busy and not self.is_busy:  # the command pre-empted a native move
+                self._push_state()
+
+    def _native_cartesian_command(self, cmd: str, ns: str, data: dict) -> Any:
+        """A cartesian command for a backend that does cartesian control itself: no IK, no
+        mapping; the backend receives the pose or twist (core/native_cartesian.py)."""
+        nc = self.native_cartesian[ns]
+        self._check_can_move(ns, cmd)
+        m = nc.motion
+        was_busy = self.is_busy
+        was_free = m.mode is Mode.FREE
+        try:
+            nc.command(cmd, data, self.clock())  # the joints hold: the backend drives them now
+        except ValueError as exc:
+            raise Refused("bad_request", str(exc)) from None
+        if was_free:
+            m.setpoint_p[:] = self.feedback.position[m.idx]
+        tm = self.twist_motions.get(ns)
+        if tm is not None:
+            tm.cancel()
+        if cmd == "move_cp":
+            self.busy_seq += 1
+            self._push_state()  # busy=True edge, before the reply
+            return {"busy_seq": self.busy_seq}
+        if was_busy and not self.is_busy:  # a stream pre-empted a move
+            self._push_state()
+        return None
 
     def _twist_command(self, cmd: str, ns: Any, data: dict) -> None:
         """servo_cv / interpolate_cv: the twist is kept and mapped every cycle (core/twist.py)."""
@@ -219,9 +312,8 @@ class Controller:
         tm = self.twist_motions.get(ns)
         if tm is None:
             raise Refused("unsupported", f"{ns}: {cmd} is not supported: the namespace has no kinematics section")
-        if not self.can("velocity"):
-            raise Refused("unsupported", f"{ns}: {cmd} is not supported: the {self.profile.backend_type} backend "
-                          "has no velocity or position control")
+        if not self.can("velocity", ns):
+            raise Refused("unsupported", f"{ns}: {cmd} is not supported: no velocity or position control")
         self._check_can_move(ns, cmd)
         try:
             twist, frame = parse_twist(ns, cmd, data)
@@ -290,6 +382,9 @@ class Controller:
             raise Refused("not_homed", f"{ns}: {cmd} refused: robot is not homed (run home first)")
         if self.homing:
             raise Refused("invalid_state", f"{ns}: {cmd} refused: homing in progress")
+        if self._running is not None:
+            raise Refused("invalid_state", f"{ns}: {cmd} refused: {self._running.transition.kind.value} "
+                          "in progress")
 
     def _vector(self, ns: str, cmd: str, motion: NamespaceMotion, values: Any, field: str) -> np.ndarray:
         if not isinstance(values, (list, tuple)) or len(values) != motion.n:
@@ -345,42 +440,132 @@ class Controller:
         self._push_state()  # busy=True edge, before the reply
         return {"busy_seq": self.busy_seq}
 
-    def _state_command(self, cmd: StateCommand) -> dict:
+    def _state_command(self, cmd: StateCommand) -> Any:
         t = transition(self.state, cmd)
         if t.target is None:
             raise Refused("invalid_state", f"{self.robot}: {cmd.value} is not valid in state {self.state.value}")
+        run = self._running
+        if cmd in (StateCommand.DISABLE, StateCommand.PAUSE):  # a stop is never refused
+            if run is not None and run.transition.kind is Lifecycle.DISABLE:
+                if cmd is StateCommand.PAUSE:
+                    return self.operating_state()  # torque is going off: more than a pause
+                if run.rids:
+                    run.rids.append(self._rid)  # a disable is already under way: the same reply
+                    return _DEFERRED
+            if run is not None:
+                self._abort_running(f"{run.transition.kind.value} aborted by {cmd.value}")
+        elif run is not None and cmd is not StateCommand.UNHOME:
+            if cmd.value == run.transition.kind.value and run.rids:
+                run.rids.append(self._rid)  # the same transition under way: the same reply
+                return _DEFERRED
+            raise Refused("invalid_state", f"{self.robot}: {cmd.value} refused: "
+                          f"{run.transition.kind.value} in progress")
         if cmd is StateCommand.ENABLE:
             if self.state is not OperatingState.ENABLED:
-                self._enable()
+                return self._enable()
         elif cmd is StateCommand.DISABLE:
-            self._disable(retry=t.retry)
+            return self._disable(retry=t.retry)
         elif cmd is StateCommand.PAUSE:
             if self.state is OperatingState.ENABLED:
                 self._stop_all()
                 self.homing = False
-                self._set_state(OperatingState.PAUSED)
+                return self._start(self.actuator.begin(Lifecycle.PAUSE), self._paused, self._pause_failed)
         elif cmd is StateCommand.RESUME:
-            self._set_state(OperatingState.ENABLED)
+            return self._start(self.actuator.begin(Lifecycle.RESUME), self._resumed, self._resume_failed)
         elif cmd is StateCommand.HOME:
-            self._home()
+            return self._home()
         elif cmd is StateCommand.UNHOME:
             if self.is_homed:
                 self.is_homed = False
                 self._push_state()
         return self.operating_state()
 
-    def _enable(self) -> None:
+    # ---- lifecycle transitions ----
+    def _start(self, t: Transition, on_done: Callable[[], Any], on_fail: Callable[[Exception], Refused],
+               reply: bool = True) -> Any:
+        """Run transition ``t``: its first step now (a quick one ends in this cycle, as the
+        blocking calls used to), the rest one per cycle in :meth:`step`. Returns _DEFERRED: the
+        reply to the request being handled is sent when ``t`` ends."""
+        run = _Running(t, self.clock() + t.timeout_s, on_done, on_fail, [self._rid] if reply else [])
+        self._running = run
+        if not self._advance(run):
+            self.busy_seq += 1
+            self._push_state()  # is_busy edge: the state stays until the transition ends
+        return _DEFERRED
+
+    def _advance(self, run: _Running) -> bool:
+        """One step of ``run``; True once it ended (replies and events are out)."""
+        run.stepped = self._cycle
         try:
-            self.actuator.enable(self.feedback)
-            # hold exactly where the joints are NOW: the cycle's sample may be stale (a failed
-            # read, or a joint that sagged while torque was off), and the first write must not
-            # drive the arm back to it
-            fault = self.actuator.read(self._fresh)
-            if fault is not None:
-                raise BackendError(f"no fresh position after torque on: {fault.message}")
-        except Exception as exc:  # BackendError, or an SDK surprise: never leave torque on unsaid
-            self._enter_fault(Fault("enable_failed", str(exc), transient=False))
-            raise Refused("fault", f"{self.robot}: enable failed: {exc}") from exc
+            finished = run.transition.step()
+        except Exception as exc:  # BackendError, or an SDK surprise: a failed transition
+            self._running = None
+            self._ended(run, exc)
+            return True
+        if finished:
+            self._running = None
+            self._ended(run, None)
+            return True
+        if self.clock() > run.deadline:
+            run.transition.abort()
+            self._running = None
+            kind = run.transition.kind.value
+            self._ended(run, BackendError(
+                f"{self.robot}: {kind} did not finish within {run.transition.timeout_s:g} s "
+                f"(the {self.profile.backend_type} backend's limit for {kind})"))
+            return True
+        return False
+
+    def _ended(self, run: _Running, exc: Exception | None) -> None:
+        try:
+            if exc is not None:
+                raise run.on_fail(exc)
+            data = run.on_done()
+        except Refused as refused:
+            for rid in run.rids:
+                self.outbox.append({"id": rid, "ok": False, "error": {"code": refused.code, "message": str(refused)}})
+        else:
+            for rid in run.rids:
+                self.outbox.append({"id": rid, "ok": True, "data": data})
+        if self._busy_reported and not self.is_busy:
+            self._push_state()  # is_busy false edge (when no state change carried it)
+
+    def _abort_running(self, why: str) -> None:
+        run = self._running
+        if run is None:
+            return
+        run.transition.abort()
+        self._running = None
+        for rid in run.rids:
+            self.outbox.append({"id": rid, "ok": False, "error": {"code": "aborted", "message": f"{self.robot}: {why}"}})
+
+    def abort_transition(self) -> None:
+        """Abandon the running transition (shutdown): its requests get an ``aborted`` error."""
+        self._abort_running("aborted by shutdown")
+
+    def _sequence(self, kinds: tuple[Lifecycle, ...]) -> Steps:
+        """The backend's transitions ``kinds`` one after the other (FAULT_RESET, then ENABLE)."""
+        for kind in kinds:
+            t = self.actuator.begin(kind, self.feedback if kind is Lifecycle.ENABLE else None)
+            try:
+                while not t.step():
+                    yield
+            finally:
+                t.abort()
+
+    def _enable(self) -> Any:
+        kinds = (Lifecycle.FAULT_RESET, Lifecycle.ENABLE) if self.state is OperatingState.FAULT else (Lifecycle.ENABLE,)
+        timeout = sum(self.actuator.transition_timeout_s(k) for k in kinds)
+        t = Transition(self.robot, Lifecycle.ENABLE, self._sequence(kinds), timeout)
+        return self._start(t, self._enabled, self._enable_failed)
+
+    def _enabled(self) -> dict:
+        # hold exactly where the joints are NOW: the cycle's sample may be stale (a failed read,
+        # or a joint that sagged while torque was off), and the first write must not drive the
+        # arm back to it
+        fault = self.actuator.read(self._fresh)
+        if fault is not None:
+            raise self._enable_failed(BackendError(f"no fresh position after torque on: {fault.message}"))
         self.on_read(self._fresh, None)
         for m in self.namespaces.values():
             m.reset(self.feedback.position[m.idx])
@@ -389,20 +574,61 @@ class Controller:
         self._tracking_cycles = 0
         self._written = False
         self._set_state(OperatingState.ENABLED)
+        return self.operating_state()
 
-    def _disable(self, retry: bool) -> None:
+    def _enable_failed(self, exc: Exception) -> Refused:
+        # never leave torque on unsaid: FAULT, and the backend's fault reaction (torque off)
+        self._enter_fault(Fault("enable_failed", str(exc), transient=False))
+        return Refused("fault", f"{self.robot}: enable failed: {exc}")
+
+    def _disable(self, retry: bool) -> Any:
         self._abort_motion()
-        try:
-            self.actuator.disable()
-        except BackendError as exc:
-            if retry:  # FAULT -> DISABLED (retry) failed: stay in FAULT
-                raise Refused("fault", f"{self.robot}: disable failed, still FAULT: {exc}") from exc
-            self._enter_fault(Fault("disable_failed", str(exc), transient=False))
-            raise Refused("fault", f"{self.robot}: disable failed: {exc}") from exc
-        self.fault_cause = None
-        self._set_state(OperatingState.DISABLED)
 
-    def _home(self) -> None:
+        def failed(exc: Exception) -> Refused:
+            if retry:  # FAULT -> DISABLED (retry) failed: stay in FAULT
+                return Refused("fault", f"{self.robot}: disable failed, still FAULT: {exc}")
+            self._enter_fault(Fault("disable_failed", str(exc), transient=False))
+            return Refused("fault", f"{self.robot}: disable failed: {exc}")
+
+        return self._start(self.actuator.begin(Lifecycle.DISABLE), self._disabled, failed)
+
+    def _disabled(self) -> dict:
+        self.fault_cause = None
+        self._torque_unconfirmed = False
+        self._set_state(OperatingState.DISABLED)
+        return self.operating_state()
+
+    def _paused(self) -> dict:
+        self._set_state(OperatingState.PAUSED)
+        return self.operating_state()
+
+    def _pause_failed(self, exc: Exception) -> Refused:
+        self._enter_fault(Fault("pause_failed", str(exc), transient=False))
+        return Refused("fault", f"{self.robot}: pause failed: {exc}")
+
+    def _resumed(self) -> dict:
+        self._set_state(OperatingState.ENABLED)
+        return self.operating_state()
+
+    def _resume_failed(self, exc: Exception) -> Refused:
+        self._enter_fault(Fault("resume_failed", str(exc), transient=False))
+        return Refused("fault", f"{self.robot}: resume failed: {exc}")
+
+    def _home(self) -> Any:
+        if self.actuator.native_homing:
+            def homed() -> dict:
+                self.is_homed = True
+                for m in self.namespaces.values():
+                    m.reset(self.feedback.position[m.idx])
+                self._push_state()
+                return self.operating_state()
+
+            def failed(exc: Exception) -> Refused:
+                self._enter_fault(Fault("home_failed", str(exc), transient=False))
+                return Refused("fault", f"{self.robot}: home failed: {exc}")
+
+            self._stop_all()
+            return self._start(self.actuator.begin(Lifecycle.HOME), homed, failed)
         if not all(c.position for c in self.ns_caps.values()):
             raise Refused("unsupported", f"{self.robot}: home unsupported without position control")
         now = self.clock()
@@ -413,6 +639,7 @@ class Controller:
         self.homing = True
         self.busy_seq += 1
         self._push_state()
+        return self.operating_state()
 
     def _abort_motion(self) -> None:
         was_busy = self.is_busy
@@ -465,34 +692,86 @@ class Controller:
         interpolate_jp/jr goal) run to it; commands without one (servo streams, velocity and
         effort setpoints and goals) stop and hold (docs/protocol.md, Client loss)."""
         endless = [m for m in self.namespaces.values() if m.streaming and m.mode is not Mode.INTERP_P]
-        if self.state is OperatingState.ENABLED and endless:
+        native = [nc for nc in self.native_cartesian.values() if nc.active and not nc.busy]  # a native move runs on
+        if self.state is OperatingState.ENABLED and (endless or native):
             for m in endless:
                 m.stop()
+            for nc in native:
+                nc.cancel()
+            names = [m.name for m in endless] + [nc.motion.name for nc in native]
             self._event("warning", "control_released",
-                        f"{self.robot}: controlling client disconnected; holding {', '.join(m.name for m in endless)}")
+                        f"{self.robot}: controlling client disconnected; holding {', '.join(names)}")
 
     def _enter_fault(self, fault: Fault) -> None:
+        """FAULT with ``fault`` as the cause, and the backend's fault reaction."""
         self.fault_cause = fault
+        run = self._running
+        torque_going_off = run is not None and run.transition.kind is Lifecycle.DISABLE and not run.rids
+        if run is not None and not torque_going_off:
+            self._abort_running(f"{run.transition.kind.value} aborted: {fault.message}")
         self._abort_motion()
         message = fault.message
-        try:
-            self.actuator.disable()
-            self._torque_unconfirmed = False
-        except Exception as exc:  # the bus may be gone: say so, and retry once it answers again
-            self._torque_unconfirmed = True
-            message += f"; torque off not confirmed ({exc}); retrying when the bus answers"
+        if self.actuator.fault_reaction is FaultReaction.TORQUE_OFF and not torque_going_off:
+            message += self._torque_off()
         self._event("error", fault.code, message, joint=fault.joint, register=fault.register,
                     value=fault.value)
         self._set_state(OperatingState.FAULT)
 
+    def _torque_off(self) -> str:
+        """Start the DISABLE transition of a fault (no request waits for it). Returns what to add
+        to the fault's message when its first step could not confirm torque off."""
+        said: list[str] = []
+        first = [True]
+
+        def done() -> None:
+            if self._torque_unconfirmed:
+                self._event("status", "torque_off_confirmed", f"{self.robot}: torque off confirmed on every joint")
+            self._torque_unconfirmed = False
+
+        def failed(exc: Exception) -> Refused:  # the bus may be gone: say so, retry once it answers
+            if not self._torque_unconfirmed:
+                text = f"; torque off not confirmed ({exc}); retrying when the bus answers"
+                if first[0]:
+                    said.append(text)  # goes into the fault's own error event
+                else:
+                    self._event("error", "torque_off_unconfirmed", f"{self.robot}{text}")
+            self._torque_unconfirmed = True
+            return Refused("fault", str(exc))
+
+        self._start(self.actuator.begin(Lifecycle.DISABLE), done, failed, reply=False)
+        first[0] = False
+        return said[0] if said else ""
+
     def _retry_torque_off(self) -> None:
         """In FAULT with torque off unconfirmed: the bus answered again, switch torque off now."""
-        try:
-            self.actuator.disable()
-        except Exception:
-            return  # still not confirmed: next good read tries again
-        self._torque_unconfirmed = False
-        self._event("status", "torque_off_confirmed", f"{self.robot}: torque off confirmed on every joint")
+        if self._running is None:
+            self._torque_off()
+
+    def _device_status(self, status: DeviceStatus, cause: Fault | None) -> None:
+        """What the device reported, mapped onto the CRTK state by ``state.DEVICE_STATUS``."""
+        target, kind, code = DEVICE_STATUS[(self.state, status)]
+        if target is OperatingState.FAULT:
+            if self.state is not OperatingState.FAULT:
+                self._enter_fault(cause or Fault("device_fault", f"{self.robot}: the device reports a fault",
+                                                 transient=False))
+            return
+        if kind is not None:
+            what = _STATUS_TEXT[status]
+            message = f"{self.robot}: {what}" + (f": {cause.message}" if cause is not None else "")
+            self._event(kind, code, message, joint=cause.joint if cause else None)
+        if target is OperatingState.PAUSED and self.state is OperatingState.ENABLED:
+            self._abort_running("aborted: the device paused itself")
+            self._stop_all()
+            self.homing = False
+            self._set_state(OperatingState.PAUSED)
+        elif target is OperatingState.DISABLED and self.state is not OperatingState.DISABLED:
+            self._abort_running("aborted: the device powered itself off")
+            self._abort_motion()
+            # the device is off already; the transition only brings the backend's side along
+            self._start(self.actuator.begin(Lifecycle.DISABLE), lambda: None,
+                        lambda exc: Refused("fault", str(exc)), reply=False)
+            self.fault_cause = None
+            self._set_state(OperatingState.DISABLED)
 
     # ------------------------------------------------------------------ the cycle
     def on_read(self, feedback: JointFeedback, fault: Fault | None) -> None:
@@ -500,12 +779,18 @@ class Controller:
         in a row, or at once for a non-transient one) puts the robot in FAULT, torque off. A joint
         whose measured position stays farther than ``safety.tracking_error_max`` from its position
         command for TRACKING_CYCLES cycles does too."""
+        self._cycle += 1
         active = self.state in (OperatingState.ENABLED, OperatingState.PAUSED)
+        news = self.actuator.take_status()
         if fault is not None:
             self._consecutive_bus_errors += 1
             if active and (not fault.transient or self._consecutive_bus_errors >= self.safety.bus_errors_max):
                 self._enter_fault(fault)
+            if news is not None:
+                self._device_status(*news)
             return
+        if news is not None:
+            self._device_status(*news)
         self._consecutive_bus_errors = 0
         if self._torque_unconfirmed and self.state is OperatingState.FAULT:
             now = self.clock()
@@ -517,6 +802,8 @@ class Controller:
         f.velocity[:] = feedback.velocity
         f.effort[:] = feedback.effort
         f.stamp = feedback.stamp
+        if f.cartesian is not None and feedback.cartesian is not None:
+            f.cartesian.copy_from(feedback.cartesian)  # the tip pose a native cartesian backend measures
         if active and self._written:
             cmd = self.command
             err = np.abs(f.position - cmd.position)
@@ -548,9 +835,23 @@ class Controller:
             self._enter_fault(fault)
 
     def step(self) -> bool:
-        """Advance motion by one cycle and fill ``self.command``. Returns True if it must be written."""
+        """Advance the running lifecycle transition by one step (at most one per cycle) and
+        motion by one cycle, and fill ``self.command``. Returns True if it must be written: while
+        ENABLED / PAUSED, and in every state for a backend with ``cyclic_write`` (every joint in
+        CommandMode.NONE outside ENABLED / PAUSED)."""
+        run = self._running
+        if run is not None and run.stepped != self._cycle:
+            self._advance(run)
+        if self.state is not OperatingState.ENABLED:
+            for nc in self.native_cartesian.values():
+                nc.cancel()  # paused, disabled, fault: the backend gets no cartesian setpoint
         if self.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
             self._written = False
+            if self.actuator.cyclic_write:
+                self.command.mode[:] = _NONE
+                if self.command.cartesian is not None:
+                    self.command.cartesian.mode[:] = _NONE
+                return True
             return False
         now = self.clock()
         cmd = self.command
@@ -561,10 +862,17 @@ class Controller:
             tm = self.twist_motions.get(m.name)
             if tm is not None:
                 tm.update()  # a twist stream: joint velocities mapped at this cycle's setpoint
+            nc = self.native_cartesian.get(m.name)
+            if nc is not None:
+                msg = nc.update(now, measured[m.idx], self.feedback.cartesian)
+                if msg:
+                    self._event("warning", "servo_timeout", msg, m.name)
             msg = m.step(now, measured[m.idx])
             if msg:
                 self._event("warning", "servo_timeout", msg, m.name)
             m.fill(cmd)
+            if nc is not None:
+                nc.fill(cmd.mode, cmd.cartesian)  # the backend's cartesian row; its joints left to it
         if self.homing and not any(m.busy for m in self.namespaces.values()):
             self.homing = False
             self.is_homed = True

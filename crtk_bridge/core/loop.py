@@ -1,6 +1,7 @@
 """The control process: the real-time loop around the backend and the controller.
 
-Each cycle, at the profile's rate: read -> requests + state machine -> motion -> limits -> write
+Each cycle, at the ONE effective period (:func:`~crtk_bridge.core.actuator.effective_period_s`:
+the profile's rate, or the hardware's when the backend paces the cycle): read -> requests + state machine -> motion -> limits -> write
 -> publish snapshot -> send replies and events. It asks for SCHED_FIFO and mlockall (and says once,
 with a ``realtime_unavailable`` warning, when it cannot), freezes the GC after start-up, and keeps
 logging, allocation-heavy work and blocking I/O out of the cycle.
@@ -29,7 +30,7 @@ import msgspec
 
 from ..errors import CrtkBridgeError
 from ..profile import Profile
-from .actuator import Actuator, Fault
+from .actuator import Actuator, Fault, Lifecycle, effective_period_s
 from .controller import Controller
 from .snapshot import RING, SnapshotBuffer
 from .state import OperatingState
@@ -74,8 +75,8 @@ class ControlLoop:
         self.chan = chan
         self.snap = snapshot
         self.realtime = realtime
-        self.period = 1.0 / profile.loop.rate_hz
-        self.controller = Controller(profile, actuator, time.time)
+        self.period = effective_period_s(profile, actuator)  # computed once; everyone uses it
+        self.controller = Controller(profile, actuator, time.time, self.period)
         self.feedback = actuator.new_feedback()
         self._bus_errors_max = profile.safety.bus_errors_max
         self.pending: deque[bytes] = deque()  # messages the pair could not take yet
@@ -86,6 +87,8 @@ class ControlLoop:
         self.abort_park = False  # a second signal: torque off now
         ns = list(self.controller.namespaces.values())
         self._ns = ns
+        self._native_rows = [(k, self.controller.native_cartesian[m.name].row) for k, m in enumerate(ns)
+                             if m.name in self.controller.native_cartesian]
         v = snapshot.views
         self._v = v
 
@@ -170,6 +173,11 @@ class ControlLoop:
             v["ns_goal_has_p"][k] = g_p
             v["ns_goal_has_v"][k] = g_v
             v["ns_goal_has_f"][k] = g_f
+        fc = fb.cartesian
+        for k, row in self._native_rows:  # measured_cp straight from a native cartesian backend
+            v["ns_cart_stamp"][k] = fc.stamp if c._consecutive_bus_errors < self._bus_errors_max else 0.0
+            v["ns_cart_p"][3 * k:3 * k + 3] = fc.position[row]
+            v["ns_cart_q"][4 * k:4 * k + 4] = fc.orientation[row]
         self.snap.end()
 
     # ---------------------------------------------------------------- the loop
@@ -201,13 +209,17 @@ class ControlLoop:
         lateness = v["lateness"]
         compute = v["compute"]
         period = self.period
+        paced = self.actuator.paces_cycle
+        wait_cycle = self.actuator.wait_cycle
         clock = time.perf_counter
         next_t = clock() + period
         i = 0
         while (self.running and self.front_alive) or self._parking():
             now = clock()
             delay = next_t - now
-            if delay > 0:
+            if paced:  # the hardware says when the cycle starts (its packet, its SYNC)
+                wait_cycle(max(delay, 0.0) + period)
+            elif delay > 0:
                 time.sleep(delay)
             t0 = clock()
             late = t0 - next_t
@@ -216,7 +228,7 @@ class ControlLoop:
                 fault = self.actuator.read(self.feedback)
                 c.on_read(self.feedback, fault)
                 self._receive()
-                if c.step():
+                if c.step():  # also advances a lifecycle transition by one step
                     c.on_write(self.actuator.write(c.command))
             except Exception as exc:  # a bug must fault the robot, not kill the loop
                 c._enter_fault(Fault("internal", f"{self.profile.name}: control loop error: {exc!r}",
@@ -231,11 +243,13 @@ class ControlLoop:
             self._publish()
             self._flush()
             # -- schedule the next cycle; after an overrun, skip ahead instead of bursting --
-            next_t += period
+            # (paced: the next beat is expected one period after this one started)
+            next_t = (t0 if paced else next_t) + period
             if clock() > next_t:
                 overruns[0] += 1
-                missed = int((clock() - next_t) / period) + 1
-                next_t += missed * period
+                if not paced:
+                    missed = int((clock() - next_t) / period) + 1
+                    next_t += missed * period
         self.shutdown()
         return 0
 
@@ -285,6 +299,10 @@ class ControlLoop:
 
     def shutdown(self) -> None:
         """Stop motion and switch torque off. Never raises."""
+        try:
+            self.controller.abort_transition()
+        except Exception:
+            pass
         try:
             self.actuator.disable()
         except Exception:
@@ -337,8 +355,12 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
     ready = {"event": "_ready", "data": {
         "commands": c.supported_commands(),  # what some namespace offers
         "capabilities": as_dict(caps),
+        "period_s": loop.period,  # the ONE effective period: the front's rates and statistics
+        # the longest a state command may take before the loop itself replies (its time limit)
+        "transition_timeout_s": max(actuator.transition_timeout_s(k) for k in Lifecycle) * 2,
         "namespace_commands": c.namespace_commands(),  # motion commands per namespace
         "namespace_capabilities": {ns: as_dict(cap) for ns, cap in c.ns_caps.items()},
+        "native_cartesian": list(c.native_cartesian),  # namespaces whose backend does cartesian control
     }}
     if stop["flag"]:
         loop.running = False

@@ -3,12 +3,17 @@
 The table is the spec's, cell for cell. ``home`` and ``unhome`` follow cisst's
 ``prmOperatingState::ValidCommand`` (the dVRK's implementation): ``home`` only in ENABLED,
 ``unhome`` in every state.
+
+``DEVICE_STATUS`` is the ONE place where what a device reports about itself
+(:class:`~crtk_bridge.core.actuator.DeviceStatus`) becomes a CRTK state and an event.
 """
 
 from __future__ import annotations
 
 import enum
 from typing import NamedTuple
+
+from .actuator import DeviceStatus
 
 
 class OperatingState(str, enum.Enum):
@@ -68,6 +73,46 @@ TRANSITIONS: dict[tuple[OperatingState, StateCommand], Transition] = {
     (S.FAULT, C.UNHOME): Transition(S.FAULT),
 }
 del S, C
+
+
+class StatusReaction(NamedTuple):
+    target: OperatingState | None  # None: the state stays
+    event: str | None  # event stream ("error", "warning", "status"); None: no event
+    code: str | None  # event code (docs/protocol.md)
+
+
+D = DeviceStatus
+S = OperatingState
+_STAY = StatusReaction(None, None, None)
+_OK = StatusReaction(None, "status", "device_ok")
+_CLEARED = StatusReaction(None, "status", "fault_cleared")
+_FAULT = StatusReaction(S.FAULT, "error", None)  # the event carries the fault's own code
+
+#: (state, what the device reports) -> reaction. Core never enables itself: a device that is ok
+#: again, or whose fault cleared, leaves the robot where it is (the user resumes / enables).
+DEVICE_STATUS: dict[tuple[OperatingState, DeviceStatus], StatusReaction] = {
+    (S.DISABLED, D.OK): _OK,
+    (S.DISABLED, D.PAUSED): StatusReaction(None, "warning", "device_paused"),
+    (S.DISABLED, D.POWERED_OFF): StatusReaction(None, "warning", "device_powered_off"),
+    (S.DISABLED, D.FAULT): StatusReaction(None, "warning", "device_fault"),  # enable will fail or reset it
+    (S.DISABLED, D.FAULT_CLEARED): _CLEARED,
+    (S.ENABLED, D.OK): _OK,
+    (S.ENABLED, D.PAUSED): StatusReaction(S.PAUSED, "warning", "device_paused"),  # UR safeguard stop
+    (S.ENABLED, D.POWERED_OFF): StatusReaction(S.DISABLED, "error", "device_powered_off"),  # e-stop
+    (S.ENABLED, D.FAULT): _FAULT,
+    (S.ENABLED, D.FAULT_CLEARED): _CLEARED,
+    (S.PAUSED, D.OK): _OK,  # stays PAUSED: resume is the user's
+    (S.PAUSED, D.PAUSED): StatusReaction(None, "warning", "device_paused"),
+    (S.PAUSED, D.POWERED_OFF): StatusReaction(S.DISABLED, "error", "device_powered_off"),
+    (S.PAUSED, D.FAULT): _FAULT,
+    (S.PAUSED, D.FAULT_CLEARED): _CLEARED,
+    (S.FAULT, D.OK): _OK,
+    (S.FAULT, D.PAUSED): StatusReaction(None, "warning", "device_paused"),
+    (S.FAULT, D.POWERED_OFF): StatusReaction(None, "warning", "device_powered_off"),
+    (S.FAULT, D.FAULT): _STAY,  # already in FAULT with its cause
+    (S.FAULT, D.FAULT_CLEARED): _CLEARED,  # stays FAULT: enable (retry) or disable to leave it
+}
+del D, S
 
 
 def transition(state: OperatingState, command: StateCommand) -> Transition:

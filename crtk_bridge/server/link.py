@@ -44,10 +44,15 @@ class ControlLink:
         self.ns_names = {ns.name: list(ns.joints) for ns in profile.namespaces}
         self.measures_velocity = True
         self.measures_effort = False
+        #: the loop's ONE effective period (s) and a state command's longest run, from ``_ready``
+        self.period_s = 1.0 / profile.loop.rate_hz
+        self.transition_timeout_s = 10.0
         #: per namespace (from the control process's _ready): what its joints measure, its motion commands
         self.ns_measures_velocity = {ns: True for ns in self.ns_index}
         self.ns_measures_effort = {ns: False for ns in self.ns_index}
         self.ns_commands: dict[str, list[str]] = {ns: [] for ns in self.ns_index}
+        #: namespaces whose backend does cartesian control and measures the tip pose itself
+        self.native_cartesian: set[str] = set()
 
     # ---------------------------------------------------------------- start-up
     def wait_ready(self, timeout_s: float) -> dict:
@@ -64,10 +69,14 @@ class ControlLink:
                     caps = msg["data"]["capabilities"]
                     self.measures_velocity = caps["measures_velocity"]
                     self.measures_effort = caps["measures_effort"]
+                    self.period_s = float(msg["data"].get("period_s", self.period_s))
+                    self.transition_timeout_s = float(msg["data"].get("transition_timeout_s",
+                                                                      self.transition_timeout_s))
                     for ns, c in msg["data"]["namespace_capabilities"].items():
                         self.ns_measures_velocity[ns] = c["measures_velocity"]
                         self.ns_measures_effort[ns] = c["measures_effort"]
                     self.ns_commands.update(msg["data"]["namespace_commands"])
+                    self.native_cartesian = set(msg["data"].get("native_cartesian", ()))
                     return msg["data"]
                 if ev == "_startup_failed":
                     raise RuntimeError(msg["data"]["message"])
@@ -214,6 +223,10 @@ class ControlLink:
             "goal_p": buf[s["goal_p"]][idx], "goal_v": buf[s["goal_v"]][idx], "goal_f": buf[s["goal_f"]][idx],
             "goal_has_p": bool(buf[s["ns_goal_has_p"]][k]), "goal_has_v": bool(buf[s["ns_goal_has_v"]][k]),
             "goal_has_f": bool(buf[s["ns_goal_has_f"]][k]),
+            # the tip pose a native cartesian backend measures itself (stamp 0 for the others)
+            "native_stamp": float(buf[s["ns_cart_stamp"]][k]),
+            "native_p": buf[s["ns_cart_p"]][3 * k:3 * k + 3].copy(),
+            "native_q": buf[s["ns_cart_q"]][4 * k:4 * k + 4].copy(),
         }
 
     def period_statistics(self) -> dict:
@@ -225,7 +238,7 @@ class ControlLink:
         comp = buf[s["compute"]][:RING]
         if n < RING:  # ring slots 1..n hold samples
             late, comp = late[1 : n + 1], comp[1 : n + 1]
-        stats = {"rate_hz": self.profile.loop.rate_hz, "period_s": 1.0 / self.profile.loop.rate_hz,
+        stats = {"rate_hz": 1.0 / self.period_s, "period_s": self.period_s,
                  "cycles": cycles, "overruns": int(buf[s["overruns"]][0]), "samples": int(n)}
         if n:
             p = np.percentile(late, [50, 99])

@@ -66,7 +66,7 @@ class Server:
         self.commands = commands  # motion and state commands the control process supports
         self.cartesian: dict[str, CartesianSpace] = {
             ns.name: CartesianSpace(self.profile, ns.name, ns.kinematics, link.ns_commands[ns.name],
-                                    link.ns_measures_effort[ns.name])
+                                    link.ns_measures_effort[ns.name], native=ns.name in link.native_cartesian)
             for ns in self.profile.namespaces if ns.kinematics is not None
         }
         self.socket_path = socket_path
@@ -143,6 +143,8 @@ class Server:
                 await asyncio.wait_for(self._server.wait_closed(), 1.0)
             except (asyncio.TimeoutError, Exception):
                 pass
+        for cs in self.cartesian.values():
+            cs.close()
         try:
             os.unlink(self.socket_path)
         except FileNotFoundError:
@@ -237,11 +239,11 @@ class Server:
             if cmd == "forward_kinematics":
                 return cs.forward_kinematics(data)
             if cmd == "inverse_kinematics":
-                return cs.inverse_kinematics(data, self.link.ns_arrays(ns))
+                return await cs.inverse_kinematics(data, self.link.ns_arrays(ns))  # IK off the loop
             if cmd in cs.queries:
                 return cs.query(cmd, self.link.ns_arrays(ns), frame)
             self._take_control(s, cmd)
-            cmd, data = cs.translate(cmd, data, self.link.ns_arrays(ns), frame, self.state.get("is_busy", False))
+            cmd, data = await cs.translate(cmd, data, self.link.ns_arrays(ns), frame, self.state.get("is_busy", False))
             return await self._forward(s, rid, cmd, ns, data)
         if cmd in JOINT_QUERIES:
             return self.link.joint_state(cmd, self._check_ns(cmd, ns, True))
@@ -285,7 +287,9 @@ class Server:
             s.send(dict(reply, id=rid))
 
         try:
-            await self.link.request(cmd, ns, data, deliver=deliver)
+            # a state command may run a lifecycle transition: the loop replies by its time limit
+            timeout = max(10.0, self.link.transition_timeout_s) if cmd in STATE_COMMANDS else 10.0
+            await self.link.request(cmd, ns, data, timeout_s=timeout, deliver=deliver)
         except asyncio.TimeoutError:
             if not delivered:  # the reply and the timeout can land in the same loop pass
                 raise
@@ -308,7 +312,7 @@ class Server:
             raise ProtocolError("bad_request", f"unknown topic {topic!r} for {ns or self.robot} "
                                 f"(topics: {', '.join(list(TOPICS) + cart_topics)})")
         self._check_ns("subscribe", base, topic in JOINT_QUERIES or topic in cart_topics)
-        rate = min(data["rate_hz"], self.profile.loop.rate_hz)
+        rate = min(data["rate_hz"], 1.0 / self.link.period_s)
         sub = next(self._subids)
         s.subs[sub] = asyncio.get_running_loop().create_task(self._stream(s, sub, topic, ns, 1.0 / rate))
         return {"sub": sub, "rate_hz": rate}
@@ -352,7 +356,7 @@ class Server:
                                       "frames": ["spatial", "body"]}
             namespaces.append(entry)
         return {"robot": self.robot, "protocol_version": PROTOCOL_VERSION, "daemon_version": __version__,
-                "backend": self.profile.backend_type, "rate_hz": self.profile.loop.rate_hz, "namespaces": namespaces}
+                "backend": self.profile.backend_type, "rate_hz": 1.0 / self.link.period_s, "namespaces": namespaces}
 
 
 _SENT = object()  # the reply was already delivered, in order with the loop's events

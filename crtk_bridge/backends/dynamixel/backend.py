@@ -74,6 +74,7 @@ from ...core.actuator import (
     Fault,
     JointCommand,
     JointFeedback,
+    SimWiring,
     combine_capabilities,
 )
 from ...errors import BackendError
@@ -141,6 +142,7 @@ class DynamixelBackend(SerialServoBackend):
                                 measures_effort=False, needs_homing=False, can_free=True)
     extra = "dynamixel"
     vendor = "dynamixel"
+    simulator = SimWiring("dynamixel")  # crtk-sim dynamixel; --sim sets backend.port to its pty
     Config = Config
     MODEL_NUMBERS = T.MODEL_NUMBERS
     RESOLUTION = T.RESOLUTION

@@ -48,6 +48,7 @@ from ...core.actuator import (
     Fault,
     JointCommand,
     JointFeedback,
+    SimWiring,
 )
 from ...profile import Profile
 from ..serial_servo import SerialServoBackend
@@ -118,6 +119,7 @@ class FeetechBackend(SerialServoBackend):
     )
     extra = "feetech"
     vendor = "feetech"
+    simulator = SimWiring("feetech")  # crtk-sim feetech; --sim sets backend.port to its pty
     Config = Config
     MODEL_NUMBERS = tables.MODEL_NUMBERS
     RESOLUTION = tables.RESOLUTION

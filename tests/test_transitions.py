@@ -1,0 +1,245 @@
+"""Lifecycle transitions across cycles and the device-status table, on the controller with a
+fake actuator whose enable takes as many cycles as a test says."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from crtk_bridge.core.actuator import (
+    Actuator,
+    Capabilities,
+    CommandMode,
+    DeviceStatus,
+    Fault,
+    FaultReaction,
+    Lifecycle,
+    effective_period_s,
+)
+from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.state import DEVICE_STATUS, OperatingState
+from crtk_bridge.errors import BackendError
+from crtk_bridge.profile import load_profile
+
+from .test_controller import Clock
+
+PROFILE = load_profile("profiles/so101.yaml")
+
+
+class SlowActuator(Actuator):
+    """Enable takes ``enable_cycles`` steps; every bus action is logged in ``bus``."""
+
+    capabilities = Capabilities(position=True)
+    transition_timeouts_s = {Lifecycle.ENABLE: 1.0, Lifecycle.DISABLE: 1.0}
+
+    def __init__(self, profile, enable_cycles=5):
+        super().__init__(profile)
+        self.enable_cycles = enable_cycles
+        self.bus: list[str] = []
+        self.torque = False
+        self.pos = np.linspace(-0.2, 0.2, self.n)
+        self.fail_at: int | None = None
+
+    def _open_hook(self):
+        pass
+
+    def _close_hook(self):
+        pass
+
+    def _enable_steps(self, feedback):
+        try:
+            for k in range(self.enable_cycles):
+                if self.fail_at == k:
+                    raise BackendError("so101: joint 'gripper' (id 6) did not confirm Torque_Enable")
+                self.bus.append(f"enable-step-{k}")
+                yield
+            self.torque = True
+        finally:
+            self.bus.append("enable-finally")
+
+    def _pause_steps(self):
+        for _ in range(3):
+            self.bus.append("pause-step")
+            yield
+
+    def _disable_steps(self):
+        self.bus.append("torque-off")
+        self.torque = False
+        yield from ()
+
+    def _read(self, fb):
+        self.bus.append("read")
+        fb.position[:] = self.pos
+        fb.stamp += 0.005
+        return None
+
+    def _write(self, cmd):
+        self.bus.append("write")
+        return None
+
+
+@pytest.fixture
+def rig():
+    act = SlowActuator(PROFILE)
+    clock = Clock()
+    c = Controller(PROFILE, act, clock)
+    ids = itertools.count(1)
+    fb = act.new_feedback()
+
+    def cycle(n=1):
+        for _ in range(n):
+            clock.t += c.dt
+            c.on_read(fb, act.read(fb))
+            if c.step():
+                c.on_write(act.write(c.command))
+
+    def send(cmd, ns=None, **data):
+        rid = next(ids)
+        c.handle({"id": rid, "cmd": cmd, "ns": ns, "data": data})
+        return rid
+
+    def replies(rid):
+        return [m for m in c.outbox if m.get("id") == rid]
+
+    cycle()
+    return c, act, clock, cycle, send, replies
+
+
+def test_enable_over_cycles_keeps_reading_stays_disabled_busy_and_replies_once(rig):
+    c, act, clock, cycle, send, replies = rig
+    rid = send("enable")
+    assert replies(rid) == [] and c.state is OperatingState.DISABLED and c.is_busy
+    busy = [m["data"] for m in c.outbox if m.get("event") == "operating_state"][-1]
+    assert busy["is_busy"] and busy["state"] == "DISABLED"
+    for _ in range(3):
+        act.bus.clear()
+        cycle()
+        # every cycle reads first, then advances the transition by exactly one step; no writes
+        assert act.bus[0] == "read" and sum(b.startswith("enable-step") for b in act.bus) == 1
+        assert "write" not in act.bus
+        assert c.state is OperatingState.DISABLED and replies(rid) == []
+    cycle(3)
+    (reply,) = replies(rid)
+    assert reply["ok"] and reply["data"]["state"] == "ENABLED" and not reply["data"]["is_busy"]
+    assert c.state is OperatingState.ENABLED and not c.is_busy and act.torque
+    np.testing.assert_allclose(c.command.position, act.pos)  # holds where it is
+    cycle(10)
+    assert len(replies(rid)) == 1
+
+
+def test_second_enable_joins_and_both_get_one_reply(rig):
+    c, act, clock, cycle, send, replies = rig
+    a, b = send("enable"), send("enable")
+    cycle(8)
+    assert len(replies(a)) == 1 and len(replies(b)) == 1 and replies(b)[0]["ok"]
+
+
+def test_disable_aborts_a_running_enable(rig):
+    c, act, clock, cycle, send, replies = rig
+    rid = send("enable")
+    cycle(2)
+    d = send("disable")
+    (r,) = replies(rid)
+    assert not r["ok"] and r["error"]["code"] == "aborted" and "aborted by disable" in r["error"]["message"]
+    assert "enable-finally" in act.bus and not act.torque  # the steps' finally ran; torque off
+    assert replies(d)[0]["ok"] and c.state is OperatingState.DISABLED and not c.is_busy
+
+
+def test_transition_beyond_its_time_limit_faults_naming_it(rig):
+    c, act, clock, cycle, send, replies = rig
+    act.enable_cycles = 10_000
+    rid = send("enable")
+    cycle(int(1.0 / c.dt) + 5)
+    (r,) = replies(rid)
+    assert not r["ok"] and r["error"]["code"] == "fault"
+    assert "so101: enable did not finish within 1 s" in r["error"]["message"]
+    assert c.state is OperatingState.FAULT and not act.torque and "torque-off" in act.bus
+    err = [m["data"] for m in c.outbox if m.get("event") == "error"][-1]
+    assert err["code"] == "enable_failed" and "enable did not finish" in err["message"]
+
+
+def test_failed_step_faults_with_the_backends_reason(rig):
+    c, act, clock, cycle, send, replies = rig
+    act.fail_at = 2
+    rid = send("enable")
+    cycle(4)
+    (r,) = replies(rid)
+    assert not r["ok"] and "gripper" in r["error"]["message"] and c.state is OperatingState.FAULT
+
+
+def test_motion_refused_while_a_transition_runs_and_state_changes_at_its_end(rig):
+    c, act, clock, cycle, send, replies = rig
+    act.enable_cycles = 0
+    send("enable")
+    cycle()
+    p = send("pause")
+    assert c.state is OperatingState.ENABLED and c.is_busy and replies(p) == []
+    m = send("servo_jp", "so101", position=[0.0] * 5)
+    assert replies(m)[0]["error"]["code"] == "invalid_state" and "pause in progress" in replies(m)[0]["error"]["message"]
+    r = send("resume")
+    assert replies(r)[0]["error"]["code"] == "invalid_state"  # not valid in ENABLED
+    cycle(3)
+    assert replies(p)[0]["ok"] and c.state is OperatingState.PAUSED and not c.is_busy
+
+
+def test_device_status_table_is_total():
+    assert set(DEVICE_STATUS) == {(s, d) for s in OperatingState for d in DeviceStatus}
+
+
+@pytest.mark.parametrize("status,target,code", [
+    (DeviceStatus.PAUSED, OperatingState.PAUSED, "device_paused"),
+    (DeviceStatus.POWERED_OFF, OperatingState.DISABLED, "device_powered_off"),
+    (DeviceStatus.FAULT, OperatingState.FAULT, "servo_error"),
+])
+def test_device_status_maps_onto_crtk_states(rig, status, target, code):
+    c, act, clock, cycle, send, replies = rig
+    act.enable_cycles = 0
+    send("enable")
+    cycle()
+    assert c.state is OperatingState.ENABLED
+    c.outbox.clear()
+    act.report_status(status, Fault("servo_error", "so101: joint 'gripper' reports Overload", joint="gripper",
+                                    transient=False) if status is DeviceStatus.FAULT else None)
+    cycle()
+    assert c.state is target
+    ev = [m["data"] for m in c.outbox if m.get("event") in ("error", "warning")]
+    assert ev and ev[0]["code"] == code
+    if status is DeviceStatus.FAULT:
+        assert ev[0]["joint"] == "gripper"
+        act.report_status(DeviceStatus.FAULT_CLEARED)
+        cycle()
+        assert c.state is OperatingState.FAULT  # never leaves FAULT by itself
+        assert [m["data"]["code"] for m in c.outbox if m.get("event") == "status"][-1] == "fault_cleared"
+
+
+def test_fault_reaction_hold_leaves_torque_on(rig):
+    c, act, clock, cycle, send, replies = rig
+    act.fault_reaction = FaultReaction.HOLD
+    act.enable_cycles = 0
+    send("enable")
+    cycle()
+    act.report_status(DeviceStatus.FAULT, Fault("drive_fault", "so101: drive fault", transient=False))
+    cycle()
+    assert c.state is OperatingState.FAULT and act.torque and "torque-off" not in act.bus
+
+
+def test_cyclic_write_backend_is_written_every_cycle_in_every_state(rig):
+    c, act, clock, cycle, send, replies = rig
+    act.cyclic_write = True
+    act.bus.clear()
+    cycle(3)
+    assert act.bus.count("write") == 3 and c.state is OperatingState.DISABLED
+    assert np.all(c.command.mode == CommandMode.NONE)
+
+
+def test_effective_period_is_the_hardwares_when_it_paces():
+    class Paced(SlowActuator):
+        capabilities = Capabilities(position=True, native_rate_hz=500.0)
+        paces_cycle = True
+
+    assert effective_period_s(PROFILE, SlowActuator(PROFILE)) == pytest.approx(1.0 / PROFILE.loop.rate_hz)
+    paced = Paced(PROFILE)
+    assert effective_period_s(PROFILE, paced) == pytest.approx(0.002)
+    assert Controller(PROFILE, paced, Clock(), effective_period_s(PROFILE, paced)).dt == pytest.approx(0.002)
