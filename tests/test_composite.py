@@ -133,6 +133,13 @@ def test_a_bus_fault_names_the_bus_and_keeps_the_joint():
     f = c.read(c.new_feedback())  # the non-transient one leads, the other is said too
     assert f.code == "servo_error" and f.joint == "left_gripper" and not f.transient
     assert "bus 'left': joint 'left_gripper' overload; bus 'right': no reply" in f.message
+    # both transient: the bus failing for the most cycles in a row leads (the likely cause), not
+    # the one that missed a single reply in the same cycle
+    left.fault = Fault("bus_timeout", "bimanual_so101: no reply from joint 'left_shoulder_pan' (id 1)",
+                       joint="left_shoulder_pan")
+    f = c.read(c.new_feedback())
+    assert f.joint == "right_elbow_flex" and f.message.startswith("bimanual_so101: bus 'right': no reply")
+    assert "; bus 'left': no reply from joint 'left_shoulder_pan'" in f.message
     c.close()
 
 

@@ -276,3 +276,28 @@ def test_shutdown_while_disabled_or_with_torque_off_moves_nothing(loop_rig):
     assert not r.act.torque
     np.testing.assert_allclose(r.act.pos, at)
     assert [e["code"] for e in r.events() if e["code"].startswith("shutdown")] == ["shutdown_torque_off"]
+
+
+def test_no_park_while_a_lifecycle_transition_is_under_way():
+    from .test_transitions import SlowActuator
+
+    act = SlowActuator(PROFILE, enable_cycles=1)
+    clock = Clock()
+    c = Controller(PROFILE, act, clock)
+    fb = act.new_feedback()
+
+    def cycle(n):
+        for _ in range(n):
+            clock.t += c.dt
+            c.on_read(fb, act.read(fb))
+            c.step()
+
+    cycle(1)
+    c.handle({"id": 1, "cmd": "enable"})
+    cycle(5)
+    assert c.state is OperatingState.ENABLED
+    c.handle({"id": 2, "cmd": "pause"})  # three cycles long: the state stays ENABLED meanwhile
+    assert c.state is OperatingState.ENABLED and c.is_busy
+    assert not c.park()  # the shutdown aborts the transition and switches torque off instead
+    cycle(5)
+    assert c.state is OperatingState.PAUSED and c.park()  # once it ended, a PAUSED arm parks

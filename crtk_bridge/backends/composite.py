@@ -128,6 +128,11 @@ class CompositeActuator(Actuator):
         self._fb = [p.new_feedback() for p in self.parts]
         self._cmd = [p.new_command() for p in self.parts]
         self._workers: list[_BusWorker] | None = None  # started at the first cycle (see _start_workers)
+        nb = len(self.parts)
+        self._read_res: list[Fault | None] = [None] * nb  # this cycle's result per bus
+        self._write_res: list[Fault | None] = [None] * nb
+        self._read_streak = [0] * nb  # failed cycles in a row per bus
+        self._write_streak = [0] * nb
         self._where = [f"bus {name!r}" for name in self.bus_names]
         # what the buses declare, for the robot: written every cycle if any bus needs it (the
         # others are then skipped while not enabled); paced by the one bus that paces, if any;
@@ -281,14 +286,11 @@ class CompositeActuator(Actuator):
         workers = self._workers if self._workers is not None else self._start_workers()
         for w in workers:
             w.start(_READ)
-        fault = self.parts[0].read(self._fb[0])
-        faults = None
-        if fault is not None:
-            faults = [(0, fault)]
+        res = self._read_res
+        res[0] = self.parts[0].read(self._fb[0])
         for b, w in enumerate(workers, 1):
-            f = w.join()
-            if f is not None:
-                faults = (faults or []) + [(b, f)]
+            res[b] = w.join()
+        failed = self._count(res, self._read_streak)
         news = None
         for b, p in enumerate(self.parts):  # device status: the robot's is the most severe bus's
             n = p.take_status()
@@ -296,8 +298,8 @@ class CompositeActuator(Actuator):
                 news = (b, n)
         if news is not None:
             self._forward_status(*news)
-        if faults is not None:
-            return self._bus_fault(faults)
+        if failed:
+            return self._bus_fault(res, self._read_streak)
         stamp = self._fb[0].stamp
         for b, idx in enumerate(self._idx):
             fb = self._fb[b]
@@ -317,18 +319,28 @@ class CompositeActuator(Actuator):
             np.take(command.velocity, idx, out=c.velocity)
             np.take(command.effort, idx, out=c.effort)
         workers = self._workers if self._workers is not None else self._start_workers()
-        parts, cyclic = self.parts, self._cyclic
+        parts, cyclic, res = self.parts, self._cyclic, self._write_res
         for b, w in enumerate(workers, 1):  # a bus that is not written outside ENABLED / PAUSED is skipped
             if cyclic[b] or parts[b].is_enabled:
                 w.start(_WRITE)
-        fault = parts[0].write(self._cmd[0]) if cyclic[0] or parts[0].is_enabled else None
-        faults = [(0, fault)] if fault is not None else None
+        res[0] = parts[0].write(self._cmd[0]) if cyclic[0] or parts[0].is_enabled else None
         for b, w in enumerate(workers, 1):
-            if cyclic[b] or parts[b].is_enabled:
-                f = w.join()
-                if f is not None:
-                    faults = (faults or []) + [(b, f)]
-        return self._bus_fault(faults) if faults is not None else None
+            res[b] = w.join() if cyclic[b] or parts[b].is_enabled else None
+        if self._count(res, self._write_streak):
+            return self._bus_fault(res, self._write_streak)
+        return None
+
+    @staticmethod
+    def _count(res: list[Fault | None], streak: list[int]) -> bool:
+        """Count each bus's failed cycles in a row; True if any bus failed this cycle."""
+        failed = False
+        for b, f in enumerate(res):
+            if f is None:
+                streak[b] = 0
+            else:
+                streak[b] += 1
+                failed = True
+        return failed
 
     def _forward_status(self, b: int, news: tuple[DeviceStatus, Fault | None]) -> None:
         """A bus reported a device status: report the robot's, the most severe of all buses'
@@ -336,16 +348,19 @@ class CompositeActuator(Actuator):
         worst = max((p.device_status for p in self.parts), key=_SEVERITY.__getitem__)
         cause = news[1]
         if cause is not None:
-            cause = self._bus_fault([(b, cause)])
+            cause = self._bus_fault([cause if k == b else None for k in range(len(self.parts))])
         if worst is DeviceStatus.OK and self.device_status is DeviceStatus.FAULT:
             self.report_status(DeviceStatus.FAULT_CLEARED, cause)
         else:
             self.report_status(worst, cause)
 
-    def _bus_fault(self, faults: list[tuple[int, Fault]]) -> Fault:
-        """The robot's fault for this cycle: a non-transient one first, its message naming the bus
-        (and what the other buses said). Allocates, but only on a failed cycle."""
-        faults.sort(key=lambda bf: bf[1].transient)
+    def _bus_fault(self, res: list[Fault | None], streak: list[int] | None = None) -> Fault:
+        """The robot's fault from the buses' results ``res``: a non-transient one leads, else the
+        bus failing for the most cycles in a row (the likely cause, not a bus that missed one
+        reply in the same cycle); its message names the bus and says what the other failing buses
+        said. Allocates, but only on a failed cycle."""
+        faults = [(b, f) for b, f in enumerate(res) if f is not None]
+        faults.sort(key=lambda bf: (bf[1].transient, -(streak[bf[0]] if streak else 0)))
         b, f = faults[0]
         prefix = f"{self.robot}: "
         parts = [f"{self._where[k]}: {g.message.removeprefix(prefix)}" for k, g in faults]

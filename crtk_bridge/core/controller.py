@@ -660,9 +660,10 @@ class Controller:
     def park(self) -> bool:
         """Shutdown park (``shutdown.action: park``): a jerk-limited move of every torqued
         namespace to the profile's rest pose, with busy edges. Returns False (nothing started)
-        unless the robot is ENABLED or PAUSED; a namespace left ``free`` stays free."""
-        if self.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
-            return False
+        unless the robot is ENABLED or PAUSED with no lifecycle transition under way; a namespace
+        left ``free`` stays free."""
+        if self.state not in (OperatingState.ENABLED, OperatingState.PAUSED) or self._running is not None:
+            return False  # (a lifecycle transition under way: the shutdown aborts it, torque off)
         rest = self.profile.shutdown.rest
         now = self.clock()
         self.homing = False
