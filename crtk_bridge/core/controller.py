@@ -10,7 +10,9 @@ Messages (dicts, see docs/protocol.md):
 * events appended to ``outbox`` in causal order: ``{"event": "operating_state", "data"}``,
   ``{"event": "warning"|"error"|"status", "data": {"stamp", "ns", "code", "message"}}``.
 
-Motion per namespace lives in ``motion.py``. Safety here:
+Motion per namespace lives in ``motion.py``; twists (``servo_cv``, ``interpolate_cv``) are mapped
+to joint velocities every cycle by ``twist.py``; the namespaces of a backend with its own
+cartesian control get cartesian setpoints from ``native_cartesian.py``. Safety here:
 * servo and interpolate positions outside the joint limits are clipped with a rate-limited
   warning; a ``servo_jp`` / ``interpolate_jp`` step larger than ``safety.servo_step_max`` from the
   last setpoint (or goal) is refused; a stream silent for ``safety.servo_timeout_s`` holds;
