@@ -122,6 +122,21 @@ class Rig:
     def request(self, rid: int, cmd: str, **kw) -> None:
         self.controller.handle({"id": rid, "cmd": cmd, **kw})
 
+    def enable(self, rid: int, timeout: float = 10.0) -> dict:
+        """``enable`` through the controller, cycling until its one reply; returns it."""
+        self.request(rid, "enable")
+        deadline = time.monotonic() + timeout
+        while not self.replies(rid):
+            assert time.monotonic() < deadline, "no reply to enable"
+            self.cycle()
+        return self.replies(rid)[0]
+
+    def enabled_controller(self):
+        """A controller whose robot is ENABLED (request id 1)."""
+        c = self.make_controller()
+        assert self.enable(1)["ok"] and c.state.value == "ENABLED"
+        return c
+
     def replies(self, rid: int) -> list[dict]:
         return [m for m in self.controller.outbox if m.get("id") == rid]
 

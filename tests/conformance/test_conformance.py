@@ -118,8 +118,7 @@ def test_enable_holds_the_measured_position(rig):
         sim.servo(sid).write("Present_Position", row.present(sim, sid) + 150 + 40 * k)
     before = rig.measured()
     c = rig.make_controller()
-    rig.request(1, "enable")
-    wait_until(lambda: (rig.cycle(), rig.replies(1))[1], 5, interval=0, what="enable reply")
+    rig.enable(1)
     assert rig.replies(1)[0]["ok"] and c.state is OperatingState.ENABLED
     assert all(row.torque(sim, i) for i in rig.ids)
     for i, sid in enumerate(rig.ids):
@@ -131,9 +130,7 @@ def test_enable_holds_the_measured_position(rig):
 
 def test_a_silent_device_faults_naming_the_joint(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
-    c = rig.make_controller()
-    rig.request(1, "enable")
-    wait_until(lambda: (rig.cycle(), rig.replies(1))[1], 5, interval=0, what="enable reply")
+    c = rig.enabled_controller()
     k = 2
     row.silence(sim, rig.ids[k])
     fault = b.read(rig.fb)
@@ -145,9 +142,7 @@ def test_a_silent_device_faults_naming_the_joint(rig):
 
 def test_device_status_maps_onto_the_crtk_state(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
-    c = rig.make_controller()
-    rig.request(1, "enable")
-    wait_until(lambda: (rig.cycle(), rig.replies(1))[1], 5, interval=0, what="enable reply")
+    c = rig.enabled_controller()
     k = 3
     row.inject_error(sim, rig.ids[k])
     wait_until(lambda: (rig.cycle(), c.state is OperatingState.FAULT)[1], 2, interval=0, what="FAULT")
@@ -159,16 +154,14 @@ def test_device_status_maps_onto_the_crtk_state(rig):
     if row.error_latched:  # only the device's reset (enable) clears it
         rig.cycle(5)
         assert b.device_status is DeviceStatus.FAULT
-        rig.request(2, "enable")
-        wait_until(lambda: (rig.cycle(), rig.replies(2))[1], 10, interval=0, what="enable reply")
+        rig.enable(2)
         assert rig.replies(2)[0]["ok"], rig.replies(2)
     wait_until(lambda: (rig.cycle(), any(e["code"] == "fault_cleared" for e in rig.events("status")))[1],
                2, interval=0, what="fault_cleared")
     assert b.device_status is DeviceStatus.OK
     if not row.error_latched:
         assert c.state is OperatingState.FAULT  # cleared, but never enabled by itself
-        rig.request(2, "enable")
-        wait_until(lambda: (rig.cycle(), rig.replies(2))[1], 5, interval=0, what="enable reply")
+        rig.enable(2)
     assert c.state is OperatingState.ENABLED
 
 
