@@ -307,7 +307,15 @@ class SerialServoBackend(Actuator):
             self._port.is_using = False  # we own the port alone; a stale flag = PORT_BUSY forever
         attempts = self._attempts if self._realtime_txrx else max(self._attempts, self.LIFECYCLE_ATTEMPTS)
         for _ in range(attempts):
-            out = fn(self._port, *args)
+            try:
+                out = fn(self._port, *args)
+            except IndexError:
+                # the SDKs index a reply that came back short (scservo's ping reads the model
+                # number of a stale or truncated status packet): a corrupt reply, retried
+                self._port.is_using = False
+                corrupt = (self.RX_CORRUPT, 0)
+                out = corrupt if fn.__name__.startswith(("write", "reboot")) else (0, *corrupt)
+                continue
             if out[-2] == COMM_SUCCESS:
                 break
         return out
