@@ -298,6 +298,9 @@ class SerialServoBackend(Actuator):
     #: patient than the real-time read: a servo busy at power-up, or a loaded host, must not fail
     #: `open` or `enable`; a truly missing servo costs this many packet timeouts, once.
     LIFECYCLE_ATTEMPTS = 4
+    #: how long `open` keeps pinging a servo that does not answer (shared by all servos): a
+    #: missing one costs this once, at start-up, and every servo gets at least LIFECYCLE_ATTEMPTS
+    OPEN_PATIENCE_S = 0.5
     _realtime_txrx = False  # set around acknowledged transactions made from the real-time path
 
     def _txrx(self, fn, *args):
@@ -405,8 +408,12 @@ class SerialServoBackend(Actuator):
     def _check_servos(self) -> None:
         problems = []
         answered = False
+        deadline = time.monotonic() + self.OPEN_PATIENCE_S
         for i, j in enumerate(self.joint_keys):
-            model, result, _ = self._txrx(self._ph.ping, self._ids[i])
+            while True:  # a servo (or simulator) still starting, or a loaded host, gets a moment
+                model, result, _ = self._txrx(self._ph.ping, self._ids[i])
+                if result == COMM_SUCCESS or time.monotonic() > deadline:
+                    break
             answered = answered or result == COMM_SUCCESS
             if result != COMM_SUCCESS:
                 problems.append(f"{self._label[i]} did not answer ping on {self._where}: "
