@@ -20,6 +20,7 @@ import sys
 from .. import __version__
 from ..errors import CrtkBridgeError, ProfileError
 from ..profile import load_profile
+from . import simulator_class
 
 _SIGNALS = {signal.SIGTERM, signal.SIGINT}
 _HEALTH_CHECK_S = 0.5
@@ -60,10 +61,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         profile = profile.bus_profile(args.bus)  # one simulator per bus
 
-    if args.device == "dynamixel":
-        from .dynamixel import DynamixelSimulator as Simulator
-    else:
-        from .feetech import FeetechSimulator as Simulator
+    Simulator = simulator_class(args.device)
 
     # Block the signals before any thread exists, so every thread inherits the mask and only
     # sigtimedwait() below receives them: a clean, race-free shutdown path.
