@@ -476,16 +476,16 @@ class DynamixelBackend(SerialServoBackend):
                 want = self._pos_mode[i]
                 g = goal[i]
                 value = command.position[i]
-            elif m == _VELOCITY:
+            elif m == _VELOCITY:  # velocity, effort: clamped BEFORE round(), which a huge value overflows
                 want = OperatingMode.VELOCITY
                 value = command.velocity[i]
                 lim = self._vel_limit[i]
-                g = min(max(round(value * self._vel_per_rad_s[i]), -lim), lim) if value == value else 0
+                g = round(min(max(value * self._vel_per_rad_s[i], -lim), lim)) if value == value else 0
             elif m == _EFFORT and self._effort_j[i]:
                 want = OperatingMode.CURRENT
                 value = command.effort[i]
                 lim = self._cur_limit[i]
-                g = min(max(round(value * self._unit_per_nm[i]), -lim), lim) if value == value else 0
+                g = round(min(max(value * self._unit_per_nm[i], -lim), lim)) if value == value else 0
             else:
                 continue
             if value != value:  # NaN: inf is clamped above
