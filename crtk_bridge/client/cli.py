@@ -32,7 +32,7 @@ from typing import Sequence
 
 import numpy as np
 
-from crtk_bridge import __version__
+from crtk_bridge import __version__, vocabulary
 
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.client.device import (
@@ -40,7 +40,7 @@ from crtk_bridge.client.device import (
 from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
 
 PROG = "crtk-ctl"
-GET_TOPICS = (*JS_TOPICS, *CARTESIAN_TOPICS, "operating_state", "period_statistics")
+GET_TOPICS = (*JS_TOPICS, *CARTESIAN_TOPICS, *vocabulary.ROBOT_TOPICS)
 #: Default wait (s) per state command when --timeout is not given.
 WAIT_DEFAULTS = {"enable": 5.0, "disable": 5.0, "pause": 5.0, "resume": 5.0,
                  "home": 30.0, "unhome": 5.0}
@@ -86,11 +86,11 @@ _DURATION_HELP = ("send the command at --rate for S seconds (default: send once)
                   "it (it has no end: the daemon stops it when crtk-ctl disconnects)")
 
 
-class Failure(Exception):
+class Failure(CrtkBridgeError):
     """A command ran but did not achieve its aim (exit 1, one line on stderr)."""
 
 
-class UsageError(Exception):
+class UsageError(CrtkBridgeError):
     """The arguments cannot do what was asked (exit 2, one line on stderr)."""
 
 
