@@ -298,6 +298,9 @@ class SerialServoBackend(Actuator):
     #: patient than the real-time read: a servo busy at power-up, or a loaded host, must not fail
     #: `open` or `enable`; a truly missing servo costs this many packet timeouts, once.
     LIFECYCLE_ATTEMPTS = 4
+    #: how long `open` keeps pinging a servo that does not answer (shared by all servos): a
+    #: missing one costs this once, at start-up, and every servo gets at least LIFECYCLE_ATTEMPTS
+    OPEN_PATIENCE_S = 0.5
     _realtime_txrx = False  # set around acknowledged transactions made from the real-time path
 
     def _txrx(self, fn, *args):
@@ -307,7 +310,15 @@ class SerialServoBackend(Actuator):
             self._port.is_using = False  # we own the port alone; a stale flag = PORT_BUSY forever
         attempts = self._attempts if self._realtime_txrx else max(self._attempts, self.LIFECYCLE_ATTEMPTS)
         for _ in range(attempts):
-            out = fn(self._port, *args)
+            try:
+                out = fn(self._port, *args)
+            except IndexError:
+                # the SDKs index a reply that came back short (scservo's ping reads the model
+                # number of a stale or truncated status packet): a corrupt reply, retried
+                self._port.is_using = False
+                corrupt = (self.RX_CORRUPT, 0)
+                out = corrupt if fn.__name__.startswith(("write", "reboot")) else (0, *corrupt)
+                continue
             if out[-2] == COMM_SUCCESS:
                 break
         return out
@@ -397,8 +408,12 @@ class SerialServoBackend(Actuator):
     def _check_servos(self) -> None:
         problems = []
         answered = False
+        deadline = time.monotonic() + self.OPEN_PATIENCE_S
         for i, j in enumerate(self.joint_keys):
-            model, result, _ = self._txrx(self._ph.ping, self._ids[i])
+            while True:  # a servo (or simulator) still starting, or a loaded host, gets a moment
+                model, result, _ = self._txrx(self._ph.ping, self._ids[i])
+                if result == COMM_SUCCESS or time.monotonic() > deadline:
+                    break
             answered = answered or result == COMM_SUCCESS
             if result != COMM_SUCCESS:
                 problems.append(f"{self._label[i]} did not answer ping on {self._where}: "
