@@ -3,7 +3,8 @@
     crtk-ctl state                      crtk-ctl enable            crtk-ctl home
     crtk-ctl get measured_js            crtk-ctl echo measured_js --rate 50 --count 10
     crtk-ctl move_jp 0 0.5 -0.5 0 0 --wait        crtk-ctl --robot so101 --ns so101/gripper list
-    crtk-ctl servo_jv 0.1 0 0 0 0       crtk-ctl interpolate_jp 0 0.5 -0.5 0 0
+    crtk-ctl servo_jv 0.1 0 0 0 0 --duration 1      crtk-ctl interpolate_jp 0 0.5 -0.5 0 0
+    crtk-ctl servo_jr 0.05 0 0 0 0 --duration 0.5   (moves by 0.05 rad in total)
     crtk-ctl hold                       crtk-ctl free              crtk-ctl events --count 5
     crtk-ctl get measured_cp            crtk-ctl get measured_cv --frame body
     crtk-ctl move_cp 0.3 0 0.2 0 0.7071 0 0.7071 --wait      crtk-ctl move_cr 0 0 0.02 --wait
@@ -14,6 +15,10 @@ Cartesian poses are X Y Z (m) then the unit quaternion QX QY QZ QW, the tip fram
 frame; relative commands (_cr) take DX DY DZ [QX QY QZ QW] in the base frame (no quaternion: no
 rotation). Twists are VX VY VZ (m/s) WX WY WZ (rad/s), wrenches FX FY FZ (N) TX TY TZ (N·m), in
 the spatial frame (base axes) or, with --frame body, the tip frame's axes.
+
+When crtk-ctl leaves, a move or position goal it sent runs to its end; a velocity or effort
+command has no end and stops, so it needs --duration (docs/protocol.md, Client loss). With
+--duration a relative command (_jr, _cr) is split over the samples: it moves by the offset given.
 
 Exit status: 0 on success; 1 when the daemon refuses a command (one line on stderr with the
 error code and the daemon's message), a wait times out or a state is not reached; 2 when no
