@@ -264,3 +264,22 @@ def test_a_wall_clock_step_back_does_not_disable_the_servo_watchdog(loop_rig, mo
     n = int(cycles[0])
     wait_until(lambda: cycles[0] > n + 20, 2.0, what="more cycles")
     np.testing.assert_allclose(r.act.pos, held)
+
+
+def test_hold_aborts_a_native_home_with_one_reply_each_and_the_busy_edge():
+    from .test_transitions import HookedActuator
+
+    c, act, clock, cycle, req = make_rig(HookedActuator(PROFILE, enable_cycles=1))
+    c.handle({"id": 1, "cmd": "enable"})
+    cycle(3)
+    c.handle({"id": 2, "cmd": "home"})
+    assert c.is_busy
+    c.outbox.clear()
+    assert req("hold", "so101")["ok"]  # a stop during a native home: accepted
+    home_reply = [m for m in c.outbox if m.get("id") == 2]
+    assert len(home_reply) == 1 and home_reply[0]["error"]["code"] == "aborted"
+    steps = act.bus.count("home-step")
+    cycle(5)
+    assert act.bus.count("home-step") == steps  # the backend's homing steps stopped
+    assert not c.is_busy and not c.is_homed
+    assert [m["data"]["is_busy"] for m in c.outbox if m.get("event") == "operating_state"][-1] is False
