@@ -449,3 +449,27 @@ def test_packet_timeout_is_wire_time_plus_margin():
     port.tx_time_per_byte = 0.01  # ms per byte at 1 Mbps
     port.setPacketTimeout(126)
     assert port.packet_timeout == pytest.approx(1.26 + 7.0)
+
+
+def test_a_short_reply_that_trips_the_sdk_is_a_retried_corrupt_reply(backend):
+    """scservo's ping indexes the model number of the reply it got: a short (stale, truncated)
+    one raises IndexError inside the SDK. That is a corrupt reply, retried, never an escape."""
+    real, calls = backend._ph.ping, []
+
+    def short_once(port, sid):
+        calls.append(sid)
+        if len(calls) == 1:
+            raise IndexError("list index out of range")
+        return real(port, sid)
+
+    backend._ph.ping = short_once
+    model, result, _ = backend._txrx(backend._ph.ping, 1)
+    assert result == 0 and model == 777 and calls == [1, 1]
+
+    def always_short(port, sid):
+        raise IndexError("list index out of range")
+
+    backend._ph.ping = always_short
+    assert backend._txrx(backend._ph.ping, 1)[1] == backend.RX_CORRUPT
+    with pytest.raises(BackendError, match=r"did not answer ping"):
+        backend._check_servos()

@@ -214,3 +214,40 @@ def test_declarations_combine():
     assert c.paces_cycle and c.cyclic_write and c.fault_reaction is FaultReaction.TORQUE_OFF
     with pytest.raises(ProfileError, match="both pace the control loop"):
         CompositeActuator(PROFILE, {"left": a, "right": Paced(PROFILE.bus_profile("right"), 0.0, 0.0)})
+
+
+def test_native_cartesian_rows_go_to_and_come_from_their_bus():
+    """A natively cartesian bus (a UR arm) beside a joint-only one (a servo gripper): the robot's
+    cartesian rows are that bus's, its measured pose gathered, its setpoints scattered."""
+
+    class Native(FakeBus):
+        capabilities = Capabilities(position=True, native_cartesian=True)
+
+        def cartesian_namespaces(self):
+            return ["right"]
+
+        def _read(self, fb):
+            fb.cartesian.position[0] = (0.1, 0.2, 0.3)
+            fb.cartesian.done_seq[0] = 7
+            fb.cartesian.stamp = 42.0
+            return super()._read(fb)
+
+        def _write(self, cmd):
+            self.pose = (int(cmd.cartesian.mode[0]), cmd.cartesian.position[0].copy(), int(cmd.cartesian.seq[0]))
+            return super()._write(cmd)
+
+    left = FakeBus(PROFILE.bus_profile("left"), 0.0, 1.0)
+    right = Native(PROFILE.bus_profile("right"), 0.0, 1.0)
+    c = CompositeActuator(PROFILE, {"left": left, "right": right})
+    assert c.cartesian_namespaces() == ["right"]
+    fb = c.new_feedback()
+    assert c.read(fb) is None
+    assert np.array_equal(fb.cartesian.position[0], [0.1, 0.2, 0.3]) and fb.cartesian.done_seq[0] == 7
+    assert fb.cartesian.stamp == 42.0
+    c.enable(fb)
+    cmd = c.new_command()
+    cmd.cartesian.mode[0], cmd.cartesian.position[0], cmd.cartesian.seq[0] = 3, (0.3, 0.0, 0.2), 8
+    assert c.write(cmd) is None
+    mode, position, seq = right.pose
+    assert mode == 3 and np.array_equal(position, [0.3, 0.0, 0.2]) and seq == 8
+    c.close()

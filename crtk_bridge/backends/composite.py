@@ -24,7 +24,8 @@ those that did not confirm.
 
 What the buses declare becomes the robot's: device status (the most severe bus's, its cause
 naming the bus), ``cyclic_write`` (if any bus needs it; the others are written only while
-enabled), pacing (by the one bus that paces; two pacing buses are refused), and the fault
+enabled), native cartesian namespaces (each bus's rows of the cartesian setpoints and measured
+poses, bus after bus), pacing (by the one bus that paces; two pacing buses are refused), and the fault
 reaction (torque off if any bus needs it: a UR arm that stops itself beside a servo gripper that
 must be switched off gets the DISABLE transition on both -- per-bus fault reactions are not
 modelled yet). Native homing on one bus is not offered through the composite yet.
@@ -127,6 +128,14 @@ class CompositeActuator(Actuator):
         self.capabilities = combine_capabilities(self._joint_caps)
         self._fb = [p.new_feedback() for p in self.parts]
         self._cmd = [p.new_command() for p in self.parts]
+        # native cartesian rows (a UR arm beside a servo gripper): bus b's rows are the robot's lo:hi
+        self._cart_rows = []
+        lo = 0
+        for b, p in enumerate(self.parts):
+            k = len(p.cartesian_namespaces())
+            if k:
+                self._cart_rows.append((b, lo, lo + k))
+                lo += k
         self._workers: list[_BusWorker] | None = None  # started at the first cycle (see _start_workers)
         nb = len(self.parts)
         self._read_res: list[Fault | None] = [None] * nb  # this cycle's result per bus
@@ -167,6 +176,11 @@ class CompositeActuator(Actuator):
         # cartesian command rows are not forwarded to the buses (yet): every namespace of a
         # composite robot goes through the daemon's own IK and twist mapping
         return []
+
+    def cartesian_namespaces(self) -> list[str]:
+        """Every bus's natively cartesian namespaces, bus after bus (the rows of the robot's
+        CartesianCommand / CartesianFeedback)."""
+        return [ns for p in self.parts for ns in p.cartesian_namespaces()]
 
     def info(self) -> ActuatorInfo:
         details: dict[str, Any] = {name: p.info().details for name, p in zip(self.bus_names, self.parts)}
@@ -309,7 +323,31 @@ class CompositeActuator(Actuator):
             if fb.stamp < stamp:
                 stamp = fb.stamp
         feedback.stamp = stamp
+        if self._cart_rows:
+            self._gather_cartesian(feedback.cartesian)
         return None
+
+    def _gather_cartesian(self, dst) -> None:
+        stamp = None
+        for b, lo, hi in self._cart_rows:
+            src = self._fb[b].cartesian
+            dst.position[lo:hi] = src.position
+            dst.orientation[lo:hi] = src.orientation
+            dst.done_seq[lo:hi] = src.done_seq
+            if stamp is None or src.stamp < stamp:
+                stamp = src.stamp  # 0 (no valid pose) on any bus makes the whole 0
+        dst.stamp = stamp
+
+    def _scatter_cartesian(self, src) -> None:
+        for b, lo, hi in self._cart_rows:
+            dst = self._cmd[b].cartesian
+            dst.mode[:] = src.mode[lo:hi]
+            dst.position[:] = src.position[lo:hi]
+            dst.orientation[:] = src.orientation[lo:hi]
+            dst.linear[:] = src.linear[lo:hi]
+            dst.angular[:] = src.angular[lo:hi]
+            dst.frame[:] = src.frame[lo:hi]
+            dst.seq[:] = src.seq[lo:hi]
 
     def _write(self, command: JointCommand) -> Fault | None:
         for b, idx in enumerate(self._idx):
@@ -318,6 +356,8 @@ class CompositeActuator(Actuator):
             np.take(command.position, idx, out=c.position)
             np.take(command.velocity, idx, out=c.velocity)
             np.take(command.effort, idx, out=c.effort)
+        if self._cart_rows:
+            self._scatter_cartesian(command.cartesian)
         workers = self._workers if self._workers is not None else self._start_workers()
         parts, cyclic, res = self.parts, self._cyclic, self._write_res
         for b, w in enumerate(workers, 1):  # a bus that is not written outside ENABLED / PAUSED is skipped

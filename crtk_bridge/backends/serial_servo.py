@@ -10,8 +10,14 @@ with ``ping`` / ``readNByteTxRx`` / ``writeNByteTxRx`` returning ``(value, resul
 * :class:`SerialServoBackend` -- profile validation (backend keys; the joints' servo keys,
   ``servo_keys.py``), the tick <-> rad calibration arrays, retried register reads/writes with errors
   naming robot, joint, id, register and port, opening (ping every servo, check its model number),
-  torque on (rolled back on failure) and off, close, and naming the first silent servo of a
-  failed sync read.
+  the ENABLE transition as cross-cycle steps (rolled back on failure) and torque off, close,
+  naming the first silent servo of a failed sync read, and the device status of its error bits.
+
+The bus is one thread's at a time, and the loop's sync read must go on during an enable, so
+ENABLE is steps the loop interleaves with its reads (never a worker holding the bus): one servo
+per cycle (goal = its fresh present position, then torque on), then one check per cycle until
+every servo reads Torque_Enable = 1 (a servo may take its time: the simulators' ``torque_delay``).
+Torque off (DISABLE, the fault reaction) is one step: a stop is not spread over cycles.
 
 Each vendor fills a few hooks: its tables (``MODEL_NUMBERS``, ``RESOLUTION``), its ``Config``
 struct, how a register name maps to (address, size) for a joint and how values are encoded
@@ -31,7 +37,7 @@ from typing import Any, ClassVar
 import numpy as np
 import serial
 
-from ..core.actuator import Actuator, ActuatorInfo
+from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Lifecycle, Steps
 from ..errors import BackendError, ProfileError
 from ..profile import Profile, backend_config, unknown_key_message
 from .port_errors import open_error_reason, silent_bus_hint
@@ -292,6 +298,9 @@ class SerialServoBackend(Actuator):
     #: patient than the real-time read: a servo busy at power-up, or a loaded host, must not fail
     #: `open` or `enable`; a truly missing servo costs this many packet timeouts, once.
     LIFECYCLE_ATTEMPTS = 4
+    #: how long `open` keeps pinging a servo that does not answer (shared by all servos): a
+    #: missing one costs this once, at start-up, and every servo gets at least LIFECYCLE_ATTEMPTS
+    OPEN_PATIENCE_S = 0.5
     _realtime_txrx = False  # set around acknowledged transactions made from the real-time path
 
     def _txrx(self, fn, *args):
@@ -301,7 +310,15 @@ class SerialServoBackend(Actuator):
             self._port.is_using = False  # we own the port alone; a stale flag = PORT_BUSY forever
         attempts = self._attempts if self._realtime_txrx else max(self._attempts, self.LIFECYCLE_ATTEMPTS)
         for _ in range(attempts):
-            out = fn(self._port, *args)
+            try:
+                out = fn(self._port, *args)
+            except IndexError:
+                # the SDKs index a reply that came back short (scservo's ping reads the model
+                # number of a stale or truncated status packet): a corrupt reply, retried
+                self._port.is_using = False
+                corrupt = (self.RX_CORRUPT, 0)
+                out = corrupt if fn.__name__.startswith(("write", "reboot")) else (0, *corrupt)
+                continue
             if out[-2] == COMM_SUCCESS:
                 break
         return out
@@ -391,8 +408,12 @@ class SerialServoBackend(Actuator):
     def _check_servos(self) -> None:
         problems = []
         answered = False
+        deadline = time.monotonic() + self.OPEN_PATIENCE_S
         for i, j in enumerate(self.joint_keys):
-            model, result, _ = self._txrx(self._ph.ping, self._ids[i])
+            while True:  # a servo (or simulator) still starting, or a loaded host, gets a moment
+                model, result, _ = self._txrx(self._ph.ping, self._ids[i])
+                if result == COMM_SUCCESS or time.monotonic() > deadline:
+                    break
             answered = answered or result == COMM_SUCCESS
             if result != COMM_SUCCESS:
                 problems.append(f"{self._label[i]} did not answer ping on {self._where}: "
@@ -422,21 +443,74 @@ class SerialServoBackend(Actuator):
         if failed:
             raise BackendError(f"{self.robot}: torque off not confirmed: " + "; ".join(failed))
 
-    def _torque_on_all(self) -> None:
-        """Torque_Enable = 1 on every servo in joint order, each acknowledged and error-checked;
-        no joint stays free. Blocks. If one fails, the servos already on are switched off again
-        (best effort) and its BackendError is raised. Call only once every goal holds the present
-        position."""
+    #: time limits (s) of the lifecycle transitions (ENABLE may grow: transition_timeout_s)
+    transition_timeouts_s = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 1.0,
+                             Lifecycle.RESUME: 1.0, Lifecycle.FAULT_RESET: 1.0}
+
+    def _enable_steps(self, feedback) -> Steps:
+        """ENABLE, one bus step per cycle (see the module docstring): the vendor's preparation
+        (:meth:`_before_enable`), then per servo in joint order, in its own cycle: goal = a fresh
+        read of its present position (:meth:`_hold_here`), then Torque_Enable = 1, each
+        acknowledged and error-checked -- so enabling never moves the arm and no joint stays
+        free; then one Torque_Enable read per cycle until every servo reports torque on. Raises
+        BackendError naming joint and register; on failure the servos already on are switched
+        off again (best effort)."""
+        self._require_open("enable")
+        yield from self._before_enable()
         self._free = [False] * self.n
         try:
             for i in range(self.n):
-                self._write_register(i, "Torque_Enable", 1, check_error=True)
-        except BackendError:
+                yield from self._retrying(self._hold_and_torque, i)
+                yield
+            i = 0
+            while i < self.n:  # the servos say torque is on, in joint order
+                if (yield from self._retrying(self._read_register, i, "Torque_Enable")) == 1:
+                    i += 1
+                else:
+                    yield
+        except Exception:
             try:
                 self._disable_hook()
             except BackendError:
                 pass
             raise
+
+    #: cycles a transition step's transactions are tried (each with the lifecycle attempts)
+    #: before the transition fails: a late reply on a loaded host must not fail a long enable
+    STEP_CYCLES = 3
+
+    def _retrying(self, fn, *args) -> Steps:
+        """Steps running ``fn(*args)`` (idempotent bus transactions) and returning its value; a
+        BackendError is retried in the next cycle, up to STEP_CYCLES cycles, then raised."""
+        for cycle in range(self.STEP_CYCLES):
+            try:
+                return fn(*args)
+            except BackendError:
+                if cycle == self.STEP_CYCLES - 1:
+                    raise
+            yield
+
+    def _hold_and_torque(self, i: int) -> None:
+        self._hold_here(i)
+        self._write_register(i, "Torque_Enable", 1, check_error=True)
+
+    def _before_enable(self) -> Steps:
+        """Vendor steps before any servo is held and torqued (Dynamixel: reboot servos in
+        hardware error). Default: none."""
+        yield from ()
+
+    def _hold_here(self, i: int) -> None:
+        """Goal of servo ``i`` = a fresh read of its present position, acknowledged (two
+        transactions). Raises BackendError."""
+        raise NotImplementedError
+
+    def _error_status(self, fault: Any) -> None:
+        """Report the device status from this read's servo error bits: FAULT with ``fault`` when
+        they appear, FAULT_CLEARED once they are gone (:meth:`Actuator.report_status`)."""
+        if fault is not None:
+            self.report_status(DeviceStatus.FAULT, fault)
+        elif self.device_status is DeviceStatus.FAULT:
+            self.report_status(DeviceStatus.FAULT_CLEARED)
 
     def _close_hook(self) -> None:
         if self._port is not None:

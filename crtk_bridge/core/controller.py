@@ -10,7 +10,9 @@ Messages (dicts, see docs/protocol.md):
 * events appended to ``outbox`` in causal order: ``{"event": "operating_state", "data"}``,
   ``{"event": "warning"|"error"|"status", "data": {"stamp", "ns", "code", "message"}}``.
 
-Motion per namespace lives in ``motion.py``. Safety here:
+Motion per namespace lives in ``motion.py``; twists (``servo_cv``, ``interpolate_cv``) are mapped
+to joint velocities every cycle by ``twist.py``; the namespaces of a backend with its own
+cartesian control get cartesian setpoints from ``native_cartesian.py``. Safety here:
 * servo and interpolate positions outside the joint limits are clipped with a rate-limited
   warning; a ``servo_jp`` / ``interpolate_jp`` step larger than ``safety.servo_step_max`` from the
   last setpoint (or goal) is refused; a stream silent for ``safety.servo_timeout_s`` holds;
@@ -253,6 +255,8 @@ class Controller:
             where = (f"joint{'s' if len(lacking) > 1 else ''} {', '.join(map(repr, lacking))}" if lacking
                      else f"the {self.profile.backend_type} backend")
             raise Refused("unsupported", f"{ns}: {cmd} is not supported: no {what} on {where}")
+        if cmd == "hold" and self._hold_anyway(ns):
+            return None
         self._check_can_move(ns, cmd)
         vec = self._vector(ns, cmd, m, data.get(field), field) if field else None
         now = self.clock()
@@ -372,6 +376,24 @@ class Controller:
             self._push_state()
         return None
 
+    def _hold_anyway(self, ns: str) -> bool:
+        """``hold`` where motion commands are refused (homing, a lifecycle transition under way,
+        not homed, PAUSED with something moving): a stop is never refused. What moves there is robot-wide (home, a
+        shutdown park), so it all stops; a native home is aborted. True: handled (reply ok)."""
+        if self.state is OperatingState.PAUSED:
+            if not self.in_motion():
+                return False  # nothing moves: refused as every motion command ("resume it first")
+        elif self.state is not OperatingState.ENABLED:
+            return False  # torque is off or going off: nothing to stop, refused as before
+        run = self._running
+        if not (self.homing or run is not None or not self.is_homed or self.state is OperatingState.PAUSED):
+            return False  # the ordinary hold
+        if run is not None and run.transition.kind is Lifecycle.HOME:
+            self._abort_running("home aborted by hold")
+        self._stop_all()
+        self._end_cartesian(ns)
+        return True
+
     def _check_can_move(self, ns: str, cmd: str) -> None:
         if self.state is not OperatingState.ENABLED:
             hint = {"DISABLED": "enable it first", "PAUSED": "resume it first", "FAULT": "enable to retry"}
@@ -470,6 +492,7 @@ class Controller:
                 self._stop_all()
                 self.homing = False
                 return self._start(self.actuator.begin(Lifecycle.PAUSE), self._paused, self._pause_failed)
+            self._stop_all()  # PAUSED: whatever moves (a shutdown park) stops too
         elif cmd is StateCommand.RESUME:
             return self._start(self.actuator.begin(Lifecycle.RESUME), self._resumed, self._resume_failed)
         elif cmd is StateCommand.HOME:
@@ -646,6 +669,8 @@ class Controller:
         self.homing = False
         for m in self.namespaces.values():
             m.invalidate()
+        for nc in self.native_cartesian.values():
+            nc.cancel()  # a native move ends too: the push that follows carries is_busy false
         if was_busy:
             self._busy_reported = False
 
@@ -653,6 +678,8 @@ class Controller:
         was_busy = self.is_busy
         for m in self.namespaces.values():
             m.stop()
+        for nc in self.native_cartesian.values():
+            nc.cancel()  # the backend's cartesian motion stops now, not when a transition ends
         self.homing = False
         if was_busy:
             self._push_state()
@@ -667,6 +694,8 @@ class Controller:
         rest = self.profile.shutdown.rest
         now = self.clock()
         self.homing = False
+        for nc in self.native_cartesian.values():
+            nc.cancel()  # the joints park from where the backend left them
         started = False
         for m in self.namespaces.values():
             if m.mode is Mode.FREE:

@@ -112,6 +112,11 @@ class NamespaceMotion:
         self.inp.max_jerk = [j.limits.jerk_max for j in joints]
         self._zeros = np.zeros(n)
         self._tmp = np.zeros(n)
+        # the limits stage lets a setpoint outside the limits (a joint enabled or freed there)
+        # come back at the motion's own rate, never snap to the limit: [min(lower, last), max(upper, last)]
+        self._filled = np.zeros(n)  # the position setpoint the last fill wrote
+        self._lo = np.zeros(n)
+        self._hi = np.zeros(n)
         self._integrated_at = 0.0  # clock of the last velocity integration (0: none yet)
         self._integrate_max_s = max(_INTEGRATE_MAX_GAP_S, _INTEGRATE_MAX_PERIODS * dt)
         self._step_max = self.vel_max * dt  # rad: the farthest a position setpoint moves in one cycle
@@ -155,6 +160,7 @@ class NamespaceMotion:
         self.mode = Mode.HOLD
         self.level = None
         self.setpoint_p[:] = measured_p
+        self._filled[:] = measured_p
         self.setpoint_v[:] = 0.0
         self.setpoint_f[:] = 0.0
         self.has_v_ff = False
@@ -369,11 +375,18 @@ class NamespaceMotion:
         if not 0.0 < dt <= self._integrate_max_s:
             dt = self.dt if self._integrated_at == 0.0 or dt <= 0.0 else self._integrate_max_s
         self._integrated_at = now
+        lo, hi = self._bounds(p)  # outside the limits: back toward them, never a jump onto them
         p += self.setpoint_v * dt
-        at_limit = (p <= self.pos_min) | (p >= self.pos_max)
-        np.clip(p, self.pos_min, self.pos_max, out=p)
+        at_limit = (p <= lo) | (p >= hi)
+        np.clip(p, lo, hi, out=p)
         self.setpoint_v[at_limit] = 0.0
         self.setpoint_stamp = now
+
+    def _bounds(self, last: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The position limits widened to include ``last`` (a setpoint outside them)."""
+        np.minimum(self.pos_min, last, out=self._lo)
+        np.maximum(self.pos_max, last, out=self._hi)
+        return self._lo, self._hi
 
     def _step_servo_p(self, now: float) -> None:
         """Move the position setpoint toward the servo target, at most ``velocity_max * dt``."""
@@ -420,6 +433,7 @@ class NamespaceMotion:
         mode = self.mode
         if mode is Mode.FREE:
             cmd.mode[idx] = CommandMode.FREE
+            self._filled[:] = self.setpoint_p
             return
         if mode in EFFORT_MODES:
             cmd.mode[idx] = CommandMode.EFFORT
@@ -429,8 +443,11 @@ class NamespaceMotion:
             cmd.mode[idx] = CommandMode.POSITION
             if mode is not Mode.HOLD:
                 # the limits stage; HOLD is exempt: a joint enabled (or freed) outside its limits
-                # is held where it is, never snapped to the limit; commands then bring it back
-                np.clip(self.setpoint_p, self.pos_min, self.pos_max, out=self.setpoint_p)
+                # is held where it is, never snapped to the limit; commands then bring it back at
+                # their own (velocity-bounded) rate: it may not go farther out, nor jump onto the limit
+                lo, hi = self._bounds(self._filled)
+                np.clip(self.setpoint_p, lo, hi, out=self.setpoint_p)
+        self._filled[:] = self.setpoint_p
         cmd.position[idx] = self.setpoint_p
         cmd.velocity[idx] = self.setpoint_v
         cmd.effort[idx] = self.setpoint_f

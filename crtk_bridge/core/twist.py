@@ -105,15 +105,21 @@ class TwistMotion:
     def _map(self) -> np.ndarray:
         m = self.motion
         p = m.setpoint_p
-        qd = self.kin.joint_velocity(p, self.twist, self.frame)
+        # the solve is linear in the twist: solve for it scaled to components <= 1 and scale the
+        # result back, so a huge (finite) twist cannot overflow into inf / NaN setpoints
+        scale = max(1.0, float(np.max(np.abs(self.twist))))
+        twist = self.twist / scale if scale > 1.0 else self.twist
+        qd = self.kin.joint_velocity(p, twist, self.frame)
         frozen = self._frozen
         np.logical_or((p <= m.pos_min) & (qd < 0.0), (p >= m.pos_max) & (qd > 0.0), out=frozen)
         if frozen.any():
-            qd = self.kin.joint_velocity(p, self.twist, self.frame, frozen)
+            qd = self.kin.joint_velocity(p, twist, self.frame, frozen)
             qd[frozen] = 0.0
-        worst = float(np.max(np.abs(qd) / m.vel_max))
-        if worst > 1.0:
+        worst = float(np.max(np.abs(qd) / m.vel_max))  # of the scaled twist's joint velocity
+        if worst * scale > 1.0:
             qd /= worst
+        elif scale > 1.0:
+            qd *= scale
         return qd
 
 

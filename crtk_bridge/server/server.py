@@ -27,6 +27,8 @@ log = logging.getLogger("crtk_bridge.server")
 
 #: a session's unsent bytes above which stream frames are dropped (replies and events never are)
 SEND_BUFFER_LIMIT = 256 * 1024
+#: connections waiting to be accepted; beyond it a client's non-blocking connect fails (EAGAIN)
+BACKLOG = 1024
 
 
 class Session:
@@ -124,7 +126,8 @@ class Server:
             pass
         old = os.umask(0o117)  # socket file mode 0660
         try:
-            self._server = await asyncio.start_unix_server(self._session, path=str(tmp), limit=MAX_LINE)
+            self._server = await asyncio.start_unix_server(self._session, path=str(tmp), limit=MAX_LINE,
+                                                           backlog=BACKLOG)
         finally:
             os.umask(old)
         os.chmod(tmp, 0o660)

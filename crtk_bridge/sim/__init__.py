@@ -22,6 +22,26 @@ class SimulatorError(CrtkBridgeError):
     """A simulator could not start or was asked something impossible (message names path/id)."""
 
 
+#: ``crtk-sim`` device name -> (module, class), imported only when chosen. A backend names its
+#: device in its ``SimWiring`` (core/actuator.py); ``--sim`` and the conformance suite use this.
+DEVICES: dict[str, tuple[str, str]] = {
+    "feetech": ("crtk_bridge.sim.feetech", "FeetechSimulator"),
+    "dynamixel": ("crtk_bridge.sim.dynamixel", "DynamixelSimulator"),
+}
+
+
+def simulator_class(device: str) -> type:
+    """The simulator class of ``crtk-sim`` device ``device``. Raises SimulatorError naming the
+    valid ones."""
+    import importlib
+
+    try:
+        module, name = DEVICES[device]
+    except KeyError:
+        raise SimulatorError(f"no simulator {device!r}; valid: {', '.join(DEVICES)}") from None
+    return getattr(importlib.import_module(module), name)
+
+
 def __getattr__(name: str):
     # Lazy re-export: importing the package must stay cheap and free of import cycles.
     if name == "FeetechSimulator":
@@ -35,4 +55,4 @@ def __getattr__(name: str):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["SimulatorError", "FeetechSimulator", "DynamixelSimulator"]
+__all__ = ["SimulatorError", "FeetechSimulator", "DynamixelSimulator", "DEVICES", "simulator_class"]

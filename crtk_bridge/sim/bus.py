@@ -7,9 +7,12 @@ pseudo-terminal, as LeRobot's ``MotorsBus`` is for the real ones:
   one background thread blocked in poll() on the pty master and a wake pipe; ``start()`` returns
   once clients may open :attr:`~BusSimulator.port`, ``stop()`` is idempotent, context manager;
 - state: the servos by id (an id change over the bus re-keys them), the fault flags every servo
-  carries (``silent``, ``corrupt``, ``frozen``) and the unplugged state of the whole bus;
+  carries (``silent``, ``corrupt``, ``frozen``), the unplugged state of the whole bus, and a
+  slow torque-on (``torque_delay_s``: a Torque_Enable = 1 written over the bus is acknowledged
+  at once but takes effect -- and reads back 1 -- only that many seconds later, as a slow device
+  would; how tests prove an enable never stalls the control loop);
 - the control-socket protocol (``dump``, ``read``, ``write``, ``fault``, ``clear_faults``,
-  ``unplug``; see :mod:`crtk_bridge.sim.control`);
+  ``unplug``, ``torque_delay``; see :mod:`crtk_bridge.sim.control`);
 - the wire: a half-received packet is dropped after ``FRAME_TIMEOUT_S`` of silence, and with
   ``emulate_baud`` each reply leaves no earlier than the request and the reply would have taken
   on a real wire (10 bits per byte, plus the replying servos' Return_Delay_Time, 2 us units),
@@ -95,6 +98,7 @@ class BusServo:
         self.registers = bytearray(256)
         self.silent = self.corrupt = self.frozen = False
         self._pending: tuple[int, bytes] | None = None  # REG_WRITE awaiting ACTION
+        self._torque_on_at: float | None = None  # a delayed torque-on takes effect then (sim clock)
         self._t = sim.clock()  # physics time of the registers' Present_* values
 
     # --- public, thread-safe ---
@@ -119,6 +123,32 @@ class BusServo:
             self._set(name, value)
             self._update(now)
             self._sim._rekey(self, old_id)
+
+    # --- slow torque-on (caller holds the simulator lock) ---
+    def _delay_torque(self, addr: int, data: bytes | bytearray) -> bytes | bytearray:
+        """A bus write's payload with a torque-on held back by ``torque_delay_s`` (it takes
+        effect in :meth:`_torque_due`); a torque-off cancels a pending one. Vendors call it first
+        in their bus-write path."""
+        t = self._sim.TORQUE_ADDRESS - addr
+        if not 0 <= t < len(data):
+            return data
+        if data[t] != 1:
+            self._torque_on_at = None
+            return data
+        delay = self._sim.torque_delay_s
+        if delay <= 0 or self.registers[self._sim.TORQUE_ADDRESS] == 1:
+            return data
+        if self._torque_on_at is None:
+            self._torque_on_at = self._sim.clock() + delay
+        data = bytearray(data)
+        data[t] = 0
+        return data
+
+    def _torque_due(self, now: float) -> None:
+        """Apply a delayed torque-on whose time has come. Vendors call it first in ``_update``."""
+        if self._torque_on_at is not None and now >= self._torque_on_at:
+            self._torque_on_at = None
+            self.registers[self._sim.TORQUE_ADDRESS] = 1
 
     # --- vendor hooks (caller holds the simulator lock) ---
     def _get(self, name: str) -> int:
@@ -148,9 +178,10 @@ class BusSimulator:
     vendor: ClassVar[str] = ""
     #: bus baud rate -> Baud_Rate register code (servos with another code are deaf and mute)
     BAUD_CODES: ClassVar[dict[int, int]] = {}
-    #: control table address of ID and of Return_Delay_Time (one byte each)
+    #: control table address of ID, Return_Delay_Time and Torque_Enable (one byte each)
     ID_ADDRESS: ClassVar[int]
     RETURN_DELAY_ADDRESS: ClassVar[int]
+    TORQUE_ADDRESS: ClassVar[int]
     #: highest id a servo may take over the bus
     MAX_ID: ClassVar[int] = 253
 
@@ -172,6 +203,8 @@ class BusSimulator:
         self.clock = time.monotonic
         self._servos: dict[int, BusServo] = {}
         self.unplugged = False
+        #: seconds a Torque_Enable = 1 written over the bus takes to take effect (0: at once)
+        self.torque_delay_s = 0.0
         self._pty = PtyPort(link)
         self._control = ControlServer(control, self.control) if control is not None else None
         self.control_path = Path(control) if control is not None else None
@@ -334,6 +367,13 @@ class BusSimulator:
         with self._lock:
             self.unplugged = bool(on)
 
+    def set_torque_delay(self, seconds: float) -> None:
+        """From now on a torque-on written over the bus takes ``seconds`` to take effect."""
+        if seconds < 0:
+            raise SimulatorError(f"torque delay {seconds} s must be >= 0")
+        with self._lock:
+            self.torque_delay_s = float(seconds)
+
     def _faults(self, servo: BusServo) -> list[str]:
         out = [k.value for k, on in ((FaultKind.SILENT, servo.silent), (FaultKind.CORRUPT,
                servo.corrupt), (FaultKind.FREEZE, servo.frozen)) if on]
@@ -389,10 +429,16 @@ class BusSimulator:
             if cmd == "unplug":
                 self.set_unplugged(bool(request.get("on", True)))
                 return {"ok": True}
+            if cmd == "torque_delay":
+                seconds = request.get("seconds")
+                if not isinstance(seconds, (int, float)) or isinstance(seconds, bool) or not seconds >= 0:
+                    return {"ok": False, "error": f"'seconds' must be a number >= 0, got {seconds!r}"}
+                self.set_torque_delay(float(seconds))
+                return {"ok": True}
         except SimulatorError as exc:
             return {"ok": False, "error": str(exc)}
         return {"ok": False, "error": f"unknown cmd {cmd!r}; valid: dump, read, write, fault, "
-                "clear_faults, unplug"}
+                "clear_faults, unplug, torque_delay"}
 
     def _control_servo(self, request: dict):
         sid = request.get("id")
@@ -412,7 +458,7 @@ class BusSimulator:
                 if f:
                     faults[str(sid)] = f
             return {"servos": servos, "faults": faults, "unplugged": self.unplugged,
-                    "baudrate": self.baudrate}
+                    "baudrate": self.baudrate, "torque_delay_s": self.torque_delay_s}
 
     # ------------------------------------------------------------------ the wire
     def _run(self) -> None:

@@ -1,7 +1,7 @@
 """``crtk-sim``: run a simulated device in the foreground until SIGTERM / SIGINT.
 
     crtk-sim feetech --profile profiles/so101.yaml --link /tmp/ttySIM [--control /tmp/sim.sock]
-                     [--emulate-baud] [--log-level info]
+                     [--emulate-baud] [--torque-delay S] [--log-level info]
     crtk-sim dynamixel --profile profiles/koch.yaml --link /tmp/ttySIM [...same options]
     crtk-sim feetech --profile profiles/bimanual_so101.yaml --bus left --link /tmp/ttyLEFT
 
@@ -20,6 +20,7 @@ import sys
 from .. import __version__
 from ..errors import CrtkBridgeError, ProfileError
 from ..profile import load_profile
+from . import simulator_class
 
 _SIGNALS = {signal.SIGTERM, signal.SIGINT}
 _HEALTH_CHECK_S = 0.5
@@ -38,6 +39,8 @@ def _parser() -> argparse.ArgumentParser:
         d.add_argument("--emulate-baud", action="store_true",
                        help="delay replies by the wire time at the profile's baud rate")
         d.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
+        d.add_argument("--torque-delay", type=float, default=0.0, metavar="S",
+                       help="a torque-on takes S seconds to take effect (a slow device; default 0)")
         d.add_argument("--log-level", default="warning",
                        choices=["debug", "info", "warning", "error"], help="default: warning")
     return p
@@ -58,10 +61,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         profile = profile.bus_profile(args.bus)  # one simulator per bus
 
-    if args.device == "dynamixel":
-        from .dynamixel import DynamixelSimulator as Simulator
-    else:
-        from .feetech import FeetechSimulator as Simulator
+    Simulator = simulator_class(args.device)
 
     # Block the signals before any thread exists, so every thread inherits the mask and only
     # sigtimedwait() below receives them: a clean, race-free shutdown path.
@@ -69,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         sim = Simulator.from_profile(
             profile, link=args.link, control=args.control, emulate_baud=args.emulate_baud)
+        sim.set_torque_delay(args.torque_delay)
         sim.start()
     except CrtkBridgeError as exc:
         print(f"crtk-sim: {exc}", file=sys.stderr)

@@ -201,6 +201,7 @@ class SimServo(BusServo):
     # --- bus side (caller holds the lock) ---
     def _bus_write(self, addr: int, data: bytes) -> int:
         """A WRITE payload. Returns the status error number (0 = written)."""
+        data = self._delay_torque(addr, data)
         end = addr + len(data)
         if end > 256 or not all(self._writable[addr:end]):
             return T.ERRNUM_ACCESS
@@ -222,6 +223,7 @@ class SimServo(BusServo):
         return pkt
 
     def _update(self, now: float) -> None:
+        self._torque_due(now)
         dt = max(0.0, now - self._t)
         self._t = now
         self._step(dt)
@@ -309,6 +311,7 @@ class DynamixelSimulator(BusSimulator):
     BAUD_CODES = T.BAUD_CODES
     ID_ADDRESS = _ID
     RETURN_DELAY_ADDRESS = _RETURN_DELAY
+    TORQUE_ADDRESS = _TORQUE
     MAX_ID = T.MAX_ID
 
     def __init__(

@@ -170,6 +170,7 @@ class SimServo(BusServo):
 
     def _bus_write(self, addr: int, data: bytes | bytearray) -> None:
         """A WRITE/SYNC_WRITE/ACTION payload: read-only bytes keep their value."""
+        data = self._delay_torque(addr, data)
         end = min(addr + len(data), 256)
         r = self.registers
         if any(_READ_ONLY[addr:end]):
@@ -193,6 +194,7 @@ class SimServo(BusServo):
 
     def _update(self, now: float) -> None:
         """Advance the physics to ``now`` and refresh the Present_* registers."""
+        self._torque_due(now)
         dt = now - self._t
         if dt < 0:
             dt = 0.0
@@ -278,6 +280,7 @@ class FeetechSimulator(BusSimulator):
     BAUD_CODES = T.BAUD_CODES
     ID_ADDRESS = _ID
     RETURN_DELAY_ADDRESS = _RETURN_DELAY
+    TORQUE_ADDRESS = _TORQUE
     MAX_ID = 253
 
     def __init__(

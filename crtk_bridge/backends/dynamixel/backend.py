@@ -74,7 +74,9 @@ from ...core.actuator import (
     Fault,
     JointCommand,
     JointFeedback,
+    Lifecycle,
     SimWiring,
+    Steps,
     combine_capabilities,
 )
 from ...errors import BackendError
@@ -275,31 +277,34 @@ class DynamixelBackend(SerialServoBackend):
         if self._has_current[i]:
             self._cur_limit[i] = self._read_register(i, "Current_Limit")
 
-    def _enable_hook(self, feedback: JointFeedback) -> None:
-        """Reboot servos in hardware error, hold every servo where it is, torque on. Blocks.
+    def transition_timeout_s(self, kind: Lifecycle) -> float:
+        """ENABLE may reboot every servo (each up to REBOOT_TIMEOUT_S to answer again)."""
+        limit = super().transition_timeout_s(kind)
+        return limit + self.n * REBOOT_TIMEOUT_S if kind is Lifecycle.ENABLE else limit
 
-        Each servo: Hardware_Error_Status read; if nonzero, REBOOT, wait for it to answer a ping
-        (up to REBOOT_TIMEOUT_S), write its configuration again. Then Goal_Position = a fresh
-        Present_Position (position modes) on every servo BEFORE any torque goes on, so enabling
-        never moves the arm. Raises BackendError naming the joint and register; if a torque-on
-        fails midway, the servos already on are switched off again (best effort).
-        """
-        self._require_open("enable")
+    def _before_enable(self) -> Steps:
+        """Servo by servo, one per cycle: Hardware_Error_Status read; if nonzero, REBOOT, wait
+        for it to answer a ping (one ping per cycle, up to REBOOT_TIMEOUT_S), write its
+        configuration again (a reboot restores RAM defaults). Raises BackendError naming the
+        joint and the error."""
         for i in range(self.n):
-            bits = self._read_register(i, "Hardware_Error_Status")
+            bits = yield from self._retrying(self._read_register, i, "Hardware_Error_Status")
             if bits:
-                self._reboot(i, bits)
-        for i in range(self.n):
-            if self._op_mode[i] != self._pos_mode[i]:
-                self._write_register(i, "Torque_Enable", 0)
-                self._write_register(i, "Operating_Mode", int(self._pos_mode[i]))
-                self._op_mode[i] = self._pos_mode[i]
-            present = self._read_register(i, "Present_Position")
-            self._write_register(i, "Goal_Position", present, check_error=True)
+                yield from self._reboot(i, bits)
+            yield
         self._hw_bits = [0] * self.n
-        self._torque_on_all()
 
-    def _reboot(self, i: int, bits: int) -> None:
+    def _hold_here(self, i: int) -> None:
+        """Position mode of joint ``i`` if it is in another, then Goal_Position = a fresh
+        Present_Position, acknowledged and error-checked."""
+        if self._op_mode[i] != self._pos_mode[i]:
+            self._write_register(i, "Torque_Enable", 0)
+            self._write_register(i, "Operating_Mode", int(self._pos_mode[i]))
+            self._op_mode[i] = self._pos_mode[i]
+        present = self._read_register(i, "Present_Position")
+        self._write_register(i, "Goal_Position", present, check_error=True)
+
+    def _reboot(self, i: int, bits: int) -> Steps:
         """REBOOT joint ``i`` (clears a latched hardware error), wait until it answers, configure."""
         what = T.describe_hardware_error(bits)
         result, _ = self._txrx(self._ph.reboot, self._ids[i])
@@ -309,14 +314,14 @@ class DynamixelBackend(SerialServoBackend):
                                f"{self._result_text(result)}")
         deadline = time.monotonic() + REBOOT_TIMEOUT_S
         while True:
+            yield  # the servo restarts; the loop's reads go on meanwhile
             _, result, _ = self._ph.ping(self._port, self._ids[i])
+            self._port.is_using = False
             if result == COMM_SUCCESS:
                 break
-            self._port.is_using = False
             if time.monotonic() > deadline:
                 raise BackendError(f"{self.robot}: {self._label[i]} did not answer within "
                                    f"{REBOOT_TIMEOUT_S} s of a REBOOT (to clear {what})")
-            time.sleep(0.01)
         bits = self._read_register(i, "Hardware_Error_Status")
         if bits:
             raise BackendError(f"{self.robot}: {self._label[i]} still reports "
@@ -364,9 +369,9 @@ class DynamixelBackend(SerialServoBackend):
         if self._effort:
             np.multiply(raw_cur, self._nm_per_unit, out=feedback.effort)
         feedback.stamp = stamp
-        if alert:
-            return self._alert_fault()
-        return None
+        fault = self._alert_fault() if alert else None
+        self._error_status(fault)
+        return fault
 
     def _plain_read(self) -> tuple[dict, int]:
         """Sync Read (0x82): one status packet per servo, in request order."""
@@ -471,16 +476,16 @@ class DynamixelBackend(SerialServoBackend):
                 want = self._pos_mode[i]
                 g = goal[i]
                 value = command.position[i]
-            elif m == _VELOCITY:
+            elif m == _VELOCITY:  # velocity, effort: clamped BEFORE round(), which a huge value overflows
                 want = OperatingMode.VELOCITY
                 value = command.velocity[i]
                 lim = self._vel_limit[i]
-                g = min(max(round(value * self._vel_per_rad_s[i]), -lim), lim) if value == value else 0
+                g = round(min(max(value * self._vel_per_rad_s[i], -lim), lim)) if value == value else 0
             elif m == _EFFORT and self._effort_j[i]:
                 want = OperatingMode.CURRENT
                 value = command.effort[i]
                 lim = self._cur_limit[i]
-                g = min(max(round(value * self._unit_per_nm[i]), -lim), lim) if value == value else 0
+                g = round(min(max(value * self._unit_per_nm[i], -lim), lim)) if value == value else 0
             else:
                 continue
             if value != value:  # NaN: inf is clamped above

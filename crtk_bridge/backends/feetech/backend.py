@@ -204,22 +204,15 @@ class FeetechBackend(SerialServoBackend):
             for name, value in registers:
                 self._write_register(i, name, value)
 
-    def _enable_hook(self, feedback: JointFeedback) -> None:
-        """Hold every servo where it is, then torque on. Blocks. Raises BackendError.
-
-        Goal_Position is set to a fresh read of Present_Position (not ``feedback``, which may be
-        a cycle old) on every servo BEFORE any torque goes on, each write acknowledged; so
-        enabling never moves the arm. A servo reporting an error bit refuses the enable. If a
-        torque-on fails midway, the servos already on are switched off again (best effort).
-        """
-        self._require_open("enable")
-        for i in range(self.n):
-            present = self._read_register(i, "Present_Position")
-            self._write_register(i, "Goal_Position", present, check_error=True)
-            self._last_goal[i] = present
-            raw = tables.encode_sign_magnitude(present, tables.SIGN_BITS["Goal_Position"])
-            self._sync_write.changeParam(self._ids[i], [raw & 0xFF, raw >> 8])
-        self._torque_on_all()
+    def _hold_here(self, i: int) -> None:
+        """Goal_Position of servo ``i`` = a fresh read of its Present_Position (not the cycle's
+        sample, which may be a cycle old), acknowledged; a servo reporting an error bit refuses
+        the enable. Also the sync write's goal, so the first cycle re-sends the same."""
+        present = self._read_register(i, "Present_Position")
+        self._write_register(i, "Goal_Position", present, check_error=True)
+        self._last_goal[i] = present
+        raw = tables.encode_sign_magnitude(present, tables.SIGN_BITS["Goal_Position"])
+        self._sync_write.changeParam(self._ids[i], [raw & 0xFF, raw >> 8])
 
     def _close_hook(self) -> None:
         super()._close_hook()
@@ -276,9 +269,9 @@ class FeetechBackend(SerialServoBackend):
         if self._measures_effort:
             np.multiply(raw_cur, self._nm_per_unit, out=feedback.effort)
         feedback.stamp = stamp
-        if status_any & _FAULT_MASK:
-            return self._status_fault(data)
-        return None
+        fault = self._status_fault(data) if status_any & _FAULT_MASK else None
+        self._error_status(fault)
+        return fault
 
     def _bus_fault(self, result: int) -> Fault:
         return self._sync_read_fault(result, self._sync_read.data_dict, _BLOCK_LEN)

@@ -1,0 +1,162 @@
+"""One backend conformance suite over the actuator contract (issue 8 item 8), as python-can tests
+every interface with one suite: every registered backend that declares a simulator
+(``Actuator.simulator``) runs every test here against that simulator, in process, through the
+real vendor SDK path.
+
+A backend is a ROW: the profile it runs on and how a test reaches into its simulator (which device
+a joint is, how to silence it, give it an error, read its goal and torque). A registered backend
+with a simulator and no row fails ``test_every_simulated_backend_has_a_row``: adding CANopen or UR
+means adding one row here (and its simulator's hooks), nothing else.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crtk_bridge.backends import BACKENDS, backend_class
+from crtk_bridge.core.actuator import Actuator
+from crtk_bridge.core.controller import Controller
+from crtk_bridge.profile import Profile, load_profile
+from crtk_bridge.sim import simulator_class
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@dataclass(frozen=True)
+class Row:
+    """How the suite drives one backend's simulator. ``device(profile, i)`` is the simulator's id
+    of joint ``i``; the rest take (simulator, device id)."""
+
+    backend: str
+    profile: Path
+    device: Callable[[Profile, int], int]
+    silence: Callable[[object, int], None]
+    inject_error: Callable[[object, int], None]  # a device error: the device reports it, stops
+    clear_errors: Callable[[object], None]  # what an operator does; a latched error may remain
+    torque: Callable[[object, int], bool]
+    goal: Callable[[object, int], int]  # raw goal register (unit of the device)
+    present: Callable[[object, int], int]  # raw position register
+    error_latched: bool  # the error stays until enable resets the device (Dynamixel reboot)
+
+
+def _servo_id(profile: Profile, i: int) -> int:
+    return int(profile.joints[i].backend["id"])
+
+
+def _servo_row(backend: str, profile: str, latched: bool) -> Row:
+    """A serial servo bus simulator (crtk_bridge.sim.bus.BusSimulator); 0x20 = overload on both
+    vendors' error registers."""
+    return Row(
+        backend=backend, profile=ROOT / "profiles" / profile, device=_servo_id,
+        silence=lambda sim, sid: sim.set_fault(sid, "silent"),
+        inject_error=lambda sim, sid: sim.set_fault(sid, "error_bits", 0x20),
+        clear_errors=lambda sim: sim.clear_faults(),
+        torque=lambda sim, sid: sim.servo(sid).read("Torque_Enable") == 1,
+        goal=lambda sim, sid: sim.servo(sid).read("Goal_Position"),
+        present=lambda sim, sid: sim.servo(sid).read("Present_Position"),
+        error_latched=latched,
+    )
+
+
+ROWS = {
+    "feetech": _servo_row("feetech", "so101.yaml", latched=False),
+    "dynamixel": _servo_row("dynamixel", "koch.yaml", latched=True),
+}
+
+
+def simulated_backends() -> list[str]:
+    """Registered backends that declare a simulator (their SDK importable)."""
+    out = []
+    for name in BACKENDS:
+        try:
+            cls = backend_class(name)
+        except Exception:  # SDK missing: that backend is not tested here
+            continue
+        if cls.simulator is not None:
+            out.append(name)
+    return out
+
+
+class Rig:
+    """A backend on its simulator (opened and configured), plus a controller to drive cycles."""
+
+    def __init__(self, row: Row):
+        self.row = row
+        cls = backend_class(row.backend)
+        profile = load_profile(row.profile)
+        self.sim = simulator_class(cls.simulator.device).from_profile(profile)
+        self.sim.start()
+        self.profile = cls.sim_profile(profile, self.sim.port)
+        self.backend: Actuator = cls(self.profile)
+        self.backend.open()
+        self.backend.configure()
+        self.fb = self.backend.new_feedback()
+        self.ids = [row.device(self.profile, i) for i in range(self.backend.n)]
+        self.controller: Controller | None = None
+
+    def make_controller(self) -> Controller:
+        self.controller = Controller(self.profile, self.backend, time.time)
+        self.cycle()
+        return self.controller
+
+    def cycle(self, n: int = 1, period: float | None = None) -> None:
+        """``n`` loop cycles as core/loop.py runs them: read, (requests), step, write."""
+        c = self.controller
+        period = c.dt if period is None else period
+        for _ in range(n):
+            t0 = time.monotonic()
+            c.on_read(self.fb, self.backend.read(self.fb))
+            if c.step():
+                c.on_write(self.backend.write(c.command))
+            c.outbox.clear() if len(c.outbox) > 10_000 else None
+            rest = period - (time.monotonic() - t0)
+            if rest > 0:
+                time.sleep(rest)
+
+    def request(self, rid: int, cmd: str, **kw) -> None:
+        self.controller.handle({"id": rid, "cmd": cmd, **kw})
+
+    def enable(self, rid: int, timeout: float = 10.0) -> dict:
+        """``enable`` through the controller, cycling until its one reply; returns it."""
+        self.request(rid, "enable")
+        deadline = time.monotonic() + timeout
+        while not self.replies(rid):
+            assert time.monotonic() < deadline, "no reply to enable"
+            self.cycle()
+        return self.replies(rid)[0]
+
+    def enabled_controller(self):
+        """A controller whose robot is ENABLED (request id 1)."""
+        c = self.make_controller()
+        assert self.enable(1)["ok"] and c.state.value == "ENABLED"
+        return c
+
+    def replies(self, rid: int) -> list[dict]:
+        return [m for m in self.controller.outbox if m.get("id") == rid]
+
+    def events(self, kind: str) -> list[dict]:
+        return [m["data"] for m in self.controller.outbox if m.get("event") == kind]
+
+    def measured(self) -> np.ndarray:
+        assert self.backend.read(self.fb) is None
+        return self.fb.position.copy()
+
+    def close(self) -> None:
+        self.backend.close()
+        self.sim.stop()
+
+
+@pytest.fixture(params=simulated_backends())
+def rig(request):
+    row = ROWS.get(request.param)
+    if row is None:
+        pytest.fail(f"backend {request.param!r} has a simulator but no row in tests/conformance/conftest.py")
+    r = Rig(row)
+    yield r
+    r.close()

@@ -1,0 +1,187 @@
+"""The actuator contract, checked on every backend with a simulator (see conftest.py)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from crtk_bridge.core.actuator import CommandMode, DeviceStatus, Fault
+from crtk_bridge.core.state import OperatingState
+
+from ..conftest import wait_until
+from .conftest import ROWS, simulated_backends
+
+
+def test_every_simulated_backend_has_a_row():
+    assert simulated_backends(), "no registered backend declares a simulator"
+    assert set(simulated_backends()) <= set(ROWS)
+
+
+def test_lifecycle_is_idempotent(rig):
+    b, sim = rig.backend, rig.sim
+    b.open()  # again: nothing happens
+    b.configure()
+    b.enable(rig.fb)
+    b.enable(rig.fb)  # enabling an enabled backend holds where it is again
+    assert b.is_enabled and all(rig.row.torque(sim, i) for i in rig.ids)
+    b.disable()
+    b.disable()
+    assert not b.is_enabled and not any(rig.row.torque(sim, i) for i in rig.ids)
+    b.close()
+    b.close()
+    assert isinstance(b.read(rig.fb), Fault)  # a closed bus faults; it does not raise
+
+
+def test_read_and_write_never_raise(rig):
+    b, sim = rig.backend, rig.sim
+    cmd = b.new_command()
+    assert b.read(rig.fb) is None
+    b.enable(rig.fb)
+    for mode in CommandMode:
+        cmd.mode[:] = int(mode)
+        cmd.position[:] = rig.fb.position
+        for bad in (np.inf, -np.inf, 1e300):
+            cmd.position[0] = bad
+            cmd.velocity[:] = bad
+            cmd.effort[:] = bad
+            result = b.write(cmd)
+            assert result is None or isinstance(result, Fault)
+    cmd.mode[:] = 200  # no such mode
+    assert b.write(cmd) is None or isinstance(b.write(cmd), Fault)
+    sim.set_unplugged(True)
+    assert isinstance(b.read(rig.fb), Fault)
+    cmd.mode[:] = int(CommandMode.POSITION)
+    cmd.position[:] = rig.fb.position
+    result = b.write(cmd)
+    assert result is None or isinstance(result, Fault)  # a write has no reply to miss
+    sim.set_unplugged(False)
+    b.close()
+    assert isinstance(b.read(rig.fb), Fault) and (b.write(cmd) is None or isinstance(b.write(cmd), Fault))
+
+
+def test_nan_never_reaches_the_bus(rig):
+    b, sim, row = rig.backend, rig.sim, rig.row
+    b.enable(rig.fb)
+    goals = [row.goal(sim, i) for i in rig.ids]
+    cmd = b.new_command()
+    cmd.mode[:] = int(CommandMode.POSITION)
+    cmd.position[:] = rig.measured()
+    cmd.position[0] = np.nan
+    cmd.position[1] += 0.05
+    fault = b.write(cmd)
+    assert fault is not None and fault.code == "invalid_command" and not fault.transient
+    assert fault.joint == b.joint_names[0]
+    rig.measured()  # answered: the simulator has taken everything sent before
+    assert row.goal(sim, rig.ids[0]) == goals[0]  # the NaN joint kept its goal
+    assert row.goal(sim, rig.ids[1]) != goals[1]  # the others were sent
+    # an all-NaN command in any mode changes no goal and no mode (a backend may re-send the
+    # goals it holds, never a value made of the NaN)
+    held = [row.goal(sim, i) for i in rig.ids]
+    for mode in (CommandMode.POSITION, CommandMode.VELOCITY, CommandMode.EFFORT):
+        cmd.mode[:] = int(mode)
+        cmd.position[:] = cmd.velocity[:] = cmd.effort[:] = np.nan
+        fault = b.write(cmd)
+        rig.measured()
+        assert fault is None or fault.code == "invalid_command"  # None: the mode is not offered
+        assert [row.goal(sim, i) for i in rig.ids] == held, mode
+        assert all(row.torque(sim, i) for i in rig.ids)
+    assert np.all(np.isfinite(rig.measured()))
+
+
+def test_nothing_goes_on_the_bus_while_disabled(rig):
+    b, sim, row = rig.backend, rig.sim, rig.row
+    if b.cyclic_write:
+        pytest.skip("this backend writes every cycle in every state by design (cyclic_write)")
+    goals = [row.goal(sim, i) for i in rig.ids]
+    cmd = b.new_command()
+    cmd.position[:] = rig.measured() + 0.2
+    rx = sim.rx_bytes
+    for mode in (CommandMode.POSITION, CommandMode.VELOCITY, CommandMode.EFFORT, CommandMode.FREE):
+        cmd.mode[:] = int(mode)
+        assert b.write(cmd) is None
+    assert sim.rx_bytes == rx  # not one byte
+    assert [row.goal(sim, i) for i in rig.ids] == goals and not any(row.torque(sim, i) for i in rig.ids)
+    # and the loop, DISABLED with motion requests arriving: only its reads go out
+    c = rig.make_controller()
+    c.handle({"id": 1, "cmd": "servo_jp", "ns": rig.profile.namespaces[0].name,
+              "data": {"position": list(cmd.position[:len(rig.profile.namespaces[0].joints)])}})
+    assert c.outbox[-1]["ok"] is False
+    rig.cycle(20)
+    assert [row.goal(sim, i) for i in rig.ids] == goals and not any(row.torque(sim, i) for i in rig.ids)
+
+
+def test_enable_holds_the_measured_position(rig):
+    b, sim, row = rig.backend, rig.sim, rig.row
+    for k, sid in enumerate(rig.ids):  # somewhere other than where the goals were left
+        sim.servo(sid).write("Present_Position", row.present(sim, sid) + 150 + 40 * k)
+    before = rig.measured()
+    c = rig.make_controller()
+    rig.enable(1)
+    assert rig.replies(1)[0]["ok"] and c.state is OperatingState.ENABLED
+    assert all(row.torque(sim, i) for i in rig.ids)
+    for i, sid in enumerate(rig.ids):
+        assert abs(row.goal(sim, sid) - row.present(sim, sid)) <= 1, b.joint_names[i]
+    rig.cycle(int(0.3 / c.dt))  # held for a while by the loop's own writes
+    np.testing.assert_allclose(rig.measured(), before, atol=0.01)
+    np.testing.assert_allclose(c.command.position, before, atol=0.01)
+
+
+def test_a_silent_device_faults_naming_the_joint(rig):
+    b, sim, row = rig.backend, rig.sim, rig.row
+    c = rig.enabled_controller()
+    k = 2
+    row.silence(sim, rig.ids[k])
+    fault = b.read(rig.fb)
+    assert fault is not None and fault.joint == b.joint_names[k] and b.joint_names[k] in fault.message
+    wait_until(lambda: (rig.cycle(), c.state is OperatingState.FAULT)[1], 2, interval=0, what="FAULT")
+    err = rig.events("error")[-1]
+    assert err["joint"] == b.joint_names[k] and f"{b.joint_names[k]!r}" in err["message"]
+
+
+def test_device_status_maps_onto_the_crtk_state(rig):
+    b, sim, row = rig.backend, rig.sim, rig.row
+    c = rig.enabled_controller()
+    k = 3
+    row.inject_error(sim, rig.ids[k])
+    wait_until(lambda: (rig.cycle(), c.state is OperatingState.FAULT)[1], 2, interval=0, what="FAULT")
+    assert b.device_status is DeviceStatus.FAULT
+    err = rig.events("error")[-1]
+    assert err["code"] == "servo_error" and err["joint"] == b.joint_names[k]
+    assert not any(row.torque(sim, i) for i in rig.ids)  # the backend's fault reaction: torque off
+    row.clear_errors(sim)
+    if row.error_latched:  # only the device's reset (enable) clears it
+        rig.cycle(5)
+        assert b.device_status is DeviceStatus.FAULT
+        rig.enable(2)
+        assert rig.replies(2)[0]["ok"], rig.replies(2)
+    wait_until(lambda: (rig.cycle(), any(e["code"] == "fault_cleared" for e in rig.events("status")))[1],
+               2, interval=0, what="fault_cleared")
+    assert b.device_status is DeviceStatus.OK
+    if not row.error_latched:
+        assert c.state is OperatingState.FAULT  # cleared, but never enabled by itself
+        rig.enable(2)
+    assert c.state is OperatingState.ENABLED
+
+
+def test_a_slow_enable_keeps_the_loop_cycling(rig):
+    b, sim, row = rig.backend, rig.sim, rig.row
+    c = rig.make_controller()
+    sim.set_torque_delay(0.6)
+    rig.request(1, "enable")
+    stamps, t0 = [], time.monotonic()
+    while not rig.replies(1) and time.monotonic() - t0 < 5:
+        rig.cycle()
+        stamps.append(rig.fb.stamp)
+        if not rig.replies(1):
+            assert c.state is OperatingState.DISABLED and c.is_busy
+    took = time.monotonic() - t0
+    (reply,) = rig.replies(1)
+    assert reply["ok"] and c.state is OperatingState.ENABLED and not c.is_busy and took >= 0.55
+    # every cycle read: the stamps advanced all along (a blocked cycle would freeze them)
+    assert len(stamps) > 0.5 * 0.6 / c.dt
+    gaps = np.diff(stamps)
+    assert np.all(gaps > 0) and gaps.max() < 0.1, gaps.max()
+    rig.cycle(20)
+    assert len(rig.replies(1)) == 1
