@@ -23,7 +23,7 @@ from crtk_bridge.core.state import DEVICE_STATUS, OperatingState
 from crtk_bridge.errors import BackendError
 from crtk_bridge.profile import load_profile
 
-from .test_controller import Clock
+from .test_controller import Clock, make_rig
 
 PROFILE = load_profile("profiles/so101.yaml")
 
@@ -243,3 +243,49 @@ def test_effective_period_is_the_hardwares_when_it_paces():
     paced = Paced(PROFILE)
     assert effective_period_s(PROFILE, paced) == pytest.approx(0.002)
     assert Controller(PROFILE, paced, Clock(), effective_period_s(PROFILE, paced)).dt == pytest.approx(0.002)
+
+
+class HookedActuator(SlowActuator):
+    """Logs which lifecycle hooks reached the backend; homes natively over a few cycles."""
+
+    capabilities = Capabilities(position=True, needs_homing=True)
+
+    def _resume_steps(self):
+        self.bus.append("resume")
+        yield from ()
+
+    def _fault_reset_steps(self):
+        self.bus.append("fault-reset")
+        yield
+
+    def _home_steps(self):
+        for _ in range(4):
+            self.bus.append("home-step")
+            yield
+
+
+def test_pause_resume_fault_reset_and_native_home_reach_the_backend():
+    c, act, clock, cycle, req = make_rig(HookedActuator(PROFILE, enable_cycles=1))
+    assert not c.is_homed and act.native_homing
+    c.handle({"id": 1, "cmd": "enable"})
+    cycle(3)
+    assert c.state is OperatingState.ENABLED and "fault-reset" not in act.bus
+    c.handle({"id": 2, "cmd": "home"})
+    assert c.is_busy and not c.is_homed and act.bus.count("home-step") == 1
+    cycle(6)
+    assert c.is_homed and not c.is_busy and [m for m in c.outbox if m.get("id") == 2][0]["ok"]
+    assert act.bus.count("home-step") == 4
+    c.handle({"id": 3, "cmd": "pause"})
+    cycle(4)
+    assert c.state is OperatingState.PAUSED and act.bus.count("pause-step") == 3
+    c.handle({"id": 4, "cmd": "resume"})
+    assert c.state is OperatingState.ENABLED and "resume" in act.bus
+    act.report_status(DeviceStatus.FAULT, Fault("drive_fault", "so101: drive fault", transient=False))
+    cycle()
+    assert c.state is OperatingState.FAULT
+    act.bus.clear()
+    c.handle({"id": 5, "cmd": "enable"})
+    cycle(4)
+    # leaving FAULT: the backend's fault reset first, then its enable
+    assert act.bus.index("fault-reset") < act.bus.index("enable-step-0")
+    assert c.state is OperatingState.ENABLED

@@ -1,0 +1,60 @@
+"""Hardware pacing: a backend that paces the cycle sets the loop's one period and is waited on
+instead of the loop's own clock (core/actuator.py, core/loop.py)."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import pytest
+
+from crtk_bridge.core.actuator import Capabilities
+from crtk_bridge.core.loop import ControlLoop
+from crtk_bridge.core.snapshot import Layout, SnapshotBuffer
+
+from .conftest import wait_until
+from .test_transitions import PROFILE, SlowActuator
+
+
+class PacedActuator(SlowActuator):
+    """Hardware at 100 Hz (the profile asks 200 Hz): each cycle waits for its next 'packet'."""
+
+    capabilities = Capabilities(position=True, native_rate_hz=100.0)
+    paces_cycle = True
+
+    def __init__(self, profile):
+        super().__init__(profile)
+        self.waits = 0
+        self.next_packet = time.monotonic()
+
+    def wait_cycle(self, timeout_s):
+        self.waits += 1
+        self.next_packet += 0.01
+        delay = self.next_packet - time.monotonic()
+        if delay > 0:
+            time.sleep(min(delay, timeout_s))
+        return True
+
+
+def test_a_pacing_backend_sets_the_period_and_paces_every_cycle():
+    act = PacedActuator(PROFILE)
+    front, back = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    snap = SnapshotBuffer(Layout(len(PROFILE.joints), len(PROFILE.namespaces)), create=True)
+    try:
+        loop = ControlLoop(PROFILE, act, back, snap, realtime=False)
+        assert PROFILE.loop.rate_hz == 200
+        assert loop.period == pytest.approx(0.01) and loop.controller.dt == pytest.approx(0.01)
+        t = threading.Thread(target=loop.run, daemon=True)
+        t.start()
+        cycles = snap.views["cycles"]
+        wait_until(lambda: cycles[0] >= 30, 10, what="30 paced cycles")
+        loop.running = False
+        t.join(5)
+        assert not t.is_alive()
+        # one wait for the hardware per cycle: the loop's own clock never ran it
+        assert abs(act.waits - int(cycles[0])) <= 1, (act.waits, int(cycles[0]))
+    finally:
+        front.close()
+        back.close()
+        snap.close(unlink=True)
