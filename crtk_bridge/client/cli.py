@@ -3,7 +3,8 @@
     crtk-ctl state                      crtk-ctl enable            crtk-ctl home
     crtk-ctl get measured_js            crtk-ctl echo measured_js --rate 50 --count 10
     crtk-ctl move_jp 0 0.5 -0.5 0 0 --wait        crtk-ctl --robot so101 --ns so101/gripper list
-    crtk-ctl servo_jv 0.1 0 0 0 0       crtk-ctl interpolate_jp 0 0.5 -0.5 0 0
+    crtk-ctl servo_jv 0.1 0 0 0 0 --duration 1      crtk-ctl interpolate_jp 0 0.5 -0.5 0 0
+    crtk-ctl servo_jr 0.05 0 0 0 0 --duration 0.5   (moves by 0.05 rad in total)
     crtk-ctl hold                       crtk-ctl free              crtk-ctl events --count 5
     crtk-ctl get measured_cp            crtk-ctl get measured_cv --frame body
     crtk-ctl move_cp 0.3 0 0.2 0 0.7071 0 0.7071 --wait      crtk-ctl move_cr 0 0 0.02 --wait
@@ -14,6 +15,10 @@ Cartesian poses are X Y Z (m) then the unit quaternion QX QY QZ QW, the tip fram
 frame; relative commands (_cr) take DX DY DZ [QX QY QZ QW] in the base frame (no quaternion: no
 rotation). Twists are VX VY VZ (m/s) WX WY WZ (rad/s), wrenches FX FY FZ (N) TX TY TZ (N·m), in
 the spatial frame (base axes) or, with --frame body, the tip frame's axes.
+
+When crtk-ctl leaves, a move or position goal it sent runs to its end; a velocity or effort
+command has no end and stops, so it needs --duration (docs/protocol.md, Client loss). With
+--duration a relative command (_jr, _cr) is split over the samples: it moves by the offset given.
 
 Exit status: 0 on success; 1 when the daemon refuses a command (one line on stderr with the
 error code and the daemon's message), a wait times out or a state is not reached; 2 when no
@@ -32,7 +37,7 @@ from typing import Sequence
 
 import numpy as np
 
-from crtk_bridge import __version__
+from crtk_bridge import __version__, vocabulary
 
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.client.device import (
@@ -40,7 +45,7 @@ from crtk_bridge.client.device import (
 from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
 
 PROG = "crtk-ctl"
-GET_TOPICS = (*JS_TOPICS, *CARTESIAN_TOPICS, "operating_state", "period_statistics")
+GET_TOPICS = (*JS_TOPICS, *CARTESIAN_TOPICS, *vocabulary.ROBOT_TOPICS)
 #: Default wait (s) per state command when --timeout is not given.
 WAIT_DEFAULTS = {"enable": 5.0, "disable": 5.0, "pause": 5.0, "resume": 5.0,
                  "home": 30.0, "unhome": 5.0}
@@ -86,11 +91,11 @@ _DURATION_HELP = ("send the command at --rate for S seconds (default: send once)
                   "it (it has no end: the daemon stops it when crtk-ctl disconnects)")
 
 
-class Failure(Exception):
+class Failure(CrtkBridgeError):
     """A command ran but did not achieve its aim (exit 1, one line on stderr)."""
 
 
-class UsageError(Exception):
+class UsageError(CrtkBridgeError):
     """The arguments cannot do what was asked (exit 2, one line on stderr)."""
 
 

@@ -25,10 +25,9 @@ from typing import Any, Callable, NamedTuple
 import msgspec
 
 from crtk_bridge.errors import CommandError, CrtkBridgeError
+from crtk_bridge.vocabulary import PROTOCOL_VERSION  # noqa: F401 - re-exported by crtk_bridge.client
 
 log = logging.getLogger(__name__)
-
-PROTOCOL_VERSION = 2
 
 _encode = msgspec.json.encode
 _decode = msgspec.json.decode

@@ -30,21 +30,22 @@ from crtk_bridge.client.connection import (
     PROTOCOL_VERSION, Connection, DaemonConnectionError, Event, encode_vector)
 from crtk_bridge.client.paths import (
     SYSTEM_SOCKET_DIR, default_socket_dir, default_socket_path, find_sockets)
+from crtk_bridge import vocabulary
 from crtk_bridge.errors import CommandError, CrtkBridgeError
 
 #: Topics and queries that are robot-wide (sent without ``ns``).
-ROBOT_TOPICS = frozenset({"operating_state", "period_statistics"})
+ROBOT_TOPICS = frozenset(vocabulary.ROBOT_TOPICS)
 #: Per-namespace joint-state topics and queries.
-JS_TOPICS = ("measured_js", "setpoint_js", "goal_js")
-STATES = ("DISABLED", "ENABLED", "PAUSED", "FAULT")
+JS_TOPICS = vocabulary.JOINT_TOPICS
+STATES = tuple(vocabulary.OperatingState)
 
 
 #: Cartesian pose queries (answered as 4x4 matrices, or position + quaternion with ``*_pq``).
-CP_TOPICS = ("measured_cp", "setpoint_cp", "goal_cp")
+CP_TOPICS = tuple(t for t in vocabulary.CartesianTopic if t.endswith("_cp"))
 #: Cartesian twist queries (6-vectors ``[linear; angular]``), in the spatial or body frame.
-CV_TOPICS = ("measured_cv", "setpoint_cv", "goal_cv")
+CV_TOPICS = tuple(t for t in vocabulary.CartesianTopic if t.endswith("_cv"))
 #: Cartesian wrench queries (6-vectors ``[force; torque]``), in the spatial or body frame.
-CF_TOPICS = ("measured_cf", "setpoint_cf")
+CF_TOPICS = tuple(t for t in vocabulary.CartesianTopic if t.endswith("_cf"))
 CARTESIAN_TOPICS = CP_TOPICS + CV_TOPICS + CF_TOPICS
 #: Reference frames of twists and wrenches (docs/cartesian.md): ``spatial`` = the base frame's
 #: axes (namespace ``<ns>``), ``body`` = the tip frame's axes (namespace ``<ns>/body``).

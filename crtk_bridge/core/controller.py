@@ -39,7 +39,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..errors import BackendError, fmt_number
+from ..errors import BackendError, CommandError, fmt_number
 from ..profile import Profile
 from .actuator import (
     Actuator,
@@ -101,12 +101,8 @@ class _Running:
     stepped: int = -1  # cycle of the last step (one step per cycle)
 
 
-class Refused(Exception):
+class Refused(CommandError):
     """A request refused; becomes an error reply with ``code``."""
-
-    def __init__(self, code: str, message: str):
-        super().__init__(message)
-        self.code = code
 
 
 class Controller:

@@ -10,26 +10,10 @@ The table is the spec's, cell for cell. ``home`` and ``unhome`` follow cisst's
 
 from __future__ import annotations
 
-import enum
 from typing import NamedTuple
 
+from ..vocabulary import OperatingState, StateCommand  # noqa: F401 - defined in the vocabulary, used here
 from .actuator import DeviceStatus
-
-
-class OperatingState(str, enum.Enum):
-    DISABLED = "DISABLED"
-    ENABLED = "ENABLED"
-    PAUSED = "PAUSED"
-    FAULT = "FAULT"
-
-
-class StateCommand(str, enum.Enum):
-    ENABLE = "enable"
-    DISABLE = "disable"
-    PAUSE = "pause"
-    RESUME = "resume"
-    HOME = "home"
-    UNHOME = "unhome"
 
 
 class Transition(NamedTuple):

@@ -17,13 +17,14 @@ import msgspec
 import numpy as np
 
 from ..core.snapshot import RING, SnapshotBuffer
+from ..errors import CrtkBridgeError
 from ..profile import Profile
 
 _encode = msgspec.msgpack.Encoder().encode
 _decode = msgspec.msgpack.Decoder().decode
 
 
-class ControlLost(Exception):
+class ControlLost(CrtkBridgeError):
     """The control process is gone."""
 
 

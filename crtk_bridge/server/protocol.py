@@ -21,16 +21,14 @@ import msgspec
 import numpy as np
 
 from ..errors import CommandError
+from ..vocabulary import (  # noqa: F401 - the protocol's words, re-exported for the server
+    JOINT_TOPICS as JOINT_QUERIES, PROTOCOL_VERSION, ROBOT_TOPICS as ROBOT_QUERIES, STOP_COMMANDS, ErrorCode,
+    SessionCommand, StateCommand, Topic,
+)
 
-PROTOCOL_VERSION = 2
-
-STATE_COMMANDS = ("enable", "disable", "pause", "resume", "home", "unhome")
-JOINT_QUERIES = ("measured_js", "setpoint_js", "goal_js")
-ROBOT_QUERIES = ("operating_state", "period_statistics")
-TOPICS = JOINT_QUERIES + ROBOT_QUERIES
-SESSION_COMMANDS = ("list", "subscribe", "unsubscribe", "acquire", "release")
-#: accepted from any session, whoever holds control: a stop is never refused (as on the dVRK)
-STOP_COMMANDS = ("disable", "pause", "hold")
+STATE_COMMANDS = tuple(StateCommand)
+TOPICS = tuple(Topic)
+SESSION_COMMANDS = tuple(SessionCommand)
 
 MAX_LINE = 1 << 16  #: bytes per request line (a motion command is a few hundred)
 MAX_DEPTH = 32  #: nesting of arrays and objects in a request line (a real request uses 3)
