@@ -78,7 +78,9 @@ class FakeBus(Actuator):
 def composite(**left_kw) -> tuple[CompositeActuator, FakeBus, FakeBus]:
     left = FakeBus(PROFILE.bus_profile("left"), base=0.0, stamp=100.0, **left_kw)
     right = FakeBus(PROFILE.bus_profile("right"), base=10.0, stamp=99.5)
-    return CompositeActuator(PROFILE, {"left": left, "right": right}), left, right
+    c = CompositeActuator(PROFILE, {"left": left, "right": right})
+    c.open()
+    return c, left, right
 
 
 def run_steps(t, limit=50) -> int:
@@ -119,6 +121,14 @@ def test_write_scatters_each_bus_its_own_joints():
     assert c.write(cmd) is None
     assert np.array_equal(left.written, np.arange(6.0)) and np.array_equal(right.written, 6 + np.arange(6.0))
     c.close()
+
+
+def test_closed_buses_fault_and_start_no_thread():
+    c, left, right = composite()
+    c.close()
+    threads = threading.active_count()
+    assert c.read(c.new_feedback()).message == "bimanual_so101: read on closed buses"
+    assert c.write(c.new_command()) is not None and threading.active_count() == threads
 
 
 def test_a_bus_fault_names_the_bus_and_keeps_the_joint():
@@ -239,6 +249,7 @@ def test_native_cartesian_rows_go_to_and_come_from_their_bus():
     left = FakeBus(PROFILE.bus_profile("left"), 0.0, 1.0)
     right = Native(PROFILE.bus_profile("right"), 0.0, 1.0)
     c = CompositeActuator(PROFILE, {"left": left, "right": right})
+    c.open()
     assert c.cartesian_namespaces() == ["right"]
     fb = c.new_feedback()
     assert c.read(fb) is None

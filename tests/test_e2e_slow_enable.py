@@ -105,7 +105,8 @@ def test_a_3s_enable_keeps_the_loop_cycling_and_replies_once_at_the_end(sim_daem
         assert all(dump["servos"][i]["torque_enable"] == 1 for i in bot.servo_ids)
 
         # another session was answered at once throughout (a stalled loop would keep it 3 s)
-        assert max(latencies) < 0.25, sorted(latencies)[-5:]
+        # (a loaded host stalls a process now and then; a blocked loop would keep it 3 s)
+        assert max(latencies) < 0.5 and np.median(latencies) < 0.05, sorted(latencies)[-5:]
         print(f"measured_js round trip during the enable: median {np.median(latencies) * 1e3:.2f} ms, "
               f"max {max(latencies) * 1e3:.2f} ms over {len(latencies)} requests")
 
@@ -114,7 +115,7 @@ def test_a_3s_enable_keeps_the_loop_cycling_and_replies_once_at_the_end(sim_daem
         assert all(s > 0 for s in during) and during == sorted(during)
         distinct = np.unique(during)
         assert len(distinct) > 0.5 * (DELAY_S - 0.5) / period, (len(distinct), period)  # at most every other cycle missed
-        assert np.max(np.diff(distinct)) < 0.25, np.max(np.diff(distinct))  # no stall
+        assert np.max(np.diff(distinct)) < 0.5, np.max(np.diff(distinct))  # no stall (3 s if blocked)
         assert np.median(np.diff(distinct)) < 2.5 * period
 
         # the state events the enabling session saw: busy while DISABLED, then ENABLED and idle

@@ -20,12 +20,13 @@ RAD_PER_TICK = 2 * math.pi / 4096  # both robots' servos
 DT = 1.0 / 200  # both profiles' loop period
 
 
-def goal_samples(sim: str, sid: int, seconds: float) -> list[tuple[float, float, int]]:
-    """(sent, answered, Goal_Position) of one servo, as fast as the control socket answers:
-    the register was read somewhere between ``sent`` and ``answered``."""
+def goal_samples(sim: str, sid: int, seconds: float, until=None) -> list[tuple[float, float, int]]:
+    """(sent, answered, Goal_Position) of one servo, as fast as the control socket answers, for
+    ``seconds`` (or, with ``until``, until ``until(value)`` holds, within 5 s): the register was
+    read somewhere between ``sent`` and ``answered``."""
     out = []
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
+    end = time.monotonic() + (5.0 if until else seconds)
+    while time.monotonic() < end and not (until and out and until(out[-1][2])):
         t0 = time.monotonic()
         reply = control_request(sim, {"cmd": "read", "id": sid, "register": "Goal_Position"})
         out.append((t0, time.monotonic(), reply["value"]))
@@ -82,9 +83,10 @@ def test_goal_register_never_moves_faster_than_velocity_max(sim_daemon):
             target = base + bot.vec(wrist_roll=sign * step)
             t_cmd = time.monotonic()  # the goal cannot change before the command is sent
             arm.servo_jp(target)
-            samples = goal_samples(sim, sid, 0.2)
+            expected = g_from + sign * step / RAD_PER_TICK
+            samples = goal_samples(sim, sid, 0.0, until=lambda g: abs(g - expected) <= 2)
             g_to = samples[-1][2]
-            assert abs(g_to - g_from) * RAD_PER_TICK > 0.9 * step  # it got there
+            assert abs(g_to - expected) <= 2, (g_from, g_to, expected)  # it got there
             rate, intermediate = travel_rate([(t_cmd, t_cmd, g_from)] + samples, g_from, g_to)
             # step / velocity_max = 79 ms of travel (16 cycles): never one jump
             assert rate < 2 * v_max["wrist_roll"] and intermediate >= 4, (rate, intermediate)

@@ -296,8 +296,15 @@ class CompositeActuator(Actuator):
                          for b, (name, p) in enumerate(zip(self.bus_names, self.parts)) if b > 0]
         return self._workers
 
+    def _closed(self, what: str) -> Fault:
+        return Fault("bus_timeout", f"{self.robot}: {what} on closed buses", transient=False)
+
     def _read(self, feedback: JointFeedback) -> Fault | None:
-        workers = self._workers if self._workers is not None else self._start_workers()
+        workers = self._workers
+        if workers is None:
+            if not self._open:
+                return self._closed("read")
+            workers = self._start_workers()
         for w in workers:
             w.start(_READ)
         res = self._read_res
@@ -358,7 +365,11 @@ class CompositeActuator(Actuator):
             np.take(command.effort, idx, out=c.effort)
         if self._cart_rows:
             self._scatter_cartesian(command.cartesian)
-        workers = self._workers if self._workers is not None else self._start_workers()
+        workers = self._workers
+        if workers is None:
+            if not self._open:
+                return self._closed("write")
+            workers = self._start_workers()
         parts, cyclic, res = self.parts, self._cyclic, self._write_res
         for b, w in enumerate(workers, 1):  # a bus that is not written outside ENABLED / PAUSED is skipped
             if cyclic[b] or parts[b].is_enabled:

@@ -6,7 +6,8 @@ real vendor SDK path.
 A backend is a ROW: the profile it runs on and how a test reaches into its simulator (which device
 a joint is, how to silence it, give it an error, read its goal and torque). A registered backend
 with a simulator and no row fails ``test_every_simulated_backend_has_a_row``: adding CANopen or UR
-means adding one row here (and its simulator's hooks), nothing else.
+means adding one row here (and its simulator's hooks), nothing else. The composite actuator of a
+robot on several buses (backends/composite.py) runs the same suite on two simulated buses.
 """
 
 from __future__ import annotations
@@ -16,10 +17,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
-from crtk_bridge.backends import BACKENDS, backend_class
+from crtk_bridge.backends import BACKENDS, backend_class, create_backend
 from crtk_bridge.core.actuator import Actuator
 from crtk_bridge.core.controller import Controller
 from crtk_bridge.profile import Profile, load_profile
@@ -68,6 +70,67 @@ ROWS = {
     "feetech": _servo_row("feetech", "so101.yaml", latched=False),
     "dynamixel": _servo_row("dynamixel", "koch.yaml", latched=True),
 }
+#: several buses in one robot (backends/composite.py): two SO-101 arms on two simulated Feetech
+#: buses. Its device ids are BusSims keys (bus index * 1000 + servo id).
+COMPOSITE = "composite (bimanual_so101)"
+ROWS[COMPOSITE] = Row(**{**ROWS["feetech"].__dict__, "backend": COMPOSITE,
+                         "profile": ROOT / "profiles" / "bimanual_so101.yaml",
+                         "device": lambda profile, i: _bus_servo_key(profile, i)})
+
+
+def _bus_servo_key(profile: Profile, i: int) -> int:
+    name = profile.joints[i].name
+    ns = next(ns for ns in profile.namespaces if name in ns.joints)
+    return profile.bus_names.index(profile.namespace_bus(ns)) * 1000 + _servo_id(profile, i)
+
+
+class BusSims:
+    """The simulators of a several-bus profile, one per bus, behind the one-simulator calls the
+    rows use; a device is ``bus index * 1000 + servo id``."""
+
+    def __init__(self, profile: Profile):
+        self.names = profile.bus_names
+        self.sims = []
+        for bus in self.names:
+            sub = profile.bus_profile(bus)
+            self.sims.append(simulator_class(backend_class(sub.backend_type).simulator.device).from_profile(sub))
+
+    def start(self) -> None:
+        for s in self.sims:
+            s.start()
+
+    def stop(self) -> None:
+        for s in self.sims:
+            s.stop()
+
+    def wired(self, profile: Profile) -> Profile:
+        backends = {}
+        for bus, sim in zip(self.names, self.sims):
+            cls = backend_class(profile.backends[bus]["type"])
+            backends[bus] = cls.sim_profile(profile.bus_profile(bus), sim.port).backend
+        return msgspec.structs.replace(profile, backends=backends)
+
+    def servo(self, key: int):
+        return self.sims[key // 1000].servo(key % 1000)
+
+    def set_fault(self, key: int, *args) -> None:
+        self.sims[key // 1000].set_fault(key % 1000, *args)
+
+    def clear_faults(self) -> None:
+        for s in self.sims:
+            s.clear_faults()
+
+    def set_torque_delay(self, seconds: float) -> None:
+        for s in self.sims:
+            s.set_torque_delay(seconds)
+
+    def set_unplugged(self, unplugged: bool) -> None:
+        for s in self.sims:
+            s.set_unplugged(unplugged)
+
+    @property
+    def rx_bytes(self) -> int:
+        return sum(s.rx_bytes for s in self.sims)
 
 
 def simulated_backends() -> list[str]:
@@ -88,12 +151,18 @@ class Rig:
 
     def __init__(self, row: Row):
         self.row = row
-        cls = backend_class(row.backend)
         profile = load_profile(row.profile)
-        self.sim = simulator_class(cls.simulator.device).from_profile(profile)
-        self.sim.start()
-        self.profile = cls.sim_profile(profile, self.sim.port)
-        self.backend: Actuator = cls(self.profile)
+        if profile.backends is not None:  # several buses: one simulator each, the composite
+            self.sim = BusSims(profile)
+            self.sim.start()
+            self.profile = self.sim.wired(profile)
+            self.backend: Actuator = create_backend(self.profile)
+        else:
+            cls = backend_class(row.backend)
+            self.sim = simulator_class(cls.simulator.device).from_profile(profile)
+            self.sim.start()
+            self.profile = cls.sim_profile(profile, self.sim.port)
+            self.backend = cls(self.profile)
         self.backend.open()
         self.backend.configure()
         self.fb = self.backend.new_feedback()
@@ -152,7 +221,7 @@ class Rig:
         self.sim.stop()
 
 
-@pytest.fixture(params=simulated_backends())
+@pytest.fixture(params=simulated_backends() + [COMPOSITE])
 def rig(request):
     row = ROWS.get(request.param)
     if row is None:

@@ -168,7 +168,7 @@ def test_device_status_maps_onto_the_crtk_state(rig):
 def test_a_slow_enable_keeps_the_loop_cycling(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
     c = rig.make_controller()
-    sim.set_torque_delay(0.6)
+    sim.set_torque_delay(1.0)
     rig.request(1, "enable")
     stamps, t0 = [], time.monotonic()
     while not rig.replies(1) and time.monotonic() - t0 < 5:
@@ -178,10 +178,11 @@ def test_a_slow_enable_keeps_the_loop_cycling(rig):
             assert c.state is OperatingState.DISABLED and c.is_busy
     took = time.monotonic() - t0
     (reply,) = rig.replies(1)
-    assert reply["ok"] and c.state is OperatingState.ENABLED and not c.is_busy and took >= 0.55
-    # every cycle read: the stamps advanced all along (a blocked cycle would freeze them)
-    assert len(stamps) > 0.5 * 0.6 / c.dt
+    assert reply["ok"] and c.state is OperatingState.ENABLED and not c.is_busy and took >= 0.95
+    # the cycles kept reading: the stamps advanced all along. An enable blocking the cycle would
+    # freeze them for the whole 1 s torque delay; a loaded host may miss a read or stall a little
+    assert len(stamps) > 0.5 * 1.0 / c.dt
     gaps = np.diff(stamps)
-    assert np.all(gaps > 0) and gaps.max() < 0.1, gaps.max()
+    assert np.all(gaps >= 0) and np.mean(gaps > 0) > 0.8 and gaps.max() < 0.4, gaps.max()
     rig.cycle(20)
     assert len(rig.replies(1)) == 1
