@@ -283,3 +283,58 @@ def test_hold_aborts_a_native_home_with_one_reply_each_and_the_busy_edge():
     assert act.bus.count("home-step") == steps  # the backend's homing steps stopped
     assert not c.is_busy and not c.is_homed
     assert [m["data"]["is_busy"] for m in c.outbox if m.get("event") == "operating_state"][-1] is False
+
+
+# ---------------------------------------------------------------- the front's pair to the loop is full
+def test_a_stop_waits_for_room_on_a_full_pair_instead_of_failing():
+    """When the command pair to the control process is full (the loop behind, a few hundred
+    sessions with a stop each in flight), a request failed at once with 'the control process is
+    not running': a disable refused; and a `_shutdown` notice was dropped (no park, no torque
+    off: the control process killed at the time limit). Both wait for room and get through."""
+    import asyncio
+    import socket
+
+    import msgspec
+
+    from crtk_bridge.core.snapshot import Layout, SnapshotBuffer
+    from crtk_bridge.server.link import ControlLink
+
+    front, back = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    snap = SnapshotBuffer(Layout(len(PROFILE.joints), len(PROFILE.namespaces)), create=True)
+    try:
+        async def scenario():
+            link = ControlLink(PROFILE, front, snap, lambda msg: None)
+            link.attach(asyncio.get_running_loop(), lambda: None)
+            filler = msgspec.msgpack.encode({"id": None, "cmd": "_client_lost"})
+            while True:  # nobody reads `back`: fill the pair
+                try:
+                    front.send(filler)
+                except BlockingIOError:
+                    break
+            link.send_nowait("_shutdown")  # SIGTERM now: the notice must not be dropped either
+            stop = asyncio.get_running_loop().create_task(link.request("disable", None, {}, timeout_s=5.0))
+            await asyncio.sleep(0.05)
+            back.setblocking(False)
+            got = None
+            notices = set()
+            for _ in range(500):  # the loop catches up: drain, answer the disable
+                try:
+                    msg = msgspec.msgpack.decode(back.recv(1 << 16))
+                except BlockingIOError:
+                    if got is not None and "_shutdown" in notices:
+                        break
+                    await asyncio.sleep(0.01)
+                    continue
+                notices.add(msg.get("cmd"))
+                if msg.get("cmd") == "disable":
+                    got = msg
+                    back.send(msgspec.msgpack.encode({"id": msg["id"], "ok": True, "data": None}))
+            return got, await stop, notices
+
+        got, reply, notices = asyncio.run(scenario())
+        assert got is not None and reply["ok"]
+        assert "_shutdown" in notices
+    finally:
+        front.close()
+        back.close()
+        snap.close(unlink=True)

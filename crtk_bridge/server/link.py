@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import socket
+from collections import deque
 from typing import Any, Callable
 
 import msgspec
@@ -37,6 +38,7 @@ class ControlLink:
         self.on_event = on_event
         self._ids = itertools.count(1)
         self._pending: dict[int, asyncio.Future] = {}
+        self._outq: deque[bytes] = deque()  # messages waiting for room on the pair, in order
         self.lost = False
         self._buf = np.empty_like(snapshot.data)
         self._slices = snapshot.layout.slices
@@ -124,8 +126,10 @@ class ControlLink:
         if self.lost:
             return
         self.lost = True
+        self._outq.clear()
         try:
             asyncio.get_running_loop().remove_reader(self.chan.fileno())
+            asyncio.get_running_loop().remove_writer(self.chan.fileno())
         except (RuntimeError, ValueError):
             pass
         for fut, _ in self._pending.values():
@@ -149,10 +153,10 @@ class ControlLink:
         fut = asyncio.get_running_loop().create_future()
         self._pending[rid] = (fut, deliver)
         try:
-            self.chan.send(payload)
-        except OSError as exc:
+            self._post(payload)
+        except ControlLost:
             self._pending.pop(rid, None)
-            raise ControlLost(str(exc)) from exc
+            raise
         try:
             return await asyncio.wait_for(fut, timeout_s)
         finally:
@@ -161,9 +165,38 @@ class ControlLink:
     def send_nowait(self, cmd: str) -> None:
         if not self.lost:
             try:
-                self.chan.send(_encode({"id": None, "cmd": cmd}))
-            except OSError:
+                self._post(_encode({"id": None, "cmd": cmd}))
+            except ControlLost:
                 pass
+
+    def _post(self, data: bytes) -> None:
+        """Send ``data`` to the control process now or, when the pair is full (the loop is
+        behind), as soon as it has room, in order: a request or notice is never failed or dropped
+        for want of room (a stop refused as 'not running'; a lost ``_shutdown`` meant no park and
+        no torque off). Raises ControlLost when the pair is gone."""
+        if not self._outq:
+            try:
+                self.chan.send(data)
+                return
+            except BlockingIOError:
+                pass
+            except OSError as exc:
+                raise ControlLost(str(exc)) from exc
+        self._outq.append(data)
+        if len(self._outq) == 1:
+            asyncio.get_running_loop().add_writer(self.chan.fileno(), self._writable)
+
+    def _writable(self) -> None:
+        while self._outq:
+            try:
+                self.chan.send(self._outq[0])
+            except BlockingIOError:
+                return
+            except OSError:  # the pair is gone: _readable sees the EOF and says so
+                self._outq.clear()
+                break
+            self._outq.popleft()
+        asyncio.get_running_loop().remove_writer(self.chan.fileno())
 
     # ---------------------------------------------------------------- snapshot views
     def read(self) -> np.ndarray:
