@@ -11,6 +11,7 @@ from crtk_bridge.core.state import OperatingState
 
 from .conftest import only_on, wait_until
 from .test_controller import PROFILE, FakeActuator, make_rig
+from .test_shutdown_park import loop_rig  # noqa: F401 (a fixture)
 
 
 @pytest.fixture
@@ -241,3 +242,44 @@ def test_a_huge_effort_is_limited_by_the_servo_not_a_fault(sim_daemon):
         assert arm.disable(5.0)
     finally:
         robot.close()
+
+
+# ---------------------------------------------------------------- the wall clock steps back (NTP)
+def test_a_wall_clock_step_back_does_not_disable_the_servo_watchdog(loop_rig, monkeypatch):
+    """The control loop timed motion with the wall clock: when NTP stepped it back (a lab PC
+    that boots before its time is synced), a servo_jv stream whose client hung was never timed
+    out (the arm ran on to its limit), an interpolate_jp ran the other way at velocity_max, and a
+    transition never hit its time limit. Motion is timed on a clock that never steps."""
+    import time
+
+    real, step = time.time, [0.0]
+    monkeypatch.setattr(time, "time", lambda: real() + step[0])  # the wall clock, as NTP may set it
+    r = loop_rig()
+    assert r.request("enable")["ok"]
+    assert r.request("servo_jv", "so101", velocity=[0.2, 0, 0, 0, 0])["ok"]
+    step[0] = -3600.0
+    wait_until(lambda: r.events("servo_timeout"), 3.0, what="the servo watchdog after the clock stepped back")
+    held = r.act.pos.copy()
+    cycles = r.loop._v["cycles"]
+    n = int(cycles[0])
+    wait_until(lambda: cycles[0] > n + 20, 2.0, what="more cycles")
+    np.testing.assert_allclose(r.act.pos, held)
+
+
+def test_hold_aborts_a_native_home_with_one_reply_each_and_the_busy_edge():
+    from .test_transitions import HookedActuator
+
+    c, act, clock, cycle, req = make_rig(HookedActuator(PROFILE, enable_cycles=1))
+    c.handle({"id": 1, "cmd": "enable"})
+    cycle(3)
+    c.handle({"id": 2, "cmd": "home"})
+    assert c.is_busy
+    c.outbox.clear()
+    assert req("hold", "so101")["ok"]  # a stop during a native home: accepted
+    home_reply = [m for m in c.outbox if m.get("id") == 2]
+    assert len(home_reply) == 1 and home_reply[0]["error"]["code"] == "aborted"
+    steps = act.bus.count("home-step")
+    cycle(5)
+    assert act.bus.count("home-step") == steps  # the backend's homing steps stopped
+    assert not c.is_busy and not c.is_homed
+    assert [m["data"]["is_busy"] for m in c.outbox if m.get("event") == "operating_state"][-1] is False

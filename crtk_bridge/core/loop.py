@@ -65,6 +65,16 @@ def request_realtime(priority: int, cpu: int | None) -> list[str]:
     return problems
 
 
+def steady_epoch_clock() -> Callable[[], float]:
+    """Seconds since the Unix epoch that never step: the monotonic clock, anchored to the wall
+    clock once. The controller times motion with it (servo watchdog, interpolation, transition
+    time limits): the wall clock may step back when NTP sets it, which stopped the watchdog and
+    ran an interpolation the wrong way. Its stamps stay within the wall clock's slew of epoch time."""
+    offset = time.time() - time.monotonic()
+    mono = time.monotonic
+    return lambda: offset + mono()
+
+
 class ControlLoop:
     """Owns the backend, the controller and the loop. Runs in the control process."""
 
@@ -76,7 +86,7 @@ class ControlLoop:
         self.snap = snapshot
         self.realtime = realtime
         self.period = effective_period_s(profile, actuator)  # computed once; everyone uses it
-        self.controller = Controller(profile, actuator, time.time, self.period)
+        self.controller = Controller(profile, actuator, steady_epoch_clock(), self.period)
         self.feedback = actuator.new_feedback()
         self._bus_errors_max = profile.safety.bus_errors_max
         self.pending: deque[bytes] = deque()  # messages the pair could not take yet
@@ -357,7 +367,8 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
         "capabilities": as_dict(caps),
         "period_s": loop.period,  # the ONE effective period: the front's rates and statistics
         # the longest a state command may take before the loop itself replies (its time limit)
-        "transition_timeout_s": max(actuator.transition_timeout_s(k) for k in Lifecycle) * 2,
+        "transition_timeout_s": 2 * max(actuator.transition_timeout_s(k) for k in Lifecycle
+                                        if k is not Lifecycle.HOME or actuator.native_homing),
         "namespace_commands": c.namespace_commands(),  # motion commands per namespace
         "namespace_capabilities": {ns: as_dict(cap) for ns, cap in c.ns_caps.items()},
         "native_cartesian": list(c.native_cartesian),  # namespaces whose backend does cartesian control
