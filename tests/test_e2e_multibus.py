@@ -68,7 +68,9 @@ def bimanual(short_tmp):
 
 def test_both_arms_enable_together_move_independently_share_one_state(bimanual):
     sims, robot = bimanual
-    assert [ns["name"] for ns in robot.list()["namespaces"]] == ["left", "left/gripper", "right", "right/gripper"]
+    listed = robot.list()["namespaces"]
+    assert [(ns["name"], ns["bus"]) for ns in listed] == [
+        ("left", "left"), ("left/gripper", "left"), ("right", "right"), ("right/gripper", "right")]
     left, right = robot.device("left"), robot.device("right")
     assert sims.torque("left") == [0] * 6 and sims.torque("right") == [0] * 6  # starts DISABLED
     assert left.enable(5.0)  # ONE enable: the whole robot, both buses

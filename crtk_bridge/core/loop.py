@@ -367,7 +367,8 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
         "capabilities": as_dict(caps),
         "period_s": loop.period,  # the ONE effective period: the front's rates and statistics
         # the longest a state command may take before the loop itself replies (its time limit)
-        "transition_timeout_s": max(actuator.transition_timeout_s(k) for k in Lifecycle) * 2,
+        "transition_timeout_s": 2 * max(actuator.transition_timeout_s(k) for k in Lifecycle
+                                        if k is not Lifecycle.HOME or actuator.native_homing),
         "namespace_commands": c.namespace_commands(),  # motion commands per namespace
         "namespace_capabilities": {ns: as_dict(cap) for ns, cap in c.ns_caps.items()},
         "native_cartesian": list(c.native_cartesian),  # namespaces whose backend does cartesian control

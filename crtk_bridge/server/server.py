@@ -354,6 +354,8 @@ class Server:
             if cs:
                 entry["cartesian"] = {"base_frame": cs.cfg.base_frame, "tip_frame": cs.cfg.tip_frame,
                                       "frames": ["spatial", "body"]}
+            if self.profile.backends is not None:  # several buses: the one this namespace lives on
+                entry["bus"] = self.profile.namespace_bus(ns)
             namespaces.append(entry)
         return {"robot": self.robot, "protocol_version": PROTOCOL_VERSION, "daemon_version": __version__,
                 "backend": self.profile.backend_type, "rate_hz": 1.0 / self.link.period_s, "namespaces": namespaces}
