@@ -289,3 +289,49 @@ def test_pause_resume_fault_reset_and_native_home_reach_the_backend():
     # leaving FAULT: the backend's fault reset first, then its enable
     assert act.bus.index("fault-reset") < act.bus.index("enable-step-0")
     assert c.state is OperatingState.ENABLED
+
+
+class _MissesReadsAfterTorqueOn(SlowActuator):
+    """Misses ``misses`` replies right after torque on (a loaded host), then answers."""
+
+    def __init__(self, profile, misses):
+        super().__init__(profile, enable_cycles=2)
+        self.misses = misses
+
+    def _read(self, fb):
+        if self.torque and self.misses > 0:
+            self.misses -= 1
+            return Fault("bus_timeout", "so101: no reply from joint 'gripper' (id 6)")
+        return super()._read(fb)
+
+
+@pytest.mark.parametrize("misses, enabled", [(1, True), (2, True), (3, False)])
+def test_enable_tolerates_a_missed_read_after_torque_on(misses, enabled):
+    """One late reply right after torque on must not fault the robot: the pose it holds comes
+    from the next good read; a bus that keeps failing still faults, torque off."""
+    act = _MissesReadsAfterTorqueOn(PROFILE, misses)
+    clock = Clock()
+    c = Controller(PROFILE, act, clock)
+    fb = act.new_feedback()
+
+    def cycle():
+        clock.t += c.dt
+        c.on_read(fb, act.read(fb))
+        if c.step():
+            c.on_write(act.write(c.command))
+
+    cycle()
+    c.handle({"id": 1, "cmd": "enable", "ns": None, "data": {}})
+    for _ in range(10):
+        if any(m.get("id") == 1 for m in c.outbox):
+            break
+        cycle()
+    (reply,) = [m for m in c.outbox if m.get("id") == 1]
+    assert reply["ok"] is enabled
+    if enabled:
+        assert c.state is OperatingState.ENABLED and act.torque
+        cycle()
+        np.testing.assert_allclose(c.command.position, act.pos)  # holds where it is
+    else:
+        assert c.state is OperatingState.FAULT and not act.torque
+        assert "no fresh position after torque on" in reply["error"]["message"]

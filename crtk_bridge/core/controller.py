@@ -83,6 +83,7 @@ _STATUS_TEXT = {
 }
 _WARN_INTERVAL_S = 1.0  # at most one clipping warning per namespace per second
 TRACKING_CYCLES = 3  # consecutive cycles beyond the bound before FAULT (one glitch is not a fault)
+ENABLE_FRESH_READ_ATTEMPTS = 3  # reads tried for the pose an enable holds (after torque on)
 
 
 _DEFERRED = object()  # _dispatch: the reply comes when the transition ends
@@ -582,7 +583,12 @@ class Controller:
         # hold exactly where the joints are NOW: the cycle's sample may be stale (a failed read,
         # or a joint that sagged while torque was off), and the first write must not drive the
         # arm back to it
-        fault = self.actuator.read(self._fresh)
+        # a loaded host may miss one reply: a few bounded attempts (each at most one packet
+        # timeout, on this rare path only) rather than a FAULT for one late byte
+        for _ in range(ENABLE_FRESH_READ_ATTEMPTS):
+            fault = self.actuator.read(self._fresh)
+            if fault is None:
+                break
         if fault is not None:
             raise self._enable_failed(BackendError(f"no fresh position after torque on: {fault.message}"))
         self.on_read(self._fresh, None)
