@@ -770,7 +770,7 @@ class Controller:
             self._torque_unconfirmed = True
             return Refused("fault", str(exc))
 
-        self._start(self.actuator.begin(Lifecycle.DISABLE), done, failed, reply=False)
+        self._start(self.actuator.begin_fault_reaction(), done, failed, reply=False)
         first[0] = False
         return said[0] if said else ""
 
