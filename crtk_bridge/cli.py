@@ -2,6 +2,7 @@
 
     crtk-bridge --profile FILE [--sim] [--socket PATH] [--log-level L] [--no-realtime]
     crtk-bridge check --profile FILE
+    crtk-bridge find-port [--replug]
 """
 
 from __future__ import annotations
@@ -18,12 +19,16 @@ def _run_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="crtk-bridge",
         usage="%(prog)s --profile FILE [--sim] [--socket PATH] [options]\n"
-              "       %(prog)s check --profile FILE",
+              "       %(prog)s check --profile FILE\n"
+              "       %(prog)s find-port [--replug]",
         description="Serve the CRTK robot API for the robot a profile describes.",
         epilog="commands:\n"
                "  check --profile FILE  validate a profile without opening the bus: every key, the\n"
                "                        backend section, and the kinematics where it names a URDF\n"
-               "                        (frames and joints); exit 0 if valid",
+               "                        (frames and joints); exit 0 if valid\n"
+               "  find-port [--replug]  list serial ports with their /dev/serial/by-id names and USB\n"
+               "                        vendor / product / serial number; --replug names the one\n"
+               "                        you unplug and plug back",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--profile", required=True, help="robot profile (YAML), e.g. profiles/so101.yaml")
     p.add_argument("--sim", action="store_true", help="run on the built-in simulator instead of hardware")
@@ -55,8 +60,33 @@ def _check(argv: list[str]) -> int:
     return 0
 
 
+def _find_port(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(
+        prog="crtk-bridge find-port",
+        description="List serial ports: device, /dev/serial/by-id names, USB vendor:product, serial "
+                    "number. Put a by-id path or {serial_number: ...} in the profile's backend.port "
+                    "so that two arms never swap.")
+    p.add_argument("--replug", action="store_true",
+                   help="ask you to unplug the arm's adapter and plug it back, then name its port "
+                        "(and its stable names)")
+    args = p.parse_args(argv)
+    from .backends.ports import find_replugged, list_serial_ports
+
+    lister = list_serial_ports
+    if args.replug:
+        return 0 if find_replugged(lister, input, sys.stdout) is not None else 1
+    ports = lister()
+    if not ports:
+        print("no serial ports found")
+    for port in ports:
+        print(port.describe())
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "find-port":
+        return _find_port(argv[1:])
     if argv and argv[0] == "check":
         return _check(argv[1:])
     args = _run_parser().parse_args(argv)

@@ -41,6 +41,7 @@ from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Lifecycle, Ste
 from ..errors import BackendError, ProfileError
 from ..profile import Profile, backend_config, unknown_key_message
 from .port_errors import open_error_reason, silent_bus_hint
+from .ports import resolve_port
 from .servo_keys import ServoJoint, servo_joints
 
 DEFAULT_MARGIN_MS = 10.0
@@ -213,8 +214,8 @@ class SerialServoBackend(Actuator):
             raise ProfileError(f"{source}: backend.{key}: "
                                f"{unknown_key_message(key, ['type', *fields], f'the {self.vendor} backend')}")
         if "port" not in given:
-            raise ProfileError(f"{source}: backend.port: required, the serial device "
-                               f"(e.g. /dev/ttyACM0)")
+            raise ProfileError(f"{source}: backend.port: required, the serial device (e.g. "
+                               f"/dev/serial/by-id/..., /dev/ttyACM0) or {{serial_number: ...}}")
         self.config = backend_config(profile, self.Config, source)
         cfg = self.config
         if cfg.baudrate not in self.SUPPORTED_BAUDS:
@@ -241,6 +242,7 @@ class SerialServoBackend(Actuator):
         self._goal = np.zeros(n)  # goal ticks computed this cycle (float)
         self._free = [False] * n  # joints switched torque-off by a FREE command
         self._port: Any = None
+        self._port_path: str | None = None  # backend.port resolved at open (a serial_number)
         self._ph: Any = None
         self._details: dict = {}
 
@@ -282,7 +284,7 @@ class SerialServoBackend(Actuator):
     # ------------------------------------------------------------------ helpers
     @property
     def _where(self) -> str:
-        return self.config.port
+        return self._port_path or str(self.config.port)
 
     def info(self) -> ActuatorInfo:
         return ActuatorInfo(list(self.joint_names), self.capabilities, dict(self._details))
@@ -380,16 +382,17 @@ class SerialServoBackend(Actuator):
     def _open_hook(self) -> None:
         """Open the port, ping every servo and check its model. Blocks. Raises BackendError."""
         cfg = self.config
+        self._port_path = resolve_port(cfg.port, self.robot, self.source)
         margin = DEFAULT_MARGIN_MS if cfg.timeout_ms is None else cfg.timeout_ms
         port = self._make_port(margin)
         port.baudrate = cfg.baudrate
         try:
             ok = port.openPort()
         except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
-            raise BackendError(f"{self.robot}: cannot open port {cfg.port}: "
-                               f"{open_error_reason(cfg.port, exc)}") from exc
+            raise BackendError(f"{self.robot}: cannot open port {self._where}: "
+                               f"{open_error_reason(self._where, exc)}") from exc
         if not ok:
-            raise BackendError(f"{self.robot}: cannot open port {cfg.port} at {cfg.baudrate} baud")
+            raise BackendError(f"{self.robot}: cannot open port {self._where} at {cfg.baudrate} baud")
         self._port = port
         self._ph = self._make_packet_handler()
         try:
@@ -400,7 +403,7 @@ class SerialServoBackend(Actuator):
             self._port = None
             raise
         self._details = {
-            "port": cfg.port, "baudrate": cfg.baudrate, "ids": list(self._ids),
+            "port": self._where, "baudrate": cfg.baudrate, "ids": list(self._ids),
             "models": {name: j.model for name, j in zip(self.joint_names, self.joint_keys)},
             "packet_margin_ms": margin, **self._details,
         }

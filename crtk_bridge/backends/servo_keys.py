@@ -17,6 +17,13 @@ from ..errors import ProfileError
 from ..profile import Profile, joint_keys
 
 
+class PortMatch(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
+    """``backend.port`` given by the USB adapter's serial number instead of a device path:
+    resolved when the bus opens (backends/ports.py), so two arms on two adapters never swap."""
+
+    serial_number: str  # as `crtk-bridge find-port` shows it
+
+
 class Calibration(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):
     """Tick calibration of one servo: ``joint = direction * (ticks - offset) * 2*pi / ticks_per_turn``."""
 

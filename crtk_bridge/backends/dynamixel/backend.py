@@ -82,7 +82,7 @@ from ...core.actuator import (
 from ...errors import BackendError
 from ...profile import Profile
 from ..serial_servo import SerialPortFixes, SerialServoBackend
-from ..servo_keys import ServoJoint
+from ..servo_keys import PortMatch, ServoJoint
 from . import tables as T
 from .tables import OperatingMode
 
@@ -122,7 +122,9 @@ class FastPortHandler(SerialPortFixes, PortHandler):
 class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     """The ``backend:`` section of a profile with ``type: dynamixel``."""
 
-    port: str  # serial device, e.g. /dev/ttyUSB0 (U2D2) or a simulator's pty
+    # serial device, e.g. /dev/ttyUSB0 or a /dev/serial/by-id/ link, or {serial_number: ...} (the USB
+    # adapter\'s, resolved at open)
+    port: str | PortMatch  # e.g. /dev/ttyUSB0 (U2D2) or a simulator's pty
     baudrate: int = 1_000_000  # must match the servos' Baud_Rate register
     timeout_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] | None = None  # None = 10 ms
     read_retries: Annotated[int, msgspec.Meta(ge=0, le=10)] = 1
@@ -220,7 +222,7 @@ class DynamixelBackend(SerialServoBackend):
             super()._check_joint(i, key, j, problems)
 
     def _make_port(self, margin_ms: float) -> FastPortHandler:
-        return FastPortHandler(self.config.port, margin_ms=margin_ms)
+        return FastPortHandler(self._port_path, margin_ms=margin_ms)
 
     def _make_packet_handler(self):
         return PacketHandler(2.0)

@@ -52,6 +52,7 @@ from ...core.actuator import (
 )
 from ...profile import Profile
 from ..serial_servo import SerialServoBackend
+from ..servo_keys import PortMatch
 from . import tables
 from .port import FastPortHandler
 
@@ -89,7 +90,9 @@ _LOAD_SIGN = 1 << tables.SIGN_BITS["Present_Load"]
 class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     """The ``backend:`` section of a profile with ``type: feetech``."""
 
-    port: str  # serial device, e.g. /dev/ttyACM0 (or a simulator's pty)
+    # serial device, e.g. /dev/ttyACM0 or a /dev/serial/by-id/ link, or {serial_number: ...} (the USB
+    # adapter\'s, resolved at open)
+    port: str | PortMatch  # e.g. /dev/ttyACM0 (or a simulator's pty)
     baudrate: int = 1_000_000  # must match the servos' Baud_Rate register
     # Allowance in ms beyond the wire time of the expected reply bytes before a reply counts as
     # missing (USB latency + servo turnaround). None = 10 ms. The SDK's own is ~34 ms.
@@ -153,7 +156,7 @@ class FeetechBackend(SerialServoBackend):
 
     # ------------------------------------------------------------------ hooks
     def _make_port(self, margin_ms: float) -> FastPortHandler:
-        return FastPortHandler(self.config.port, margin_ms=margin_ms)
+        return FastPortHandler(self._port_path, margin_ms=margin_ms)
 
     def _make_packet_handler(self):
         return PacketHandler(0)  # sets the SDK's global byte order: little-endian (STS)
