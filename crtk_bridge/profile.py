@@ -85,6 +85,11 @@ class Loop(_Strict, kw_only=True):
 class Safety(_Strict, kw_only=True):
     servo_timeout_s: float = 0.5  # servo stream watchdog
     servo_step_max: float = 0.35  # rad: largest servo_jp step from the last setpoint
+    # native cartesian backends (core/native_cartesian.py): servo_cp / interpolate_cp steps, twists
+    cartesian_step_max: float = 0.05  # m: largest tip translation from the last pose
+    cartesian_rotation_step_max: float = 0.35  # rad: largest tip rotation from the last pose
+    cartesian_velocity_max: float = 0.25  # m/s: largest linear speed of a servo_cv / interpolate_cv twist
+    cartesian_angular_velocity_max: float = 1.0  # rad/s: largest angular speed of a twist
     tracking_error_max: float = 0.6  # rad: measured vs setpoint before FAULT
     bus_errors_max: int = 5  # consecutive failed cycles before FAULT
 

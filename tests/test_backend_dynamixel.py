@@ -245,3 +245,33 @@ def test_one_cycle_is_the_protocol_minimum_of_bytes(fast, reply):
     finally:
         b.close()
         sim.stop()
+
+
+
+@pytest.mark.parametrize("silent_after, failed", [("Torque_Enable", "Operating_Mode"),
+                                                  ("Goal_Velocity", "Torque_Enable")])
+def test_failed_mode_switch_after_torque_off_is_a_fault_at_once(rig, silent_after, failed):
+    # the servo acknowledges Torque_Enable=0 (and maybe more) and then goes silent: the joint is
+    # limp, so the fault must not be transient (retried for bus_errors_max cycles while ENABLED)
+    sim, b = rig
+    fb = b.new_feedback()
+    b.enable(fb)
+    real = b._write_register
+
+    def write_then_go_silent(i, name, value, check_error=False):
+        real(i, name, value, check_error)
+        if i == 0 and name == silent_after and (name != "Torque_Enable" or value == 0):
+            sim.set_fault(1, "silent")  # from here on servo 1 answers nothing
+
+    b._write_register = write_then_go_silent
+    cmd = b.new_command()
+    cmd.mode[:] = CommandMode.NONE
+    cmd.mode[0] = CommandMode.VELOCITY
+    cmd.velocity[0] = 0.5
+    fault = b.write(cmd)
+    assert fault is not None and not fault.transient, fault
+    assert fault.joint == "shoulder_pan" and fault.register == failed
+    assert "shoulder_pan" in fault.message and "velocity mode" in fault.message
+    if failed == "Operating_Mode":
+        assert reg(sim, 1, "Torque_Enable") == 0  # limp: which is why core must go to FAULT now
+    # (a lost ack of Torque_Enable=1: the servo may or may not be torqued; unknown, so FAULT too)

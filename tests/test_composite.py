@@ -20,8 +20,12 @@ from crtk_bridge.core.actuator import (
     FaultReaction,
     Lifecycle,
 )
+from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import BackendError, ProfileError
 from crtk_bridge.profile import load_profile
+
+from .test_controller import Clock
 
 PROFILE = load_profile("profiles/bimanual_so101.yaml")
 
@@ -160,7 +164,8 @@ def test_transitions_step_every_bus_together_until_the_slowest_ends():
     assert run_steps(t) == 6  # the slowest bus's 5 steps (+ the step that sees it end)
     assert left.steps == 5 and right.steps == 2 and left.torque and right.torque
     assert c.is_enabled and left.is_enabled and right.is_enabled
-    assert c.transition_timeout_s(Lifecycle.ENABLE) == 2.0  # the buses' limits add up
+    # the buses' limits add up, and an enable may end in a rollback (every bus's disable)
+    assert c.transition_timeout_s(Lifecycle.ENABLE) == 2.0 + 2.0
     c.close()
 
 
@@ -261,4 +266,196 @@ def test_native_cartesian_rows_go_to_and_come_from_their_bus():
     assert c.write(cmd) is None
     mode, position, seq = right.pose
     assert mode == 3 and np.array_equal(position, [0.3, 0.0, 0.2]) and seq == 8
+    c.close()
+
+
+class ServoBus(FakeBus):
+    """A bus of servos each with its own torque: enable switches one servo on per step (failing at
+    step ``fail_at`` when set), disable one servo off per step. ``log`` (shared by the buses)
+    records every read and every torque-off step, so a test sees what happened in which cycle."""
+
+    def __init__(self, profile, name, log, reaction, enable_cycles=None):
+        super().__init__(profile, base=0.0, stamp=1.0)
+        self.name, self.log = name, log
+        self.fault_reaction = reaction
+        self.servo_torque = np.zeros(self.n, dtype=bool)
+        self.enable_cycles = self.n if enable_cycles is None else enable_cycles
+        self.fail_at: int | None = None
+        self.goal = np.zeros(self.n)
+
+    def _enable_steps(self, feedback):
+        self.goal[:] = feedback.position  # hold where the joints are
+        for k in range(self.enable_cycles):
+            if self.fail_at == k:
+                raise BackendError(f"{self.robot}: joint {self.joint_names[k]!r} did not confirm Torque_Enable")
+            self.servo_torque[k % self.n] = True
+            yield
+
+    def _disable_steps(self):
+        for k in range(self.n):
+            self.servo_torque[k] = False
+            self.log.append(("off", self.name))
+            if k < self.n - 1:
+                yield
+
+    def _read(self, fb):
+        self.log.append(("read", self.name))
+        fb.position[:] = 0.1 * np.arange(self.n)
+        fb.stamp += 0.005
+        return self.fault
+
+    def _write(self, cmd):
+        on = cmd.mode == CommandMode.POSITION
+        self.goal[on] = cmd.position[on]
+        return None
+
+
+def controller_rig(left_reaction, right_reaction, left_enable_cycles=None):
+    log: list = []
+    left = ServoBus(PROFILE.bus_profile("left"), "left", log, left_reaction, left_enable_cycles)
+    right = ServoBus(PROFILE.bus_profile("right"), "right", log, right_reaction)
+    act = CompositeActuator(PROFILE, {"left": left, "right": right})
+    act.open()
+    clock = Clock()
+    c = Controller(PROFILE, act, clock)
+    fb = act.new_feedback()
+    cycles: list[list] = []  # the log of each cycle
+
+    def cycle(n=1):
+        for _ in range(n):
+            start = len(log)
+            clock.t += c.dt
+            c.on_read(fb, act.read(fb))
+            if c.step():
+                c.on_write(act.write(c.command))
+            cycles.append(log[start:])
+
+    cycle()
+    return c, act, left, right, cycle, cycles
+
+
+def run_until(cycle, cond, limit=200):
+    for _ in range(limit):
+        if cond():
+            return
+        cycle()
+    raise AssertionError("condition not reached")
+
+
+@pytest.mark.parametrize("faulty", ["left", "right"])
+def test_a_fault_applies_each_buss_own_reaction(faulty):
+    """A servo bus (TORQUE_OFF) beside a bus that holds itself (HOLD): a fault on either bus
+    switches the servo bus off and leaves the holding bus powered at its pose, in one transition
+    stepping the buses together; the robot is FAULT naming the bus that faulted."""
+    c, act, left, right, cycle, cycles = controller_rig(FaultReaction.TORQUE_OFF, FaultReaction.HOLD)
+    c.handle({"id": 1, "cmd": "enable", "ns": None, "data": {}})
+    run_until(cycle, lambda: c.state is OperatingState.ENABLED)
+    cycle(3)
+    assert left.servo_torque.all() and right.servo_torque.all()
+    held = right.goal.copy()
+    bus = left if faulty == "left" else right
+    bus.fault = Fault("servo_error", f"bimanual_so101: joint '{faulty}_gripper' overload",
+                      joint=f"{faulty}_gripper", transient=False)
+    cycle()
+    bus.fault = None
+    assert c.state is OperatingState.FAULT
+    assert c.fault_cause.message == f"bimanual_so101: bus '{faulty}': joint '{faulty}_gripper' overload"
+    mark = len(cycles)
+    run_until(cycle, lambda: not c.is_busy)
+    cycle(3)
+    assert not left.servo_torque.any() and not left.is_enabled  # the servo bus: torque off
+    assert right.servo_torque.all() and right.is_enabled  # the holding bus: still powered...
+    assert np.array_equal(right.goal, held)  # ...at its pose, no new goal
+    assert ("off", "right") not in sum(cycles[mark - 1:], [])
+    # one step of the left bus's torque off per cycle, each cycle reading both buses first
+    offs = [log.count(("off", "left")) for log in cycles[mark - 1:] if ("off", "left") in log]
+    assert offs == [1] * left.n
+    assert all(set(log[:2]) == {("read", "left"), ("read", "right")} for log in cycles[mark - 1:])
+    assert not act.is_enabled and c.state is OperatingState.FAULT
+
+
+def test_an_all_serial_robot_still_switches_every_bus_off_on_a_fault():
+    c, act, left, right, cycle, cycles = controller_rig(FaultReaction.TORQUE_OFF, FaultReaction.TORQUE_OFF)
+    c.handle({"id": 1, "cmd": "enable", "ns": None, "data": {}})
+    run_until(cycle, lambda: c.state is OperatingState.ENABLED)
+    right.fault = Fault("servo_error", "bimanual_so101: joint 'right_gripper' overload", transient=False)
+    cycle()
+    run_until(cycle, lambda: not c.is_busy)
+    assert c.state is OperatingState.FAULT and c.fault_cause.message.startswith("bimanual_so101: bus 'right': ")
+    assert not left.servo_torque.any() and not right.servo_torque.any()
+
+
+@pytest.mark.parametrize("left_enable_cycles", [2, 12], ids=["other-bus-finished", "other-bus-partial"])
+@pytest.mark.parametrize("fail_at", [1, 4])
+def test_a_failed_enable_is_undone_on_every_bus_in_steps(left_enable_cycles, fail_at):
+    """Bus 'right' fails at enable step ``fail_at`` while bus 'left' has finished enabling or is
+    still on its way: every servo of both buses ends with torque off, each bus's own disable
+    steps stepped one per cycle (every cycle still reads both buses: nothing blocked the cycle),
+    and the robot is FAULT naming bus 'right'."""
+    c, act, left, right, cycle, cycles = controller_rig(FaultReaction.TORQUE_OFF, FaultReaction.HOLD,
+                                                        left_enable_cycles)
+    right.fail_at = fail_at
+    c.handle({"id": 1, "cmd": "enable", "ns": None, "data": {}})
+    mark = len(cycles)
+    run_until(cycle, lambda: right.servo_torque.sum() == fail_at)
+    assert left.servo_torque.any()
+    run_until(cycle, lambda: c.state is OperatingState.FAULT)
+    ended = len(cycles) - 1  # the cycle in which the rollback ended (and the fault reaction began)
+    run_until(cycle, lambda: not c.is_busy)
+    assert not left.servo_torque.any() and not right.servo_torque.any()
+    assert not left.is_enabled and not right.is_enabled and not act.is_enabled
+    assert c.state is OperatingState.FAULT
+    assert c.fault_cause.message.startswith("bimanual_so101: bus 'right': joint ")
+    (reply,) = [m for m in c.outbox if m.get("id") == 1]
+    assert not reply["ok"] and "bus 'right': joint " in reply["error"]["message"]
+    # the rollback: each bus's own disable steps, one per bus per cycle, every cycle reading both
+    # buses first (a blocking disable would switch a bus's servos off within one cycle); the
+    # HOLD bus (right) is switched off too: it was partly enabled
+    rollback = cycles[mark:ended + 1]
+    assert sum(log.count(("off", "right")) for log in rollback) == right.n
+    # (+1: the fault reaction's first step on the TORQUE_OFF bus, in the rollback's last cycle)
+    assert sum(log.count(("off", "left")) for log in rollback) in (left.n, left.n + 1)
+    for k, log in enumerate(rollback):
+        assert set(log[:2]) == {("read", "left"), ("read", "right")}
+        # the last rollback cycle may also carry the first step of core's fault reaction
+        most = 2 if k == len(rollback) - 1 else 1
+        assert log.count(("off", "left")) <= most and log.count(("off", "right")) <= 1
+    assert sum(1 for log in rollback if ("off", "right") in log) == right.n  # over n cycles
+
+
+def test_the_rollback_is_bounded_by_the_disable_time_limit():
+    """A bus whose torque off never confirms does not keep the rollback going: after the buses'
+    disable limits the enable fails naming the bus that failed and the one left unconfirmed."""
+    log: list = []
+
+    class Stuck(ServoBus):
+        transition_timeouts_s = {Lifecycle.ENABLE: 1.0, Lifecycle.DISABLE: 0.05}
+
+        def _disable_steps(self):
+            while True:  # never confirms
+                yield
+
+    left = Stuck(PROFILE.bus_profile("left"), "left", log, FaultReaction.TORQUE_OFF)
+    right = Stuck(PROFILE.bus_profile("right"), "right", log, FaultReaction.TORQUE_OFF)
+    right.fail_at = 2
+    c = CompositeActuator(PROFILE, {"left": left, "right": right})
+    c.open()
+    with pytest.raises(BackendError) as info:
+        c.run(c.begin(Lifecycle.ENABLE, c.new_feedback()))  # its own limit (2.1 s) is not reached
+    assert str(info.value).startswith("bimanual_so101: bus 'right': joint 'right_elbow_flex' did not confirm")
+    assert str(info.value).endswith("undoing the enable: torque off not confirmed on 'left', 'right' within 0.1 s")
+
+
+def test_the_fault_reaction_also_switches_off_a_holding_bus_an_abandoned_enable_left_partly_on():
+    log: list = []
+    left = ServoBus(PROFILE.bus_profile("left"), "left", log, FaultReaction.TORQUE_OFF)
+    right = ServoBus(PROFILE.bus_profile("right"), "right", log, FaultReaction.HOLD)
+    c = CompositeActuator(PROFILE, {"left": left, "right": right})
+    c.open()
+    t = c.begin(Lifecycle.ENABLE, c.new_feedback())
+    assert not t.step() and not t.step()
+    t.abort()  # core gave up on it (time limit, or a fault meanwhile)
+    assert right.servo_torque.any() and not right.is_enabled
+    c.run(c.begin_fault_reaction())
+    assert not left.servo_torque.any() and not right.servo_torque.any()
     c.close()

@@ -72,6 +72,8 @@ def native():
 
 
 POSE = {"position": [0.25, 0.05, 0.15], "orientation": [0.0, 0.0, 0.0, 1.2]}  # normalised on the way
+# a servo step from the fake's TCP ([0.3, 0, 0.2], [0, 1, 0, 0]) within safety.cartesian_step_max
+NEAR = {"position": [0.31, 0.0, 0.19], "orientation": [0.0, 1.2, 0.0, 0.0]}
 
 
 def test_the_backend_declares_its_rows_and_supplies_measured_cp(native):
@@ -83,15 +85,15 @@ def test_the_backend_declares_its_rows_and_supplies_measured_cp(native):
 
 def test_servo_cp_reaches_the_backend_as_a_pose_not_joint_goals(native):
     c, act, clock, cycle, req = native
-    assert req("servo_cp", ARM, **POSE)["ok"]
+    assert req("servo_cp", ARM, **NEAR)["ok"]
     cycle()
     mode, joints, row = act.writes[-1]
     assert mode is CartesianMode.POSE
-    assert row["position"] == pytest.approx(POSE["position"]) and row["orientation"] == pytest.approx([0, 0, 0, 1])
+    assert row["position"] == pytest.approx(NEAR["position"]) and row["orientation"] == pytest.approx([0, 1, 0, 0])
     assert np.all(joints[ARM_IDX] == CommandMode.NONE)  # the arm's joints are the backend's now
     assert np.all(joints[GRIP_IDX] == CommandMode.POSITION)  # the gripper is not
     cycle()
-    assert c.feedback.cartesian.position[0] == pytest.approx(POSE["position"])  # measured_cp follows
+    assert c.feedback.cartesian.position[0] == pytest.approx(NEAR["position"])  # measured_cp follows
     assert not c.is_busy
 
 
@@ -129,7 +131,7 @@ def test_move_cp_is_busy_until_the_backend_reports_it_done(native):
 
 def test_servo_stream_watchdog_hands_the_joints_back(native):
     c, act, clock, cycle, req = native
-    assert req("servo_cp", ARM, **POSE)["ok"]
+    assert req("servo_cp", ARM, **NEAR)["ok"]
     c.outbox.clear()
     cycle(int(PROFILE.safety.servo_timeout_s / c.dt) + 3)
     warnings = [m["data"] for m in c.outbox if m.get("event") == "warning"]
@@ -183,8 +185,62 @@ def test_refusals(native):
     assert not r["ok"] and r["error"]["code"] == "bad_request" and "quaternion" in r["error"]["message"]
     assert not c.native_cartesian[ARM].active and not c.is_busy
     assert req("pause")["ok"]
-    r = req("servo_cp", ARM, **POSE)
+    r = req("servo_cp", ARM, **NEAR)
     assert not r["ok"] and r["error"]["code"] == "invalid_state"
+
+
+@pytest.mark.parametrize("cmd", ["servo_cp", "interpolate_cp"])
+def test_pose_steps_beyond_the_safety_bounds_are_refused(native, cmd):
+    c, act, clock, cycle, req = native
+    sf = PROFILE.safety
+    nc = c.native_cartesian[ARM]
+    # from the measured pose: a translation just over cartesian_step_max
+    far = {"position": [0.3, 0.0, 0.2 + sf.cartesian_step_max * 1.1], "orientation": [0, 1, 0, 0]}
+    r = req(cmd, ARM, **far)
+    assert not r["ok"] and r["error"]["code"] == "step_too_large", r
+    assert "safety.cartesian_step_max" in r["error"]["message"] and "measured pose" in r["error"]["message"]
+    assert not nc.active
+    # a rotation just over cartesian_rotation_step_max about z, in place
+    half = (sf.cartesian_rotation_step_max * 1.1) / 2
+    turned = [float(np.sin(half)), float(np.cos(half)), 0.0, 0.0]  # dot with [0, 1, 0, 0] = cos(half)
+    r = req(cmd, ARM, position=[0.3, 0.0, 0.2], orientation=turned)
+    assert not r["ok"] and r["error"]["code"] == "step_too_large"
+    assert "safety.cartesian_rotation_step_max" in r["error"]["message"]
+    assert not nc.active
+    cycle()
+    assert act.writes[-1][0] is CartesianMode.NONE  # nothing reached the backend
+    # a stream is bounded step by step from its previous pose, not from where the arm lags
+    assert req(cmd, ARM, **NEAR)["ok"]
+    nxt = dict(NEAR, position=[0.31 + sf.cartesian_step_max * 0.9, 0.0, 0.19])
+    assert req(cmd, ARM, **nxt)["ok"]
+    act.tcp_p[:] = [0.3, 0.0, 0.2]  # the arm lags far behind: the base is still the previous pose
+    cycle()
+    third = dict(NEAR, position=[0.31 + sf.cartesian_step_max * 1.8, 0.0, 0.19])  # 1.8 bounds from the arm
+    assert req(cmd, ARM, **third)["ok"]  # 0.9 bound from the previous pose
+    r = req(cmd, ARM, **NEAR)  # back by 1.8 bounds in one step
+    assert not r["ok"] and r["error"]["code"] == "step_too_large" and "previous pose" in r["error"]["message"]
+    assert nc.position == pytest.approx(third["position"])  # unchanged
+    # move_cp is planned by the backend: not bounded by a step
+    assert req("move_cp", ARM, **POSE)["ok"]
+
+
+@pytest.mark.parametrize("cmd", ["servo_cv", "interpolate_cv"])
+def test_twists_beyond_the_safety_bounds_are_refused(native, cmd):
+    c, act, clock, cycle, req = native
+    sf = PROFILE.safety
+    nc = c.native_cartesian[ARM]
+    v = sf.cartesian_velocity_max
+    assert req(cmd, ARM, linear=[0.6 * v, 0.0, 0.7 * v], angular=[0, 0, 0])["ok"]  # |v| = 0.92 bound
+    cycle()
+    r = req(cmd, ARM, linear=[0.8 * v, 0.0, 0.7 * v], angular=[0, 0, 0])  # each within, |v| = 1.06 bound
+    assert not r["ok"] and r["error"]["code"] == "out_of_limits"
+    assert "safety.cartesian_velocity_max" in r["error"]["message"] and "m/s" in r["error"]["message"]
+    w = sf.cartesian_angular_velocity_max
+    r = req(cmd, ARM, linear=[0, 0, 0], angular=[0.0, 0.8 * w, 0.7 * w])
+    assert not r["ok"] and r["error"]["code"] == "out_of_limits"
+    assert "safety.cartesian_angular_velocity_max" in r["error"]["message"]
+    cycle()
+    assert act.writes[-1][2]["linear"] == pytest.approx([0.6 * v, 0.0, 0.7 * v])  # the previous twist stays
 
 
 # ------------------------------------------------------------------ the front's routing

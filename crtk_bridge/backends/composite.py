@@ -19,22 +19,27 @@ opened when one fails). Lifecycle transitions (enable, disable, pause, resume, f
 every bus together: each cycle steps every bus's :class:`~crtk_bridge.core.actuator.Transition`
 once, so a bus that takes many cycles (a CiA 402 controlword walk) never holds the others back,
 and the robot's transition ends when the last bus's does. Enable is all or none (a bus that fails
-gets the others disabled again, the error naming the bus); disable goes on on every bus and names
+gets every bus disabled again, the error naming the bus); disable goes on on every bus and names
 those that did not confirm.
 
 What the buses declare becomes the robot's: device status (the most severe bus's, its cause
 naming the bus), ``cyclic_write`` (if any bus needs it; the others are written only while
 enabled), native cartesian namespaces (each bus's rows of the cartesian setpoints and measured
 poses, bus after bus), pacing (by the one bus that paces; two pacing buses are refused), and the fault
-reaction (torque off if any bus needs it: a UR arm that stops itself beside a servo gripper that
-must be switched off gets the DISABLE transition on both -- per-bus fault reactions are not
-modelled yet). Native homing on one bus is not offered through the composite yet.
+reaction, per bus: the robot declares TORQUE_OFF if any bus does, and its fault transition
+(:meth:`CompositeActuator.begin_fault_reaction`) switches torque off only on the buses that declare
+TORQUE_OFF (and on a bus an abandoned enable left partly on); a HOLD or NONE bus is left as it is
+(a UR arm that stopped itself keeps its pose beside a servo gripper switched off). A failed enable
+is undone in steps too: every bus that may have torque on (finished or partly enabled) runs its
+own DISABLE steps, together, one per cycle, within the disable time limits, before the error
+naming the failed bus is raised. Native homing on one bus is not offered through the composite yet.
 """
 
 from __future__ import annotations
 
 import re
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -50,6 +55,7 @@ from ..core.actuator import (
     JointFeedback,
     Lifecycle,
     Steps,
+    Transition,
     combine_capabilities,
 )
 from ..errors import BackendError, ProfileError
@@ -143,6 +149,8 @@ class CompositeActuator(Actuator):
         self._read_streak = [0] * nb  # failed cycles in a row per bus
         self._write_streak = [0] * nb
         self._where = [f"bus {name!r}" for name in self.bus_names]
+        #: per bus: an ENABLE took a step and neither finished nor was undone (some torque may be on)
+        self._partial = [False] * nb
         # what the buses declare, for the robot: written every cycle if any bus needs it (the
         # others are then skipped while not enabled); paced by the one bus that paces, if any;
         # the fault reaction that leaves nothing powered that needs switching off
@@ -154,6 +162,8 @@ class CompositeActuator(Actuator):
                                f"control loop; at most one bus of a robot may")
         self._pacer = pacers[0] if pacers else None
         self.paces_cycle = self._pacer is not None
+        # core runs the fault reaction's transition if any bus needs torque off; it then applies
+        # each bus's own reaction (begin_fault_reaction)
         reactions = {p.fault_reaction for p in self.parts}
         self.fault_reaction = next(r for r in (FaultReaction.TORQUE_OFF, FaultReaction.HOLD, FaultReaction.NONE)
                                    if r in reactions)
@@ -219,55 +229,104 @@ class CompositeActuator(Actuator):
         return self._together(Lifecycle.FAULT_RESET)
 
     def transition_timeout_s(self, kind: Lifecycle) -> float:
-        # the buses' steps share the loop's thread, so in the worst case their times add up
-        return sum(p.transition_timeout_s(kind) for p in self.parts)
+        # the buses' steps share the loop's thread, so in the worst case their times add up; an
+        # enable may end in a rollback (every bus's disable)
+        limit = sum(p.transition_timeout_s(kind) for p in self.parts)
+        if kind is Lifecycle.ENABLE:
+            limit += self.transition_timeout_s(Lifecycle.DISABLE)
+        return limit
 
-    def _together(self, kind: Lifecycle, feedback: JointFeedback | None = None) -> Steps:
-        """Steps of transition ``kind`` on every bus at once: each cycle steps every unfinished
-        bus transition once, until all are done. A failure names its bus. ENABLE is all or
-        none: when one bus fails, the others are stopped and disabled again. DISABLE goes on
-        on every bus when one fails, then names every bus that did not confirm."""
+    def _together(self, kind: Lifecycle, feedback: JointFeedback | None = None,
+                  buses: list[int] | None = None) -> Steps:
+        """Steps of transition ``kind`` on every bus (or on ``buses``) at once: each cycle steps
+        every unfinished bus transition once, until all are done. A failure names its bus.
+        ENABLE is all or none: when one bus fails, the others' enables are stopped and every bus
+        that may have any torque on is disabled again, in steps (:meth:`_rollback`), before the
+        error is raised. DISABLE goes on on every bus when one fails, then names every bus that
+        did not confirm."""
+        buses = list(range(len(self.parts))) if buses is None else buses
         transitions = []
-        for b, p in enumerate(self.parts):
+        for b in buses:
             fb = None
             if feedback is not None:
                 fb = self._fb[b]
                 np.take(feedback.position, self._idx[b], out=fb.position)
                 np.take(feedback.velocity, self._idx[b], out=fb.velocity)
                 np.take(feedback.effort, self._idx[b], out=fb.effort)
-            transitions.append((b, p.begin(kind, fb)))
+            transitions.append((b, self.parts[b].begin(kind, fb)))
         failed: list[str] = []
+        error: BackendError | None = None
         try:
             pending = transitions
             while pending:
                 running = []
                 for b, t in pending:
+                    if kind is Lifecycle.ENABLE:
+                        self._partial[b] = True
                     try:
                         if not t.step():
                             running.append((b, t))
+                        elif kind in (Lifecycle.ENABLE, Lifecycle.DISABLE):
+                            self._partial[b] = False  # enabled (is_enabled says so) or off
                     except Exception as exc:
-                        if kind is not Lifecycle.DISABLE:
+                        if kind is Lifecycle.DISABLE:
+                            failed.append(str(self._named(b, exc)).removeprefix(f"{self.robot}: "))
+                        elif kind is Lifecycle.ENABLE:
+                            error = self._named(b, exc)
+                            error.__cause__ = exc
+                            break
+                        else:
                             raise self._named(b, exc) from exc
-                        failed.append(str(self._named(b, exc)).removeprefix(f"{self.robot}: "))
+                if error is not None:
+                    break
                 pending = running
                 if pending:
                     yield
-        except Exception:
-            if kind is Lifecycle.ENABLE:  # no bus stays powered unsaid (an abandoned enable: core disables)
-                for _, t in transitions:
-                    t.abort()
-                for p in self.parts:
-                    if p.is_enabled:
-                        try:
-                            p.disable()
-                        except Exception:  # the error raised names the bus that failed
-                            pass
-            raise
         finally:
             for _, t in transitions:
-                t.abort()  # a no-op on finished ones; stops the others when this is abandoned
+                t.abort()  # a no-op on finished ones; stops the others (failed or abandoned)
+        if error is not None:  # no bus stays powered unsaid
+            yield from self._rollback([b for b in buses if self._partial[b] or self.parts[b].is_enabled], error)
         if failed:
             raise BackendError(f"{self.robot}: " + "; ".join(failed))
+
+    def _rollback(self, buses: list[int], error: BackendError) -> Steps:
+        """A failed ENABLE undone: the DISABLE steps of every bus in ``buses`` (finished or partly
+        enabled), stepped together one per cycle like any transition, within the buses' disable
+        time limits; then ``error`` (the bus that failed) is raised, saying if torque off was not
+        confirmed."""
+        limit = sum(self.parts[b].transition_timeout_s(Lifecycle.DISABLE) for b in buses)
+        deadline = time.monotonic() + limit
+        steps = self._together(Lifecycle.DISABLE, buses=buses)
+        try:
+            while True:
+                try:
+                    next(steps)
+                except StopIteration:
+                    break
+                except BackendError as exc:
+                    error = BackendError(f"{error}; undoing the enable: {str(exc).removeprefix(f'{self.robot}: ')}")
+                    break
+                if time.monotonic() > deadline:
+                    error = BackendError(f"{error}; undoing the enable: torque off not confirmed on "
+                                         f"{', '.join(self._bus_of([self.parts[b] for b in buses]))} "
+                                         f"within {limit:g} s")
+                    break
+                yield
+        finally:
+            steps.close()
+        raise error
+
+    def begin_fault_reaction(self) -> Transition:
+        """Each bus's own fault reaction, in one transition stepping the buses together: torque
+        off (the DISABLE steps) on the buses that declare TORQUE_OFF and on any bus left partly
+        enabled by an abandoned enable; the HOLD and NONE buses are left as they are (a UR arm
+        that stopped itself keeps its pose beside a servo gripper switched off)."""
+        self._enabled = False  # the robot is not enabled from now on
+        buses = [b for b, p in enumerate(self.parts)
+                 if p.fault_reaction is FaultReaction.TORQUE_OFF or self._partial[b]]
+        return Transition(self.robot, Lifecycle.DISABLE, self._together(Lifecycle.DISABLE, buses=buses),
+                          self.transition_timeout_s(Lifecycle.DISABLE))
 
     def _named(self, b: int, exc: BaseException) -> BackendError:
         """A bus's lifecycle error, re-raised naming the bus."""

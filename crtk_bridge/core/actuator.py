@@ -31,8 +31,9 @@ Three paths, as in ros2_control hardware components:
 What else a backend declares (class attributes, refined per profile in ``__init__`` if needed):
 
 * ``fault_reaction`` (:class:`FaultReaction`): what core does to the device when the robot
-  enters FAULT -- switch torque off (serial servos), leave it holding, or nothing because the
-  device already stopped itself.
+  enters FAULT -- switch torque off (serial servos; core runs :meth:`Actuator.begin_fault_reaction`,
+  the DISABLE transition unless a composite applies each bus's own reaction), leave it holding,
+  or nothing because the device already stopped itself.
 * Device status (:class:`DeviceStatus`): a backend reports what the device says about itself
   (paused by the device, powered off by the device, fault with cause, fault cleared) with
   :meth:`Actuator.report_status` from its ``_read``; core takes it once per cycle
@@ -429,6 +430,12 @@ class Actuator(abc.ABC):
         else:  # pragma: no cover - Lifecycle is closed
             raise ValueError(kind)
         return Transition(self.robot, kind, steps, self.transition_timeout_s(kind), on_finish)
+
+    def begin_fault_reaction(self) -> Transition:
+        """The transition core runs when the robot enters FAULT and ``fault_reaction`` is
+        TORQUE_OFF (kind DISABLE, stepped like any). Default: the DISABLE transition. A robot on
+        several buses (the composite) overrides it to apply each bus's own reaction."""
+        return self.begin(Lifecycle.DISABLE)
 
     def _finished_enable(self) -> None:
         self._enabled = True

@@ -142,7 +142,7 @@ class Controller:
         self.twist_motions = build_twist_motions(profile, self.namespaces)
         # namespaces the backend controls in cartesian space itself (core/native_cartesian.py)
         self.native_cartesian = build_native_cartesian(self.namespaces, actuator.cartesian_namespaces(),
-                                                       profile.safety.servo_timeout_s)
+                                                       profile.safety)
         self.command = actuator.new_command()
         self.feedback = actuator.new_feedback()  # latest sample, copied in by on_read()
         self._fresh = actuator.new_feedback()  # the read that follows torque on
@@ -289,9 +289,11 @@ class Controller:
         was_busy = self.is_busy
         was_free = m.mode is Mode.FREE
         try:
-            nc.command(cmd, data, self.clock())  # the joints hold: the backend drives them now
+            nc.command(cmd, data, self.clock(), self.feedback.cartesian)  # the joints hold: the backend drives them now
         except ValueError as exc:
             raise Refused("bad_request", str(exc)) from None
+        except CommandError as exc:
+            raise Refused(exc.code, exc.message) from None
         if was_free:
             m.setpoint_p[:] = self.feedback.position[m.idx]
         tm = self.twist_motions.get(ns)
@@ -770,7 +772,7 @@ class Controller:
             self._torque_unconfirmed = True
             return Refused("fault", str(exc))
 
-        self._start(self.actuator.begin(Lifecycle.DISABLE), done, failed, reply=False)
+        self._start(self.actuator.begin_fault_reaction(), done, failed, reply=False)
         first[0] = False
         return said[0] if said else ""
 

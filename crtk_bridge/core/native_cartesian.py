@@ -13,6 +13,15 @@ CRTK rules kept here: a servo / interpolate stream silent for ``safety.servo_tim
 namespace, a pause, a fault or the client leaving ends the cartesian command, and the joints
 then hold where they are (the namespace's position setpoint follows the measured joints while
 the backend drives).
+
+Bounds (``safety``), as the joint path bounds ``servo_jp`` steps: a ``servo_cp`` /
+``interpolate_cp`` pose farther than ``cartesian_step_max`` (m) or turned more than
+``cartesian_rotation_step_max`` (rad) from the last pose of the running stream (else from the
+measured pose) is refused with ``step_too_large``; a twist faster than ``cartesian_velocity_max``
+(m/s) or ``cartesian_angular_velocity_max`` (rad/s) is refused with ``out_of_limits``. Refused, not
+scaled: the bound is the profile's safety limit, not what the hardware can do, and a client whose
+twist silently went slower would integrate a wrong pose; the previous command stays in force.
+``move_cp`` is not bounded by a step: the backend plans it (as ``move_jp``).
 """
 
 from __future__ import annotations
@@ -20,6 +29,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+
+from ..errors import CommandError, fmt_number
+from ..profile import Safety
 
 from .actuator import FRAME_BODY, FRAME_SPATIAL, CartesianCommand, CartesianFeedback, CartesianMode, CommandMode
 from .motion import NamespaceMotion
@@ -33,10 +45,11 @@ _NONE = int(CommandMode.NONE)
 class NativeCartesian:
     """Row ``row`` of the cartesian command / feedback: namespace ``motion``'s cartesian side."""
 
-    def __init__(self, motion: NamespaceMotion, row: int, timeout_s: float):
+    def __init__(self, motion: NamespaceMotion, row: int, safety: Safety):
         self.motion = motion
         self.row = row
-        self.timeout_s = timeout_s
+        self.timeout_s = safety.servo_timeout_s
+        self.safety = safety
         self.mode = CartesianMode.NONE
         self.position = np.zeros(3)
         self.orientation = np.array([0.0, 0.0, 0.0, 1.0])
@@ -54,17 +67,24 @@ class NativeCartesian:
     def busy(self) -> bool:
         return self.mode is CartesianMode.MOVE and self.done_seq < self.seq
 
-    def command(self, cmd: str, data: Any, now: float) -> None:
+    def command(self, cmd: str, data: Any, now: float, measured: CartesianFeedback) -> None:
         """Take ``cmd`` (validated here; ValueError with a one-line message naming the namespace
-        and field). The namespace's joint motion holds and is no longer written."""
+        and field, CommandError for a step or twist beyond the ``safety`` bounds; nothing
+        changes then). ``measured``: the latest feedback, the base of a stream's first step. The
+        namespace's joint motion holds and is no longer written."""
         ns = self.motion.name
         if cmd in POSE_COMMANDS:
-            self.position[:], self.orientation[:] = parse_pose(ns, cmd, data)
+            p, q = parse_pose(ns, cmd, data)
+            if cmd != "move_cp":
+                self._check_step(cmd, p, q, measured)
+            self.position[:], self.orientation[:] = p, q
             self.mode = CartesianMode.MOVE if cmd == "move_cp" else CartesianMode.POSE
             if cmd == "move_cp":
                 self.seq += 1
         else:
-            self.twist[:], frame = parse_twist(ns, cmd, data)
+            twist, frame = parse_twist(ns, cmd, data)
+            self._check_twist(cmd, twist)
+            self.twist[:] = twist
             self.frame = FRAME_BODY if frame == "body" else FRAME_SPATIAL
             self.mode = CartesianMode.TWIST
         self.last_cmd_time = now
@@ -72,6 +92,36 @@ class NativeCartesian:
         m.hold()
         m.level = None  # the joints have no setpoint of core's while the backend drives them
         m.setpoint_stamp = 0.0
+
+    def _check_step(self, cmd: str, p: np.ndarray, q: np.ndarray, measured: CartesianFeedback) -> None:
+        ns, sf = self.motion.name, self.safety
+        if self.mode is CartesianMode.POSE:
+            base_p, base_q, what = self.position, self.orientation, "the previous pose"
+        elif measured.stamp > 0.0:
+            k = self.row
+            base_p, base_q, what = measured.position[k], measured.orientation[k], "the measured pose"
+        else:
+            raise CommandError("invalid_state", f"{ns}: {cmd} refused: the backend reports no measured pose "
+                               "to bound the step from")
+        dist = float(np.linalg.norm(p - base_p))
+        if dist > sf.cartesian_step_max:
+            raise CommandError("step_too_large", f"{ns}: {cmd} refused: the tip would jump {fmt_number(dist)} m "
+                               f"from {what} (safety.cartesian_step_max = {sf.cartesian_step_max})")
+        angle = 2.0 * float(np.arccos(min(1.0, abs(float(np.dot(q, base_q)))
+                                          / max(float(np.linalg.norm(base_q)), 1e-12))))
+        if angle > sf.cartesian_rotation_step_max:
+            raise CommandError("step_too_large", f"{ns}: {cmd} refused: the tip would turn {fmt_number(angle)} rad "
+                               f"from {what} (safety.cartesian_rotation_step_max = "
+                               f"{sf.cartesian_rotation_step_max})")
+
+    def _check_twist(self, cmd: str, twist: np.ndarray) -> None:
+        ns, sf = self.motion.name, self.safety
+        for speed, key, unit in ((float(np.linalg.norm(twist[:3])), "cartesian_velocity_max", "m/s"),
+                                 (float(np.linalg.norm(twist[3:])), "cartesian_angular_velocity_max", "rad/s")):
+            bound = getattr(sf, key)
+            if speed > bound:
+                raise CommandError("out_of_limits", f"{ns}: {cmd} refused: {'linear' if unit == 'm/s' else 'angular'} "
+                                   f"speed {fmt_number(speed)} {unit} is above safety.{key} = {bound}")
 
     def cancel(self) -> None:
         """Another command, a stop or a fault took the namespace over."""
@@ -118,8 +168,8 @@ def parse_pose(ns: str, cmd: str, data: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 def build_native_cartesian(namespaces: dict[str, NamespaceMotion], rows: list[str],
-                           timeout_s: float) -> dict[str, NativeCartesian]:
+                           safety: Safety) -> dict[str, NativeCartesian]:
     """One :class:`NativeCartesian` per namespace the backend controls in cartesian space
     (``rows``: :meth:`~crtk_bridge.core.actuator.Actuator.cartesian_namespaces`)."""
-    return {ns: NativeCartesian(namespaces[ns], k, timeout_s) for k, ns in enumerate(rows)}
+    return {ns: NativeCartesian(namespaces[ns], k, safety) for k, ns in enumerate(rows)}
 

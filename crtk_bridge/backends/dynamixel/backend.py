@@ -26,7 +26,8 @@ requires (Operating_Mode is EEPROM, writable with torque off only): Torque_Enabl
 Torque_Enable 1, then the cycle's goal. These are 4-5 ACKNOWLEDGED transactions on the real-time
 path (about 4 x (wire time + turnaround) ~= 1-2 ms at 1 Mbps, up to 4 x ``timeout_ms`` if a servo
 is slow), only in the cycle of a switch; the joint is unpowered for that time. Steady streams
-pay nothing.
+pay nothing. A switch that fails is a non-transient Fault at once (FAULT, torque off everywhere),
+naming the joint and register: the joint may already be unpowered, so it is not retried.
 
 Units (raw units never leave this module), per joint with the profile's ``calibration``:
 
@@ -527,25 +528,40 @@ class DynamixelBackend(SerialServoBackend):
     def _switch(self, i: int, want: OperatingMode) -> Fault | None:
         """Operating-mode switch (or leaving FREE) of joint ``i``, holding it. Acknowledged writes,
         on the real-time path: each gets the real-time attempts (1 + read_retries), not the
-        patient lifecycle ones, so a silent servo stalls one cycle by a few packet timeouts."""
+        patient lifecycle ones, so a silent servo stalls one cycle by a few packet timeouts.
+
+        Any failure here is a NON-transient Fault: from the Torque_Enable=0 write on (or when the
+        joint was FREE) the joint may be unpowered, and a retry next cycle would leave it limp
+        while the robot reports ENABLED for up to ``safety.bus_errors_max`` cycles. The Fault
+        names the joint and the register whose transaction failed; core goes to FAULT, torque off.
+        """
         self._realtime_txrx = True
+        register = "Torque_Enable"
         try:
             if self._op_mode[i] != want:
                 self._write_register(i, "Torque_Enable", 0)
+                register = "Operating_Mode"
                 self._write_register(i, "Operating_Mode", int(want))
                 self._op_mode[i] = want
             if want in T.POSITION_MODES:
-                self._write_register(i, "Goal_Position", self._read_register(i, "Present_Position"))
+                register = "Present_Position"
+                present = self._read_register(i, "Present_Position")
+                register = "Goal_Position"
+                self._write_register(i, "Goal_Position", present)
             elif want is OperatingMode.VELOCITY:
+                register = "Goal_Velocity"
                 self._write_register(i, "Goal_Velocity", 0)
             else:
+                register = "Goal_Current"
                 self._write_register(i, "Goal_Current", 0)
+            register = "Torque_Enable"
             self._write_register(i, "Torque_Enable", 1)
         except BackendError as exc:
             self._op_mode[i] = None
-            return Fault("bus_timeout", f"{exc} (switching to {want.name.lower()} mode)",
-                         joint=self.joint_names[i], register="Operating_Mode", value=int(want),
-                         transient=True)
+            return Fault("bus_timeout", f"{exc} (switching joint {self.joint_names[i]!r} to "
+                         f"{want.name.lower()} mode; its torque may be off)",
+                         joint=self.joint_names[i], register=register, value=int(want),
+                         transient=False)
         finally:
             self._realtime_txrx = False
             self._port.is_using = False
