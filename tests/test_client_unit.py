@@ -684,26 +684,51 @@ def test_cli_new_stream_commands_hold_free(fake, capsys):
 
 
 def test_cli_events_prints_until_count(fake, capsys):
-    def push_later():
-        time.sleep(0.1)
-        fake.push(os_event(state("ENABLED")))  # not printed: operating_state is not an event here
-        fake.push({"event": "status", "data": {"stamp": 1.0, "ns": "so101", "code": "state_changed",
-                                               "message": "so101: ENABLED"}})
-        fake.push({"event": "error", "data": {"stamp": 2.0, "ns": "so101", "code": "servo_error",
-                                              "message": "servo 3 reports overload",
-                                              "joint": "elbow", "register": "Status", "value": 32}})
-        fake.push(warning("servo_timeout"))
+    def push_events(s):
+        s.send(os_event(state("ENABLED")))  # not printed: operating_state is not an event here
+        s.send({"event": "status", "data": {"stamp": 1.0, "ns": "so101", "code": "state_changed",
+                                            "message": "so101: ENABLED"}})
+        s.send({"event": "error", "data": {"stamp": 2.0, "ns": "so101", "code": "servo_error",
+                                           "message": "servo 3 reports overload",
+                                           "joint": "elbow", "register": "Status", "value": 32}})
+        s.send(warning("servo_timeout"))
 
-    threading.Thread(target=push_later, daemon=True).start()
-    assert main(["--socket", fake.path, "events", "--count", "2"]) == 0
+    # the events arrive while crtk-ctl is still connecting (before the reply to its `list`):
+    # they must be printed, not lost before the listener is set up
+    answer_list = fake.handlers["list"]
+
+    def list_after_events(r, s):
+        push_events(s)
+        answer_list(r, s)
+
+    fake.handlers["list"] = list_after_events
+    rc = []
+    runner = threading.Thread(target=lambda: rc.append(main(["--socket", fake.path, "events", "--count", "2"])),
+                              daemon=True)
+    runner.start()
+    runner.join(5.0)  # a deadline, not a pause: it returns as soon as the two events are printed
+    assert rc == [0], "crtk-ctl events lost the events that arrived while it connected"
     lines = capsys.readouterr().out.splitlines()
     assert len(lines) == 2
     assert "status" in lines[0] and "state_changed" in lines[0]
     assert "servo_error" in lines[1] and "joint=elbow" in lines[1] and "register=Status" in lines[1] \
         and "value=32" in lines[1]
 
-    threading.Thread(target=push_later, daemon=True).start()
+    # and events that arrive after it listens: pushed once its session has asked for `list`
+    fake.handlers["list"] = answer_list
+    n = len(fake.sessions)
+    listed = threading.Event()
+
+    def push_when_listed():
+        wait_until(lambda: len(fake.sessions) > n and any(r["cmd"] == "list" for r in fake.requests),
+                   5.0, what="crtk-ctl connected")
+        push_events(fake.sessions[-1])
+        listed.set()
+
+    fake.requests.clear()
+    threading.Thread(target=push_when_listed, daemon=True).start()
     assert main(["--socket", fake.path, "events", "--kind", "warning", "--count", "1", "--json"]) == 0
+    assert listed.is_set()
     obj = json.loads(capsys.readouterr().out)
     assert obj["event"] == "warning" and obj["data"]["code"] == "servo_timeout"
 

@@ -183,11 +183,6 @@ class CompositeActuator(Actuator):
         return self._joint_caps[i]
 
     def cartesian_namespaces(self) -> list[str]:
-        # cartesian command rows are not forwarded to the buses (yet): every namespace of a
-        # composite robot goes through the daemon's own IK and twist mapping
-        return []
-
-    def cartesian_namespaces(self) -> list[str]:
         """Every bus's natively cartesian namespaces, bus after bus (the rows of the robot's
         CartesianCommand / CartesianFeedback)."""
         return [ns for p in self.parts for ns in p.cartesian_namespaces()]

@@ -588,11 +588,12 @@ def _fmt_event(ev) -> str:
 
 
 def _events(robot: Robot, args) -> int:
-    """Print events as they arrive (the reader thread queues them) until --count or Ctrl-C."""
+    """Print events as they arrive (the reader thread queues them) until --count or Ctrl-C,
+    from the moment the connection opened: those that came while connecting are printed first."""
     import queue
 
     q: queue.Queue = queue.Queue()
-    robot.connection.on_event = q.put
+    robot.connection.listen_events(q.put)
     kinds = set(args.kind or ("status", "warning", "error"))
     count = 0
     if args.count is not None and args.count <= 0:

@@ -391,6 +391,17 @@ class Connection:
                     self.idle_seq = max(self.idle_seq, seq)
             self.cond.notify_all()
 
+    def listen_events(self, callback: Callable[[Event], None]) -> None:
+        """Hand ``callback`` the events kept since the connection opened (oldest first), then
+        every later one (it becomes :attr:`on_event`), atomically: each event reaches it exactly
+        once and in order, even one arriving meanwhile; nothing between connect and listening is
+        lost (up to ``max_events`` are kept). The backlog is handed over with :attr:`cond` held:
+        ``callback`` must not block (``queue.Queue.put`` is fine)."""
+        with self.cond:
+            for ev in self.events:
+                callback(ev)
+            self.on_event = callback
+
     def events_since(self, count: int) -> list[Event]:
         """The events that arrived after :attr:`event_count` was ``count`` (as many as are
         still kept), oldest first."""
@@ -403,7 +414,7 @@ class Connection:
             self.events.append(ev)
             self.event_count += 1
             self.cond.notify_all()
-        cb = self.on_event
+            cb = self.on_event  # read under the lock: see listen_events
         if cb is not None:
             try:
                 cb(ev)
