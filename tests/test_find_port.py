@@ -176,3 +176,18 @@ def test_backend_opens_the_adapter_with_that_serial_number(monkeypatch):
         assert "/dev/ttyACM7" in str(info.value) and sim.port in str(info.value)
     finally:
         sim.stop()
+
+
+def test_find_port_runs_on_this_machines_real_ports():
+    """No injection: pyserial's own comports() and the real /dev/serial/by-id, as a user runs it."""
+    from serial.tools.list_ports import comports
+
+    proc = subprocess.run([sys.executable, "-m", "crtk_bridge.cli", "find-port"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    devices = sorted(p.device for p in comports())
+    lines = proc.stdout.splitlines()
+    if devices:
+        assert sorted(line.split()[0] for line in lines) == devices
+    else:
+        assert lines == ["no serial ports found"]
