@@ -1,7 +1,7 @@
 """``crtk-bridge``: run the daemon, or check a profile.
 
     crtk-bridge --profile FILE [--sim] [--socket PATH] [--log-level L] [--no-realtime]
-    crtk-bridge check --profile FILE
+    crtk-bridge check --profile FILE [--scan]
     crtk-bridge find-port [--replug]
 """
 
@@ -19,13 +19,15 @@ def _run_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="crtk-bridge",
         usage="%(prog)s --profile FILE [--sim] [--socket PATH] [options]\n"
-              "       %(prog)s check --profile FILE\n"
+              "       %(prog)s check --profile FILE [--scan]\n"
               "       %(prog)s find-port [--replug]",
         description="Serve the CRTK robot API for the robot a profile describes.",
         epilog="commands:\n"
                "  check --profile FILE  validate a profile without opening the bus: every key, the\n"
                "                        backend section, and the kinematics where it names a URDF\n"
-               "                        (frames and joints); exit 0 if valid\n"
+               "                        (frames and joints); exit 0 if valid. --scan also pings\n"
+               "                        every id on the bus: model, firmware, torque of each\n"
+               "                        servo; missing and extra ids (exit 1 on a mismatch)\n"
                "  find-port [--replug]  list serial ports with their /dev/serial/by-id names and USB\n"
                "                        vendor / product / serial number; --replug names the one\n"
                "                        you unplug and plug back",
@@ -42,6 +44,11 @@ def _run_parser() -> argparse.ArgumentParser:
 def _check(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="crtk-bridge check", description="Validate a robot profile; exit 0 if valid.")
     p.add_argument("--profile", required=True)
+    p.add_argument("--scan", action="store_true",
+                   help="also open each bus (the daemon must not be running) and ping every id at "
+                        "the profile's baud rate: report each servo's model, firmware and torque "
+                        "state, the joints whose id did not answer and the ids no joint has; exit 1 "
+                        "on any mismatch. Writes nothing to the servos")
     args = p.parse_args(argv)
     from .backends import create_backend
     from .core.kinematics_check import check_kinematics
@@ -49,7 +56,7 @@ def _check(argv: list[str]) -> int:
 
     try:
         profile = load_profile(args.profile)
-        create_backend(profile, source=args.profile)
+        backend = create_backend(profile, source=args.profile)
         cartesian = check_kinematics(profile, args.profile)
     except CrtkBridgeError as exc:
         print(f"crtk-bridge: {exc}", file=sys.stderr)
@@ -57,7 +64,37 @@ def _check(argv: list[str]) -> int:
     print(f"{args.profile}: valid profile for robot {profile.name!r} ({profile.backend_type}, "
           f"{len(profile.joints)} joints, namespaces {', '.join(ns.name for ns in profile.namespaces)}"
           f"{'; kinematics ' + ', '.join(cartesian) if cartesian else ''})")
-    return 0
+    return _scan(profile, backend) if args.scan else 0
+
+
+def _scan(profile, backend) -> int:
+    """``check --scan``: each bus's servos against the profile. 0 when they match, else 1."""
+    buses = dict(zip(backend.bus_names, backend.parts)) if profile.backends is not None else {"": backend}
+    failed = False
+    for bus, part in buses.items():
+        where = f"backends.{bus}" if bus else "backend"
+        if not hasattr(part, "scan"):
+            print(f"crtk-bridge: {profile.name}: {where}: a {type(part).__name__} cannot scan its bus",
+                  file=sys.stderr)
+            failed = True
+            continue
+        print(f"scanning {where} ({part.vendor}) at {part.config.baudrate} baud, ids 0-{part.MAX_ID}...",
+              flush=True)
+        try:
+            found = part.scan()
+        except CrtkBridgeError as exc:
+            print(f"crtk-bridge: {exc}", file=sys.stderr)
+            failed = True
+            continue
+        lines, problems = part.scan_report(found)
+        print(f"{where}: {part.port_name}: {len(found)} servo{'s' if len(found) != 1 else ''} answered")
+        for line in lines:
+            print("  " + line)
+        if problems:
+            failed = True
+            print(f"crtk-bridge: {profile.name}: {where} ({part.port_name}) does not match the profile: "
+                  + "; ".join(problems), file=sys.stderr)
+    return 1 if failed else 0
 
 
 def _find_port(argv: list[str]) -> int:

@@ -32,6 +32,7 @@ import os
 import select
 import termios
 import time
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -182,6 +183,17 @@ class SerialPortFixes:
         return self.getCurrentTime() - self.packet_start_time
 
 
+@dataclass(frozen=True)
+class ScannedServo:
+    """One servo that answered a bus scan (:meth:`SerialServoBackend.scan`)."""
+
+    id: int
+    model_number: int
+    model: str | None  # the model's name, None when the backend does not know the number
+    firmware: str | None  # None: it did not say
+    torque: bool | None  # Torque_Enable; None: it did not say
+
+
 class SerialServoBackend(Actuator):
     """Servos with one id each on one half-duplex serial bus. Subclasses fill the hooks below.
 
@@ -286,6 +298,8 @@ class SerialServoBackend(Actuator):
     def _where(self) -> str:
         return self._port_path or str(self.config.port)
 
+    port_name = _where  # the device path once opened (or scanned), else backend.port as given
+
     def info(self) -> ActuatorInfo:
         return ActuatorInfo(list(self.joint_names), self.capabilities, dict(self._details))
 
@@ -379,8 +393,9 @@ class SerialServoBackend(Actuator):
                      joint=self.joint_names[i] if i is not None else None, transient=True)
 
     # ------------------------------------------------------------------ lifecycle
-    def _open_hook(self) -> None:
-        """Open the port, ping every servo and check its model. Blocks. Raises BackendError."""
+    def _open_port(self) -> tuple[Any, float]:
+        """Resolve ``backend.port``, open it at the profile's baud rate; set ``self._port`` and
+        ``self._ph``. Returns (port, packet margin in ms). Blocks. Raises BackendError."""
         cfg = self.config
         self._port_path = resolve_port(cfg.port, self.robot, self.source)
         margin = DEFAULT_MARGIN_MS if cfg.timeout_ms is None else cfg.timeout_ms
@@ -395,6 +410,96 @@ class SerialServoBackend(Actuator):
             raise BackendError(f"{self.robot}: cannot open port {self._where} at {cfg.baudrate} baud")
         self._port = port
         self._ph = self._make_packet_handler()
+        return port, margin
+
+    # ------------------------------------------------------------------ bus scan (check --scan)
+    def scan(self) -> list[ScannedServo]:
+        """Every servo answering on the bus at the profile's baud rate, by id: model number,
+        firmware, torque state. Opens the port only for the scan (call it on a backend that is
+        not open); writes nothing. Ids 0..MAX_ID are swept (:meth:`_discover`: the vendor's
+        broadcast ping, else one ping per id); a profile id silent in the sweep is pinged again
+        with the usual retries before it counts as missing. Blocks (~1-3 s). Raises
+        BackendError when the port does not open."""
+        port, _ = self._open_port()
+        try:
+            found = self._discover()
+            for sid in self._ids:
+                if sid not in found:
+                    model, result, _ = self._txrx(self._ph.ping, sid)
+                    if result == COMM_SUCCESS:
+                        found[sid] = (model, None)
+            names = {number: name for name, number in self.MODEL_NUMBERS.items()}
+            out = []
+            for sid, (number, firmware) in sorted(found.items()):
+                model = names.get(number)
+                firmware, torque = self._identify(sid, model, firmware)
+                out.append(ScannedServo(sid, number, model, firmware, torque))
+            return out
+        finally:
+            port.closePort()
+            self._port = None
+
+    def _discover(self) -> dict[int, tuple[int, int | None]]:
+        """id -> (model number, firmware or None) of every servo answering a ping: one ping per
+        id, a single attempt each (a missing id costs one packet timeout). Vendors with a
+        broadcast ping override this."""
+        found = {}
+        for sid in range(self.MAX_ID + 1):
+            self._port.is_using = False
+            try:
+                model, result, _ = self._ph.ping(self._port, sid)
+            except IndexError:  # a truncated reply (see _txrx)
+                continue
+            if result == COMM_SUCCESS:
+                found[sid] = (model, None)
+        return found
+
+    def _read_id(self, sid: int, address: int, size: int = 1) -> int | None:
+        """One register of the servo with bus id ``sid`` (joint or not), or None without reply."""
+        fn = {1: self._ph.read1ByteTxRx, 2: self._ph.read2ByteTxRx, 4: self._ph.read4ByteTxRx}[size]
+        value, result, _ = self._txrx(fn, sid, address)
+        return value if result == COMM_SUCCESS else None
+
+    def _identify(self, sid: int, model: str | None, firmware: int | None) -> tuple[str | None, bool | None]:
+        """(firmware version text, torque on) of servo ``sid`` of ``model`` (None: unknown model),
+        read from it; None where it did not say."""
+        raise NotImplementedError
+
+    def scan_report(self, found: list[ScannedServo]) -> tuple[list[str], list[str]]:
+        """(one line per servo and per missing joint, the mismatches) of a :meth:`scan` against
+        the profile: a joint's id that did not answer, a servo of another model than the joint's,
+        an id that answered but no joint has."""
+        by_id = {s.id: s for s in found}
+        lines, problems = [], []
+
+        def describe(s: ScannedServo) -> str:
+            torque = {True: "torque on", False: "torque off", None: "torque ?"}[s.torque]
+            return (f"{s.model or 'unknown model'} (model number {s.model_number})  "
+                    f"firmware {s.firmware or '?'}  {torque}")
+
+        for i, (name, j) in enumerate(zip(self.joint_names, self.joint_keys)):
+            s = by_id.pop(self._ids[i], None)
+            if s is None:
+                lines.append(f"id {self._ids[i]:3d}  {name:<16} MISSING: no reply")
+                problems.append(f"{self._label[i]}: no reply at {self.config.baudrate} baud")
+                continue
+            expected = self.MODEL_NUMBERS[j.model]
+            ok = s.model_number == expected
+            lines.append(f"id {s.id:3d}  {name:<16} {describe(s)}"
+                         f"{'' if ok else f'  WRONG MODEL: the profile says {j.model}'}")
+            if not ok:
+                problems.append(f"{self._label[i]}: is model number {s.model_number} "
+                                f"({s.model or 'unknown'}), the profile says {j.model} ({expected})")
+        for s in by_id.values():
+            lines.append(f"id {s.id:3d}  {'(no joint)':<16} {describe(s)}  EXTRA: not in the profile")
+            problems.append(f"id {s.id} ({s.model or f'model number {s.model_number}'}) answered "
+                            f"but no joint has this id")
+        return lines, problems
+
+    def _open_hook(self) -> None:
+        """Open the port, ping every servo and check its model. Blocks. Raises BackendError."""
+        cfg = self.config
+        port, margin = self._open_port()
         try:
             self._check_servos()
             self._after_open()

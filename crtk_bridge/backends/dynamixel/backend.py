@@ -228,6 +228,20 @@ class DynamixelBackend(SerialServoBackend):
     def _make_packet_handler(self):
         return PacketHandler(2.0)
 
+    def _discover(self) -> dict[int, tuple[int, int | None]]:
+        """Protocol 2.0's broadcast ping: every servo answers in turn with model and firmware."""
+        self._port.is_using = False
+        found, _ = self._ph.broadcastPing(self._port)  # no reply at all: an empty dict
+        return {sid: (model, firmware) for sid, (model, firmware) in found.items()}
+
+    def _identify(self, sid: int, model: str | None, firmware: int | None) -> tuple[str | None, bool | None]:
+        """Firmware (from the ping, else read) and Torque_Enable (same address on every X model)."""
+        table = T.CONTROL_TABLES[model or "xm430-w350"]
+        if firmware is None:
+            firmware = self._read_id(sid, table["Firmware_Version"].address)
+        torque = self._read_id(sid, table["Torque_Enable"].address)
+        return (None if firmware is None else str(firmware), None if torque is None else torque != 0)
+
     def _register(self, i: int, name: str) -> tuple[int, int]:
         try:
             reg = self._tables[i][name]

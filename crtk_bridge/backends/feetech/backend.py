@@ -165,6 +165,15 @@ class FeetechBackend(SerialServoBackend):
         reg = tables.STS_CONTROL_TABLE[name]
         return reg.address, reg.size
 
+    def _identify(self, sid: int, model: str | None, firmware: int | None) -> tuple[str | None, bool | None]:
+        """Firmware Major.Minor and Torque_Enable, read (the STS table; SCS servos share them)."""
+        t = tables.STS_CONTROL_TABLE
+        major = self._read_id(sid, t["Firmware_Major_Version"].address)
+        minor = self._read_id(sid, t["Firmware_Minor_Version"].address)
+        torque = self._read_id(sid, t["Torque_Enable"].address)
+        return (None if major is None or minor is None else f"{major}.{minor}",
+                None if torque is None else torque != 0)
+
     def _encode(self, i: int, name: str, value: int) -> int:
         if name in tables.SIGN_BITS:
             return tables.encode_sign_magnitude(value, tables.SIGN_BITS[name])
