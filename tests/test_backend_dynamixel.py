@@ -275,3 +275,44 @@ def test_failed_mode_switch_after_torque_off_is_a_fault_at_once(rig, silent_afte
     if failed == "Operating_Mode":
         assert reg(sim, 1, "Torque_Enable") == 0  # limp: which is why core must go to FAULT now
     # (a lost ack of Torque_Enable=1: the servo may or may not be torqued; unknown, so FAULT too)
+
+
+def test_failed_mode_switch_puts_the_robot_in_fault_at_once_torque_off_everywhere(rig):
+    # the controller's side of the test above: one cycle with the failed switch, and the robot is
+    # in FAULT (not ENABLED for bus_errors_max cycles with a limp joint); then torque off everywhere
+    import time
+
+    from crtk_bridge.core.controller import Controller
+
+    sim, b = rig
+    c = Controller(b.profile, b, time.time)
+    fb = b.new_feedback()
+
+    def cycle():
+        c.on_read(fb, b.read(fb))
+        if c.step():
+            c.on_write(b.write(c.command))
+
+    c.handle({"id": 1, "cmd": "enable"})
+    wait_until(lambda: cycle() or any(m.get("id") == 1 for m in c.outbox), 10.0, what="enable reply")
+    assert c.state.value == "ENABLED"
+    real = b._write_register
+
+    def write_then_go_silent(i, name, value, check_error=False):
+        real(i, name, value, check_error)
+        if i == 0 and name == "Torque_Enable" and value == 0:
+            sim.set_fault(1, "silent")
+
+    b._write_register = write_then_go_silent
+    c.outbox.clear()
+    c.handle({"id": 2, "cmd": "servo_jv", "ns": "koch", "data": {"velocity": [0.3, 0, 0, 0, 0]}})
+    assert c.outbox[-1].get("ok"), c.outbox
+    cycle()  # the switch to velocity mode fails after torque off
+    assert c.state.value == "FAULT"
+    errors = [m["data"] for m in c.outbox if m.get("event") == "error"]
+    assert errors and errors[0]["code"] == "bus_timeout" and errors[0]["joint"] == "shoulder_pan"
+    assert errors[0]["register"] == "Operating_Mode"
+    b._write_register = real
+    sim.clear_faults()  # the servo answers again: the fault's torque off is confirmed
+    wait_until(lambda: cycle() or all(reg(sim, sid, "Torque_Enable") == 0 for sid in range(1, 7)), 5.0,
+               what="torque off on every servo")
