@@ -191,3 +191,23 @@ def test_find_port_runs_on_this_machines_real_ports():
         assert sorted(line.split()[0] for line in lines) == devices
     else:
         assert lines == ["no serial ports found"]
+
+
+def test_two_bus_profile_names_the_bus_key_of_a_missing_serial_number(monkeypatch):
+    from crtk_bridge.backends import create_backend
+    from crtk_bridge.sim.feetech import FeetechSimulator
+
+    from .conftest import profile_data
+
+    data = profile_data(ROOT / "profiles" / "bimanual_so101.yaml")
+    with FeetechSimulator(servo_ids=range(1, 7)) as left:
+        monkeypatch.setattr(ports, "list_serial_ports", lambda: [SerialPort(left.port, serial_number="LEFT", vid=1, pid=1)])
+        data["backends"]["left"]["port"] = {"serial_number": "LEFT"}
+        data["backends"]["right"]["port"] = {"serial_number": "RIGHT"}
+        robot = create_backend(parse_profile(data, "bimanual.yaml"), source="bimanual.yaml")
+        with pytest.raises(BackendError) as info:
+            robot.open()
+        robot.close()
+    assert str(info.value).startswith(f"{data['name']}: bus 'right': bimanual.yaml: backends.right.port.serial_number: "
+                                      "no USB serial adapter has serial number 'RIGHT'; plugged in: ")
+    assert left.port in str(info.value)

@@ -325,7 +325,8 @@ class CompositeActuator(Actuator):
 
     def _named(self, b: int, exc: BaseException) -> BackendError:
         """A bus's lifecycle error, re-raised naming the bus."""
-        return BackendError(f"{self.robot}: bus {self.bus_names[b]!r}: {str(exc).removeprefix(f'{self.robot}: ')}")
+        message = _robot_key_paths(str(exc).removeprefix(f"{self.robot}: "), self.profile, self.bus_names[b])
+        return BackendError(f"{self.robot}: bus {self.bus_names[b]!r}: {message}")
 
     def _close_hook(self) -> None:
         if self._workers is not None:
