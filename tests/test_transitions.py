@@ -82,7 +82,12 @@ class SlowActuator(Actuator):
 
 @pytest.fixture
 def rig():
-    act = SlowActuator(PROFILE)
+    return make_slow_rig(SlowActuator(PROFILE))
+
+
+def make_slow_rig(act):
+    """(controller, actuator, clock, cycle(n), send(cmd, ns, **data) -> id, replies(id)) around
+    ``act``; unlike test_controller's rig, replies may come cycles after the request."""
     clock = Clock()
     c = Controller(PROFILE, act, clock)
     ids = itertools.count(1)
@@ -309,24 +314,13 @@ class _MissesReadsAfterTorqueOn(SlowActuator):
 def test_enable_tolerates_a_missed_read_after_torque_on(misses, enabled):
     """One late reply right after torque on must not fault the robot: the pose it holds comes
     from the next good read; a bus that keeps failing still faults, torque off."""
-    act = _MissesReadsAfterTorqueOn(PROFILE, misses)
-    clock = Clock()
-    c = Controller(PROFILE, act, clock)
-    fb = act.new_feedback()
-
-    def cycle():
-        clock.t += c.dt
-        c.on_read(fb, act.read(fb))
-        if c.step():
-            c.on_write(act.write(c.command))
-
-    cycle()
-    c.handle({"id": 1, "cmd": "enable", "ns": None, "data": {}})
+    c, act, clock, cycle, send, replies = make_slow_rig(_MissesReadsAfterTorqueOn(PROFILE, misses))
+    rid = send("enable")
     for _ in range(10):
-        if any(m.get("id") == 1 for m in c.outbox):
+        if replies(rid):
             break
         cycle()
-    (reply,) = [m for m in c.outbox if m.get("id") == 1]
+    (reply,) = replies(rid)
     assert reply["ok"] is enabled
     if enabled:
         assert c.state is OperatingState.ENABLED and act.torque

@@ -490,10 +490,10 @@ class Controller:
             if self.state is OperatingState.ENABLED:
                 self._stop_all()
                 self.homing = False
-                return self._start(self.actuator.begin(Lifecycle.PAUSE), self._paused, self._pause_failed)
+                return self._start(self.actuator.begin(Lifecycle.PAUSE), self._paused, self._failed("pause"))
             self._stop_all()  # PAUSED: whatever moves (a shutdown park) stops too
         elif cmd is StateCommand.RESUME:
-            return self._start(self.actuator.begin(Lifecycle.RESUME), self._resumed, self._resume_failed)
+            return self._start(self.actuator.begin(Lifecycle.RESUME), self._resumed, self._failed("resume"))
         elif cmd is StateCommand.HOME:
             return self._home()
         elif cmd is StateCommand.UNHOME:
@@ -579,7 +579,7 @@ class Controller:
         kinds = (Lifecycle.FAULT_RESET, Lifecycle.ENABLE) if self.state is OperatingState.FAULT else (Lifecycle.ENABLE,)
         timeout = sum(self.actuator.transition_timeout_s(k) for k in kinds)
         t = Transition(self.robot, Lifecycle.ENABLE, self._sequence(kinds), timeout)
-        return self._start(t, self._enabled, self._enable_failed)
+        return self._start(t, self._enabled, self._failed("enable"))
 
     def _enabled(self) -> dict:
         # hold exactly where the joints are NOW: the cycle's sample may be stale (a failed read,
@@ -592,7 +592,7 @@ class Controller:
             if fault is None:
                 break
         if fault is not None:
-            raise self._enable_failed(BackendError(f"no fresh position after torque on: {fault.message}"))
+            raise self._failed("enable")(BackendError(f"no fresh position after torque on: {fault.message}"))
         self.on_read(self._fresh, None)
         for m in self.namespaces.values():
             m.reset(self.feedback.position[m.idx])
@@ -603,10 +603,14 @@ class Controller:
         self._set_state(OperatingState.ENABLED)
         return self.operating_state()
 
-    def _enable_failed(self, exc: Exception) -> Refused:
-        # never leave torque on unsaid: FAULT, and the backend's fault reaction (torque off)
-        self._enter_fault(Fault("enable_failed", str(exc), transient=False))
-        return Refused("fault", f"{self.robot}: enable failed: {exc}")
+    def _failed(self, kind: str) -> Callable[[Exception], Refused]:
+        """What a failed ``kind`` transition (enable, pause, resume, home) does: FAULT with code
+        ``<kind>_failed`` and the backend's fault reaction (never leave torque on unsaid), and the
+        request's ``fault`` refusal."""
+        def failed(exc: Exception) -> Refused:
+            self._enter_fault(Fault(f"{kind}_failed", str(exc), transient=False))
+            return Refused("fault", f"{self.robot}: {kind} failed: {exc}")
+        return failed
 
     def _disable(self, retry: bool) -> Any:
         self._abort_motion()
@@ -629,17 +633,9 @@ class Controller:
         self._set_state(OperatingState.PAUSED)
         return self.operating_state()
 
-    def _pause_failed(self, exc: Exception) -> Refused:
-        self._enter_fault(Fault("pause_failed", str(exc), transient=False))
-        return Refused("fault", f"{self.robot}: pause failed: {exc}")
-
     def _resumed(self) -> dict:
         self._set_state(OperatingState.ENABLED)
         return self.operating_state()
-
-    def _resume_failed(self, exc: Exception) -> Refused:
-        self._enter_fault(Fault("resume_failed", str(exc), transient=False))
-        return Refused("fault", f"{self.robot}: resume failed: {exc}")
 
     def _home(self) -> Any:
         if self.actuator.native_homing:
@@ -650,12 +646,8 @@ class Controller:
                 self._push_state()
                 return self.operating_state()
 
-            def failed(exc: Exception) -> Refused:
-                self._enter_fault(Fault("home_failed", str(exc), transient=False))
-                return Refused("fault", f"{self.robot}: home failed: {exc}")
-
             self._stop_all()
-            return self._start(self.actuator.begin(Lifecycle.HOME), homed, failed)
+            return self._start(self.actuator.begin(Lifecycle.HOME), homed, self._failed("home"))
         if not all(c.position for c in self.ns_caps.values()):
             raise Refused("unsupported", f"{self.robot}: home unsupported without position control")
         now = self.clock()
