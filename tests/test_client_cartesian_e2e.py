@@ -191,13 +191,18 @@ def test_servo_cv_body_and_spatial_frames_go_to_their_namespaces(arm, daemon, ca
     assert d[2] < 0  # went down: the body frame was used, not the spatial one
 
     # the body-frame twist query is the spatial one in the tip's axes
-    def streaming_at_twist():  # the joint velocity reaches the twist in a few cycles (acceleration-limited)
+    def streaming_at_twist():
+        # the joint velocity reaches the twist in a few cycles (acceleration-limited): compare the
+        # two frames only once it is steady, i.e. the spatial twist is the same before and after
+        # the body query (two queries are two samples; during the ramp they differ)
         arm.servo_cv([0, 0, v, 0, 0, 0], frame="spatial")
-        r = arm.setpoint_cv()
-        return r if r[0][2] > 0.02 else None
+        vs0, _ = arm.setpoint_cv()
+        vb, tb = arm.setpoint_cv(frame="body")
+        vs, ts = arm.setpoint_cv()
+        steady = vs[2] > 0.02 and np.allclose(vs0, vs, atol=2e-4)
+        return (vs, ts, vb, tb) if steady else None
 
-    vs, ts = wait_until(streaming_at_twist, 3, what="setpoint_cv at the commanded twist")
-    vb, tb = arm.setpoint_cv(frame="body")
+    vs, ts, vb, tb = wait_until(streaming_at_twist, 3, what="setpoint_cv steady at the commanded twist")
     arm.hold()
     assert ts > 0 and tb > 0 and vs[2] > 0.02
     T, _ = arm.setpoint_cp()
