@@ -6,6 +6,7 @@ on socketcan ``vcan0`` when that interface exists (skipped with the reason other
 from __future__ import annotations
 
 import os
+import re
 import time
 
 import msgspec
@@ -359,3 +360,13 @@ def test_home_runs_the_drives_homing_method(iface):
         assert abs(c.feedback.position[0]) < 0.01 and r.drive(0).mode == 8 and c.state is S.ENABLED
     finally:
         r.close()
+
+
+def test_example_profile_documents_every_canopen_key():
+    from crtk_bridge.backends.canopen402.backend import Config, DriveJoint, Homing
+
+    text = (ROOT / "profiles" / "example.yaml").read_text()
+    for struct in (Config, DriveJoint, Homing):
+        for key in struct.__struct_fields__:
+            assert re.search(rf"^\s*#\s+{key}:", text, re.M), f"{struct.__name__}.{key} is not in example.yaml"
+    load_profile(ROOT / "profiles" / "example.yaml")  # still a valid profile
