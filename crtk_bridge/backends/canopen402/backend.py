@@ -41,6 +41,7 @@ gear_ratio)`` for ``unit: rad`` (``1 / (...)`` for ``unit: m``):
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -311,6 +312,9 @@ class Canopen402Backend(Actuator):
         """Open the bus, wait for every node to boot (boot-up, heartbeat or an SDO answer, within
         ``boot_timeout_s`` each), check it is a CiA 402 drive, read its supported modes and rated
         torque. Blocks. Raises BackendError naming the node."""
+        quiet = logging.getLogger("canopen")
+        if quiet.level == logging.NOTSET:  # its INFO lines narrate every SDO of the PDO set-up
+            quiet.setLevel(logging.WARNING)
         network = self._connect()
         self._network = network
         try:
