@@ -561,6 +561,8 @@ class Canopen402Backend(Actuator):
             return Fault("bus_error", f"{self.robot}: read on a closed CAN bus", transient=False)
         if self._bus_down is not None:
             return self._bus_fault()
+        if not self.drives[0].v:
+            return Fault("bus_error", f"{self.robot}: read before configure(): no PDO mapped yet", transient=False)
         self.stats["reads"] += 1
         self._reads += 1
         missing = self._wait_tpdos(self._sync_t + self._tpdo_timeout_s) if self._sync_seq else None
@@ -653,6 +655,8 @@ class Canopen402Backend(Actuator):
             return Fault("bus_error", f"{self.robot}: write on a closed CAN bus", transient=False)
         if self._bus_down is not None:
             return self._bus_fault()
+        if not self.drives[0].v:
+            return Fault("bus_error", f"{self.robot}: write before configure(): no PDO mapped yet", transient=False)
         fault = None
         for d in self.drives:
             enabled = self._enabled and d.state is State402.OPERATION_ENABLED and command is not None
