@@ -78,6 +78,7 @@ from .tables import Command, Goal, Mode, State402
 PDO_NOT_VALID = 1 << 31
 I32 = (-(2**31), 2**31 - 1)
 I16 = (-(2**15), 2**15 - 1)
+_RING = 64  # SYNC send times kept (stamps of late answers, TPDO deadlines)
 CAN_ERR_BUSOFF = 0x00000040  # SocketCAN error class in an error frame's id (linux/can/error.h)
 
 _POSITION, _VELOCITY, _EFFORT, _FREE = (int(CommandMode.POSITION), int(CommandMode.VELOCITY),
@@ -121,7 +122,7 @@ class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     boot_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=120)] = 5.0  # per node
     heartbeat_ms: Annotated[int, msgspec.Meta(ge=1, le=65535)] = 100  # producer time written to 0x1017
     heartbeat_timeout_ms: Annotated[float, msgspec.Meta(gt=0, le=60000)] = 350.0  # consumer
-    tpdo_timeout_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] | None = None  # None: one loop period
+    tpdo_timeout_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] | None = None  # None: three loop periods
     sdo_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=10)] = 0.3
 
 
@@ -158,7 +159,10 @@ class _Drive:
         self.vel = 0
         self.torque = 0
         self.mode_display = 0
-        self.rx = [0, 0]  # per TPDO: the SYNC count when it last arrived
+        # per TPDO: frames arrived, and the offset that makes "arrived - base == SYNCs sent" when
+        # every SYNC was answered (a TPDO answering an older SYNC late must not pass for fresh)
+        self.arrived = [0, 0]
+        self.base = [0, 0]
         self.missed = 0  # consecutive reads with a TPDO missing
         # next RPDO values
         self.cw = int(Command.DISABLE_VOLTAGE)
@@ -215,6 +219,8 @@ class Canopen402Backend(Actuator):
     simulator = SimWiring("canopen", endpoint_key="channel")
     #: the interface ``--sim`` uses to reach the simulated USB-CAN adapter
     SIM_INTERFACE = "slcan"
+    #: ``tpdo_timeout_ms`` on the simulator unless the profile sets one
+    SIM_TPDO_TIMEOUT_MS = 50.0
     transition_timeouts_s = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 3.0,
                              Lifecycle.RESUME: 3.0, Lifecycle.FAULT_RESET: 2.0, Lifecycle.HOME: 60.0}
     #: cycles a drive's statusword may stay missing inside a transition before it fails
@@ -246,14 +252,15 @@ class Canopen402Backend(Actuator):
         self.drives = [_Drive(i, j.name, k, j.limits) for i, (j, k) in enumerate(zip(profile.joints, keys))]
         self._period_s = 1.0 / profile.loop.rate_hz
         self._tpdo_timeout_s = (cfg.tpdo_timeout_ms / 1000.0 if cfg.tpdo_timeout_ms is not None
-                                else self._period_s)
+                                else 3 * self._period_s)
         self._hb_timeout_s = cfg.heartbeat_timeout_ms / 1000.0
         self._joint_caps = [self.capabilities] * self.n
         self._network: canopen.Network | None = None
         self._rx_event = threading.Event()
         self._sync_seq = 0  # SYNCs sent
         self._sync_t = 0.0  # monotonic time of the last SYNC
-        self._sync_wall = 0.0  # its wall-clock time: the stamp of the samples answering it
+        self._sync_mono = [0.0] * _RING  # monotonic time of SYNC n at [n % _RING]
+        self._sync_wall = [0.0] * _RING  # its wall-clock time: the stamp of the samples answering it
         self._reads = 0  # reads that took the drives' TPDOs (the loop's)
         self._seen_reads = 0  # self._reads at a transition's previous step
         self._bus_down: str | None = None  # why the bus failed; None: up
@@ -272,8 +279,11 @@ class Canopen402Backend(Actuator):
         the adapter's interface."""
         wired = super().sim_profile(profile, endpoint)
         options = {**wired.backend.get("options", {}), **cls.sim_options()}
-        return msgspec.structs.replace(wired, backend={**wired.backend, "interface": cls.SIM_INTERFACE,
-                                                       "options": options})
+        backend = {**wired.backend, "interface": cls.SIM_INTERFACE, "options": options}
+        # the simulated adapter and drives are Python threads in another process: on a loaded
+        # host their answers can take tens of ms (a real drive answers within a millisecond)
+        backend.setdefault("tpdo_timeout_ms", cls.SIM_TPDO_TIMEOUT_MS)
+        return msgspec.structs.replace(wired, backend=backend)
 
     @classmethod
     def sim_options(cls) -> dict[str, Any]:
@@ -366,7 +376,7 @@ class Canopen402Backend(Actuator):
         d.tpdos = [node.tpdo[1], node.tpdo[2]]
         for m, pdo in enumerate(d.tpdos):
             def got(_map: Any, d: _Drive = d, m: int = m) -> None:  # notifier thread
-                d.rx[m] = self._sync_seq
+                d.arrived[m] += 1
                 self._rx_event.set()
 
             pdo.add_callback(got)
@@ -515,6 +525,7 @@ class Canopen402Backend(Actuator):
         while True:
             self._send(None)
             missing = self._wait_tpdos(time.monotonic() + min(0.1, self.config.boot_timeout_s))
+            self._resync(self._sync_seq)
             if missing is None:
                 self._decode()
                 return
@@ -523,24 +534,48 @@ class Canopen402Backend(Actuator):
                                    f"{self.config.boot_timeout_s:g} s of NMT start on {self._where}")
 
     # ------------------------------------------------------------------ the cycle
+    # TPDO accounting: each drive answers every SYNC with one frame per TPDO, so "frames arrived
+    # - base" is the number of the last SYNC it answered. Counting (not tagging frames with the
+    # SYNC sent last) keeps a late answer to an older SYNC from passing for a fresh one.
+    def _answered(self, d: _Drive) -> int:
+        return min(d.arrived[0] - d.base[0], d.arrived[1] - d.base[1])
+
+    def _resync(self, upto: int) -> None:
+        """Count from SYNC ``upto`` on: a drive behind it is taken as having answered it (each
+        missed SYNC is counted once), one ahead of the SYNCs sent is brought back."""
+        seq = self._sync_seq
+        for d in self.drives:
+            for m in (0, 1):
+                answered = d.arrived[m] - d.base[m]
+                if answered < upto:
+                    d.base[m] = d.arrived[m] - upto
+                elif answered > seq:
+                    d.base[m] = d.arrived[m] - seq
+
     def _wait_tpdos(self, deadline: float) -> _Drive | None:
         """Wait (at most until ``deadline``, monotonic) until every node's TPDOs answered the
-        last SYNC. Returns the first drive still missing one, or None."""
+        last SYNC. Returns the first drive that did not, or None."""
         seq = self._sync_seq
         ev = self._rx_event
         while True:
             ev.clear()
-            missing = None
-            for d in self.drives:
-                if d.rx[0] != seq or d.rx[1] != seq:
-                    missing = d
-                    break
-            if missing is None:
-                return None
+            missing = next((d for d in self.drives if self._answered(d) < seq), None)
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            if missing is None or remaining <= 0:
                 return missing
             ev.wait(remaining)
+
+    def _overdue(self, now: float) -> _Drive | None:
+        """The first drive that has not answered a SYNC sent more than ``tpdo_timeout_ms`` ago
+        (missing TPDOs; a late drive within the time limit is not missing), or None. Counts each
+        missed SYNC once."""
+        seq = self._sync_seq
+        due = seq
+        while due > 0 and seq - due < _RING - 1 and self._sync_mono[due % _RING] + self._tpdo_timeout_s > now:
+            due -= 1
+        missing = next((d for d in self.drives if self._answered(d) < due), None)
+        self._resync(due)
+        return missing
 
     def _decode(self) -> None:
         for d in self.drives:
@@ -565,15 +600,20 @@ class Canopen402Backend(Actuator):
             return Fault("bus_error", f"{self.robot}: read before configure(): no PDO mapped yet", transient=False)
         self.stats["reads"] += 1
         self._reads += 1
-        missing = self._wait_tpdos(self._sync_t + self._tpdo_timeout_s) if self._sync_seq else None
-        self._decode()
+        # In the loop the answers are in (the SYNC went out a period ago). A late drive is waited
+        # for until tpdo_timeout_ms after the SYNC -- unless a drive is missing already, so a silent
+        # node does not stretch every cycle; the data is then that of the last SYNC answered.
+        if not any(d.missed for d in self.drives):
+            self._wait_tpdos(self._sync_t + self._tpdo_timeout_s)
         now = time.monotonic()
+        missing = self._overdue(now)
+        self._decode()
         fault = None
         if missing is not None:
             self.stats["tpdos_missed"] += 1
             missing.missed += 1
             fault = Fault("tpdo_missing",
-                          f"{self.robot}: {missing.label} sent no TPDO answering the last SYNC within "
+                          f"{self.robot}: {missing.label} sent no TPDO answering a SYNC within "
                           f"{self._tpdo_timeout_s * 1000:.3g} ms on {self._where} ({missing.missed} in a row)",
                           joint=missing.name, transient=True)
         for d in self.drives:
@@ -601,7 +641,8 @@ class Canopen402Backend(Actuator):
             pos[i] = (d.pos - d.keys.offset) * d.k_pos
             vel[i] = d.vel * d.k_vel
             eff[i] = d.torque * d.k_eff if d.k_eff is not None else 0.0
-        feedback.stamp = self._sync_wall
+        oldest = min(min(self._answered(d) for d in self.drives), self._sync_seq)
+        feedback.stamp = self._sync_wall[oldest % _RING]  # when the oldest sample was taken
         self._device_status()
         return fault
 
@@ -683,8 +724,8 @@ class Canopen402Backend(Actuator):
                     self.stats["rpdos"] += 1
                 self.stats["rpdos"] += 1
             self._sync_seq += 1  # before the SYNC: a TPDO answering it is tagged with this count
-            self._sync_t = time.monotonic()
-            self._sync_wall = time.time()
+            self._sync_t = self._sync_mono[self._sync_seq % _RING] = time.monotonic()
+            self._sync_wall[self._sync_seq % _RING] = time.time()
             self._network.sync.transmit()
             self.stats["syncs"] += 1
         except (can.CanError, OSError) as exc:
@@ -763,6 +804,7 @@ class Canopen402Backend(Actuator):
         if self._reads == self._seen_reads and self._network is not None and self._bus_down is None:
             self._send(None)
             self._wait_tpdos(time.monotonic() + max(self._tpdo_timeout_s, 0.05))
+            self._resync(self._sync_seq)
             self._decode()
         self._seen_reads = self._reads
 
