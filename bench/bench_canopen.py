@@ -70,7 +70,7 @@ def rig(rate: float):
     data = yaml.safe_load(PROFILE.read_text())
     data["loop"]["rate_hz"] = rate
     profile = parse_profile(data, str(PROFILE))
-    sim = CanopenSimulator.from_profile(profile)
+    sim = CanopenSimulator.from_profile(profile, interface="virtual")
     sim.start()
     profile = msgspec.structs.replace(profile, backend={
         **profile.backend, "interface": "virtual", "channel": sim.port, "options": {}})

@@ -18,6 +18,9 @@ from crtk_bridge.sim.control import control_request
 
 from .conftest import ROOT, DaemonProcess, RawSession, wait_until
 
+# --sim reaches the simulated drives in their own process through the simulated USB-CAN adapter
+pytest.importorskip("crtk_bridge.sim.slcan", reason="the simulated SLCAN adapter (sim/slcan.py) is not there")
+
 PROFILE = ROOT / "profiles" / "canopen_2axis.yaml"
 NS = "pantilt"
 TOL = 0.01  # rad
