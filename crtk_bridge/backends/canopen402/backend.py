@@ -70,7 +70,7 @@ from ...core.actuator import (
     on_worker,
 )
 from ...errors import BackendError, ProfileError
-from ...profile import Profile, backend_config, joint_keys, unknown_key_message
+from ...profile import Profile, backend_config, joint_keys
 from . import tables as t
 from .od import standard_402
 from .tables import Command, Goal, Mode, State402
@@ -229,15 +229,9 @@ class Canopen402Backend(Actuator):
     def __init__(self, profile: Profile, *, source: str = "<profile>"):
         super().__init__(profile, source=source)
         self.source = source
-        given = set(profile.backend) - {"type"}
-        fields = Config.__struct_fields__
-        for key in sorted(given - set(fields)):
-            raise ProfileError(f"{source}: backend.{key}: "
-                               f"{unknown_key_message(key, ['type', *fields], 'the canopen402 backend')}")
-        if "channel" not in given:
-            raise ProfileError(f"{source}: backend.channel: required, the python-can channel "
-                               f"(e.g. can0 for socketcan, /dev/ttyACM0 for slcan)")
-        self.config: Config = backend_config(profile, Config, source)
+        self.config: Config = backend_config(
+            profile, Config, source, owner="the canopen402 backend",
+            required={"channel": "the python-can channel (e.g. can0 for socketcan, /dev/ttyACM0 for slcan)"})
         cfg = self.config
         if cfg.heartbeat_timeout_ms <= cfg.heartbeat_ms:
             raise ProfileError(f"{source}: backend.heartbeat_timeout_ms: {cfg.heartbeat_timeout_ms} must be "
@@ -592,12 +586,9 @@ class Canopen402Backend(Actuator):
         after it), convert them into ``feedback``, check heartbeats and EMCYs, report the device
         status. Returns a transient ``tpdo_missing`` fault, a ``heartbeat_lost`` / ``nmt_state`` /
         ``bus_error`` fault, or None. Never blocks beyond the TPDO deadline."""
-        if self._network is None:
-            return Fault("bus_error", f"{self.robot}: read on a closed CAN bus", transient=False)
-        if self._bus_down is not None:
-            return self._bus_fault()
-        if not self.drives[0].v:
-            return Fault("bus_error", f"{self.robot}: read before configure(): no PDO mapped yet", transient=False)
+        fault = self._unusable("read")
+        if fault is not None:
+            return fault
         self.stats["reads"] += 1
         self._reads += 1
         # In the loop the answers are in (the SYNC went out a period ago). A late drive is waited
@@ -691,14 +682,20 @@ class Canopen402Backend(Actuator):
         not sent (the drive keeps its last mode and target) and returns ``invalid_command``."""
         return self._send(command)
 
-    def _send(self, command: JointCommand | None) -> Fault | None:
+    def _unusable(self, what: str) -> Fault | None:
+        """Why the bus cannot be used for ``what`` (read / write) now, or None."""
         if self._network is None:
-            return Fault("bus_error", f"{self.robot}: write on a closed CAN bus", transient=False)
+            return Fault("bus_error", f"{self.robot}: {what} on a closed CAN bus", transient=False)
         if self._bus_down is not None:
             return self._bus_fault()
         if not self.drives[0].v:
-            return Fault("bus_error", f"{self.robot}: write before configure(): no PDO mapped yet", transient=False)
-        fault = None
+            return Fault("bus_error", f"{self.robot}: {what} before configure(): no PDO mapped yet", transient=False)
+        return None
+
+    def _send(self, command: JointCommand | None) -> Fault | None:
+        fault = self._unusable("write")
+        if fault is not None:
+            return fault
         for d in self.drives:
             enabled = self._enabled and d.state is State402.OPERATION_ENABLED and command is not None
             if d.homing:
