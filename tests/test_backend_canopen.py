@@ -230,7 +230,7 @@ def test_servo_jv_runs_csv_servo_jf_runs_cst_and_csp_returns_without_a_jump(rig)
     assert pan.mode == t.Mode.CYCLIC_SYNC_VELOCITY
     assert pan.target_velocity == round(0.5 / b.drives[0].k_vel)
     rig.request(3, "servo_jf", ns="pantilt", data={"effort": [1.0, -0.5]})
-    rig.until(lambda: rig.drive(0).mode == t.Mode.CYCLIC_SYNC_TORQUE, 2, "pan in CST")
+    rig.until(lambda: rig.drive(0).mode == t.Mode.CYCLIC_SYNC_TORQUE and rig.drive(1).mode == 10, 2, "CST")
     assert pan.target_torque == round(1.0 / b.drives[0].k_eff)  # 1 N*m = 200 per mille of 5 N*m
     assert rig.drive(1).target_torque == round(-0.5 / b.drives[1].k_eff)
     rig.until(lambda: abs(c.feedback.effort[0] - 1.0) < 0.05, 2, "pan measures 1 N*m")

@@ -102,10 +102,9 @@ def test_servo_jv_runs_csv_and_servo_jf_runs_cst(rig):
     assert arm.supports("servo_jv") and arm.supports("servo_jf")
     arm.servo_jv([0.4, -0.2])
     wait_until(lambda: np.allclose(arm.measured_jv()[0], [0.4, -0.2], atol=0.05), 3, what="velocity followed")
-    d = drives(sim)
-    assert d["1"]["mode"] == 9 and d["2"]["mode"] == 9
+    assert {d["mode"] for d in drives(sim).values()} == {9}
     arm.servo_jf([0.5, -0.25])
-    wait_until(lambda: drives(sim)["1"]["mode"] == 10, 3, what="CST")
+    wait_until(lambda: {d["mode"] for d in drives(sim).values()} == {10}, 3, what="CST")
     d = drives(sim)
     assert d["1"]["target_torque"] == 100 and d["2"]["target_torque"] == 50  # per mille of 5 N*m (tilt: direction -1)
     wait_until(lambda: np.allclose(arm.measured_jf()[0], [0.5, -0.25], atol=0.05), 3, what="effort measured")

@@ -634,6 +634,9 @@ class Controller:
         return self.operating_state()
 
     def _resumed(self) -> dict:
+        if self.actuator.stops_itself_on_pause:  # the device holds where its own stop ended
+            for m in self.namespaces.values():
+                m.reset(self.feedback.position[m.idx])
         self._set_state(OperatingState.ENABLED)
         return self.operating_state()
 

@@ -216,6 +216,7 @@ class Canopen402Backend(Actuator):
     extra = "canopen402"
     fault_reaction = FaultReaction.TORQUE_OFF  # the DISABLE transition: disable voltage on every drive
     cyclic_write = True  # SYNC + RPDOs every cycle, in every state
+    stops_itself_on_pause = True  # pause is the drives' own quick stop
     simulator = SimWiring("canopen", endpoint_key="channel")
     #: the interface ``--sim`` uses to reach the simulated USB-CAN adapter
     SIM_INTERFACE = "slcan"
