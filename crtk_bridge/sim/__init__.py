@@ -9,6 +9,7 @@ serial buses, TCP on loopback for a UR controller), so ``--sim`` and the tests r
 - :mod:`crtk_bridge.sim.dynamixel` Dynamixel X-series Protocol 2.0 bus (:class:`DynamixelSimulator`)
 - :mod:`crtk_bridge.sim.ur`       Universal Robots controller on a 127.x address (:class:`URSimulator`,
   a subprocess; ``ur_wire`` RTDE codec, ``ur_robot`` arm and modes, ``ur_script`` rtde_control)
+- :mod:`crtk_bridge.sim.canopen402` CiA 402 drives on a CAN bus (:class:`CanopenSimulator`)
 - :mod:`crtk_bridge.sim.control`  JSON-lines control socket to inspect and change a running sim
 - :mod:`crtk_bridge.sim.cli`      ``crtk-sim`` console script
 
@@ -30,6 +31,7 @@ DEVICES: dict[str, tuple[str, str]] = {
     "feetech": ("crtk_bridge.sim.feetech", "FeetechSimulator"),
     "dynamixel": ("crtk_bridge.sim.dynamixel", "DynamixelSimulator"),
     "ur": ("crtk_bridge.sim.ur", "URSimulator"),
+    "canopen": ("crtk_bridge.sim.canopen402", "CanopenSimulator"),
 }
 
 
