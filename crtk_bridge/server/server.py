@@ -78,6 +78,9 @@ class Server:
         self._server: asyncio.base_events.Server | None = None
         self.control_lost = asyncio.Event()
         self.shutting_down = False  # set before the control process is asked to stop
+        #: callables given every event the sessions get (operating_state, error, warning, status),
+        #: on the event loop: other transports (the ROS 2 graph) follow the robot through them
+        self.listeners: list = []
         #: every command and query this daemon knows (data typed by protocol.PAYLOADS, else none)
         self._known = set(self.commands) | set(TOPICS) | set(SESSION_COMMANDS) | {
             c for cs in self.cartesian.values() for c in cs.commands + cs.queries}
@@ -93,6 +96,11 @@ class Server:
             log.log(level, "%s [%s] %s", ev, d.get("code"), d.get("message"))
         for s in list(self.sessions.values()):
             s.send(msg)
+        for listener in self.listeners:
+            try:
+                listener(msg)
+            except Exception:
+                log.exception("%s: an event listener failed", self.robot)
 
     def on_control_lost(self) -> None:
         """The control process died: every client learns FAULT; the daemon exits non-zero."""
