@@ -19,6 +19,19 @@ per cycle (goal = its fresh present position, then torque on), then one check pe
 every servo reads Torque_Enable = 1 (a servo may take its time: the simulators' ``torque_delay``).
 Torque off (DISABLE, the fault reaction) is one step: a stop is not spread over cycles.
 
+Hot replug. A failed sync read whose port reports an OS error (EIO: the USB adapter was pulled
+out) or whose device path is gone loses the port: the read returns a non-transient ``port_lost``
+Fault naming the port (FAULT when ENABLED, a ``device_fault`` warning when DISABLED), the dead
+port is closed, and a worker thread (never the cycle) tries every ``REOPEN_INTERVAL_S`` to open
+``backend.port`` again -- resolved again, so the same ``/dev/serial/by-id`` link or USB serial
+number finds the adapter under a new ``ttyACM`` number --, pings every servo, reads back each
+servo's Torque_Enable (a servo that lost power comes back with torque off; one that kept power
+holds torque on) and writes the configuration again with torque off (a power loss reset the
+servos' RAM). Meanwhile no bus transaction is made from the cycle and every lifecycle transition
+(enable, and the fault reaction's torque off) is refused naming the port. The next read after the
+worker succeeded installs the new port and reports the fault cleared (``fault_cleared`` event
+naming the port and the torque read back); ``enable`` then works as after any fault.
+
 Each vendor fills a few hooks: its tables (``MODEL_NUMBERS``, ``RESOLUTION``), its ``Config``
 struct, how a register name maps to (address, size) for a joint and how values are encoded
 (sign-magnitude on STS, two's complement on Dynamixel), how a status ERR byte is described, and
@@ -31,6 +44,7 @@ import math
 import os
 import select
 import termios
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -38,7 +52,7 @@ from typing import Any, ClassVar
 import numpy as np
 import serial
 
-from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Lifecycle, Steps
+from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Fault, Lifecycle, Steps
 from ..errors import BackendError, ProfileError
 from ..profile import Profile, backend_config, unknown_key_message
 from .port_errors import open_error_reason, silent_bus_hint
@@ -257,6 +271,12 @@ class SerialServoBackend(Actuator):
         self._port_path: str | None = None  # backend.port resolved at open (a serial_number)
         self._ph: Any = None
         self._details: dict = {}
+        # hot replug (module docstring): set by the cycle when the port went away, cleared by the
+        # cycle once the worker reopened it
+        self._lost: Any = None  # the port_lost Fault while the port is gone
+        self._reopened: str | None = None  # set by the reopen worker: what it found
+        self._reopen_thread: threading.Thread | None = None
+        self._reopen_stop = threading.Event()
 
     # ------------------------------------------------------------------ hooks
     def _check_joint(self, i: int, key: str, j: ServoJoint, problems: list[str]) -> None:
@@ -366,8 +386,85 @@ class SerialServoBackend(Actuator):
         return self._decode(i, name, value)
 
     def _require_open(self, what: str) -> None:
+        self._check_not_lost(what)
         if self._port is None:
             raise BackendError(f"{self.robot}: {what} needs an open bus; call open() first")
+
+    # ------------------------------------------------------------------ hot replug
+    #: s between two attempts of the reopen worker (adapter unplugged, module docstring)
+    REOPEN_INTERVAL_S = 0.2
+
+    def _check_not_lost(self, what: str) -> None:
+        """Raise BackendError while the port is gone (except on the reopen worker, which is the
+        one bringing it back)."""
+        if self._lost is not None and threading.current_thread() is not self._reopen_thread:
+            raise BackendError(f"{self.robot}: {what} impossible: serial port {self._where} is gone "
+                               f"(adapter unplugged?); waiting for it to come back")
+
+    def _port_gone(self) -> bool:
+        """After a failed read: did the port itself go away (OS error on its fd, or its device
+        path no longer exists)? A silent servo on a live port is not that."""
+        port = self._port
+        err = port.last_os_error if port is not None else None
+        if err is not None and not isinstance(err, (BlockingIOError, InterruptedError)):
+            return True
+        path = self._port_path
+        return path is not None and not os.path.exists(path)
+
+    def _lose_port(self) -> Any:
+        """The cycle found the port gone: close it, report FAULT, start the reopen worker (once:
+        a rare event, so starting a thread here is acceptable). Returns the port_lost Fault."""
+        err = self._port.last_os_error if self._port is not None else None
+        reason = f"{err.strerror or err}" if isinstance(err, OSError) and (err.strerror or str(err)) else "no such device"
+        fault = Fault("port_lost", f"{self.robot}: serial port {self._where} is gone ({reason}): adapter "
+                      f"unplugged? Reopening it as soon as it is back", transient=False)
+        if self._port is not None:
+            self._port.closePort()
+        self._lost = fault
+        self._reopened = None
+        self.report_status(DeviceStatus.FAULT, fault)
+        self._reopen_stop.clear()
+        self._reopen_thread = threading.Thread(target=self._reopen_loop, name=f"reopen-{self.robot}",
+                                               daemon=True)
+        self._reopen_thread.start()
+        return fault
+
+    def _still_lost(self) -> bool:
+        """Called by the cycle while the port is lost: False once the worker reopened it (the
+        new port is installed and the fault reported cleared), else True (no bus I/O)."""
+        found = self._reopened
+        if found is None:
+            return True
+        self._lost = None
+        self._reopened = None
+        self.report_status(DeviceStatus.FAULT_CLEARED, Fault("fault_cleared", found))
+        return False
+
+    def _reopen_loop(self) -> None:
+        """The reopen worker: retry until the port is back and every servo answers, or close."""
+        while not self._reopen_stop.wait(self.REOPEN_INTERVAL_S):
+            try:
+                self._reopened = self._reopen_once()
+                return
+            except (BackendError, OSError):
+                continue  # not back yet (no device, servos unpowered): try again
+
+    def _reopen_once(self) -> str:
+        """Open ``backend.port`` again (resolved again), check the servos, read back torque,
+        configure again (torque off first). Runs on the worker. Returns what it found."""
+        port, _ = self._open_port()
+        try:
+            self._check_servos()
+            self._after_open()
+            torque = [self._read_register(i, "Torque_Enable") for i in range(self.n)]
+            self._configure_hook()
+        except BaseException:
+            port.closePort()
+            raise
+        on = [name for name, t in zip(self.joint_names, torque) if t]
+        said = ("every servo had torque off (they lost power)" if not on else
+                f"torque was on at {', '.join(on)} (kept power), switched off")
+        return f"serial port {self._where} is back; {said}"
 
     def _first_missing(self, data: dict, length: int) -> int | None:
         """Index of the first joint whose sync-read entry is shorter than ``length``: the SDKs
@@ -380,6 +477,8 @@ class SerialServoBackend(Actuator):
     def _sync_read_fault(self, result: int, data: dict, length: int) -> Any:
         from ..core.actuator import Fault
 
+        if self._port_gone():
+            return self._lose_port()
         i = None
         if result in (self.RX_TIMEOUT, self.RX_CORRUPT):
             i = self._first_missing(data, length)
@@ -539,7 +638,9 @@ class SerialServoBackend(Actuator):
 
         Tries every servo even if one fails, then raises BackendError naming those that did not
         confirm. Status error bits do not count as failure here (torque off is what we want).
+        Raises at once while the port is gone (hot replug): torque off is not confirmed then.
         """
+        self._check_not_lost("torque off")
         if self._port is None:
             return
         failed = []
@@ -621,6 +722,10 @@ class SerialServoBackend(Actuator):
             self.report_status(DeviceStatus.FAULT_CLEARED)
 
     def _close_hook(self) -> None:
+        self._reopen_stop.set()
+        worker = self._reopen_thread
+        if worker is not None and worker is not threading.current_thread():
+            worker.join(5.0)
         if self._port is not None:
             self._port.closePort()
         self._port = None

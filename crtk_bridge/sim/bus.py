@@ -12,7 +12,12 @@ pseudo-terminal, as LeRobot's ``MotorsBus`` is for the real ones:
   at once but takes effect -- and reads back 1 -- only that many seconds later, as a slow device
   would; how tests prove an enable never stalls the control loop);
 - the control-socket protocol (``dump``, ``read``, ``write``, ``fault``, ``clear_faults``,
-  ``unplug``, ``torque_delay``; see :mod:`crtk_bridge.sim.control`);
+  ``unplug``, ``torque_delay``, ``hand``, ``usb_unplug``, ``usb_plug``; see
+  :mod:`crtk_bridge.sim.control`): ``hand`` moves a servo whose torque is off as a hand would (at a
+  bounded speed, so a reader sees it travel), ``usb_unplug`` / ``usb_plug`` pull the USB adapter
+  out and plug it back in (the pty closes, and comes back under a new device name behind the same
+  link; :class:`~crtk_bridge.sim.pty.PtyPort`), optionally with the servos' power lost meanwhile
+  (torque off, as real servos come back);
 - the wire: a half-received packet is dropped after ``FRAME_TIMEOUT_S`` of silence, and with
   ``emulate_baud`` each reply leaves no earlier than the request and the reply would have taken
   on a real wire (10 bits per byte, plus the replying servos' Return_Delay_Time, 2 us units),
@@ -99,6 +104,7 @@ class BusServo:
         self.silent = self.corrupt = self.frozen = False
         self._pending: tuple[int, bytes] | None = None  # REG_WRITE awaiting ACTION
         self._torque_on_at: float | None = None  # a delayed torque-on takes effect then (sim clock)
+        self._hand: tuple[float, float] | None = None  # (actual ticks, ticks/s): moved by hand
         self._t = sim.clock()  # physics time of the registers' Present_* values
 
     # --- public, thread-safe ---
@@ -149,6 +155,23 @@ class BusServo:
         if self._torque_on_at is not None and now >= self._torque_on_at:
             self._torque_on_at = None
             self.registers[self._sim.TORQUE_ADDRESS] = 1
+
+    # --- moved by hand while torque is off (caller holds the simulator lock) ---
+    def _hand_step(self, pos: float, dt: float) -> float:
+        """The actual position ``pos`` (ticks) after ``dt`` s of a hand moving the horn toward
+        its target at its speed. Vendors call it in ``_update`` while torque is off."""
+        if self._hand is None:
+            return pos
+        target, speed = self._hand
+        step = speed * dt
+        if abs(target - pos) <= step:
+            self._hand = None
+            return target
+        return pos + math.copysign(step, target - pos)
+
+    def _actual(self, present: int) -> float:
+        """Actual (encoder) ticks at which the servo reports Present_Position ``present``."""
+        raise NotImplementedError
 
     # --- vendor hooks (caller holds the simulator lock) ---
     def _get(self, name: str) -> int:
@@ -211,6 +234,7 @@ class BusSimulator:
         self._thread: threading.Thread | None = None
         self._wake_r = self._wake_w = -1
         self._stopping = False
+        self._port_jobs: list = []  # (fn, done event, result box): run on the wire thread
         self._bus_free_at = 0.0
         #: bytes received and sent on the wire since start (for bench/)
         self.rx_bytes = 0
@@ -367,6 +391,66 @@ class BusSimulator:
         with self._lock:
             self.unplugged = bool(on)
 
+    def hand(self, servo_id: int, position: int, speed: float = 2000.0) -> None:
+        """Move servo ``servo_id`` by hand until it reports Present_Position ``position``, at
+        ``speed`` ticks/s, as a hand turning a torque-off horn would (a servo with torque on
+        holds: refused). Returns at once; the joint travels on the simulator's clock. Raises
+        SimulatorError."""
+        if not speed > 0:
+            raise SimulatorError(f"hand: speed {speed} must be > 0 ticks/s")
+        with self._lock:
+            servo = self.servo(servo_id)
+            servo._update(self.clock())
+            if servo.registers[self.TORQUE_ADDRESS]:
+                raise SimulatorError(f"servo {servo_id}: torque is on, it holds its position: "
+                                     f"a hand cannot move it (disable the robot first)")
+            servo._hand = (servo._actual(int(position)), float(speed))
+
+    def usb_unplug(self, power_off: bool = False) -> None:
+        """Pull the USB adapter out: the pty closes (a client's fd reads EIO) and its link goes
+        away. ``power_off``: the servos lose power meanwhile (torque off when they come back, as
+        on hardware). Raises SimulatorError."""
+        self._on_wire_thread(self._pty.unplug)
+        if power_off:
+            with self._lock:
+                now = self.clock()
+                for s in self._servos.values():
+                    s._update(now)
+                    s._torque_on_at = None
+                    s.registers[self.TORQUE_ADDRESS] = 0
+
+    def usb_plug(self) -> None:
+        """Plug the adapter back in: a new pty under another device name, the same link
+        re-pointed at it. Raises SimulatorError."""
+        self._on_wire_thread(self._pty.plug)
+
+    @property
+    def plugged(self) -> bool:
+        return self._pty.master_fd is not None
+
+    def _on_wire_thread(self, fn) -> None:
+        """Run ``fn()`` on the serving thread (it owns the pty's fds: closing one under its
+        poll() would race), waiting for it. Directly when the simulator is not running."""
+        if self._thread is None or not self._thread.is_alive():
+            fn()
+            return
+        done, box = threading.Event(), {}
+        self._port_jobs.append((fn, done, box))
+        os.write(self._wake_w, b"j")
+        if not done.wait(2.0):
+            raise SimulatorError(f"{self.vendor} simulator: the serving thread did not answer")
+        if "exc" in box:
+            raise box["exc"]
+
+    def _run_port_jobs(self) -> None:
+        while self._port_jobs:
+            fn, done, box = self._port_jobs.pop(0)
+            try:
+                fn()
+            except BaseException as exc:  # handed to the caller
+                box["exc"] = exc
+            done.set()
+
     def set_torque_delay(self, seconds: float) -> None:
         """From now on a torque-on written over the bus takes ``seconds`` to take effect."""
         if seconds < 0:
@@ -429,6 +513,21 @@ class BusSimulator:
             if cmd == "unplug":
                 self.set_unplugged(bool(request.get("on", True)))
                 return {"ok": True}
+            if cmd == "hand":
+                servo = self._control_servo(request)
+                position, speed = request.get("position"), request.get("speed", 2000.0)
+                if not isinstance(position, int) or isinstance(position, bool):
+                    return {"ok": False, "error": f"'position' must be an integer (Present_Position ticks), got {position!r}"}
+                if not isinstance(speed, (int, float)) or isinstance(speed, bool) or not speed > 0:
+                    return {"ok": False, "error": f"'speed' must be a number > 0 (ticks/s), got {speed!r}"}
+                self.hand(servo.id, position, float(speed))
+                return {"ok": True}
+            if cmd == "usb_unplug":
+                self.usb_unplug(bool(request.get("power_off", False)))
+                return {"ok": True}
+            if cmd == "usb_plug":
+                self.usb_plug()
+                return {"ok": True, "pty": self.pty_path, "port": self.port}
             if cmd == "torque_delay":
                 seconds = request.get("seconds")
                 if not isinstance(seconds, (int, float)) or isinstance(seconds, bool) or not seconds >= 0:
@@ -438,7 +537,7 @@ class BusSimulator:
         except SimulatorError as exc:
             return {"ok": False, "error": str(exc)}
         return {"ok": False, "error": f"unknown cmd {cmd!r}; valid: dump, read, write, fault, "
-                "clear_faults, unplug, torque_delay"}
+                "clear_faults, unplug, torque_delay, hand, usb_unplug, usb_plug"}
 
     def _control_servo(self, request: dict):
         sid = request.get("id")
@@ -458,24 +557,40 @@ class BusSimulator:
                 if f:
                     faults[str(sid)] = f
             return {"servos": servos, "faults": faults, "unplugged": self.unplugged,
-                    "baudrate": self.baudrate, "torque_delay_s": self.torque_delay_s}
+                    "baudrate": self.baudrate, "torque_delay_s": self.torque_delay_s,
+                    "usb_plugged": self.plugged, "pty": self.pty_path,
+                    "by_hand": sorted(sid for sid, s in self._servos.items() if s._hand is not None)}
 
     # ------------------------------------------------------------------ the wire
     def _run(self) -> None:
-        master = self._pty.master_fd
-        assert master is not None
         poller = select.poll()
-        poller.register(master, select.POLLIN)
         poller.register(self._wake_r, select.POLLIN)
+        master = None  # the pty master polled; changes when the adapter is unplugged / plugged
         buf = bytearray()
         last_rx = 0.0
         if self.emulate_baud:
             _tighten_timer_slack()
         try:
             while True:
-                poller.poll()
+                if self._pty.master_fd != master:
+                    if master is not None:
+                        poller.unregister(master)
+                    master = self._pty.master_fd
+                    if master is not None:
+                        poller.register(master, select.POLLIN)
+                    buf.clear()
+                events = poller.poll()
                 if self._stopping:
                     return
+                if any(fd == self._wake_r for fd, _ in events):
+                    try:
+                        os.read(self._wake_r, 64)
+                    except BlockingIOError:
+                        pass
+                    self._run_port_jobs()
+                    continue
+                if master is None:
+                    continue
                 try:
                     data = os.read(master, 4096)
                 except BlockingIOError:

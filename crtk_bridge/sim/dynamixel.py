@@ -15,7 +15,7 @@ monotonic clock whenever a packet or a caller touches it:
 - velocity mode (1): Present_Velocity follows Goal_Velocity (clamped to Velocity_Limit), first order;
 - current mode (0): an unloaded motor: the speed settles at ``TICKS_PER_S_PER_MA`` per mA of
   Goal_Current; Present_Current = Goal_Current;
-- torque off: the joint stays where it is (no gravity). Present_Current (Present_Load on the
+- torque off: the joint stays where it is (no gravity), unless moved by hand (control ``hand``). Present_Current (Present_Load on the
   XL430) grows with the tracking error; Moving is 1 while the servo moves.
 
 Bus behaviour: broadcast id 0xFE (no reply, except PING and the sync/bulk reads), Status_Return_
@@ -147,6 +147,9 @@ class SimServo(BusServo):
         raw = T.to_raw(value, reg.size) if reg.signed else int(value)
         self.registers[reg.address: reg.address + reg.size] = raw.to_bytes(reg.size, "little")
 
+    def _actual(self, present: int) -> float:
+        return float(present - self._get("Homing_Offset"))  # Present = Actual + Homing_Offset
+
     def _get(self, name: str) -> int:
         reg = self.table[name]
         raw = int.from_bytes(self.registers[reg.address: reg.address + reg.size], "little")
@@ -237,6 +240,10 @@ class SimServo(BusServo):
         if not r[_TORQUE] or self.frozen or dt <= 0.0:
             if not r[_TORQUE] or self.frozen:
                 self._vel = 0.0
+            if not r[_TORQUE] and self._hand is not None and dt > 0.0:  # a hand turns the horn
+                new = self._hand_step(self._pos, dt)
+                self._vel = (new - self._pos) / dt
+                self._pos = new
             return
         mode = r[_MODE]
         vlim = max(1, self._get("Velocity_Limit")) * TICKS_PER_S_PER_RAW_VEL

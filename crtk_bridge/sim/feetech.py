@@ -10,7 +10,8 @@ physics, advanced lazily from the monotonic clock whenever a packet or a caller 
   Min/Max_Position_Limit) as a first-order lag (time constant ``TAU_S``) with the speed capped at
   ``VELOCITY_MAX_TPS`` (STS3215 no-load speed at 7.4 V) or at Goal_Velocity when that is nonzero;
 - constant-speed mode (Operating_Mode 1), torque on: turns at Goal_Velocity (wraps 0..4095);
-- torque off (or any other mode): the joint stays where it is (no gravity);
+- torque off (or any other mode): the joint stays where it is (no gravity), unless moved by hand
+  (control ``hand``: toward a position at a bounded speed);
 - Present_Velocity is the instantaneous rate, Present_Current / Present_Load grow with the
   tracking error, Moving is 1 while the servo is still closing in; Present = Actual - Homing_Offset.
 - enabling torque drives to whatever Goal_Position holds (it is not reset to Present_Position), so
@@ -188,6 +189,9 @@ class SimServo(BusServo):
             self._put(_HOMING, 2, T.encode_sign_magnitude(offset, 11))
             r[_TORQUE] = 0
 
+    def _actual(self, present: int) -> float:
+        return float(present + self._offset())  # Present = Actual - Homing_Offset
+
     def _offset(self) -> int:
         r = self.registers
         return _from_sm(r[_HOMING] | r[_HOMING + 1] << 8, 11)
@@ -229,6 +233,10 @@ class SimServo(BusServo):
                 vel = max(-VELOCITY_MAX_TPS, min(VELOCITY_MAX_TPS, float(gv)))
                 pos = (pos + vel * dt) % TICKS_PER_TURN
                 err = vel * TAU_S  # the effort a real servo spends to hold that speed
+        elif self._hand is not None:  # torque off: a hand turns the horn
+            new = self._hand_step(pos, dt)
+            vel = (new - pos) / dt if dt > 0.0 else 0.0
+            pos = new
         self._pos = pos
         a = abs(err)
         present = round(pos) - offset

@@ -3,6 +3,11 @@
 The simulator owns the master side; clients (pyserial, vendor SDKs) open the slave path, or the
 symlink to it. The simulator also keeps one slave fd open for its whole life: without it, the
 master reads EIO whenever no client has the slave open (between a client's close and reopen).
+
+A USB adapter unplugged and plugged back is :meth:`PtyPort.unplug` (the pair is closed, so a
+client's open fd reads EIO, and the link goes away, as a ``/dev/serial/by-id`` link does) then
+:meth:`PtyPort.plug` (a new pair under a NEW device name, the same link re-pointed at it, as udev
+does when the adapter comes back as another ``ttyACM`` number).
 """
 
 from __future__ import annotations
@@ -97,6 +102,31 @@ class PtyPort:
             tmp.unlink(missing_ok=True)
             raise SimulatorError(f"{self.link}: cannot create symlink: {exc.strerror or exc}") from exc
         self._link_made = True
+
+    def unplug(self) -> None:
+        """The adapter is pulled out: the link goes away and the pair is closed (a client's open
+        fd reads EIO from now on). :meth:`plug` brings it back. Idempotent."""
+        self.close()
+
+    def plug(self) -> None:
+        """The adapter is plugged back in: a new pair whose slave has another device name than
+        before, behind the same link. No-op while plugged in."""
+        if self.master_fd is not None:
+            return
+        old = self.slave_path
+        held = []  # pairs holding the old name: the kernel hands out the lowest free pts number
+        try:
+            while True:
+                self.open()
+                if self.slave_path != old or len(held) >= 4:
+                    break
+                held.append((self.master_fd, self._slave_fd))
+                self.master_fd = self._slave_fd = None
+                self._link_made = False
+        finally:
+            for fds in held:
+                for fd in fds:
+                    os.close(fd)
 
     def close(self) -> None:
         if self._link_made and self.link is not None:

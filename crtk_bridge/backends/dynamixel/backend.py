@@ -355,6 +355,8 @@ class DynamixelBackend(SerialServoBackend):
         non-transient ``servo_error`` Fault naming the Hardware_Error_Status bits when a servo's
         status carries the Alert bit (``feedback`` filled: the data is valid).
         """
+        if self._lost is not None and self._still_lost():
+            return self._lost  # the port is gone (hot replug): no bus I/O until it is back
         port = self._port
         if port is None:
             return Fault("bus_timeout", f"{self.robot}: read on a closed bus", transient=False)

@@ -242,6 +242,8 @@ class FeetechBackend(SerialServoBackend):
         or a non-transient ``servo_error`` Fault when a servo's Status register has an error bit
         (``feedback`` filled: the data is valid).
         """
+        if self._lost is not None and self._still_lost():
+            return self._lost  # the port is gone (hot replug): no bus I/O until it is back
         gsr = self._sync_read
         if gsr is None:
             return Fault("bus_timeout", f"{self.robot}: read on a closed bus", transient=False)
