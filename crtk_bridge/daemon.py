@@ -144,7 +144,9 @@ def zenoh_services(server: Server, session, config: ZenohConfig) -> list:
     serves (a failure ends start-up with the robot still DISABLED); closed after the control
     process stopped (a remote client sees the robot stop first).
     """
-    return []
+    from .transport.tunnel import TunnelServer
+
+    return [TunnelServer(server, session, config)]
 
 
 async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Process,

@@ -164,9 +164,11 @@ def session_config(config: ZenohConfig, extra: dict[str, Any] | None = None) -> 
     return conf
 
 
-def open_session(config: ZenohConfig, robot: str, extra: dict[str, Any] | None = None) -> "zenoh.Session":
+def open_session(config: ZenohConfig, robot: str, extra: dict[str, Any] | None = None,
+                 hint: str = "--zenoh-connect / transport.zenoh.connect") -> "zenoh.Session":
     """Open the Zenoh session ``config`` describes. Blocks until every connect endpoint answered
-    (at most ``connect_timeout_s``). ``robot`` prefixes errors (a robot name, or ``crtk-ctl``).
+    (at most ``connect_timeout_s``). ``robot`` prefixes errors (a robot name, or the client);
+    ``hint`` names where the connect endpoints were set.
     Raises ZenohConnectError in one line naming the endpoint and what to do (start a router,
     check the address, free the port), ZenohConfigError on a configuration Zenoh refuses."""
     import zenoh
@@ -182,7 +184,7 @@ def open_session(config: ZenohConfig, robot: str, extra: dict[str, Any] | None =
             raise ZenohConnectError(
                 f"{robot}: cannot reach the Zenoh router or peer at {endpoints} within "
                 f"{config.connect_timeout_s:g} s: start a router there (e.g. `zenohd -l tcp/127.0.0.1:{port}`) "
-                f"or check the address (--zenoh-connect / transport.zenoh.connect)") from None
+                f"or check the address ({hint})") from None
         if config.listen and ("listen" in text.lower() or "bind" in text.lower() or "address" in text.lower()):
             raise ZenohConnectError(
                 f"{robot}: cannot listen on {', '.join(config.listen)} ({text}): is the port in use? "
