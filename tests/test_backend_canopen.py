@@ -375,3 +375,31 @@ def test_example_profile_documents_every_canopen_key():
         for key in struct.__struct_fields__:
             assert re.search(rf"^\s*#\s+{key}:", text, re.M), f"{struct.__name__}.{key} is not in example.yaml"
     load_profile(ROOT / "profiles" / "example.yaml")  # still a valid profile
+
+
+def test_a_drive_described_by_an_eds_file(iface, tmp_path):
+    import canopen
+
+    from crtk_bridge.backends.canopen402.od import standard_402
+
+    eds = tmp_path / "drive.eds"
+    canopen.export_od(standard_402(), str(eds))  # a real drive ships one; canopen.import_od reads it
+    data = profile_data(PROFILE)
+    data["joints"][1]["eds"] = str(eds)
+    r = CanRig(iface, data)
+    try:
+        r.start()
+        assert len(r.backend.drives[1].node.object_dictionary) == len(standard_402())
+        r.enable()
+        r.request(2, "move_jp", ns="pantilt", data={"position": [0.0, 0.2]})
+        assert r.reply(2)["ok"]
+        r.until(lambda: abs(r.c.feedback.position[1] - 0.2) < 0.01, 5, "tilt at 0.2")
+    finally:
+        r.close()
+    data["joints"][1]["eds"] = str(tmp_path / "missing.eds")
+    r = CanRig(iface, data)
+    try:
+        with pytest.raises(BackendError, match=r"joint 'tilt' \(node 2\): cannot read EDS .*missing.eds \(joints\[1\].eds\)"):
+            r.backend.open()
+    finally:
+        r.close()
