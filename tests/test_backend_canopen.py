@@ -108,15 +108,14 @@ class CanRig:
         return self.c
 
     def cycle(self, n: int = 1) -> None:
+        """As core/loop.py: the backend paces (wait_cycle: its SYNC at the tick), then read ->
+        step -> write."""
         c, b = self.c, self.backend
         for _ in range(n):
-            t0 = time.monotonic()
+            b.wait_cycle(c.dt)
             c.on_read(self.fb, b.read(self.fb))
             if c.step():
                 c.on_write(b.write(c.command))
-            rest = c.dt - (time.monotonic() - t0)
-            if rest > 0:
-                time.sleep(rest)
 
     def request(self, rid: int, cmd: str, **kw) -> None:
         self.c.handle({"id": rid, "cmd": cmd, **kw})
@@ -169,7 +168,7 @@ def rig(iface):
 def test_enable_walks_the_402_states_one_per_cycle_while_the_loop_cycles(rig):
     c, b = rig.c, rig.backend
     seen = [[] for _ in b.drives]
-    syncs0, syncs_sent = rig.drive(0).sync_count, b.stats["syncs"]
+    syncs_sent, reads0 = b.stats["syncs"], b.stats["reads"]
     stamps = []
 
     def look(requested=True):
@@ -194,11 +193,12 @@ def test_enable_walks_the_402_states_one_per_cycle_while_the_loop_cycles(rig):
     walk = ["SWITCH_ON_DISABLED", "READY_TO_SWITCH_ON", "SWITCHED_ON", "OPERATION_ENABLED"]
     assert seen == [walk] * b.n  # every state on the way, in order, on every drive
     assert cycles >= 3  # one controlword per cycle: at least three cycles
-    assert np.all(np.diff(stamps) > 0)  # a fresh sample every cycle: the loop went on
-    # ONE SYNC per cycle, sent by the loop's write (the drive may still be taking the last one)
-    assert b.stats["syncs"] - syncs_sent == cycles
-    wait_until(lambda: rig.drive(0).sync_count - syncs0 >= cycles, 1, what="the drive took every SYNC")
-    assert rig.drive(0).sync_count - syncs0 == cycles
+    gaps = np.diff(stamps)  # fresh samples all along: the loop went on (a loaded host may be late)
+    assert np.all(gaps >= 0) and np.mean(gaps > 0) > 0.6, gaps
+    # ONE SYNC per read, sent by the backend: one per cycle, plus core's fresh read of the pose
+    # at the end of the enable; and the drive heard exactly those (it may still be taking the last)
+    assert b.stats["syncs"] - syncs_sent == b.stats["reads"] - reads0 in (cycles, cycles + 1)
+    wait_until(lambda: rig.drive(0).sync_count == b.stats["syncs"], 1, what="the drive took every SYNC")
     for i in range(b.n):  # enabled holding where it was
         assert abs(rig.drive(i).target_position - rig.drive(i).position) <= 2
 
