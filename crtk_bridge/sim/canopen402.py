@@ -882,9 +882,14 @@ class FaultKind(str, enum.Enum):
 class CanopenSimulator:
     """Simulated CiA 402 drives (one per node id) on one CAN bus, in the serial simulators' shape.
 
-    ``interface`` / ``channel``: where the drives live. ``"virtual"`` (default) uses a private
-    python-can virtual channel (in-process clients connect to :attr:`port` with
-    ``interface="virtual"``); ``"socketcan"`` joins a kernel CAN interface such as ``vcan0``.
+    ``interface``: how a master reaches the drives, and :attr:`port` is its ``channel``:
+
+    - ``"slcan"``: a simulated USB-CAN adapter on a pty (:mod:`crtk_bridge.sim.slcan`; ``link``:
+      a stable symlink to it), the drives on a private virtual channel behind it. Any process
+      can open it with python-can's ``slcan`` interface: what ``crtk-sim canopen`` and ``--sim`` use.
+    - ``"virtual"``: a private python-can virtual channel (in-process clients only).
+    - ``"socketcan"``: the kernel CAN interface ``channel`` (e.g. ``vcan0``).
+
     ``control``: serve the JSON-lines control socket (:mod:`crtk_bridge.sim.control`) there.
     Nothing is opened before :meth:`start`; :meth:`stop` is idempotent.
     """
@@ -893,16 +898,26 @@ class CanopenSimulator:
 
     def __init__(self, node_ids: list[int], options: dict[int, DriveOptions] | None = None, *,
                  interface: str = "virtual", channel: str | None = None, bitrate: int = 1_000_000,
-                 control: str | os.PathLike | None = None, clock: Callable[[], float] = time.monotonic):
+                 control: str | os.PathLike | None = None, link: str | os.PathLike | None = None,
+                 clock: Callable[[], float] = time.monotonic):
         if not node_ids:
             raise SimulatorError("a CANopen simulator needs at least one node id")
         if len(set(node_ids)) != len(node_ids):
             raise SimulatorError(f"node ids {node_ids} are not unique")
-        if interface != "virtual" and not channel:
-            raise SimulatorError(f"interface {interface!r} needs a channel (e.g. vcan0)")
+        if interface not in ("slcan", "virtual", "socketcan"):
+            raise SimulatorError(f"interface {interface!r}: the simulator offers slcan, virtual, socketcan")
+        if interface == "socketcan" and not channel:
+            raise SimulatorError("interface 'socketcan' needs a channel (e.g. vcan0)")
         self.interface = interface
-        self.channel = channel or _private_channel()
         self.bitrate = int(bitrate)
+        self.adapter = None
+        if interface == "slcan":
+            from .slcan import SlcanAdapter
+
+            self._bus = ("virtual", _private_channel())
+            self.adapter = SlcanAdapter(*self._bus, self.bitrate, link=link)
+        else:
+            self._bus = (interface, channel or _private_channel())
         options = options or {}
         self.drives: dict[int, Drive402] = {
             n: Drive402(n, options.get(n, DriveOptions()), clock=clock) for n in node_ids}
@@ -917,11 +932,13 @@ class CanopenSimulator:
         self._stop = threading.Event()
 
     @classmethod
-    def from_profile(cls, profile: Profile, *, interface: str | None = None, channel: str | None = None,
-                     control: str | os.PathLike | None = None, **_ignored) -> CanopenSimulator:
+    def from_profile(cls, profile: Profile, link: str | os.PathLike | None = None,
+                     control: str | os.PathLike | None = None, *, interface: str = "slcan",
+                     channel: str | None = None, **_ignored) -> CanopenSimulator:
         """One drive per joint with a ``node_id`` (backend-owned joint key). The bus's
-        ``bitrate`` comes from the profile's backend section; ``interface`` / ``channel`` default
-        to a private virtual channel (the profile's are the master's, not the simulator's)."""
+        ``bitrate`` comes from the profile's backend section; ``interface`` defaults to the
+        SLCAN adapter (the profile's ``interface`` / ``channel`` are the master's, written by
+        the backend's ``sim_profile`` from :attr:`port`)."""
         node_ids, options = [], {}
         for i, j in enumerate(profile.joints):
             nid = j.backend.get("node_id")
@@ -937,14 +954,26 @@ class CanopenSimulator:
         bitrate = (profile.backend or {}).get("bitrate", 1_000_000)
         if not isinstance(bitrate, int) or isinstance(bitrate, bool):
             raise SimulatorError(f"profile {profile.name!r}: backend.bitrate must be an integer")
-        return cls(node_ids, options, interface=interface or "virtual", channel=channel,
-                   bitrate=bitrate, control=control)
+        return cls(node_ids, options, interface=interface, channel=channel, bitrate=bitrate,
+                   control=control, link=link)
 
     # ------------------------------------------------------------------ lifecycle
     @property
     def port(self) -> str:
-        """The endpoint a master opens as its ``channel`` (with :attr:`interface`)."""
-        return self.channel
+        """The endpoint a master opens as its ``channel`` (with :attr:`interface`): the adapter's
+        pty (or link) for slcan, else the CAN channel."""
+        return self.adapter.port if self.adapter is not None else self._bus[1]
+
+    channel = port
+
+    @property
+    def pty_path(self) -> str | None:
+        return self.adapter.pty_path if self.adapter is not None else None
+
+    @property
+    def rx_bytes(self) -> int:
+        """Bytes the master has sent to the adapter (slcan; 0 otherwise)."""
+        return self.adapter.rx_bytes if self.adapter is not None else 0
 
     @property
     def ids(self) -> list[int]:
@@ -952,7 +981,8 @@ class CanopenSimulator:
 
     @property
     def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
+        alive = self._thread is not None and self._thread.is_alive()
+        return alive and (self.adapter is None or self.adapter.running)
 
     def start(self) -> None:
         """Connect every drive (each boots: boot-up message, PRE-OPERATIONAL) and start the
@@ -961,25 +991,26 @@ class CanopenSimulator:
             return
         started = []
         try:
+            if self.adapter is not None:
+                self.adapter.start()  # first: the drives' boot-up messages reach an open adapter
             for drive in self.drives.values():
-                drive.connect(self.interface, self.channel, **self._bus_kwargs())
+                drive.connect(*self._bus)
                 started.append(drive)
             if self._control is not None:
                 self._control.start()
         except Exception as exc:
             for drive in started:
                 drive.disconnect()
+            if self.adapter is not None:
+                self.adapter.stop()
             if isinstance(exc, SimulatorError):
                 raise
-            raise SimulatorError(f"CANopen simulator: cannot open {self.interface} channel "
-                                 f"{self.channel!r}: {exc}") from exc
+            raise SimulatorError(f"CANopen simulator: cannot open {self._bus[0]} channel "
+                                 f"{self._bus[1]!r}: {exc}") from exc
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="sim-canopen", daemon=True)
         self._thread.start()
-        log.info("canopen simulator: node(s) %s on %s %s", self.ids, self.interface, self.channel)
-
-    def _bus_kwargs(self) -> dict:
-        return {}
+        log.info("canopen simulator: node(s) %s on %s %s", self.ids, self.interface, self.port)
 
     def stop(self) -> None:
         if self._thread is None:
@@ -991,6 +1022,8 @@ class CanopenSimulator:
             self._control.stop()
         for drive in self.drives.values():
             drive.disconnect()
+        if self.adapter is not None:
+            self.adapter.stop()
 
     def __enter__(self):
         self.start()
@@ -1048,8 +1081,12 @@ class CanopenSimulator:
             self.set_bus_off(False)
 
     def set_bus_off(self, on: bool) -> None:
-        """The bus is unusable (bus-off, cable cut): nothing passes either way."""
+        """The master's side of the bus is unusable (adapter bus-off, cable cut): nothing passes
+        either way; the drives run on (with slcan the adapter's status flags say so)."""
         self.bus_off = bool(on)
+        if self.adapter is not None:
+            self.adapter.bus_off = self.bus_off
+            return
         for drive in self.drives.values():
             drive.set_muted(on)
 
@@ -1078,7 +1115,7 @@ class CanopenSimulator:
         try:
             if cmd == "dump":
                 return {"ok": True, "drives": {str(n): d.snapshot() for n, d in sorted(self.drives.items())},
-                        "bus_off": self.bus_off, "interface": self.interface, "channel": self.channel,
+                        "bus_off": self.bus_off, "interface": self.interface, "channel": self.port,
                         "bitrate": self.bitrate}
             if cmd == "fault":
                 code = request.get("code", 0)

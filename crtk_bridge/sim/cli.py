@@ -4,6 +4,8 @@
                      [--emulate-baud] [--torque-delay S] [--log-level info]
     crtk-sim dynamixel --profile profiles/koch.yaml --link /tmp/ttySIM [...same options]
     crtk-sim feetech --profile profiles/bimanual_so101.yaml --bus left --link /tmp/ttyLEFT
+    crtk-sim canopen --profile profiles/canopen_2axis.yaml --link /tmp/ttyCAN [--control C]
+                     [--interface slcan|socketcan --channel vcan0] [--enable-delay S]
 
 Prints one line once the port (and control socket) exist, then serves until signalled; exits 0
 after removing the link and the control socket. Exit 2: bad arguments or profile; 1: the
@@ -43,6 +45,18 @@ def _parser() -> argparse.ArgumentParser:
                        help="a torque-on takes S seconds to take effect (a slow device; default 0)")
         d.add_argument("--log-level", default="warning",
                        choices=["debug", "info", "warning", "error"], help="default: warning")
+    d = sub.add_parser("canopen", help="CiA 402 drives behind a simulated SLCAN USB-CAN adapter (pty)")
+    d.add_argument("--profile", required=True, help="robot profile (YAML); one drive per joint node_id")
+    d.add_argument("--link", help="create this symlink to the adapter's pty (default: print the pty path)")
+    d.add_argument("--control", help="serve the JSON-lines control socket at this path")
+    d.add_argument("--interface", default="slcan", choices=["slcan", "socketcan"],
+                   help="slcan (default): a simulated USB-CAN adapter on a pty; socketcan: join --channel")
+    d.add_argument("--channel", help="with --interface socketcan: the kernel CAN interface (e.g. vcan0)")
+    d.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
+    d.add_argument("--enable-delay", type=float, default=0.0, metavar="S",
+                   help="enable operation takes S seconds (a brake releasing; default 0)")
+    d.add_argument("--log-level", default="warning",
+                   choices=["debug", "info", "warning", "error"], help="default: warning")
     return p
 
 
@@ -67,9 +81,17 @@ def main(argv: list[str] | None = None) -> int:
     # sigtimedwait() below receives them: a clean, race-free shutdown path.
     signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
     try:
-        sim = Simulator.from_profile(
-            profile, link=args.link, control=args.control, emulate_baud=args.emulate_baud)
-        sim.set_torque_delay(args.torque_delay)
+        if args.device == "canopen":
+            if args.interface == "socketcan" and not args.channel:
+                print("crtk-sim: --interface socketcan needs --channel (e.g. vcan0)", file=sys.stderr)
+                return 2
+            sim = Simulator.from_profile(profile, link=args.link, control=args.control,
+                                         interface=args.interface, channel=args.channel)
+            sim.set_torque_delay(args.enable_delay)
+        else:
+            sim = Simulator.from_profile(
+                profile, link=args.link, control=args.control, emulate_baud=args.emulate_baud)
+            sim.set_torque_delay(args.torque_delay)
         sim.start()
     except CrtkBridgeError as exc:
         print(f"crtk-sim: {exc}", file=sys.stderr)
@@ -78,9 +100,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"crtk-sim: cannot start the simulator: {exc}", file=sys.stderr)
         return 1
     try:
-        print(f"crtk-sim: {args.device} bus ready: port={sim.port} pty={sim.pty_path} "
-              f"control={sim.control_path or '-'} ids={','.join(map(str, sim.ids))} "
-              f"baud={sim.baudrate}{' (emulated)' if sim.emulate_baud else ''}", flush=True)
+        if args.device == "canopen":
+            print(f"crtk-sim: canopen bus ready: interface={sim.interface} channel={sim.port} "
+                  f"pty={sim.pty_path or '-'} control={sim.control_path or '-'} "
+                  f"nodes={','.join(map(str, sim.ids))} bitrate={sim.bitrate}", flush=True)
+        else:
+            print(f"crtk-sim: {args.device} bus ready: port={sim.port} pty={sim.pty_path} "
+                  f"control={sim.control_path or '-'} ids={','.join(map(str, sim.ids))} "
+                  f"baud={sim.baudrate}{' (emulated)' if sim.emulate_baud else ''}", flush=True)
         while True:
             if signal.sigtimedwait(_SIGNALS, _HEALTH_CHECK_S) is not None:
                 return 0
