@@ -358,3 +358,17 @@ def test_the_simulator_is_registered_and_reads_the_profile():
     bad = msgspec.structs.replace(profile, joints=[Joint(name="j", limits=limits, backend={"node_id": 200})])
     with pytest.raises(SimulatorError, match=r"joints\[0\] \(j\)\.node_id"):
         CanopenSimulator.from_profile(bad)
+
+
+def test_a_drive_answers_to_the_serial_simulators_register_names():
+    """What the conformance suite's rows call on every simulator (sim.servo(id).read / write)."""
+    sim = CanopenSimulator([5], interface="virtual")  # not started: state only
+    drive = sim.servo(5)
+    drive.write("Present_Position", 1500)  # by hand
+    drive.write("Goal_Position", 1400)
+    assert drive.read("Present_Position") == 1500 and drive.read("Goal_Position") == 1400
+    assert drive.read("Torque_Enable") == 0 and drive.read("statusword") & 0x4F == 0x00
+    with pytest.raises(SimulatorError, match="Statusword.*read-only"):
+        drive.write("Statusword", 0)
+    with pytest.raises(SimulatorError, match="unknown register 'Baud_Rate'"):
+        drive.read("Baud_Rate")

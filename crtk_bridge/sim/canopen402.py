@@ -351,6 +351,7 @@ class Drive402:
         self._rpdos = [_Pdo(0x1400 + n) for n in range(4)]
         self._tpdos = [_Pdo(0x1800 + n) for n in range(4)]
         self._pdo_dirty = True
+        self._params: dict[tuple[int, int], int] = {}
         self._sync_cob = 0x80
         self.rx_frames = 0  # frames this drive received while not muted (bench / tests)
         self.sync_count = 0
@@ -413,6 +414,7 @@ class Drive402:
             keep = range(0x1000, 0x2000) if cs == 0x82 else range(0x1000, 0x10000)
             for index in [i for i in self.local.data_store if i in keep]:
                 del self.local.data_store[index]
+            self._params.clear()
             if cs == 0x81:
                 self._reset_application()
             self.boot()
@@ -504,6 +506,16 @@ class Drive402:
                 pdo.syncs, pdo.pending, pdo.last = 0, None, None
 
     # ------------------------------------------------------------------ object access
+    def _param(self, index: int, sub: int = 0) -> int:
+        """A configuration object's value, cached: the internal control reads several of them
+        every millisecond. Writes (callback below) and NMT resets drop the cached value."""
+        key = (index, sub)
+        value = self._params.get(key)
+        if value is None:
+            value = self._params[key] = self.local._find_object(index, sub).decode_raw(
+                self.local.get_data(index, sub))
+        return value
+
     def _on_read(self, index: int, subindex: int, od) -> int | None:
         if index == 0x6041:
             self._advance(self.clock())
@@ -535,6 +547,7 @@ class Drive402:
 
     def _on_write(self, index: int, subindex: int, od, data: bytes) -> None:
         value = od.decode_raw(data) if od.data_type in odm.NUMBER_TYPES else data
+        self._params.pop((index, subindex), None)  # stored by LocalNode right after this callback
         if 0x1400 <= index <= 0x1403 or 0x1800 <= index <= 0x1803:
             self._check_comm_write(index, subindex, value)
         elif 0x1600 <= index <= 0x1603 or 0x1A00 <= index <= 0x1A03:
@@ -655,7 +668,7 @@ class Drive402:
             self.homing_status = SW_BIT12 | SW_TARGET_REACHED if self.homed else 0
 
     def _start_homing(self) -> None:
-        method = int.from_bytes(self.local.get_data(0x6098, 0), "little", signed=True)
+        method = self._param(0x6098, 0)
         self.homing_status = 0
         if method in HOMING_CURRENT_POSITION:
             self._home_here()
@@ -666,7 +679,7 @@ class Drive402:
             self.homed = False
 
     def _home_here(self) -> None:
-        offset = int.from_bytes(self.local.get_data(0x607C, 0), "little", signed=True)
+        offset = self._param(0x607C, 0)
         shift = offset - self.position
         self.position += shift
         self._switch_origin += shift  # the limit switch stays where it is on the machine
@@ -710,14 +723,14 @@ class Drive402:
         state = self.state
         if state in (State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE) or (
                 state is State.OPERATION_ENABLED and self.controlword & CW_HALT):
-            decel = int.from_bytes(self.local.get_data(0x6085, 0), "little") * dt
+            decel = self._param(0x6085, 0) * dt
             self.velocity = 0.0 if abs(self.velocity) <= decel else self.velocity - math.copysign(decel, self.velocity)
             self.torque = 0.0 if self.velocity == 0 else -math.copysign(1000.0, self.velocity)
             if self.velocity == 0.0:
                 if state is State.FAULT_REACTION_ACTIVE:
                     self.state = State.FAULT  # 14
                 elif state is State.QUICK_STOP_ACTIVE:
-                    qs = int.from_bytes(self.local.get_data(0x605A, 0), "little", signed=True)
+                    qs = self._param(0x605A, 0)
                     if qs in (1, 2, 3, 4):
                         self.state = State.SWITCH_ON_DISABLED  # 12 after the ramp
         elif state is not State.OPERATION_ENABLED:
@@ -732,12 +745,12 @@ class Drive402:
             self.velocity += err * (1.0 - math.exp(-dt / o.tau_s))
             self.torque = max(-1000.0, min(1000.0, 1000.0 * err / o.max_velocity))
         elif self.mode == Mode.CST:
-            limit = int.from_bytes(self.local.get_data(0x6072, 0), "little")
+            limit = self._param(0x6072, 0)
             self.torque = float(max(-limit, min(limit, self.target_torque)))
             target = max(-o.max_velocity, min(o.max_velocity, self.torque * o.torque_velocity))
             self.velocity += (target - self.velocity) * (1.0 - math.exp(-dt / o.tau_s))
         elif self.mode == Mode.HOMING and self.homing[0] == "search":
-            speed = int.from_bytes(self.local.get_data(0x6099, 1), "little")
+            speed = self._param(0x6099, 1)
             direction = self.homing[1]
             self.velocity = direction * speed
             switch = self._switch_origin + direction * o.limit_switch
@@ -755,13 +768,13 @@ class Drive402:
         if self.state is not State.OPERATION_ENABLED or self.mode != Mode.CSP:
             self._ferr_since = None
             return
-        window = int.from_bytes(self.local.get_data(0x6065, 0), "little")
+        window = self._param(0x6065, 0)
         if window == 0xFFFFFFFF or abs(self.target_position - self.position) <= window:
             self._ferr_since = None
             return
         if self._ferr_since is None:
             self._ferr_since = t
-        timeout = int.from_bytes(self.local.get_data(0x6066, 0), "little") / 1000.0
+        timeout = self._param(0x6066, 0) / 1000.0
         if t - self._ferr_since >= timeout:
             self.trip_following_error()
 
@@ -820,7 +833,7 @@ class Drive402:
     def _restart_heartbeat(self) -> None:
         if self.network.muted or self.heartbeat_stopped or self.network.bus is None:
             return
-        period = int.from_bytes(self.local.get_data(0x1017, 0), "little")
+        period = self._param(0x1017, 0)
         self.local.nmt.start_heartbeat(period)
 
     def set_position(self, counts: int) -> None:
@@ -852,6 +865,42 @@ class Drive402:
                 "error_code": self.error_code, "homed": self.homed, "muted": self.network.muted,
                 "heartbeat_stopped": self.heartbeat_stopped, "jammed": self.jammed,
             }
+
+    # the register names the serial simulators' servos answer to, so a suite written against
+    # ``sim.servo(id).read("Present_Position")`` reaches a drive the same way (counts)
+    _REGISTERS = {"present_position": "position", "goal_position": "target_position",
+                  "position_actual": "position", "target_position": "target_position",
+                  "target_velocity": "target_velocity", "target_torque": "target_torque",
+                  "torque_enable": "enabled", "controlword": "controlword",
+                  "statusword": "statusword", "mode": "mode", "error_code": "error_code"}
+
+    def read(self, register: str) -> int:
+        """A value by name (``Present_Position``, ``Goal_Position``, ``Torque_Enable``,
+        ``Controlword``, ``Statusword``, ...), in the drive's units. Raises SimulatorError."""
+        name = self._register(register)
+        with self.lock:
+            self._advance(self.clock())
+            value = self.statusword() if name == "statusword" else getattr(self, name)
+            return int(round(value)) if name != "enabled" else int(value)
+
+    def write(self, register: str, value: int) -> None:
+        """Set a value from outside the bus: ``Present_Position`` moves the shaft by hand, a
+        target is as if the master had written it. Raises SimulatorError for the others."""
+        name = self._register(register)
+        if name == "position":
+            self.set_position(value)
+        elif name in ("target_position", "target_velocity", "target_torque"):
+            with self.lock:
+                setattr(self, name, int(value))
+        else:
+            raise SimulatorError(f"node {self.node_id}: {register!r} is read-only here")
+
+    def _register(self, register: str) -> str:
+        try:
+            return self._REGISTERS[str(register).lower()]
+        except KeyError:
+            raise SimulatorError(f"node {self.node_id}: unknown register {register!r}; valid: "
+                                 f"{', '.join(sorted(self._REGISTERS))}") from None
 
     @property
     def enabled(self) -> bool:
@@ -1047,6 +1096,9 @@ class CanopenSimulator:
             return self.drives[node_id]
         except KeyError:
             raise SimulatorError(f"no simulated drive with node id {node_id} (ids: {self.ids})") from None
+
+    #: the serial simulators' name, so conformance rows reach a drive as they reach a servo
+    servo = drive
 
     def set_fault(self, node_id: int, kind: str | FaultKind, code: int = 0) -> None:
         """Inject a fault into one drive (see :class:`FaultKind`); ``code``: the EMCY code of
