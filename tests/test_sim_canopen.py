@@ -15,7 +15,7 @@ import can
 import canopen
 import msgspec
 import pytest
-from canopen.sdo import SdoAbortedError
+from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from crtk_bridge.profile import Joint, JointLimits, load_profile
 from crtk_bridge.sim import SimulatorError, simulator_class
@@ -340,6 +340,13 @@ def test_boot_up_message_and_a_second_drive_on_the_bus(bus):
         assert node2.sdo[0x1000].raw == 0x00020192  # a CiA 402 servo drive
         node2.sdo[0x1017].raw = 10
         assert node2.nmt.wait_for_heartbeat(1) == "PRE-OPERATIONAL"
+        node2.nmt.state = "STOPPED"  # CiA 301: no SDO in STOPPED, heartbeats go on
+        assert node2.nmt.wait_for_heartbeat(1) == "STOPPED"
+        node2.sdo.RESPONSE_TIMEOUT, node2.sdo.MAX_RETRIES = 0.05, 0
+        with pytest.raises(SdoCommunicationError):
+            node2.sdo[0x1000].raw
+        node2.nmt.state = "PRE-OPERATIONAL"
+        assert node2.sdo[0x1000].raw == 0x00020192
     finally:
         node2.sdo[0x1017].raw = 0
         del net[2]

@@ -7,7 +7,7 @@ dictionary, but has no PDO behaviour and no device profile (canopen issue #558; 
 - the object dictionary built in code (:func:`make_object_dictionary`): CiA 301 communication
   objects (0x1000, 0x1001, 0x1005, 0x1014, 0x1017, 0x1018, RPDO 0x1400-0x1403 / 0x1600-0x1603,
   TPDO 0x1800-0x1803 / 0x1A00-0x1A03) and the CiA 402 objects the bridge uses (0x603F, 0x6040,
-  0x6041, 0x605A, 0x6060, 0x6061, 0x6064, 0x6065, 0x6066, 0x606C, 0x6071, 0x6072, 0x6077,
+  0x6041, 0x605A, 0x6060, 0x6061, 0x6064, 0x6065, 0x6066, 0x606C, 0x6071, 0x6072, 0x6076, 0x6077,
   0x607A, 0x607C, 0x6085, 0x6098, 0x6099, 0x609A, 0x60C2, 0x60F4, 0x60FF, 0x6502); every
   variable has a default, so every SDO read answers;
 - PDOs as CiA 301 says: the configuration the master writes over SDO is re-read when the node
@@ -187,6 +187,7 @@ class DriveOptions:
     limit_switch: int = 20_000  #: homing 17/18: the switch is this far from power-on (counts)
     homing_speed: int = 100_000  #: 0x6099:1 default (counts/s)
     modes: tuple[int, ...] = (6, 8, 9, 10)  #: supported modes of operation (0x6502)
+    rated_torque_mnm: int = 1000  #: 0x6076 motor rated torque (mN*m): what 1000 per mille is
     vendor_id: int = 0x00C2B51D  #: 0x1018:1 (not a registered vendor: a simulator)
     product_code: int = 0x402
 
@@ -236,6 +237,7 @@ def make_object_dictionary(node_id: int, opts: DriveOptions = DriveOptions()) ->
     add(_var("Velocity actual value", 0x606C, 0, I32, "ro", 0, pdo=True))
     add(_var("Target torque", 0x6071, 0, I16, "rw", 0, pdo=True))
     add(_var("Max torque", 0x6072, 0, U16, "rw", 3000))
+    add(_var("Motor rated torque", 0x6076, 0, U32, "rw", opts.rated_torque_mnm))
     add(_var("Torque actual value", 0x6077, 0, I16, "ro", 0, pdo=True))
     add(_var("Target position", 0x607A, 0, I32, "rw", 0, pdo=True))
     add(_var("Home offset", 0x607C, 0, I32, "rw", 0))
@@ -397,7 +399,8 @@ class Drive402:
                     self._on_sync()
                 return
             if can_id == 0x600 + self.node_id:
-                if len(data) == 8:  # an SDO request is always 8 bytes; others are ignored
+                # an SDO request is always 8 bytes; others are ignored. No SDO in STOPPED (CiA 301)
+                if len(data) == 8 and self.local.nmt._state != NMT_STOPPED:
                     dispatch(can_id, data, 0.0)
                 return
             if self.local.nmt._state != NMT_OPERATIONAL:
