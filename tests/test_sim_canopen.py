@@ -342,7 +342,7 @@ def test_boot_up_message_and_a_second_drive_on_the_bus(bus):
         assert node2.nmt.wait_for_heartbeat(1) == "PRE-OPERATIONAL"
         node2.nmt.state = "STOPPED"  # CiA 301: no SDO in STOPPED, heartbeats go on
         assert node2.nmt.wait_for_heartbeat(1) == "STOPPED"
-        node2.sdo.RESPONSE_TIMEOUT, node2.sdo.MAX_RETRIES = 0.05, 0
+        node2.sdo.RESPONSE_TIMEOUT, node2.sdo.MAX_RETRIES = 0.05, 1  # one try (0 retries forever)
         with pytest.raises(SdoCommunicationError):
             node2.sdo[0x1000].raw
         node2.nmt.state = "PRE-OPERATIONAL"
