@@ -40,29 +40,22 @@ def _yaml() -> YAML:
     return y
 
 
-def _flow(keys: dict[str, Any]) -> CommentedMap:
-    m = CommentedMap()
-    for k, v in keys.items():
-        if isinstance(v, (list, tuple)):
-            seq = CommentedSeq(v)
-            seq.fa.set_flow_style()
-            v = seq
-        m[k] = v
-    m.fa.set_flow_style()
-    return m
+def _styled(v: Any) -> Any:
+    """A list as a flow sequence (``[700, 3400]``), as the profiles write ranges."""
+    if isinstance(v, (list, tuple)):
+        v = CommentedSeq(v)
+        v.fa.set_flow_style()
+    return v
 
 
 def _update(target: Any, keys: dict[str, Any]) -> Any:
     """``target`` (the joint's calibration mapping, or None) with ``keys`` set, its style,
-    comments and other keys kept."""
+    comments and other keys kept; a new mapping is written in flow style, as the profiles do."""
     if not isinstance(target, CommentedMap):
-        return _flow(keys)
+        target = CommentedMap()
+        target.fa.set_flow_style()
     for k, v in keys.items():
-        if isinstance(v, (list, tuple)):
-            seq = CommentedSeq(v)
-            seq.fa.set_flow_style()
-            v = seq
-        target[k] = v
+        target[k] = _styled(v)
     return target
 
 
