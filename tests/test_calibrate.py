@@ -130,6 +130,7 @@ def test_scripted_sweep_writes_offsets_and_ranges_and_the_restarted_daemon_uses_
         assert abs(c["range"][0] - lo) <= TOLERANCE and abs(c["range"][1] - hi) <= TOLERANCE, (name, c)
         want = lo if name == "gripper" else (lo + hi) // 2  # gripper: zero at its closed end
         assert abs(c["offset"] - want) <= TOLERANCE and c["direction"] == 1, (name, c)
+        assert c["homing_offset"] == 0, c  # read from the servo: the ticks were measured with it
 
     # the daemon uses it after a restart: a hand position reads as the calibration says
     daemon.stop()

@@ -59,6 +59,8 @@ def test_import_then_the_restarted_daemon_reads_as_lerobot_does(short_tmp, profi
         tool.kill()
     assert "Imported" in tool.output() and f"Wrote {profile}" in tool.output(), tool.output()
     assert "# SIGTERM / Ctrl-C with the arm ENABLED" in profile.read_text()  # comments kept
+    cal = {j.name: j.backend["calibration"] for j in load_profile(profile).joints}
+    assert cal["elbow_flex"] == {"offset": 1970, "direction": 1, "range": [870, 3071], "homing_offset": -700}
     daemon.stop()
 
     again = DaemonProcess(["--profile", str(profile), "--sim"], short_tmp / "b.sock", short_tmp / "b.log")

@@ -6,18 +6,24 @@ pseudo-terminal, as LeRobot's ``MotorsBus`` is for the real ones:
 - lifecycle: the pty (and its optional stable link), the optional JSON-lines control socket, and
   one background thread blocked in poll() on the pty master and a wake pipe; ``start()`` returns
   once clients may open :attr:`~BusSimulator.port`, ``stop()`` is idempotent, context manager;
-- state: the servos by id (an id change over the bus re-keys them), the fault flags every servo
+- state: the servos by id (an id change over the bus re-keys them), servos added factory-fresh,
+  detached from the bus (keeping their EEPROM) and attached again, each known by a ``serial``
+  handle; power cycles (EEPROM from flash, RAM defaults); the fault flags every servo
   carries (``silent``, ``corrupt``, ``frozen``), the unplugged state of the whole bus, and a
   slow torque-on (``torque_delay_s``: a Torque_Enable = 1 written over the bus is acknowledged
   at once but takes effect -- and reads back 1 -- only that many seconds later, as a slow device
   would; how tests prove an enable never stalls the control loop);
 - the control-socket protocol (``dump``, ``read``, ``write``, ``fault``, ``clear_faults``,
-  ``unplug``, ``torque_delay``, ``hand``, ``usb_unplug``, ``usb_plug``; see
-  :mod:`crtk_bridge.sim.control`): ``hand`` moves a servo whose torque is off as a hand would (at a
+  ``unplug``, ``torque_delay``, ``hand``, ``usb_unplug``, ``usb_plug``, ``add_servo``, ``detach``,
+  ``attach``, ``power_cycle``; see :mod:`crtk_bridge.sim.control` and :meth:`BusSimulator.control`):
+  ``hand`` moves a servo whose torque is off as a hand would (at a
   bounded speed, so a reader sees it travel), ``usb_unplug`` / ``usb_plug`` pull the USB adapter
   out and plug it back in (the pty closes, and comes back under a new device name behind the same
   link; :class:`~crtk_bridge.sim.pty.PtyPort`), optionally with the servos' power lost meanwhile
   (torque off, as real servos come back);
+- the wire rate: the rate the client set on the pty (:func:`~crtk_bridge.sim.pty.line_baud`;
+  ``baudrate`` until a client sets one). A servo whose Baud_Rate register holds another rate's
+  code is deaf and mute, as on a real bus: after a Baud_Rate write it answers only at the new rate;
 - the wire: a half-received packet is dropped after ``FRAME_TIMEOUT_S`` of silence, and with
   ``emulate_baud`` each reply leaves no earlier than the request and the reply would have taken
   on a real wire (10 bits per byte, plus the replying servos' Return_Delay_Time, 2 us units),
@@ -48,7 +54,7 @@ from ..backends.servo_keys import ServoJoint
 from ..profile import Profile, joint_keys
 from . import SimulatorError
 from .control import ControlServer
-from .pty import PtyPort
+from .pty import PtyPort, line_baud
 
 log = logging.getLogger(__name__)
 
@@ -201,12 +207,17 @@ class BusSimulator:
     vendor: ClassVar[str] = ""
     #: bus baud rate -> Baud_Rate register code (servos with another code are deaf and mute)
     BAUD_CODES: ClassVar[dict[int, int]] = {}
-    #: control table address of ID, Return_Delay_Time and Torque_Enable (one byte each)
+    #: control table address of ID, Baud_Rate, Return_Delay_Time and Torque_Enable (one byte each)
     ID_ADDRESS: ClassVar[int]
+    BAUD_ADDRESS: ClassVar[int]
     RETURN_DELAY_ADDRESS: ClassVar[int]
     TORQUE_ADDRESS: ClassVar[int]
     #: highest id a servo may take over the bus
     MAX_ID: ClassVar[int] = 253
+    #: a factory-fresh servo's id, baud rate and model (``add_servo``'s defaults)
+    FACTORY_ID: ClassVar[int] = 1
+    FACTORY_BAUD: ClassVar[int] = 1_000_000
+    DEFAULT_MODEL: ClassVar[str] = ""
 
     def __init__(
         self,
@@ -215,12 +226,18 @@ class BusSimulator:
         control: str | os.PathLike | None,
         emulate_baud: bool,
     ):
-        if baudrate <= 0:
-            raise SimulatorError(f"baudrate {baudrate} must be > 0")
+        if baudrate not in self.BAUD_CODES:
+            raise SimulatorError(f"baudrate {baudrate} is not a {self.vendor} servo baud rate; valid: "
+                                 f"{', '.join(map(str, sorted(self.BAUD_CODES)))}")
         self.baudrate = int(baudrate)
         self.emulate_baud = bool(emulate_baud)
+        self._wire_baud = 0
         self._byte_s = BITS_PER_BYTE / self.baudrate
-        self._baud_code = self.BAUD_CODES.get(self.baudrate)
+        self._baud_code = -1  # code of the wire rate; set with it (_set_wire_baud)
+        self._set_wire_baud(self.baudrate)
+        #: servos taken off the bus (``detach``), by serial handle; they keep their EEPROM
+        self._detached: dict[int, BusServo] = {}
+        self._next_serial = 1
         self._lock = threading.Lock()
         #: the physics clock (seconds); tests may swap in a fake one before start()
         self.clock = time.monotonic
@@ -228,7 +245,7 @@ class BusSimulator:
         self.unplugged = False
         #: seconds a Torque_Enable = 1 written over the bus takes to take effect (0: at once)
         self.torque_delay_s = 0.0
-        self._pty = PtyPort(link)
+        self._pty = PtyPort(link, self.baudrate)
         self._control = ControlServer(control, self.control) if control is not None else None
         self.control_path = Path(control) if control is not None else None
         self._thread: threading.Thread | None = None
@@ -285,6 +302,27 @@ class BusSimulator:
     def _clear_error_bits(self, servo: BusServo) -> None:
         """What ``clear_faults`` does to the error register (nothing where errors latch)."""
 
+    def _new_servo(self, servo_id: int, model: str, baudrate: int, position: int) -> BusServo:
+        """A servo with factory EEPROM except ``servo_id`` and ``baudrate``, of ``model``, at
+        ``position`` ticks (not yet on the bus). Raises SimulatorError for an unknown model."""
+        raise NotImplementedError
+
+    def _power_cycle(self, servo: BusServo) -> None:
+        """Power off and on: EEPROM as last persisted, RAM at its power-on defaults."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ the wire rate
+    def _set_wire_baud(self, baud: int) -> None:
+        """The client now talks at ``baud``: only servos with that rate's code hear it."""
+        self._wire_baud = baud
+        self._byte_s = BITS_PER_BYTE / baud
+        self._baud_code = self.BAUD_CODES.get(baud, -1)
+
+    @property
+    def wire_baud(self) -> int:
+        """The baud rate the bus was last talked to at (the client's; ``baudrate`` before)."""
+        return self._wire_baud
+
     # ------------------------------------------------------------------ lifecycle
     @property
     def port(self) -> str:
@@ -302,6 +340,9 @@ class BusSimulator:
     def start(self) -> None:
         if self._thread is not None:
             return
+        with self._lock:
+            for sid in sorted(self._servos):  # serial handles in id order
+                self._serial_of(self._servos[sid])
         self._pty.open()
         try:
             if self._control is not None:
@@ -465,6 +506,87 @@ class BusSimulator:
             out.append(FaultKind.ERROR_BITS.value)
         return out
 
+    # ------------------------------------------------------------------ servos on and off the bus
+    def _serial_of(self, servo: BusServo) -> int:
+        serial = getattr(servo, "serial", None)
+        if serial is None:
+            serial = servo.serial = self._next_serial
+            self._next_serial += 1
+        return serial
+
+    def add_servo(self, servo_id: int | None = None, model: str | None = None,
+                  baudrate: int | None = None, position: int = 2048) -> int:
+        """Plug a factory-fresh servo onto the bus: id :attr:`FACTORY_ID` and baud rate
+        :attr:`FACTORY_BAUD` unless given, factory EEPROM otherwise. Returns its serial handle.
+        Raises SimulatorError (id taken on the bus, bad id, model or rate)."""
+        servo_id = self.FACTORY_ID if servo_id is None else int(servo_id)
+        baudrate = self.FACTORY_BAUD if baudrate is None else int(baudrate)
+        if not 0 <= servo_id <= self.MAX_ID:
+            raise SimulatorError(f"servo id {servo_id} is not a {self.vendor} id (0..{self.MAX_ID})")
+        if baudrate not in self.BAUD_CODES:
+            raise SimulatorError(f"baudrate {baudrate} is not a {self.vendor} servo baud rate; valid: "
+                                 f"{', '.join(map(str, sorted(self.BAUD_CODES)))}")
+        with self._lock:
+            if servo_id in self._servos:
+                raise SimulatorError(f"id {servo_id} is taken on the bus (ids: {sorted(self._servos)}); "
+                                     f"detach that servo first")
+            servo = self._new_servo(servo_id, model or self.DEFAULT_MODEL, baudrate, int(position))
+            self._servos[servo_id] = servo
+            return self._serial_of(servo)
+
+    def remove_servo(self, servo_id: int) -> None:
+        """Take the servo with this id off the bus for good. Raises SimulatorError."""
+        with self._lock:
+            self.servo(servo_id)
+            del self._servos[servo_id]
+
+    def replace_model(self, servo_id: int, model: str) -> None:
+        """Swap the servo with this id for one of ``model`` (same id, baud rate and position;
+        factory EEPROM otherwise): a servo of another model than the profile says."""
+        with self._lock:
+            old = self.servo(servo_id)
+            baud = next(b for b, c in self.BAUD_CODES.items() if c == old.registers[self.BAUD_ADDRESS])
+            self._servos[servo_id] = self._new_servo(servo_id, model, baud, round(old._pos))
+
+    def detach(self, serial: int) -> None:
+        """Take the servo with this serial handle off the bus (it keeps its EEPROM, as a servo
+        unplugged by hand). Raises SimulatorError."""
+        with self._lock:
+            for sid, s in self._servos.items():
+                if self._serial_of(s) == serial:
+                    s._update(self.clock())
+                    self._detached[serial] = self._servos.pop(sid)
+                    return
+        raise SimulatorError(f"no servo with serial {serial} on the bus")
+
+    def attach(self, serial: int) -> None:
+        """Plug a detached servo back (powered up again: :meth:`_power_cycle`). Raises
+        SimulatorError when its id is taken on the bus."""
+        with self._lock:
+            s = self._detached.get(serial)
+            if s is None:
+                raise SimulatorError(f"no detached servo with serial {serial} "
+                                     f"(detached: {sorted(self._detached)})")
+            if s.id in self._servos:
+                raise SimulatorError(f"servo serial {serial} has id {s.id}, taken on the bus")
+            del self._detached[serial]
+            s._t = self.clock()
+            self._power_cycle(s)
+            self._servos[s.id] = s
+
+    def power_cycle(self, servo_id: int | None = None) -> None:
+        """Power one servo (or all) off and on: EEPROM as persisted, RAM defaults (torque off).
+        An id changed while the EEPROM was locked comes back as it was. Raises SimulatorError
+        when a servo's persisted id is taken."""
+        with self._lock:
+            servos = [self.servo(servo_id)] if servo_id is not None else list(self._servos.values())
+            now = self.clock()
+            for s in servos:
+                s._update(now)
+                old = s.id
+                self._power_cycle(s)
+                self._rekey(s, old)
+
     def _rekey(self, servo: BusServo, old_id: int) -> None:
         """File ``servo`` under its new ID after a write changed it (caller holds the lock);
         an id that is taken or above :attr:`MAX_ID` is refused and the old one restored."""
@@ -480,8 +602,15 @@ class BusSimulator:
 
     # ------------------------------------------------------------------ control socket
     def control(self, request: dict) -> dict:
-        """Answer one control request (dict in, dict out): dump, read, write, fault,
-        clear_faults, unplug. Never raises for a bad request."""
+        """Answer one control request (dict in, dict out). Never raises for a bad request.
+
+        ``dump``; ``read`` / ``write`` {id, register[, value]} (a register by hand: no access
+        checks; an EEPROM register so written counts as persisted); ``fault`` {id, kind[, bits]};
+        ``clear_faults`` [{id}]; ``unplug`` {on}; ``torque_delay`` {seconds}; ``add_servo``
+        [{id, model, baudrate, position}] -> {serial} (a factory-fresh servo, id and baud rate
+        the factory's unless given); ``detach`` {serial} / ``attach`` {serial} (take a servo off
+        the bus and plug it back, keeping its EEPROM); ``power_cycle`` [{id}].
+        """
         cmd = request.get("cmd")
         try:
             if cmd == "dump":
@@ -513,6 +642,26 @@ class BusSimulator:
             if cmd == "unplug":
                 self.set_unplugged(bool(request.get("on", True)))
                 return {"ok": True}
+            if cmd == "add_servo":
+                args = {k: request.get(k) for k in ("id", "baudrate", "position") if request.get(k) is not None}
+                for k, v in args.items():
+                    if not isinstance(v, int) or isinstance(v, bool):
+                        return {"ok": False, "error": f"{k!r} must be an integer, got {v!r}"}
+                model = request.get("model")
+                if model is not None and not isinstance(model, str):
+                    return {"ok": False, "error": f"'model' must be a model name, got {model!r}"}
+                serial = self.add_servo(args.get("id"), model, args.get("baudrate"), args.get("position", 2048))
+                return {"ok": True, "serial": serial}
+            if cmd in ("detach", "attach"):
+                serial = request.get("serial")
+                if not isinstance(serial, int) or isinstance(serial, bool):
+                    return {"ok": False, "error": f"'serial' must be a servo's serial handle, got {serial!r}"}
+                (self.detach if cmd == "detach" else self.attach)(serial)
+                return {"ok": True}
+            if cmd == "power_cycle":
+                sid = request.get("id")
+                self.power_cycle(None if sid is None else self._control_servo(request).id)
+                return {"ok": True}
             if cmd == "hand":
                 servo = self._control_servo(request)
                 position, speed = request.get("position"), request.get("speed", 2000.0)
@@ -537,7 +686,8 @@ class BusSimulator:
         except SimulatorError as exc:
             return {"ok": False, "error": str(exc)}
         return {"ok": False, "error": f"unknown cmd {cmd!r}; valid: dump, read, write, fault, "
-                "clear_faults, unplug, torque_delay, hand, usb_unplug, usb_plug"}
+                "clear_faults, unplug, torque_delay, hand, usb_unplug, usb_plug, add_servo, detach, attach, "
+                "power_cycle"}
 
     def _control_servo(self, request: dict):
         sid = request.get("id")
@@ -552,12 +702,15 @@ class BusSimulator:
             for sid in sorted(self._servos):
                 s = self._servos[sid]
                 s._update(now)
-                servos[str(sid)] = self._snapshot(s)
+                servos[str(sid)] = {**self._snapshot(s), "serial": self._serial_of(s)}
                 f = self._faults(s)
                 if f:
                     faults[str(sid)] = f
+            detached = {str(serial): {**self._snapshot(s), "serial": serial}
+                        for serial, s in sorted(self._detached.items())}
             return {"servos": servos, "faults": faults, "unplugged": self.unplugged,
-                    "baudrate": self.baudrate, "torque_delay_s": self.torque_delay_s,
+                    "baudrate": self.baudrate, "wire_baud": self._wire_baud,
+                    "torque_delay_s": self.torque_delay_s, "detached": detached,
                     "usb_plugged": self.plugged, "pty": self.pty_path,
                     "by_hand": sorted(sid for sid, s in self._servos.items() if s._hand is not None)}
 
@@ -596,6 +749,10 @@ class BusSimulator:
                 except BlockingIOError:
                     continue
                 now = time.monotonic()
+                baud = line_baud(master) or self.baudrate
+                if baud != self._wire_baud:
+                    buf.clear()  # bytes at another rate are garbage to the servos
+                    self._set_wire_baud(baud)
                 if buf and now - last_rx > FRAME_TIMEOUT_S:
                     buf.clear()  # a servo forgets a half-received packet after a silence
                 last_rx = now

@@ -32,6 +32,12 @@ Shutdown mask (63) torque goes off; only a REBOOT clears it, so ``clear_faults``
 ``freeze`` (the joint stops moving), and ``unplug`` of the whole bus. A REBOOT restores the RAM
 defaults (torque off, goal = present position, error cleared) and leaves the servo deaf for
 ``REBOOT_S``.
+
+EEPROM (addresses below 64: id, baud rate, return delay, drive and operating mode, homing offset,
+limits...) is written only with torque off (else error 7, access) and then persists, as on an X
+servo; a power cycle (``power_cycle``, or ``attach`` of a detached servo) restores the RAM defaults
+only. A factory-fresh servo (``add_servo``) has id 1 and 57600 baud (Baud_Rate 1; servos.md
+section 5). A servo whose Baud_Rate is not the client's rate neither hears nor answers.
 """
 
 from __future__ import annotations
@@ -126,7 +132,8 @@ class SimServo(BusServo):
     :meth:`read` / :meth:`write` (by register name) are thread-safe and update the physics first.
     """
 
-    def __init__(self, sim: DynamixelSimulator, servo_id: int, model: str, position: int):
+    def __init__(self, sim: DynamixelSimulator, servo_id: int, model: str, position: int,
+                 baudrate: int | None = None, return_delay: int = 0):
         super().__init__(sim)
         self.model = model
         self.table = T.CONTROL_TABLES[model]
@@ -138,7 +145,7 @@ class SimServo(BusServo):
         self._pos = float(position)
         self._vel = 0.0
         self._err_ticks = 0.0  # tracking error (ticks), drives Present_Current / Present_Load
-        self._eeprom_defaults(servo_id)
+        self._eeprom_defaults(servo_id, baudrate or sim.baudrate, return_delay)
         self._ram_defaults()
 
     # --- defaults ---
@@ -155,13 +162,14 @@ class SimServo(BusServo):
         raw = int.from_bytes(self.registers[reg.address: reg.address + reg.size], "little")
         return T.to_signed(raw, reg.size) if reg.signed else raw
 
-    def _eeprom_defaults(self, servo_id: int) -> None:
+    def _eeprom_defaults(self, servo_id: int, baudrate: int, return_delay: int) -> None:
         m = self.model
         self._put("Model_Number", T.MODEL_NUMBERS[m])
         self._put("Firmware_Version", FIRMWARE)
         self._put("ID", servo_id)
-        self._put("Baud_Rate", T.BAUD_CODES.get(self._sim.baudrate, 1))
-        self._put("Return_Delay_Time", 250)
+        self._put("Baud_Rate", T.BAUD_CODES[baudrate])
+        # the simulated arm's servos: 0, as the backends set it; a factory-fresh one: 250 (x2 us)
+        self._put("Return_Delay_Time", return_delay)
         self._put("Operating_Mode", int(T.OperatingMode.POSITION))
         self._put("Protocol_Type", 2)
         self._put("Moving_Threshold", 10)
@@ -316,7 +324,10 @@ class DynamixelSimulator(BusSimulator):
 
     vendor = "dynamixel"
     BAUD_CODES = T.BAUD_CODES
+    FACTORY_BAUD = 57_600  # X series: Baud_Rate code 1 (servos.md section 5)
+    DEFAULT_MODEL = "xl430-w250"
     ID_ADDRESS = _ID
+    BAUD_ADDRESS = _BAUD
     RETURN_DELAY_ADDRESS = _RETURN_DELAY
     TORQUE_ADDRESS = _TORQUE
     MAX_ID = T.MAX_ID
@@ -383,6 +394,17 @@ class DynamixelSimulator(BusSimulator):
 
     def _clear_error_bits(self, servo: SimServo) -> None:
         """Nothing: Hardware_Error_Status stays latched until a REBOOT, as on hardware."""
+
+    def _new_servo(self, servo_id: int, model: str, baudrate: int, position: int) -> SimServo:
+        model = model.lower()
+        if model not in T.CONTROL_TABLES:
+            raise SimulatorError(f"unknown model {model!r} (known: {', '.join(T.CONTROL_TABLES)})")
+        return SimServo(self, servo_id, model, position, baudrate=baudrate, return_delay=250)
+
+    def _power_cycle(self, servo: SimServo) -> None:
+        servo._pending = None
+        servo._torque_on_at = None
+        servo._ram_defaults()  # the EEPROM persisted with every write
 
     # --- the bus ---
     def _parse(self, buf: bytearray, now: float) -> list[Reply]:
