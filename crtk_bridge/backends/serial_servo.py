@@ -654,6 +654,7 @@ class SerialServoBackend(Actuator):
         port, _ = self._open_port()
         try:
             self._check_servos()
+            self._startup_check()  # a servo swapped meanwhile is checked as at start-up
             self._after_open()
             torque = [self._read_register(i, "Torque_Enable") for i in range(self.n)]
             self._configure_hook()
