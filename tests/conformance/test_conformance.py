@@ -151,7 +151,9 @@ def test_device_status_maps_onto_the_crtk_state(rig):
     assert b.device_status is DeviceStatus.FAULT
     err = rig.events("error")[-1]
     assert err["code"] == row.error_code and err["joint"] == b.joint_names[k]
-    assert not any(row.torque(sim, i) for i in rig.ids)  # the backend's fault reaction: torque off
+    # the backend's fault reaction: torque off (a transition: a CiA 402 drive takes it at a SYNC)
+    wait_until(lambda: (rig.cycle(), not any(row.torque(sim, i) for i in rig.ids))[1], 2, interval=0,
+               what="torque off")
     row.clear_errors(sim)
     if row.error_latched:  # only the device's reset (enable) clears it
         rig.cycle(5)
