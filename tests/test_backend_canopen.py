@@ -17,7 +17,7 @@ from crtk_bridge.backends.canopen402 import tables as t
 from crtk_bridge.backends.canopen402.backend import Canopen402Backend
 from crtk_bridge.core.controller import Controller
 from crtk_bridge.core.state import OperatingState
-from crtk_bridge.errors import BackendError
+from crtk_bridge.errors import BackendError, ProfileError
 from crtk_bridge.profile import load_profile, parse_profile
 from crtk_bridge.sim.canopen402 import CanopenSimulator, DriveOptions
 
@@ -403,3 +403,36 @@ def test_a_drive_described_by_an_eds_file(iface, tmp_path):
             r.backend.open()
     finally:
         r.close()
+
+
+def test_effort_scale_from_0x6076_when_the_profile_gives_none(iface):
+    data = profile_data(PROFILE)
+    del data["joints"][0]["rated_torque"]  # pan: read 0x6076 (mN*m of the motor)
+    r = CanRig(iface, data, options={1: DriveOptions(rated_torque_mnm=250)})
+    try:
+        r.start()
+        pan, tilt = r.backend.drives
+        assert pan.k_eff == pytest.approx(0.25 / 1000 * 10)  # 0.25 N*m motor x gear 10, per mille
+        assert tilt.k_eff == pytest.approx(-0.5 / 1000 * 10)  # the profile's, direction -1
+        assert r.backend.joint_capabilities(0).effort and r.backend.joint_capabilities(0).measures_effort
+    finally:
+        r.close()
+
+
+def test_profile_errors_name_the_key():
+    data = profile_data(PROFILE)
+    data["joints"][1]["node_id"] = 1
+    with pytest.raises(ProfileError, match=r"joints\[1\] \(tilt\).node_id: 1 is also joint 'pan'"):
+        Canopen402Backend(parse_profile(data))
+    data = profile_data(PROFILE)
+    data["joints"][0]["homing"] = {"method": 17, "speed_switch": 9.0}
+    with pytest.raises(ProfileError, match=r"joints\[0\] \(pan\).homing.speed_switch: 9.0 is above limits.velocity_max"):
+        Canopen402Backend(parse_profile(data))
+    data = profile_data(PROFILE)
+    del data["backend"]["channel"]
+    with pytest.raises(ProfileError, match=r"backend.channel: required"):
+        Canopen402Backend(parse_profile(data))
+    data = profile_data(PROFILE)
+    data["backend"]["heartbeat_timeout_ms"] = 50
+    with pytest.raises(ProfileError, match=r"backend.heartbeat_timeout_ms: 50(.0)? must be longer than backend.heartbeat_ms"):
+        Canopen402Backend(parse_profile(data))
