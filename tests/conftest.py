@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import signal
@@ -23,6 +24,7 @@ ROOT = Path(__file__).resolve().parent.parent
 SO101 = ROOT / "profiles" / "so101.yaml"
 SO101_URDF = ROOT / "profiles" / "urdf" / "so101.urdf"
 KOCH = ROOT / "profiles" / "koch.yaml"
+CANOPEN = ROOT / "profiles" / "canopen_2axis.yaml"
 
 
 def profile_data(path: Path) -> dict:
@@ -41,8 +43,9 @@ def so101_data() -> dict:
     return profile_data(SO101)
 
 
-# Arm goals (rad, shoulder_pan .. wrist_roll) used by the end-to-end tests on every simulated
-# robot; SimRobot checks each lies inside the robot's limits with a margin.
+# Arm goals (rad, by joint index; an arm with fewer joints takes the first ones, one with more
+# holds the others at 0) used by the end-to-end tests on every simulated robot; SimRobot checks
+# each lies inside the robot's limits with a margin.
 SAFE_GOALS = {
     "small": (0.1, 0.2, 0.3, 0.0, 0.0),
     "reach": (0.6, 0.3, -0.4, 0.2, 0.0),
@@ -50,51 +53,82 @@ SAFE_GOALS = {
     "wide": (1.2, -1.0, 1.0, 0.5, 1.5),
 }
 GOAL_MARGIN = 0.1  # rad inside the position limits
+#: what a test needs of a robot when it says nothing (``@pytest.mark.requires(...)``): the tests
+#: written before the suite ran on other buses read servo registers through the simulator's dump
+DEFAULT_REQUIRES = ("servo_bus",)
+
+
+def _counts_per_rad(joint) -> float:
+    """Device position units per joint radian, signed by the joint's direction: the backend keys
+    ``counts_per_revolution`` x ``gear_ratio`` when the joint has them, else a 4096-tick servo
+    (both serial profiles' servos)."""
+    keys = joint.backend
+    cpr = keys.get("counts_per_revolution", 4096) * keys.get("gear_ratio", 1)
+    return keys.get("direction", 1) * cpr / (2 * np.pi)
 
 
 @dataclass(frozen=True, eq=False)
 class SimRobot:
-    """One simulated robot the conformance tests run on: its profile, simulator and namespaces.
+    """One simulated robot the end-to-end suite runs on: its profile, namespaces, and how a test
+    reaches into its simulator (``row``: the conformance suite's hooks for its backend, used
+    through :class:`RemoteSim` on the daemon's simulator control socket).
 
-    ``backend`` is the profile's backend type, which is also the ``crtk-sim`` device name; tests
-    key their per-backend differences on it. Servo ids are strings, as the simulators' dump keys.
+    Tests choose by what the robot offers, never by name: ``capabilities`` (see
+    :func:`robot_capabilities`), the joint count, the commands ``list`` advertises. Device ids
+    (servo ids, CANopen node ids) are strings, as the simulators' dump keys.
     """
 
     id: str
     profile: Path
     backend: str
     arm: str
-    gripper: str
+    gripper: str | None  # the second namespace (one joint), if any
     joint_names: tuple[str, ...]
-    gripper_joint: str
+    gripper_joint: str | None
     arm_ids: tuple[str, ...]
-    gripper_id: str
-    servo_id: dict  # joint name -> bus id (int)
+    gripper_id: str | None
+    servo_id: dict  # joint name -> device id (int)
     pos_min: np.ndarray
     pos_max: np.ndarray
+    vel_max: np.ndarray
     home: np.ndarray
+    counts_per_rad: np.ndarray  # device position units per radian, per arm joint (signed)
     servo_timeout_s: float
+    rate_hz: float
     goals: dict  # name -> np.ndarray, see SAFE_GOALS
+    row: object  # tests.conformance.conftest.Row
+    capabilities: frozenset
 
     @classmethod
     def load(cls, id: str, path: Path) -> SimRobot:
+        from .conformance.conftest import ROWS
+
         p = load_profile(path)
-        arm_ns, grip_ns = p.namespaces[0], p.namespaces[1]
+        row = ROWS[p.backend_type]
+        arm_ns = p.namespaces[0]
+        grip_ns = p.namespaces[1] if len(p.namespaces) > 1 else None
         by_name = {j.name: j for j in p.joints}
+        index = {j.name: i for i, j in enumerate(p.joints)}
         arm = [by_name[n] for n in arm_ns.joints]
-        (grip,) = [by_name[n] for n in grip_ns.joints]
+        grip = by_name[grip_ns.joints[0]] if grip_ns is not None else None
         lo = np.array([j.limits.position_min for j in arm])
         hi = np.array([j.limits.position_max for j in arm])
-        goals = {k: np.array(v) for k, v in SAFE_GOALS.items()}
+        goals = {k: np.array((tuple(v) + (0.0,) * len(arm))[:len(arm)]) for k, v in SAFE_GOALS.items()}
         for k, g in goals.items():
-            assert len(g) == len(arm) and np.all(g >= lo + GOAL_MARGIN) and np.all(g <= hi - GOAL_MARGIN), \
+            assert np.all(g >= lo + GOAL_MARGIN) and np.all(g <= hi - GOAL_MARGIN), \
                 f"{path}: SAFE_GOALS[{k!r}] = {g} is not inside the limits of {arm_ns.name}"
-        return cls(id=id, profile=path, backend=p.backend_type, arm=arm_ns.name, gripper=grip_ns.name,
-                   joint_names=tuple(arm_ns.joints), gripper_joint=grip.name,
-                   arm_ids=tuple(str(j.backend["id"]) for j in arm), gripper_id=str(grip.backend["id"]),
-                   servo_id={j.name: j.backend["id"] for j in p.joints}, pos_min=lo, pos_max=hi,
-                   home=np.array([j.home for j in arm]), servo_timeout_s=p.safety.servo_timeout_s,
-                   goals=goals)
+        device = {j.name: row.device(p, index[j.name]) for j in p.joints}
+        return cls(id=id, profile=path, backend=p.backend_type, arm=arm_ns.name,
+                   gripper=grip_ns.name if grip_ns is not None else None,
+                   joint_names=tuple(arm_ns.joints), gripper_joint=grip.name if grip is not None else None,
+                   arm_ids=tuple(str(device[j.name]) for j in arm),
+                   gripper_id=str(device[grip.name]) if grip is not None else None,
+                   servo_id=device, pos_min=lo, pos_max=hi,
+                   vel_max=np.array([j.limits.velocity_max for j in arm]),
+                   home=np.array([j.home for j in arm]),
+                   counts_per_rad=np.array([_counts_per_rad(j) for j in arm]),
+                   servo_timeout_s=p.safety.servo_timeout_s, rate_hz=float(p.loop.rate_hz), goals=goals,
+                   row=row, capabilities=robot_capabilities(p, grip_ns is not None))
 
     @property
     def n(self) -> int:
@@ -102,25 +136,157 @@ class SimRobot:
 
     @property
     def servo_ids(self) -> tuple[str, ...]:
-        return self.arm_ids + (self.gripper_id,)
+        """Every device id (the arm's, then the gripper's)."""
+        return self.arm_ids + ((self.gripper_id,) if self.gripper_id is not None else ())
 
     def data(self) -> dict:
         return profile_data(self.profile)
 
-    def vec(self, **by_joint: float) -> np.ndarray:
-        """An arm vector, zero except the named joints: ``robot.vec(elbow_flex=0.1)``."""
+    def vec(self, *by_index: tuple[int, float], **by_joint: float) -> np.ndarray:
+        """An arm vector, zero except the given joints: ``robot.vec(elbow_flex=0.1)`` or, on any
+        arm, ``robot.vec((robot.j(2), 0.1))`` (values add up where indices coincide)."""
         out = np.zeros(self.n)
+        for i, value in by_index:
+            out[i] += value
         for name, value in by_joint.items():
-            out[self.joint_names.index(name)] = value
+            out[self.joint_names.index(name)] += value
         return out
 
+    def j(self, k: int) -> int:
+        """The arm joint playing the role of the five-joint arm's joint ``k`` on this arm (an arm
+        with fewer joints: its last)."""
+        return min(k, self.n - 1)
 
-SIM_ROBOTS = {r.id: r for r in (SimRobot.load("so101-feetech", SO101), SimRobot.load("koch-dynamixel", KOCH))}
+    def sim(self, control_path: str) -> RemoteSim:
+        """The robot's simulator behind its control socket, as the conformance row's hooks use it."""
+        return RemoteSim(control_path)
+
+    def torque(self, sim: RemoteSim, ids=None) -> dict[str, bool]:
+        """Torque (power stage) on, per device id (every device unless ``ids``)."""
+        return {i: bool(self.row.torque(sim, int(i))) for i in (self.servo_ids if ids is None else ids)}
+
+
+def robot_capabilities(profile, has_gripper: bool) -> frozenset:
+    """What a robot offers the suite, from its profile and its simulator (never its name):
+
+    - ``gripper``: a second, one-joint namespace;
+    - ``servo_bus``: the simulator is a serial servo bus (servo registers and the ``servos`` dump);
+    - ``fault:<kind>``: a fault kind its simulator injects into one device (``silent``, ...);
+    - ``park``: ``shutdown.action: park``;
+    - ``kinematics``: a namespace with a URDF (cartesian commands).
+    """
+    import importlib
+
+    from crtk_bridge.backends import backend_class
+    from crtk_bridge.sim import simulator_class
+    from crtk_bridge.sim.bus import BusSimulator
+
+    sim_cls = simulator_class(backend_class(profile.backend_type).simulator.device)
+    caps = {f"fault:{k.value}" for k in getattr(importlib.import_module(sim_cls.__module__), "FaultKind", ())}
+    if issubclass(sim_cls, BusSimulator):
+        caps.add("servo_bus")
+    if has_gripper:
+        caps.add("gripper")
+    if profile.shutdown.action == "park":
+        caps.add("park")
+    if any(ns.kinematics is not None for ns in profile.namespaces):
+        caps.add("kinematics")
+    return frozenset(caps)
+
+
+class RemoteSim:
+    """A running simulator reached over its control socket, offering the calls of an in-process
+    simulator that the conformance rows' hooks make (``servo(id).read/write``, ``set_fault``,
+    ``clear_faults``, ``set_unplugged``, ``set_torque_delay``): one set of hooks per backend for
+    both suites."""
+
+    def __init__(self, path: str):
+        self.path = str(path)
+
+    def req(self, **request) -> dict:
+        from crtk_bridge.sim.control import control_request
+
+        reply = control_request(self.path, request)
+        assert reply.get("ok"), (request, reply)
+        return reply
+
+    def servo(self, device_id: int) -> _RemoteDevice:
+        return _RemoteDevice(self, int(device_id))
+
+    drive = servo
+
+    def set_fault(self, device_id: int, kind: str, code: int = 0) -> None:
+        self.req(cmd="fault", id=int(device_id), kind=kind, bits=code)
+
+    def clear_faults(self) -> None:
+        self.req(cmd="clear_faults")
+
+    def set_unplugged(self, on: bool) -> None:
+        self.req(cmd="unplug", on=bool(on))
+
+    def set_torque_delay(self, seconds: float) -> None:
+        self.req(cmd="torque_delay", seconds=seconds)
+
+
+    def devices(self) -> dict[str, dict]:
+        """The simulator's dump, per device id (the serial buses' ``servos``, the drives')."""
+        dump = self.req(cmd="dump")
+        return dump["servos"] if "servos" in dump else dump["drives"]
+
+
+class _RemoteDevice:
+    def __init__(self, sim: RemoteSim, device_id: int):
+        self.sim, self.id = sim, device_id
+
+    def read(self, register: str) -> int:
+        return self.sim.req(cmd="read", id=self.id, register=register)["value"]
+
+    def write(self, register: str, value: int) -> None:
+        self.sim.req(cmd="write", id=self.id, register=register, value=int(value))
+
+
+SIM_ROBOTS = {r.id: r for r in (SimRobot.load("so101-feetech", SO101), SimRobot.load("koch-dynamixel", KOCH),
+                                SimRobot.load("canopen-2axis", CANOPEN))}
 
 
 def only_on(*ids: str):
     """Restrict a test that uses ``sim_daemon`` / ``sim_robot`` to some simulated robots."""
     return pytest.mark.parametrize("sim_robot", [SIM_ROBOTS[i] for i in ids], ids=list(ids), indirect=True)
+
+
+def requires(item_or_metafunc) -> set[str]:
+    """The capabilities a test needs: the union of its ``requires`` markers (module, class,
+    function), else :data:`DEFAULT_REQUIRES`."""
+    marks = list(item_or_metafunc.definition.iter_markers("requires"))
+    if not marks:
+        return set(DEFAULT_REQUIRES)
+    return {c for m in marks for c in m.args}
+
+
+def sim_robot_params(metafunc) -> list:
+    """Every simulated robot, those lacking a capability the test needs skipped saying which."""
+    need = requires(metafunc)
+    out = []
+    for r in SIM_ROBOTS.values():
+        missing = sorted(need - r.capabilities)
+        marks = [pytest.mark.skip(reason=f"{r.profile.name} lacks {', '.join(missing)}")] if missing else []
+        out.append(pytest.param(r, id=r.id, marks=marks))
+    return out
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "requires(*capabilities): the simulated robots a test using sim_robot "
+                            "runs on (tests/conftest.py robot_capabilities); none given: servo_bus")
+
+
+def pytest_generate_tests(metafunc):
+    if "sim_robot" not in metafunc.fixturenames:
+        return
+    for m in metafunc.definition.iter_markers("parametrize"):
+        names = m.args[0] if m.args else m.kwargs.get("argnames", "")
+        if "sim_robot" in (names.replace(" ", "").split(",") if isinstance(names, str) else names):
+            return  # only_on: the test chose its robots
+    metafunc.parametrize("sim_robot", sim_robot_params(metafunc), indirect=True)
 
 
 def wait_until(predicate, timeout=10.0, interval=0.01, what="condition"):
@@ -133,6 +299,33 @@ def wait_until(predicate, timeout=10.0, interval=0.01, what="condition"):
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout} s waiting for {what}")
         time.sleep(interval)
+
+
+@contextlib.contextmanager
+def standalone_sim(robot: SimRobot, tmp: Path):
+    """``crtk-sim <device>`` on its own (so what the devices do during and after a daemon's
+    shutdown can be read), and a copy of the robot's profile wired to it by its backend
+    (``sim_profile``). Yields (profile path, :class:`RemoteSim`)."""
+    import yaml
+
+    from crtk_bridge.backends import backend_class
+
+    link, control = tmp / "tty", tmp / "sim.sock"
+    cls = backend_class(robot.backend)
+    sim = subprocess.Popen([sys.executable, "-m", "crtk_bridge.sim.cli", cls.simulator.device, "--profile",
+                            str(robot.profile), "--link", str(link), "--control", str(control)],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=ROOT)
+    try:
+        wait_until(lambda: link.exists() and control.exists() or sim.poll() is not None, 15, what="simulator link")
+        assert sim.poll() is None, sim.stderr.read().decode()
+        data = robot.data()
+        data["backend"] = dict(cls.sim_profile(load_profile(robot.profile), str(link)).backend)
+        profile = tmp / "sim-profile.yaml"
+        profile.write_text(yaml.safe_dump(data))
+        yield profile, RemoteSim(str(control))
+    finally:
+        sim.terminate()
+        sim.wait(10)
 
 
 @pytest.fixture
@@ -204,9 +397,10 @@ class DaemonProcess:
         self._log.close()
 
 
-@pytest.fixture(params=list(SIM_ROBOTS.values()), ids=list(SIM_ROBOTS))
+@pytest.fixture(scope="module")
 def sim_robot(request) -> SimRobot:
-    """Each simulated robot in turn (one conformance suite over every backend with a simulator)."""
+    """Each simulated robot in turn (one end-to-end suite over every backend with a simulator),
+    parametrized by :func:`pytest_generate_tests` after what the test ``requires``."""
     return request.param
 
 

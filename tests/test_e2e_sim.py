@@ -1,20 +1,19 @@
 """End to end: the daemon as a real subprocess on each simulated robot (SO-101 on Feetech, Koch on
-Dynamixel), driven through the client."""
+Dynamixel, the CANopen pan / tilt unit), driven through the client; the devices inspected through
+the simulator's control socket with the conformance rows' hooks (tests/conftest.py RemoteSim)."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
 
 import numpy as np
 import pytest
-import yaml
 
 from crtk_bridge.client import CommandError, connect
-from crtk_bridge.sim.control import control_request
 
-from .conftest import DaemonProcess, RawSession, wait_until
+from .conftest import DaemonProcess, RawSession, standalone_sim, wait_until
+
+pytestmark = pytest.mark.requires()  # every simulated robot
 
 TOL = 0.02  # rad: sim servo quantisation is 2*pi/4096 = 0.0015 rad; first-order lag settles well inside this
 
@@ -25,9 +24,10 @@ def test_daemon_end_to_end_on_a_simulated_robot(sim_daemon):
     raw = RawSession(str(sim_daemon.socket_path))
     try:
         arm = robot.device(bot.arm)
-        gripper = arm.gripper
         assert arm.joint_names == list(bot.joint_names)
-        assert gripper.name == bot.gripper
+        if bot.gripper is not None:
+            gripper = arm.gripper
+            assert gripper.name == bot.gripper
 
         # starts DISABLED and refuses motion
         assert arm.operating_state() == "DISABLED" and arm.is_disabled()
@@ -36,15 +36,13 @@ def test_daemon_end_to_end_on_a_simulated_robot(sim_daemon):
         assert err.value.code == "invalid_state" and "DISABLED" in str(err.value)
         with pytest.raises(CommandError):
             arm.servo_jp([0.0] * bot.n)
-        sim = sim_daemon.sim_control_path()
-        dump = control_request(sim, {"cmd": "dump"})
-        assert sorted(dump["servos"]) == sorted(bot.servo_ids)
-        assert all(s["torque_enable"] == 0 for s in dump["servos"].values())
+        sim = bot.sim(sim_daemon.sim_control_path())
+        assert sorted(sim.devices()) == sorted(bot.servo_ids)
+        assert not any(bot.torque(sim).values())
 
         # enable, home
         assert arm.enable(5.0) and arm.is_enabled()
-        dump = control_request(sim, {"cmd": "dump"})
-        assert all(s["torque_enable"] == 1 for s in dump["servos"].values())
+        assert all(bot.torque(sim).values())
         assert arm.home(30.0) and arm.is_homed() and not arm.is_busy()
 
         # move_jp reaches the goal; both busy edges seen by a raw session
@@ -64,18 +62,18 @@ def test_daemon_end_to_end_on_a_simulated_robot(sim_daemon):
         new = [s["is_busy"] for s in raw.states[edges_before:]]
         assert new[0] is True and new[-1] is False
 
-        # gripper is its own namespace sharing the operating state
-        assert gripper.move_jp([0.5]).wait(timeout=10.0)
-        wait_until(lambda: abs(gripper.measured_jp()[0][0] - 0.5) < TOL, 5, what="gripper at 0.5")
+        if bot.gripper is not None:  # its own namespace sharing the operating state
+            assert gripper.move_jp([0.5]).wait(timeout=10.0)
+            wait_until(lambda: abs(gripper.measured_jp()[0][0] - 0.5) < TOL, 5, what="gripper at 0.5")
 
         # servo_jp stream: a ramp at ~100 Hz; is_busy stays false; the arm follows
         seq_before = raw.states[-1]["busy_seq"]
         start = arm.setpoint_jp()[0]
         for k in range(1, 61):
-            arm.servo_jp(start + bot.vec(shoulder_pan=0.005 * k))
+            arm.servo_jp(start + bot.vec((0, 0.005 * k)))
             time.sleep(0.01)  # paces the stream at ~100 Hz (not a wait for a result)
             assert not arm.is_busy()
-        target = start + bot.vec(shoulder_pan=0.3)
+        target = start + bot.vec((0, 0.3))
         wait_until(lambda: np.allclose(arm.measured_jp()[0], target, atol=TOL), 5, what="servo stream followed")
         sp, sts = arm.setpoint_jp()
         assert sts > 0 and np.allclose(sp, target)
@@ -83,13 +81,12 @@ def test_daemon_end_to_end_on_a_simulated_robot(sim_daemon):
 
         # out-of-limit goal refused with joint named
         with pytest.raises(CommandError) as err:
-            arm.move_jp(bot.vec(elbow_flex=bot.pos_max[2] + 1.0))
-        assert err.value.code == "out_of_limits" and "elbow_flex" in str(err.value)
+            arm.move_jp(bot.vec((bot.j(2), bot.pos_max[bot.j(2)] + 1.0)))
+        assert err.value.code == "out_of_limits" and bot.joint_names[bot.j(2)] in str(err.value)
 
         # disable: torque off everywhere
         assert arm.disable(5.0) and arm.is_disabled()
-        dump = control_request(sim, {"cmd": "dump"})
-        assert all(s["torque_enable"] == 0 for s in dump["servos"].values())
+        assert not any(bot.torque(sim).values())
     finally:
         raw.close()
         robot.close()
@@ -126,39 +123,25 @@ def test_second_session_is_read_only_while_first_holds_control(sim_daemon):
 
 
 def test_sigterm_mid_motion_turns_torque_off(short_tmp, sim_robot):
-    """Standalone simulator (crtk-sim feetech / dynamixel) + daemon on a profile whose port is the
-    simulator's link."""
+    """Standalone simulator (crtk-sim <device>) + daemon on a profile wired to it."""
     bot = sim_robot
-    link, control = short_tmp / "tty", short_tmp / "sim.sock"
-    sim = subprocess.Popen([sys.executable, "-m", "crtk_bridge.sim.cli", bot.backend, "--profile", str(bot.profile),
-                            "--link", str(link), "--control", str(control)],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    try:
-        wait_until(lambda: link.exists() and control.exists() or sim.poll() is not None, 15, what="simulator link")
-        assert sim.poll() is None, sim.stderr.read().decode()
-        data = bot.data()
-        data["backend"]["port"] = str(link)
-        profile = short_tmp / "sim-profile.yaml"
-        profile.write_text(yaml.safe_dump(data))
+    with standalone_sim(bot, short_tmp) as (profile, sim):
         daemon = DaemonProcess(["--profile", str(profile), "--no-realtime"], short_tmp / "d.sock", short_tmp / "d.log")
         try:
             robot = connect(socket=str(daemon.socket_path))
             arm = robot.device(bot.arm)
             assert arm.enable(5.0)
             arm.move_jp(bot.goals["wide"])
-            pan = bot.arm_ids[0]
-            wait_until(lambda: control_request(str(control), {"cmd": "dump"})["servos"][pan]["present_velocity"] != 0,
-                       5, what="arm moving in the simulator")
+            pan = int(bot.arm_ids[0])
+            start = bot.row.present(sim, pan)
+            wait_until(lambda: bot.row.present(sim, pan) != start, 5, what="arm moving in the simulator")
             status = daemon.terminate()
             robot.close()
             assert status == 0, daemon.output()
             assert not daemon.socket_path.exists()
             assert daemon.output().count("realtime_unavailable") == 1  # said once, ran anyway
-            servos = control_request(str(control), {"cmd": "dump"})["servos"]
-            assert sorted(servos) == sorted(bot.servo_ids), servos
-            assert all(s["torque_enable"] == 0 for s in servos.values()), servos
+            assert sorted(sim.devices()) == sorted(bot.servo_ids)
+            torque = bot.torque(sim)
+            assert not any(torque.values()), torque
         finally:
             daemon.stop()
-    finally:
-        sim.terminate()
-        sim.wait(10)

@@ -1164,16 +1164,28 @@ class CanopenSimulator:
 
     # ------------------------------------------------------------------ control socket
     def control(self, request: dict) -> dict:
-        """Answer one control request: dump, fault, clear_faults, bus_off (alias unplug),
-        position, enable_delay. Never raises for a bad request."""
+        """Answer one control request: dump, read / write {node, register[, value]} (register
+        names as :meth:`Drive402.read`), fault, clear_faults, bus_off (alias unplug), position,
+        enable_delay (alias torque_delay). ``id`` / ``bits`` are accepted for ``node`` / ``code``,
+        so a client written for the serial simulators' control socket reaches a drive the same
+        way. Never raises for a bad request."""
         cmd = request.get("cmd")
         try:
             if cmd == "dump":
                 return {"ok": True, "drives": {str(n): d.snapshot() for n, d in sorted(self.drives.items())},
                         "bus_off": self.bus_off, "interface": self.interface, "channel": self.port,
                         "bitrate": self.bitrate}
+            if cmd in ("read", "write"):  # a value by the serial simulators' register names
+                drive = self.drive(self._node(request))
+                if cmd == "read":
+                    return {"ok": True, "value": drive.read(str(request.get("register")))}
+                value = request.get("value")
+                if not isinstance(value, int) or isinstance(value, bool):
+                    return {"ok": False, "error": f"'value' must be an integer, got {value!r}"}
+                drive.write(str(request.get("register")), value)
+                return {"ok": True}
             if cmd == "fault":
-                code = request.get("code", 0)
+                code = request.get("code", request.get("bits", 0))
                 if isinstance(code, str):
                     code = int(code, 0)
                 if not isinstance(code, int) or isinstance(code, bool):
@@ -1192,7 +1204,7 @@ class CanopenSimulator:
                     return {"ok": False, "error": f"'value' must be an integer count, got {value!r}"}
                 self.drive(self._node(request)).set_position(value)
                 return {"ok": True}
-            if cmd == "enable_delay":
+            if cmd in ("enable_delay", "torque_delay"):
                 seconds = request.get("seconds")
                 if not isinstance(seconds, (int, float)) or isinstance(seconds, bool) or not seconds >= 0:
                     return {"ok": False, "error": f"'seconds' must be a number >= 0, got {seconds!r}"}
@@ -1200,11 +1212,11 @@ class CanopenSimulator:
                 return {"ok": True}
         except (SimulatorError, ValueError) as exc:
             return {"ok": False, "error": str(exc)}
-        return {"ok": False, "error": f"unknown cmd {cmd!r}; valid: dump, fault, clear_faults, "
-                "bus_off, unplug, position, enable_delay"}
+        return {"ok": False, "error": f"unknown cmd {cmd!r}; valid: dump, read, write, fault, "
+                "clear_faults, bus_off, unplug, position, enable_delay, torque_delay"}
 
     def _node(self, request: dict) -> int:
-        nid = request.get("node")
+        nid = request.get("node", request.get("id"))  # ``id``: the serial simulators' name
         if not isinstance(nid, int) or isinstance(nid, bool):
             raise SimulatorError(f"'node' must be an integer node id, got {nid!r}")
         return self.drive(nid).node_id

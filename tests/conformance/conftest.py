@@ -83,11 +83,13 @@ ROWS = {
         silence=lambda sim, nid: sim.set_fault(nid, "silent"),
         inject_error=lambda sim, nid: sim.set_fault(nid, "emcy", 0x5000),
         clear_errors=lambda sim: sim.clear_faults(),
-        torque=lambda sim, nid: sim.drive(nid).enabled,
-        goal=lambda sim, nid: sim.drive(nid).target_position,
-        present=lambda sim, nid: round(sim.drive(nid).position),
+        # the drive answers the serial servos' register names (in counts), so these hooks also
+        # work through the simulator's control socket (tests/conftest.py RemoteSim)
+        torque=lambda sim, nid: sim.drive(nid).read("Torque_Enable") == 1,
+        goal=lambda sim, nid: sim.drive(nid).read("Goal_Position"),
+        present=lambda sim, nid: sim.drive(nid).read("Present_Position"),
         error_latched=True,
-        set_present=lambda sim, nid, raw: sim.drive(nid).set_position(raw),
+        set_present=lambda sim, nid, raw: sim.drive(nid).write("Present_Position", raw),
         error_code="drive_fault",
     ),
 }

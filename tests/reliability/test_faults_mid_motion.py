@@ -25,7 +25,7 @@ import pytest
 from crtk_bridge.client import CommandError, connect
 from crtk_bridge.sim.control import control_request
 
-from ..conftest import SIM_ROBOTS, DaemonProcess, wait_until
+from ..conftest import DaemonProcess, wait_until
 
 RAD_PER_TICK = 2 * math.pi / 4096
 FAULT_SERVO = "elbow_flex"  # id 3 on both robots
@@ -78,10 +78,10 @@ class Rig:
         wait_until(attempt, 20, interval=0.1, what="recovered: ENABLED, torque on every servo")
 
 
-@pytest.fixture(scope="module", params=list(SIM_ROBOTS.values()), ids=list(SIM_ROBOTS))
-def rig(request):
+@pytest.fixture(scope="module")
+def rig(sim_robot):
     tmp = Path(tempfile.mkdtemp(prefix="crtk-rel-"))
-    bot = request.param
+    bot = sim_robot
     daemon = DaemonProcess(["--profile", str(bot.profile), "--sim"], tmp / "d.sock", tmp / "d.log", robot=bot)
     try:
         r = Rig(daemon)
