@@ -156,7 +156,7 @@ def test_enable_from_power_off_keeps_the_loop_cycling(ur):
     assert st["robot_mode"] == "RUNNING" and st["runtime_state"] == "PLAYING" and st["program"]
     # power on + brake release took >= 0.2 s on the simulator, and the cycle went on reading:
     # the measured stamps advanced all along (a blocking enable would freeze them)
-    assert took >= 0.2 and len(stamps) > 0.5 * took / ur.backend.dt
+    assert took >= 0.2 and len(stamps) > 0.25 * took / ur.backend.dt
     gaps = np.diff(stamps)
     assert np.all(gaps >= 0) and gaps.max() < 0.1, gaps.max()
     np.testing.assert_allclose(ur.sim_q(), q0, atol=1e-3)  # enabled where it was: no motion

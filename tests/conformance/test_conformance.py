@@ -51,7 +51,7 @@ def test_read_and_write_never_raise(rig):
     cmd.mode[:] = 200  # no such mode
     assert b.write(cmd) is None or isinstance(b.write(cmd), Fault)
     sim.set_unplugged(True)
-    assert isinstance(b.read(rig.fb), Fault)
+    wait_until(lambda: isinstance(b.read(rig.fb), Fault), 2, interval=0.001, what="a Fault from the read")
     cmd.mode[:] = int(CommandMode.POSITION)
     cmd.position[:] = rig.fb.position
     result = b.write(cmd)
@@ -92,6 +92,9 @@ def test_nan_never_reaches_the_bus(rig):
 
 def test_nothing_goes_on_the_bus_while_disabled(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
+    if not row.per_joint_registers:
+        pytest.skip("no byte count on this simulator; test_backend_ur.py: enable from power off holds "
+                    "where the arm was")
     if b.cyclic_write:
         pytest.skip("this backend writes every cycle in every state by design (cyclic_write)")
     goals = [row.goal(sim, i) for i in rig.ids]
@@ -114,6 +117,9 @@ def test_nothing_goes_on_the_bus_while_disabled(rig):
 
 def test_enable_holds_the_measured_position(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
+    if not row.per_joint_registers:
+        pytest.skip("the arm cannot be displaced by a register write; test_backend_ur.py::"
+                    "test_enable_from_power_off_keeps_the_loop_cycling checks enable holds where it is")
     for k, sid in enumerate(rig.ids):  # somewhere other than where the goals were left
         sim.servo(sid).write("Present_Position", row.present(sim, sid) + 150 + 40 * k)
     before = rig.measured()
@@ -130,6 +136,9 @@ def test_enable_holds_the_measured_position(rig):
 
 def test_a_silent_device_faults_naming_the_joint(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
+    if not row.per_joint_registers:
+        pytest.skip("one device for every joint; test_backend_ur.py::"
+                    "test_link_loss_faults_in_the_cycle_that_sees_it_then_reconnects")
     c = rig.enabled_controller()
     k = 2
     row.silence(sim, rig.ids[k])
@@ -148,8 +157,12 @@ def test_device_status_maps_onto_the_crtk_state(rig):
     wait_until(lambda: (rig.cycle(), c.state is OperatingState.FAULT)[1], 2, interval=0, what="FAULT")
     assert b.device_status is DeviceStatus.FAULT
     err = rig.events("error")[-1]
-    assert err["code"] == "servo_error" and err["joint"] == b.joint_names[k]
-    assert not any(row.torque(sim, i) for i in rig.ids)  # the backend's fault reaction: torque off
+    assert err["code"] == row.error_code
+    if row.error_names_joint:
+        assert err["joint"] == b.joint_names[k]
+    # the backend's fault reaction: torque off (a UR powers off over a few cycles)
+    wait_until(lambda: (rig.cycle(), not any(row.torque(sim, i) for i in rig.ids))[1], 2, interval=0,
+               what="torque off")
     row.clear_errors(sim)
     if row.error_latched:  # only the device's reset (enable) clears it
         rig.cycle(5)

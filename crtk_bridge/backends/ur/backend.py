@@ -76,6 +76,7 @@ m, axis-angle (UR) <-> unit quaternion [x, y, z, w] (CRTK) converted here.
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import math
 import threading
@@ -125,6 +126,12 @@ _POSITION, _VELOCITY, _FREE, _NONE = (int(CommandMode.POSITION), int(CommandMode
 _C_POSE, _C_TWIST, _C_MOVE = int(CartesianMode.POSE), int(CartesianMode.TWIST), int(CartesianMode.MOVE)
 _MOVE_DONE_POSITION_M = 0.002  # a move_cp ends once the TCP is this close to the goal...
 _MOVE_DONE_ROTATION_RAD = 0.02  # ...and turned this little from it
+
+
+def _abandon(obj: Any) -> None:
+    """Keep ``obj`` alive for the life of the process, past interpreter finalization (an extra
+    reference no one releases): a ur_rtde interface that cannot be disconnected safely."""
+    ctypes.pythonapi.Py_IncRef(ctypes.py_object(obj))
 
 
 class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
@@ -288,11 +295,14 @@ class UrBackend(Actuator):
         self._tcp_rotvec = np.zeros(3)
         self._state_code: str | None = None
         # blocking calls on a worker (one at a time)
-        self._job_thread: threading.Thread | None = None
-        self._cycle_job = False  # the job was started by the cycle's write (teach mode), not a transition
-        self._job_error: BaseException | None = None
+        self._ctl_thread: threading.Thread | None = None  # a blocking call on the control interface
+        self._cycle_job = False  # it was started by the cycle's write (teach mode), not a transition
+        self._job_box: dict[str, Any] = {}
         self._job_what = ""
+        self._job_after: tuple[Callable[[Any], None], Any] = (lambda arg: None, None)
         self._reconnecting = False
+        self._reconnect_thread: threading.Thread | None = None
+        self._ctl_link_lost = False  # the control interface lived through a lost link
         self._next_reconnect = 0.0
         # command side
         self._target = np.zeros(N_JOINTS)  # last servoJ target (rad)
@@ -328,21 +338,35 @@ class UrBackend(Actuator):
         self._refresh()
 
     def _close_hook(self) -> None:
-        self._wait_job(5.0)
-        for name in ("_ctl", "_rcv"):
+        # ur_rtde's interfaces throw C++ exceptions out of disconnect() and out of their
+        # destructors once their link broke ("write: Broken pipe", also from the control
+        # interface's own reconnect thread), which aborts the process (std::terminate). So: a
+        # blocking control call is waited for; an interface is disconnected only while its link
+        # is healthy; and none is ever freed (_abandon: one per backend, the daemon's control
+        # process ends with os._exit anyway).
+        self._wait_job(8.0)
+        if self._reconnect_thread is not None:
+            self._reconnect_thread.join(5.0)
+        busy = self._ctl_thread is not None and self._ctl_thread.is_alive()
+        if self._ctl is not None and self._ctl_link_lost and not busy:
+            # its own thread reconnects once the controller answers again: let it, then
+            # disconnect it properly, else it lingers on, reconnecting to this host forever
+            deadline = time.monotonic() + 6.0
+            while not self._ctl.isConnected() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            self._ctl_link_lost = not self._ctl.isConnected()
+        for name in ("_ctl", "_rcv", "_dash"):
             obj = getattr(self, name)
             setattr(self, name, None)
-            if obj is not None:
+            if obj is None:
+                continue
+            _abandon(obj)
+            healthy = not (name == "_ctl" and (busy or self._ctl_link_lost)) and obj.isConnected()
+            if healthy:
                 try:
                     obj.disconnect()  # sleeps 0.5 s (ur_rtde), on the way out only
-                except RuntimeError:
+                except Exception:
                     pass
-        if self._dash is not None:
-            try:
-                self._dash.disconnect()
-            except RuntimeError:
-                pass
-            self._dash = None
         self._link = False
 
     def info(self) -> ActuatorInfo:
@@ -424,6 +448,7 @@ class UrBackend(Actuator):
             else:
                 self.report_status(state.status, cause)
         if not link:
+            self._ctl_link_lost = self._ctl is not None  # see _close_hook
             self._maybe_reconnect()
             return Fault("link_lost", f"{self.robot}: RTDE link to the UR controller at {self.host} lost "
                          "(reconnecting by itself; enable once it is back)", transient=False)
@@ -450,8 +475,8 @@ class UrBackend(Actuator):
     def _write(self, command: JointCommand) -> Fault | None:
         if not self._enabled or self._ctl is None:
             return None
-        if self._job_thread is not None:  # a blocking call owns the control interface
-            if self._job_thread.is_alive() or not self._cycle_job:
+        if self._ctl_thread is not None:  # a blocking call owns the control interface
+            if self._ctl_thread.is_alive() or not self._cycle_job:
                 return None  # (a transition's job is collected by the transition's own steps)
             fault = self._end_job()
             if fault is not None:
@@ -478,13 +503,13 @@ class UrBackend(Actuator):
         mode = command.mode
         if np.all(mode == _FREE):
             if not self._teach:
-                self._start_job(self._ctl.teachMode, "teach mode", after=self._set_teach, arg=True)
+                self._start_job(self._ctl.teachMode, "teach mode", self._set_teach, True)
             return None
         if np.any(mode == _FREE):
             return Fault("invalid_command", f"{self.robot}: free applies to the whole UR arm (teach mode), "
                          "not to some joints", transient=False)
         if self._teach:
-            self._start_job(self._ctl.endTeachMode, "end of teach mode", after=self._set_teach, arg=False)
+            self._start_job(self._ctl.endTeachMode, "end of teach mode", self._set_teach, False)
             return None
         ok = True
         if np.any(mode == _VELOCITY):
@@ -566,54 +591,66 @@ class UrBackend(Actuator):
             self._target[:] = self._rcv.getActualQ() if self._rcv is not None else self._target
 
     # ------------------------------------------------------------------ worker jobs
-    def _start_job(self, fn: Callable[..., Any], what: str, after: Callable[[Any], None] | None = None,
-                   arg: Any = None, cycle: bool = True) -> None:
-        """Run the blocking ``fn()`` on a worker; the control interface is its until it ends.
-        ``cycle``: started by the cycle's write, which collects it (else by a transition's steps)."""
-        self._job_error = None
-        self._job_what = what
-        self._cycle_job = cycle
+    @staticmethod
+    def _spawn(fn: Callable[[], Any], what: str) -> tuple[threading.Thread, dict]:
+        """``fn()`` on a daemon thread; its result or exception lands in the returned box."""
+        box: dict[str, Any] = {}
 
         def run() -> None:
             try:
-                fn()
-                if after is not None:
-                    after(arg)
-            except BaseException as exc:  # carried to the cycle
-                self._job_error = exc
+                box["result"] = fn()
+            except BaseException as exc:  # carried to the cycle / the transition
+                box["error"] = exc
 
-        self._job_thread = threading.Thread(target=run, name=f"ur {what}", daemon=True)
-        self._job_thread.start()
+        thread = threading.Thread(target=run, name=f"ur {what}", daemon=True)
+        thread.start()
+        return thread, box
+
+    def _start_job(self, fn: Callable[[], Any], what: str, after: Callable[[Any], None], arg: Any) -> None:
+        """The cycle's own blocking call (a teach-mode switch) on a worker; the control interface
+        is its until the cycle collects it (:meth:`_end_job`), then ``after(arg)`` runs."""
+        self._ctl_thread, self._job_box = self._spawn(fn, what)
+        self._job_what, self._job_after, self._cycle_job = what, (after, arg), True
 
     def _end_job(self) -> Fault | None:
-        self._job_thread = None
-        exc, self._job_error = self._job_error, None
+        self._ctl_thread = None
+        exc = self._job_box.get("error")
         if exc is None:
+            after, arg = self._job_after
+            after(arg)
             return None
         return Fault("command_failed", f"{self.robot}: {self._job_what} failed on the UR controller at "
                      f"{self.host}: {exc}", transient=False)
 
     def _wait_job(self, timeout_s: float) -> None:
-        t = self._job_thread
+        t = self._ctl_thread
         if t is not None:
             t.join(timeout_s)
-            self._job_thread = None
+            if not t.is_alive():
+                self._ctl_thread = None
 
-    def _job(self, fn: Callable[[], Any], what: str, retry_s: float = 0.0) -> Steps:
-        """Steps running ``fn()`` on the worker, yielding every cycle until it returns; its error
-        raised as a BackendError naming ``what``. ``retry_s`` > 0: a failure is retried every 0.3 s
-        for that long (e-Series refuses to unlock a protective stop within 5 s of it)."""
-        while self._job_thread is not None and self._job_thread.is_alive():
-            yield  # a teach-mode switch of the cycle's own is finishing
-        self._job_thread = None
+    def _job(self, fn: Callable[[], Any], what: str, retry_s: float = 0.0, ctl: bool = True) -> Steps:
+        """Steps running ``fn()`` on a worker, yielding every cycle until it returns; its error
+        raised as a BackendError naming ``what``. ``ctl``: it uses the control interface, which
+        is one caller's at a time (the cycle sends nothing on it meanwhile); dashboard calls do
+        not wait for it. ``retry_s`` > 0: a failure is retried every 0.3 s for that long
+        (e-Series refuses to unlock a protective stop within 5 s of it)."""
+        if ctl:
+            while self._ctl_thread is not None and self._ctl_thread.is_alive():
+                yield  # a teach-mode switch of the cycle's own is finishing
+            self._ctl_thread = None
         give_up = time.monotonic() + retry_s
         while True:
-            self._start_job(fn, what, cycle=False)
-            thread = self._job_thread
-            while thread.is_alive():
-                yield
-            self._job_thread = None
-            exc, self._job_error = self._job_error, None
+            thread, box = self._spawn(fn, what)
+            if ctl:
+                self._ctl_thread, self._cycle_job = thread, False
+            try:
+                while thread.is_alive():
+                    yield
+            finally:
+                if ctl and self._ctl_thread is thread and not thread.is_alive():
+                    self._ctl_thread = None
+            exc = box.get("error")
             if exc is None:
                 return
             if time.monotonic() >= give_up:
@@ -652,7 +689,8 @@ class UrBackend(Actuator):
                 self._ts = -1.0
                 self._reconnecting = False
 
-        threading.Thread(target=run, name="ur rtde reconnect", daemon=True).start()
+        self._reconnect_thread = threading.Thread(target=run, name="ur rtde reconnect", daemon=True)
+        self._reconnect_thread.start()
 
     # ------------------------------------------------------------------ lifecycle transitions
     def _require_link(self, what: str) -> None:
@@ -668,11 +706,11 @@ class UrBackend(Actuator):
             raise BackendError(f"{self.robot}: enable refused: {state.text}; reset it first")
         if self.robot_mode != RobotMode.RUNNING:
             if self.robot_mode != RobotMode.IDLE:
-                yield from self._job(self._dash.powerOn, "power on")
+                yield from self._job(self._dash.powerOn, "power on", ctl=False)
                 yield from self._until(lambda: self.robot_mode in (RobotMode.IDLE, RobotMode.RUNNING),
                                        "robot mode IDLE after power on")
             if self.robot_mode != RobotMode.RUNNING:
-                yield from self._job(self._dash.brakeRelease, "brake release")
+                yield from self._job(self._dash.brakeRelease, "brake release", ctl=False)
                 yield from self._until(lambda: self.robot_mode == RobotMode.RUNNING,
                                        "robot mode RUNNING after brake release")
         yield from self._job(self._start_script, "control script upload")
@@ -712,10 +750,10 @@ class UrBackend(Actuator):
         if self._ctl is not None and link and self.runtime_state == RuntimeState.PLAYING:
             yield from self._job(self._stop_script, "stop")
         elif not link:
-            yield from self._job(self._dash.powerOff, "power off")
+            yield from self._job(self._dash.powerOff, "power off", ctl=False)
             raise BackendError(f"{self.robot}: power off sent, but not confirmed: no RTDE link to {self.host}")
         if self.robot_mode != RobotMode.POWER_OFF:
-            yield from self._job(self._dash.powerOff, "power off")
+            yield from self._job(self._dash.powerOff, "power off", ctl=False)
             yield from self._until(lambda: self.robot_mode == RobotMode.POWER_OFF, "robot mode POWER_OFF")
         self._teach = False
 
@@ -736,21 +774,21 @@ class UrBackend(Actuator):
         if not self._refresh():
             if self._rcv is None:
                 raise BackendError(f"{self.robot}: enable refused: the RTDE link is closed")
+            self._next_reconnect = 0.0
+            self._maybe_reconnect()  # now, on the worker the cycle's reads stay away from
             while self._reconnecting:
                 yield
-            yield from self._job(self._rcv.reconnect, "RTDE reconnect")
-            self._ts = -1.0
             self._require_link("enable")
         if not self._dash.isConnected():
-            yield from self._job(self._dash.connect, "dashboard reconnect")
+            yield from self._job(self._dash.connect, "dashboard reconnect", ctl=False)
         mode = self.safety_mode
         if mode == SafetyMode.PROTECTIVE_STOP:
-            yield from self._job(self._dash.closeSafetyPopup, "close safety popup")
-            yield from self._job(self._dash.unlockProtectiveStop, "unlock protective stop", retry_s=7.0)
+            yield from self._job(self._dash.closeSafetyPopup, "close safety popup", ctl=False)
+            yield from self._job(self._dash.unlockProtectiveStop, "unlock protective stop", retry_s=7.0, ctl=False)
             yield from self._until(lambda: self.safety_mode in MOVABLE, "the protective stop to clear")
         elif mode in (SafetyMode.VIOLATION, SafetyMode.FAULT):
-            yield from self._job(self._dash.closeSafetyPopup, "close safety popup")
-            yield from self._job(self._dash.restartSafety, "restart safety")
+            yield from self._job(self._dash.closeSafetyPopup, "close safety popup", ctl=False)
+            yield from self._job(self._dash.restartSafety, "restart safety", ctl=False)
             yield from self._until(lambda: self.safety_mode in MOVABLE, "the safety system to restart")
         elif mode in (SafetyMode.SYSTEM_EMERGENCY_STOP, SafetyMode.ROBOT_EMERGENCY_STOP):
             raise BackendError(f"{self.robot}: enable refused: the emergency stop is still engaged; release it first")
@@ -764,7 +802,7 @@ class UrBackend(Actuator):
         if self.safety_mode not in MOVABLE:
             yield from self._until(lambda: self.safety_mode in MOVABLE, "the safeguard stop to be reset")
         if self.runtime_state in (RuntimeState.PAUSED, RuntimeState.PAUSING):
-            yield from self._job(self._dash.play, "play")
+            yield from self._job(self._dash.play, "play", ctl=False)
             yield from self._until(lambda: self.runtime_state == RuntimeState.PLAYING, "the control script to resume")
         self._hold_here()  # from the measured pose: no rush to where it was going when stopped
 
