@@ -1,13 +1,16 @@
 """``crtk-bridge``: run the daemon, or check a profile.
 
     crtk-bridge --profile FILE [--sim] [--socket PATH] [--log-level L] [--no-realtime]
-    crtk-bridge check --profile FILE [--scan]
+                [--zenoh-connect ENDPOINT] [--zenoh-listen ENDPOINT] [--ros-domain-id N]
+    crtk-bridge check --profile FILE [--scan [--all-bauds]]
     crtk-bridge find-port [--replug]
+    crtk-bridge setup-servos --profile FILE [--yes] [--json] [--joint NAME]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 
@@ -19,22 +22,38 @@ def _run_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="crtk-bridge",
         usage="%(prog)s --profile FILE [--sim] [--socket PATH] [options]\n"
-              "       %(prog)s check --profile FILE [--scan]\n"
-              "       %(prog)s find-port [--replug]",
+              "       %(prog)s check --profile FILE [--scan [--all-bauds]]\n"
+              "       %(prog)s find-port [--replug]\n"
+              "       %(prog)s setup-servos --profile FILE [--yes] [--json] [--joint NAME]",
         description="Serve the CRTK robot API for the robot a profile describes.",
         epilog="commands:\n"
                "  check --profile FILE  validate a profile without opening the bus: every key, the\n"
                "                        backend section, and the kinematics where it names a URDF\n"
                "                        (frames and joints); exit 0 if valid. --scan also pings\n"
                "                        every id on the bus: model, firmware, torque of each\n"
-               "                        servo; missing and extra ids (exit 1 on a mismatch)\n"
+               "                        servo; missing and extra ids; EEPROM settings that differ\n"
+               "                        (register named); --all-bauds also the servos at other\n"
+               "                        baud rates (exit 1 on a mismatch)\n"
                "  find-port [--replug]  list serial ports with their /dev/serial/by-id names and USB\n"
                "                        vendor / product / serial number; --replug names the one\n"
-               "                        you unplug and plug back",
+               "                        you unplug and plug back\n"
+               "  setup-servos --profile FILE  one servo at a time, give each joint's servo its id\n"
+               "                        and the profile's baud rate (see setup-servos --help)",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--profile", required=True, help="robot profile (YAML), e.g. profiles/so101.yaml")
     p.add_argument("--sim", action="store_true", help="run on the built-in simulator instead of hardware")
     p.add_argument("--socket", help="Unix socket path (default: $XDG_RUNTIME_DIR/crtk-bridge/<robot>.sock)")
+    z = p.add_argument_group("Zenoh transport (off unless an endpoint is given here or in the profile's "
+                             "transport.zenoh; docs/zenoh.md)")
+    z.add_argument("--zenoh-connect", metavar="ENDPOINT", action="append",
+                   help="join the Zenoh router or peer at ENDPOINT, e.g. tcp/127.0.0.1:7447 (repeatable; "
+                        "replaces transport.zenoh.connect)")
+    z.add_argument("--zenoh-listen", metavar="ENDPOINT", action="append",
+                   help="accept Zenoh peers and clients on ENDPOINT, e.g. tcp/127.0.0.1:7448 (repeatable; "
+                        "replaces transport.zenoh.listen). Beyond loopback only as tls/ with "
+                        "transport.zenoh.tls and transport.zenoh.access_control")
+    z.add_argument("--ros-domain-id", metavar="N", type=int,
+                   help="ROS_DOMAIN_ID of the ROS 2 graph (default: transport.zenoh.ros_domain_id, else 0)")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO / mlockall")
     p.add_argument("--version", action="version", version=f"crtk-bridge {__version__}")
@@ -47,9 +66,16 @@ def _check(argv: list[str]) -> int:
     p.add_argument("--scan", action="store_true",
                    help="also open each bus (the daemon must not be running) and ping every id at "
                         "the profile's baud rate: report each servo's model, firmware and torque "
-                        "state, the joints whose id did not answer and the ids no joint has; exit 1 "
-                        "on any mismatch. Writes nothing to the servos")
+                        "state, the joints whose id did not answer, the ids no joint has, and the "
+                        "EEPROM settings that differ from the profile and the backend (register "
+                        "named: Homing_Offset, position limits, Return_Delay_Time, operating mode, "
+                        "direction bits); exit 1 on any mismatch. Writes nothing to the servos")
+    p.add_argument("--all-bauds", action="store_true",
+                   help="with --scan: also ping at every other baud rate the servos support and "
+                        "report the servos found there (exit 1; crtk-bridge setup-servos moves them)")
     args = p.parse_args(argv)
+    if args.all_bauds and not args.scan:
+        p.error("--all-bauds needs --scan")
     from .backends import create_backend
     from .core.kinematics_check import check_kinematics
     from .profile import load_profile
@@ -64,10 +90,10 @@ def _check(argv: list[str]) -> int:
     print(f"{args.profile}: valid profile for robot {profile.name!r} ({profile.backend_type}, "
           f"{len(profile.joints)} joints, namespaces {', '.join(ns.name for ns in profile.namespaces)}"
           f"{'; kinematics ' + ', '.join(cartesian) if cartesian else ''})")
-    return _scan(profile, backend) if args.scan else 0
+    return _scan(profile, backend, args.profile, args.all_bauds) if args.scan else 0
 
 
-def _scan(profile, backend) -> int:
+def _scan(profile, backend, source: str, all_bauds: bool) -> int:
     """``check --scan``: each bus's servos against the profile. 0 when they match, else 1."""
     buses = dict(zip(backend.bus_names, backend.parts)) if profile.backends is not None else {"": backend}
     failed = False
@@ -78,16 +104,19 @@ def _scan(profile, backend) -> int:
                   file=sys.stderr)
             failed = True
             continue
-        print(f"scanning {where} ({part.vendor}) at {part.config.baudrate} baud, ids 0-{part.MAX_ID}...",
-              flush=True)
+        print(f"scanning {where} ({part.vendor}) at {part.config.baudrate} baud"
+              f"{' (then every other rate)' if all_bauds else ''}, ids 0-{part.MAX_ID}...", flush=True)
         try:
-            found = part.scan()
+            found = part.scan(all_bauds=all_bauds)
         except CrtkBridgeError as exc:
             print(f"crtk-bridge: {exc}", file=sys.stderr)
             failed = True
             continue
-        lines, problems = part.scan_report(found)
-        print(f"{where}: {part.port_name}: {len(found)} servo{'s' if len(found) != 1 else ''} answered")
+        bus_opt = f" --bus {bus}" if bus else ""
+        lines, problems = part.scan_report(
+            found, f": run crtk-bridge setup-servos --profile {source}{bus_opt} with only that servo connected")
+        n = len(found.servos)
+        print(f"{where}: {part.port_name}: {n} servo{'s' if n != 1 else ''} answered")
         for line in lines:
             print("  " + line)
         if problems:
@@ -120,18 +149,110 @@ def _find_port(argv: list[str]) -> int:
     return 0
 
 
+def _setup_servos(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(
+        prog="crtk-bridge setup-servos",
+        description="Give each joint's servo its id and the profile's baud rate, one servo at a time "
+                    "(as lerobot-setup-motors): for each joint, in reverse profile order, connect ONLY "
+                    "that joint's servo; it is found at any id and baud rate, its model checked, then "
+                    "its ID, Return_Delay_Time and Baud_Rate written (persisted) and verified. The daemon "
+                    "must not be running.",
+        epilog="exit status: 0 every servo set up and verified; 1 error (profile, port, a write or its "
+               "verification); 2 bad arguments; 3 refused: the servo found is of another model than "
+               "the joint's; 4 --yes: no single new servo appeared within --timeout (none, several, "
+               "or only the previous one); 130 interrupted",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--profile", required=True)
+    p.add_argument("--bus", help="with a several-bus profile (backends:), the bus to set up")
+    p.add_argument("--joint", action="append", default=[], metavar="NAME",
+                   help="set up only this joint's servo (e.g. a replaced one); repeatable")
+    p.add_argument("--yes", action="store_true",
+                   help="no prompts (scripts): for each joint wait until exactly one new servo answers, "
+                        "up to --timeout")
+    p.add_argument("--timeout", type=float, default=60.0, metavar="S",
+                   help="with --yes: seconds to wait for each joint's servo (default 60)")
+    p.add_argument("--json", action="store_true",
+                   help="one JSON object per line for each step, then a summary object")
+    args = p.parse_args(argv)
+    from .backends import create_backend
+    from .backends.servo_setup import EXIT_ERROR, ServoSetup
+    from .profile import load_profile
+
+    def emit(event: dict) -> None:
+        if args.json:
+            print(json.dumps(event), flush=True)
+        else:
+            _print_setup_event(event, args.profile)
+
+    try:
+        profile = load_profile(args.profile)
+        backend = create_backend(profile, source=args.profile)
+        if profile.backends is not None:
+            if args.bus not in profile.bus_names:
+                p.error(f"--bus must name one of the profile's buses ({', '.join(profile.bus_names)})")
+            backend = backend.parts[backend.bus_names.index(args.bus)]
+        elif args.bus is not None:
+            p.error("--bus: the profile has one backend; leave --bus out")
+        if not hasattr(backend, "_broadcast_ping"):
+            raise CrtkBridgeError(f"{profile.name}: a {type(backend).__name__} has no servos to set up")
+        unknown = [n for n in args.joint if n not in backend.joint_names]
+        if unknown:
+            p.error(f"--joint {unknown[0]}: not a joint of this bus ({', '.join(backend.joint_names)})")
+    except CrtkBridgeError as exc:
+        if args.json:
+            emit({"event": "summary", "ok": False, "exit_code": EXIT_ERROR, "error": str(exc)})
+        else:
+            print(f"crtk-bridge: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    joints = [i for i, n in enumerate(backend.joint_names) if not args.joint or n in args.joint][::-1]
+    ask = None if args.yes else (lambda prompt: input(prompt))
+    return ServoSetup(backend, emit, ask, args.timeout).run(joints)
+
+
+def _print_setup_event(e: dict, source: str) -> None:
+    kind = e["event"]
+    if kind == "connect":
+        print(f"[{e['index']}/{e['of']}] {e['joint']}: connect ONLY its servo ({e['model']}); it gets id "
+              f"{e['id']} at {e['baudrate']} baud" + ("" if e["interactive"] else ". Waiting for it..."),
+              flush=True)
+    elif kind == "waiting":
+        print(f"  waiting: {e['message']}", flush=True)
+    elif kind == "found":
+        print(f"  found {e['model'] or 'model number ' + str(e['model_number'])} at id {e['id']}, "
+              f"{e['baudrate']} baud", flush=True)
+    elif kind == "configured":
+        ids = f"id {e['from_id']} -> {e['id']}" if e["from_id"] != e["id"] else f"id {e['id']} (kept)"
+        rate = (f"{e['from_baudrate']} -> {e['baudrate']} baud" if e["from_baudrate"] != e["baudrate"]
+                else f"{e['baudrate']} baud (kept)")
+        print(f"  set up: {ids}, {rate} (wrote {', '.join(e['written'])}); verified", flush=True)
+    elif kind == "summary":
+        done = ", ".join(f"{r['joint']} id {r['id']}" for r in e.get("joints", []))
+        if e["ok"]:
+            print(f"{e['set_up']} of {e['of']} servos set up ({done}). Connect them all and check the bus: "
+                  f"crtk-bridge check --profile {source} --scan", flush=True)
+        else:
+            if e.get("error"):
+                print(f"crtk-bridge: {e['error']}", file=sys.stderr, flush=True)
+            print(f"{e.get('set_up', 0)} of {e.get('of', '?')} servos set up{' (' + done + ')' if done else ''}; "
+                  f"stopped (exit {e['exit_code']})", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "find-port":
         return _find_port(argv[1:])
     if argv and argv[0] == "check":
         return _check(argv[1:])
+    if argv and argv[0] == "setup-servos":
+        return _setup_servos(argv[1:])
     args = _run_parser().parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from .daemon import run
 
     try:
-        return run(args.profile, sim=args.sim, socket_path=args.socket, realtime=not args.no_realtime)
+        return run(args.profile, sim=args.sim, socket_path=args.socket, realtime=not args.no_realtime,
+                   zenoh_connect=args.zenoh_connect, zenoh_listen=args.zenoh_listen,
+                   ros_domain_id=args.ros_domain_id)
     except CrtkBridgeError as exc:
         print(f"crtk-bridge: {exc}", file=sys.stderr)
         return 1

@@ -129,7 +129,13 @@ class EventCode(StrEnum):
     """The ``data.code`` of a status, warning or error event (docs/protocol.md, Event codes)."""
     BUS_TIMEOUT = "bus_timeout"
     BUS_CORRUPT = "bus_corrupt"
+    PORT_LOST = "port_lost"
     SERVO_ERROR = "servo_error"
+    TPDO_MISSING = "tpdo_missing"  # CANopen
+    HEARTBEAT_LOST = "heartbeat_lost"  # CANopen
+    NMT_STATE = "nmt_state"  # CANopen
+    DRIVE_FAULT = "drive_fault"  # CANopen
+    BUS_ERROR = "bus_error"  # CANopen
     TRACKING_ERROR = "tracking_error"
     INVALID_COMMAND = "invalid_command"
     BACKEND_EXCEPTION = "backend_exception"

@@ -151,7 +151,7 @@ def test_enable_from_power_off_keeps_the_loop_cycling(ur):
         stamps.append(ur.fb.stamp)
         assert time.monotonic() - t0 < 10, "enable did not end"
     took = time.monotonic() - t0
-    assert ur.reply(rid)["ok"] and c.state is OperatingState.ENABLED and not c.is_busy
+    assert ur.reply(rid)["ok"] and c.state is OperatingState.ENABLED and not c.is_busy, ur.reply(rid)
     st = ur.sim.state()
     assert st["robot_mode"] == "RUNNING" and st["runtime_state"] == "PLAYING" and st["program"]
     # power on + brake release took >= 0.2 s on the simulator, and the cycle went on reading:
@@ -274,9 +274,12 @@ def test_link_loss_faults_in_the_cycle_that_sees_it_then_reconnects(ur):
             break
     assert seen is not None, "the backend never saw the link go down"
     assert c.state is OperatingState.FAULT  # in that same cycle
-    assert ur.events("error")[-1]["code"] == "link_lost"
+    assert ur.events("error")[-1]["code"] == "link_lost", ur.events("error")[-1]
     ur.until(lambda: any(e["code"] == "fault_cleared" for e in ur.events("status")), 5, "the link back")
     assert c.state is OperatingState.FAULT  # never enabled by itself
+    # the fault reaction (stop, power off) could not be confirmed without the link: it is, now
+    ur.until(lambda: not c.is_busy and ur.sim.state()["robot_mode"] == "POWER_OFF", 5, "the arm powered off")
+    ur.until(lambda: not c.is_busy and not c._torque_unconfirmed, 5, "the fault reaction confirmed")
     r = ur.do("enable", timeout=15)
     assert r["ok"], r
     assert ur.do("move_jp", NS, position=list(READY - 0.1))["ok"]

@@ -364,9 +364,10 @@ class Actuator(abc.ABC):
     simulator: ClassVar[SimWiring | None] = None
     #: time limit (s) of each lifecycle transition; exceeding it faults the robot
     transition_timeouts_s: ClassVar[dict[Lifecycle, float]] = DEFAULT_TRANSITION_TIMEOUTS_S
-    #: True: on resume core re-seeds every setpoint from the measured pose (a device that stopped
-    #: itself, as a UR safeguard stop does, is not where core's setpoint was when it paused)
-    reseed_on_resume: ClassVar[bool] = False
+    #: True: PAUSE stops the device by itself (a CiA 402 quick stop ramp; a UR safeguard stop stops
+    #: the arm with its own ramp) and it holds where it stopped, not where core's braking ramp
+    #: ended; core takes the measured position on RESUME
+    stops_itself_on_pause: ClassVar[bool] = False
     #: the device's speed scaling (0..1) set by its operator (a UR's speed slider), reported to
     #: clients in ``operating_state``; NaN: the device has none
     speed_fraction: float = float("nan")

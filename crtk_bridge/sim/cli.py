@@ -4,6 +4,14 @@
                      [--emulate-baud] [--torque-delay S] [--log-level info]
     crtk-sim dynamixel --profile profiles/koch.yaml --link /tmp/ttySIM [...same options]
     crtk-sim feetech --profile profiles/bimanual_so101.yaml --bus left --link /tmp/ttyLEFT
+    crtk-sim ur --profile profiles/ur5e.yaml --host 127.0.0.2 [--control /tmp/ur.ctl]
+                [--series e-series|cb3] [--power-on-s S] [--brake-release-s S] [--unlock-delay-s S]
+
+Day-one buses (what `crtk-bridge setup-servos` and `check --scan --all-bauds` meet on a new arm):
+
+    crtk-sim feetech --profile P --empty --factory-servo    one unconfigured servo (id 1, factory rate)
+    crtk-sim feetech --profile P --servo-baud 115200        the servos at another rate than the profile
+    crtk-sim feetech --profile P --model 3=sts3250          servo 3 of another model
 
 Prints one line once the port (and control socket) exist, then serves until signalled; exits 0
 after removing the link and the control socket. Exit 2: bad arguments or profile; 1: the
@@ -41,9 +49,92 @@ def _parser() -> argparse.ArgumentParser:
         d.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
         d.add_argument("--torque-delay", type=float, default=0.0, metavar="S",
                        help="a torque-on takes S seconds to take effect (a slow device; default 0)")
+        d.add_argument("--empty", action="store_true",
+                       help="start with no servo on the bus (add them with --factory-servo or the "
+                            "control socket's add_servo)")
+        d.add_argument("--factory-servo", action="append", nargs="?", const="", metavar="MODEL",
+                       help="add a factory-fresh servo (id 1 at the factory baud rate; default model: "
+                            "the vendor's usual); repeatable")
+        d.add_argument("--servo-baud", type=int, metavar="BAUD",
+                       help="the profile's servos sit at this rate instead of the profile's (a baud "
+                            "rate mismatch)")
+        d.add_argument("--model", action="append", default=[], metavar="ID=MODEL",
+                       help="the servo with this id is of another model; repeatable")
         d.add_argument("--log-level", default="warning",
                        choices=["debug", "info", "warning", "error"], help="default: warning")
+    u = sub.add_parser("ur", help="Universal Robots controller (UR5e): RTDE 30004, dashboard 29999, "
+                                  "script 30003 on a loopback address")
+    u.add_argument("--profile", required=True, help="robot profile (YAML): six joints, their limits and home")
+    u.add_argument("--host", required=True,
+                   help="address to serve on, e.g. 127.0.0.2 (the ports are fixed; 'auto': a free 127.0.0.N)")
+    u.add_argument("--control", help="serve the JSON-lines control socket at this path")
+    u.add_argument("--series", choices=["e-series", "cb3"],
+                   help="controller generation: e-series (500 Hz) or cb3 (125 Hz); default: the "
+                        "profile's backend.series, else e-series")
+    u.add_argument("--power-on-s", type=float, default=0.3, metavar="S", help="power on -> IDLE (default 0.3)")
+    u.add_argument("--brake-release-s", type=float, default=0.5, metavar="S",
+                   help="brake release -> RUNNING (default 0.5)")
+    u.add_argument("--unlock-delay-s", type=float, default=5.0, metavar="S",
+                   help="a protective stop may be unlocked this long after it (default 5, as UR)")
+    u.add_argument("--log-level", default="warning",
+                   choices=["debug", "info", "warning", "error"], help="default: warning")
     return p
+
+
+def _serve(sim, ready_line: str) -> int:
+    """Print ``ready_line``, then wait for SIGTERM / SIGINT (signals already blocked) while
+    ``sim.running``; stop it either way."""
+    try:
+        print(ready_line, flush=True)
+        while True:
+            if signal.sigtimedwait(_SIGNALS, _HEALTH_CHECK_S) is not None:
+                return 0
+            if not sim.running:
+                print("crtk-sim: the simulator thread died (see the log above)", file=sys.stderr)
+                return 1
+    finally:
+        sim.stop()
+
+
+def _main_ur(args, profile) -> int:
+    import numpy as np
+
+    from .ur import URController, free_loopback_host, profile_options
+    from .ur_robot import Limits, Timings
+
+    try:
+        opts = profile_options(profile)
+        host = free_loopback_host() if args.host == "auto" else args.host
+        sim = URController(host, q0=opts["q0"], limits=Limits(np.array(opts["lower"]), np.array(opts["upper"])),
+                           series=args.series or opts["series"], control=args.control,
+                           timings=Timings(args.power_on_s, args.brake_release_s, args.unlock_delay_s))
+        sim.start()
+    except CrtkBridgeError as exc:
+        print(f"crtk-sim: {exc}", file=sys.stderr)
+        return 1
+    return _serve(sim, f"crtk-sim: ur controller ready: host={sim.host} rtde=30004 dashboard=29999 "
+                       f"script=30003 series={sim.series} rate={sim.rate_hz:g}Hz control={sim.control_path or '-'}")
+
+
+def _day_one(sim, args) -> None:
+    """Apply --empty, --model, --servo-baud, --factory-servo (in that order). Raises
+    SimulatorError or ProfileError."""
+    for sid in sim.ids if args.empty else ():
+        sim.remove_servo(sid)
+    for spec in args.model:
+        sid, sep, model = spec.partition("=")
+        if not sep or not sid.strip().isdigit():
+            raise ProfileError(f"--model {spec!r}: expected ID=MODEL, e.g. 3=sts3250")
+        sim.replace_model(int(sid), model.strip())
+    if args.servo_baud is not None:
+        code = sim.BAUD_CODES.get(args.servo_baud)
+        if code is None:
+            raise ProfileError(f"--servo-baud {args.servo_baud}: not a {sim.vendor} servo baud rate; "
+                               f"valid: {', '.join(map(str, sorted(sim.BAUD_CODES)))}")
+        for sid in sim.ids:
+            sim.servo(sid).write("Baud_Rate", code)
+    for model in args.factory_servo or ():
+        sim.add_servo(model=model or None)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -54,6 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     except ProfileError as exc:
         print(f"crtk-sim: {exc}", file=sys.stderr)
         return 2
+    if args.device == "ur":  # signals blocked before any thread exists, as below
+        signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+        return _main_ur(args, profile)
     if profile.backends is not None or args.bus is not None:
         if args.bus not in profile.bus_names:
             print(f"crtk-sim: {args.profile}: --bus must name one of the profile's buses "
@@ -70,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
         sim = Simulator.from_profile(
             profile, link=args.link, control=args.control, emulate_baud=args.emulate_baud)
         sim.set_torque_delay(args.torque_delay)
+        _day_one(sim, args)
         sim.start()
     except CrtkBridgeError as exc:
         print(f"crtk-sim: {exc}", file=sys.stderr)
@@ -77,18 +172,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"crtk-sim: cannot start the simulator: {exc}", file=sys.stderr)
         return 1
-    try:
-        print(f"crtk-sim: {args.device} bus ready: port={sim.port} pty={sim.pty_path} "
-              f"control={sim.control_path or '-'} ids={','.join(map(str, sim.ids))} "
-              f"baud={sim.baudrate}{' (emulated)' if sim.emulate_baud else ''}", flush=True)
-        while True:
-            if signal.sigtimedwait(_SIGNALS, _HEALTH_CHECK_S) is not None:
-                return 0
-            if not sim.running:
-                print("crtk-sim: the simulator thread died (see the log above)", file=sys.stderr)
-                return 1
-    finally:
-        sim.stop()
+    return _serve(sim, f"crtk-sim: {args.device} bus ready: port={sim.port} pty={sim.pty_path} "
+                       f"control={sim.control_path or '-'} ids={','.join(map(str, sim.ids))} "
+                       f"baud={sim.baudrate}{' (emulated)' if sim.emulate_baud else ''}")
 
 
 if __name__ == "__main__":

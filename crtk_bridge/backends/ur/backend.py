@@ -52,7 +52,7 @@ the robot keeps following its last target):
   an e-stop or recovery mode is refused with what to do by hand.
 * RESUME: waits until the safeguard stop is reset and the script plays again (dashboard
   ``play`` if it was paused); core re-seeds every setpoint from the measured pose
-  (``reseed_on_resume``), so the arm does not rush to where it was going when it stopped.
+  (``stops_itself_on_pause``), so the arm does not rush to where it was going when it stopped.
 
 State: :mod:`.tables` maps link, robot mode, safety mode and runtime state onto a device status
 (protective stop and e-stops -> FAULT naming the cause, safeguard stop -> PAUSED, link loss ->
@@ -150,6 +150,8 @@ class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     move_angular_speed: Annotated[float, msgspec.Meta(gt=0)] = 0.8  # rad/s: move_cp's TCP turn rate
     move_angular_acceleration: Annotated[float, msgspec.Meta(gt=0)] = 1.6  # rad/s^2
     reconnect_interval_s: Annotated[float, msgspec.Meta(gt=0)] = 0.5  # RTDE link retries after a loss
+    # no RTDE packet for this long is a lost link (ur_rtde's isConnected() alone misses a silent one)
+    link_timeout_s: Annotated[float, msgspec.Meta(gt=0)] = 0.1
 
 
 def _pose6(position: np.ndarray, quat_xyzw: np.ndarray) -> list[float]:
@@ -248,7 +250,7 @@ class UrBackend(Actuator):
     fault_reaction = Actuator.fault_reaction  # the DISABLE transition: stop, power off, brakes on
     paces_cycle = True
     simulator = SimWiring(device="ur", endpoint_key="host", host_ports=(30004, 29999, 30003))
-    reseed_on_resume = True
+    stops_itself_on_pause = True  # a safeguard stop stops the arm by itself: resume from where it is
     transition_timeouts_s = {**DEFAULT_TRANSITION_TIMEOUTS_S, Lifecycle.ENABLE: 20.0, Lifecycle.DISABLE: 6.0,
                              Lifecycle.RESUME: 3.0, Lifecycle.FAULT_RESET: 12.0, Lifecycle.GOAL_CHECK: 2.0}
 
@@ -392,39 +394,50 @@ class UrBackend(Actuator):
         due = self._arrived + self.dt - 0.0003
         if due > start:
             time.sleep(min(due, deadline) - start)
-        last = self._ts
         while True:
-            ts = r.getTimestamp()
-            if ts != last:
-                now = clock()
-                if last >= 0.0:
-                    skipped = int(round((ts - last) / self.dt)) - 1
-                    if skipped > 0:
-                        self.missed_packets += skipped
-                self.packets += 1
-                self._ts = ts
-                self._arrived = now
+            if self._new_packet(r):
                 return True
             now = clock()
             if now >= deadline:
                 return False
             time.sleep(min(0.0001, deadline - now))
 
+    def _new_packet(self, r: Any) -> bool:
+        """True when a packet newer than the last one seen arrived (counts skipped ones)."""
+        ts = r.getTimestamp()
+        last = self._ts
+        if ts == last:
+            return False
+        if last >= 0.0:
+            skipped = int(round((ts - last) / self.dt)) - 1
+            if skipped > 0:
+                self.missed_packets += skipped
+        self.packets += 1
+        self._ts = ts
+        self._arrived = time.perf_counter()
+        return True
+
     # ------------------------------------------------------------------ real-time path
     def _refresh(self) -> bool:
-        """Copy the modes and the TCP pose from the latest packet. Never blocks. False: no link."""
+        """Copy the modes and the speed slider from the latest packet. Never blocks. False: no link."""
         r = self._rcv
         if r is None or self._reconnecting:
             self._link = False
             return False
-        self._link = bool(r.isConnected())
+        # isConnected() alone is not enough: after a failed reconnect() it says True with no data
+        # coming (and a pulled cable sends no FIN): the packets must keep arriving too
+        self._link = bool(r.isConnected()) and (self._new_packet(r) or
+                                                time.perf_counter() - self._arrived < self.config.link_timeout_s)
         if not self._link:
             return False
-        self.robot_mode = int(r.getRobotMode())
-        self.safety_mode = int(r.getSafetyMode())
-        self.runtime_state = int(r.getRuntimeState())
-        self.speed_fraction = float(r.getTargetSpeedFraction())
-        return True
+        try:
+            self.robot_mode = int(r.getRobotMode())
+            self.safety_mode = int(r.getSafetyMode())
+            self.runtime_state = int(r.getRuntimeState())
+            self.speed_fraction = float(r.getTargetSpeedFraction())
+        except RuntimeError:  # the link went down since isConnected() said yes
+            self._link = False
+        return self._link
 
     def _movable(self) -> bool:
         """Commands may go out: link up, safety NORMAL / REDUCED, robot RUNNING, script PLAYING."""
@@ -448,15 +461,17 @@ class UrBackend(Actuator):
             else:
                 self.report_status(state.status, cause)
         if not link:
-            self._ctl_link_lost = self._ctl is not None  # see _close_hook
-            self._maybe_reconnect()
-            return Fault("link_lost", f"{self.robot}: RTDE link to the UR controller at {self.host} lost "
-                         "(reconnecting by itself; enable once it is back)", transient=False)
+            return self._link_lost()
         r = self._rcv
-        feedback.position[:] = r.getActualQ()
-        feedback.velocity[:] = r.getActualQd()
+        try:
+            q, qd, pose = r.getActualQ(), r.getActualQd(), r.getActualTCPPose()
+            wrench = r.getActualTCPForce()
+        except RuntimeError:  # the link went down since isConnected() said yes
+            self._link = False
+            return self._link_lost()
+        feedback.position[:] = q
+        feedback.velocity[:] = qd
         feedback.stamp = self.now()
-        pose = r.getActualTCPPose()
         if state.status is DeviceStatus.PAUSED and not self._paused_hold and self._enabled:
             self._paused_hold = True  # where the arm stopped: the target until resume (see _write)
             self._target[:] = feedback.position
@@ -465,12 +480,18 @@ class UrBackend(Actuator):
             cart.position[0] = pose[:3]
             self._tcp_rotvec[:] = pose[3:]
             _quat_xyzw(self._tcp_rotvec, cart.orientation[0])
-            cart.wrench[0] = r.getActualTCPForce()
+            cart.wrench[0] = wrench
             cart.done_seq[0] = self._done_seq
             cart.stamp = feedback.stamp
         self._tcp_p[:] = pose[:3]
         self._tcp_r = pin.exp3(self._tcp_rotvec)
         return None
+
+    def _link_lost(self) -> Fault:
+        self._ctl_link_lost = self._ctl is not None  # see _close_hook
+        self._maybe_reconnect()
+        return Fault("link_lost", f"{self.robot}: RTDE link to the UR controller at {self.host} lost "
+                     "(reconnecting by itself; enable once it is back)", transient=False)
 
     def _write(self, command: JointCommand) -> Fault | None:
         if not self._enabled or self._ctl is None:
@@ -490,13 +511,28 @@ class UrBackend(Actuator):
             # program resumes on THAT target instead of rushing to the one it had before the stop
             # (what UR users report). Core's setpoint no longer matters; resume re-seeds it.
             if (self._link and self.robot_mode == RobotMode.RUNNING and self.runtime_state in
-                    (RuntimeState.PLAYING, RuntimeState.PAUSED, RuntimeState.PAUSING)):
+                    (RuntimeState.PLAYING, RuntimeState.PAUSED, RuntimeState.PAUSING) and self._ctl.isConnected()):
                 cfg = self.config
-                self._ctl.servoJ(self._target.tolist(), 0.0, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain)
+                try:
+                    self._ctl.servoJ(self._target.tolist(), 0.0, 0.0, self.dt, cfg.servo_lookahead_time_s,
+                                     cfg.servo_gain)
+                except RuntimeError:
+                    return None  # the link went down: the state table reports it
                 self._last_kind = "servoj"
             return None
         if not self._movable():
             return None  # gated: servoJ would "succeed" with the link down; the state table says why
+        if not self._ctl.isConnected():  # (a servoJ then tries to reconnect, blocking the cycle)
+            return Fault("link_lost", f"{self.robot}: the RTDE control link to {self.host} is down "
+                         "(reconnecting by itself)", transient=True)
+        try:
+            return self._send(command)
+        except RuntimeError as exc:  # it went down meanwhile
+            return Fault("link_lost", f"{self.robot}: the RTDE control link to {self.host} failed: {exc}",
+                         transient=True)
+
+    def _send(self, command: JointCommand) -> Fault | None:
+        """This cycle's one realtime script command (the gates passed)."""
         cart = command.cartesian
         if cart is not None and cart.mode[0] != _NONE:
             return self._write_cartesian(cart)
@@ -687,6 +723,7 @@ class UrBackend(Actuator):
                 pass  # still down: the next attempt after reconnect_interval_s
             finally:
                 self._ts = -1.0
+                self._arrived = time.perf_counter()  # its packets have link_timeout_s to show up
                 self._reconnecting = False
 
         self._reconnect_thread = threading.Thread(target=run, name="ur rtde reconnect", daemon=True)

@@ -11,7 +11,7 @@ first match wins (reference/canopen-ur.md section 6):
 
 | # | condition | device status | cause code | CRTK state (from ENABLED) |
 |---|---|---|---|---|
-| 1 | RTDE link down | FAULT | ``link_lost`` | FAULT |
+| 1 | RTDE link down (closed, or no packet for ``backend.link_timeout_s``) | FAULT | ``link_lost`` | FAULT |
 | 2 | robot mode NO_CONTROLLER / DISCONNECTED | FAULT | ``controller_disconnected`` | FAULT |
 | 3 | safety PROTECTIVE_STOP | FAULT | ``protective_stop`` | FAULT |
 | 4 | safety SYSTEM / ROBOT_EMERGENCY_STOP | FAULT | ``emergency_stop`` | FAULT |
