@@ -54,7 +54,7 @@ the robot keeps following its last target):
   ``play`` if it was paused); core re-seeds every setpoint from the measured pose
   (``stops_itself_on_pause``), so the arm does not rush to where it was going when it stopped.
 
-State: :mod:`.tables` maps link, robot mode, safety mode and runtime state onto a device status
+State: :mod:`.state` maps link, robot mode, safety mode and runtime state onto a device status
 (protective stop and e-stops -> FAULT naming the cause, safeguard stop -> PAUSED, link loss ->
 FAULT in the cycle that sees it). Every command is gated on the link being up, the safety mode
 NORMAL / REDUCED and the script PLAYING, because ``servoJ`` returns True while the link is down.
@@ -106,7 +106,8 @@ from ...core.actuator import (
 )
 from ...errors import BackendError, CommandError, ProfileError, fmt_number
 from ...profile import Profile, backend_config, unknown_key_message
-from .tables import MOVABLE, RobotMode, RuntimeState, SafetyMode, device_state
+from .state import device_state
+from .tables import MOVABLE, RobotMode, RuntimeState, SafetyMode
 
 try:  # the SDK; the registry names the pip extra when it is missing
     import dashboard_client
