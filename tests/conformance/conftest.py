@@ -116,9 +116,10 @@ class URSimAdapter:
             self.sim.link_loss(0.5, ports=("rtde", "dashboard", "script"))
 
     def settle(self) -> None:
-        """Two controller ticks: RTDE inputs sent before now have been applied."""
+        """Ten controller ticks (20 ms): RTDE inputs sent before now have been applied (the
+        simulator takes them on its own thread; two ticks were not always enough under load)."""
         t0 = self.state()["ticks"]
-        wait_until(lambda: self.state()["ticks"] >= t0 + 2, 2, interval=0.001, what="two controller ticks")
+        wait_until(lambda: self.state()["ticks"] >= t0 + 10, 2, interval=0.001, what="ten controller ticks")
 
 
 ROWS = {
