@@ -249,6 +249,14 @@ class Canopen402Backend(Actuator):
                 raise ProfileError(f"{source}: joints[{i}] ({j.name}).node_id: {k.node_id} is also "
                                    f"joint {seen[k.node_id]!r}'s")
             seen[k.node_id] = j.name
+            h = k.homing
+            for key in ("speed_switch", "speed_zero"):  # the drive homes at these: bounded too
+                if h is not None and getattr(h, key) > j.limits.velocity_max:
+                    raise ProfileError(f"{source}: joints[{i}] ({j.name}).homing.{key}: {getattr(h, key)} is "
+                                       f"above limits.velocity_max ({j.limits.velocity_max})")
+            if h is not None and h.acceleration > j.limits.acceleration_max:
+                raise ProfileError(f"{source}: joints[{i}] ({j.name}).homing.acceleration: {h.acceleration} is "
+                                   f"above limits.acceleration_max ({j.limits.acceleration_max})")
         self.drives = [_Drive(i, j.name, k, j.limits) for i, (j, k) in enumerate(zip(profile.joints, keys))]
         self._period_s = 1.0 / profile.loop.rate_hz
         self._tpdo_timeout_s = (cfg.tpdo_timeout_ms / 1000.0 if cfg.tpdo_timeout_ms is not None
