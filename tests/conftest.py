@@ -43,6 +43,18 @@ def so101_data() -> dict:
     return profile_data(SO101)
 
 
+def wait_until(predicate, timeout=10.0, interval=0.01, what="condition"):
+    """Poll ``predicate`` until it is truthy; fail the test naming ``what`` after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(interval)
+
+
 # Arm goals (rad, by joint index; an arm with fewer joints takes the first ones, one with more
 # holds the others at 0) used by the end-to-end tests on every simulated robot; SimRobot checks
 # each lies inside the robot's limits with a margin.
@@ -164,6 +176,12 @@ class SimRobot:
     def torque(self, sim: RemoteSim, ids=None) -> dict[str, bool]:
         """Torque (power stage) on, per device id (every device unless ``ids``)."""
         return {i: bool(self.row.torque(sim, int(i))) for i in (self.servo_ids if ids is None else ids)}
+
+    def free(self, sim: RemoteSim, ids=None) -> dict[str, bool]:
+        """Free (no torque applied, nothing held; the row's ``free`` hook, else torque off), per
+        device id (every device unless ``ids``)."""
+        hook = self.row.free or (lambda s, i: not self.row.torque(s, i))
+        return {i: bool(hook(sim, int(i))) for i in (self.servo_ids if ids is None else ids)}
 
 
 def robot_capabilities(profile, has_gripper: bool) -> frozenset:
@@ -287,18 +305,6 @@ def pytest_generate_tests(metafunc):
         if "sim_robot" in (names.replace(" ", "").split(",") if isinstance(names, str) else names):
             return  # only_on: the test chose its robots
     metafunc.parametrize("sim_robot", sim_robot_params(metafunc), indirect=True)
-
-
-def wait_until(predicate, timeout=10.0, interval=0.01, what="condition"):
-    """Poll ``predicate`` until it is truthy; fail the test naming ``what`` after ``timeout`` s."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(interval)
 
 
 @contextlib.contextmanager

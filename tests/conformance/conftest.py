@@ -55,6 +55,8 @@ class Row:
     #: test may set and a byte count of what reached the bus (serial servo buses). A UR arm is
     #: one device: its equivalents are in tests/test_backend_ur.py (named in each skip)
     per_joint_registers: bool = True
+    #: the device applies no torque and holds nothing (what ``free`` leaves); None: torque off
+    free: Callable[[object, int], bool] | None = None
     #: how to make the simulator (default: the device's ``from_profile(profile)``)
     make_sim: Callable[[Profile], object] | None = None
     #: wait until the simulator has taken every command sent so far (a servo bus answers in
@@ -140,6 +142,9 @@ ROWS = {
         error_latched=True,
         set_present=lambda sim, nid, raw: sim.drive(nid).write("Present_Position", raw),
         error_code="drive_fault",
+        # free: the power stage stays on, in CST with zero target torque (backend.py write)
+        free=lambda sim, nid: sim.drive(nid).read("Torque_Enable") == 0 or (
+            sim.drive(nid).read("mode") == 10 and sim.drive(nid).read("target_torque") == 0),
     ),
     # one UR5e on the simulated controller: torque = powered with brakes released; goal = the
     # servo target the controller follows, present = the joint's position (urad)
