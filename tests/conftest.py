@@ -93,6 +93,7 @@ class SimRobot:
     id: str
     profile: Path
     backend: str
+    name: str  # the robot's (profile) name: the ``ns`` of robot-wide events, e.g. a FAULT
     arm: str
     gripper: str | None  # the second namespace (one joint), if any
     joint_names: tuple[str, ...]
@@ -104,7 +105,7 @@ class SimRobot:
     pos_max: np.ndarray
     vel_max: np.ndarray
     home: np.ndarray
-    counts_per_rad: np.ndarray  # device position units per radian, per arm joint (signed)
+    counts_per_rad: dict  # device id -> device position units per joint radian (signed)
     servo_timeout_s: float
     rate_hz: float
     goals: dict  # name -> np.ndarray, see SAFE_GOALS
@@ -130,7 +131,7 @@ class SimRobot:
             assert np.all(g >= lo + GOAL_MARGIN) and np.all(g <= hi - GOAL_MARGIN), \
                 f"{path}: SAFE_GOALS[{k!r}] = {g} is not inside the limits of {arm_ns.name}"
         device = {j.name: row.device(p, index[j.name]) for j in p.joints}
-        return cls(id=id, profile=path, backend=p.backend_type, arm=arm_ns.name,
+        return cls(id=id, profile=path, backend=p.backend_type, name=p.name, arm=arm_ns.name,
                    gripper=grip_ns.name if grip_ns is not None else None,
                    joint_names=tuple(arm_ns.joints), gripper_joint=grip.name if grip is not None else None,
                    arm_ids=tuple(str(device[j.name]) for j in arm),
@@ -138,7 +139,7 @@ class SimRobot:
                    servo_id=device, pos_min=lo, pos_max=hi,
                    vel_max=np.array([j.limits.velocity_max for j in arm]),
                    home=np.array([j.home for j in arm]),
-                   counts_per_rad=np.array([_counts_per_rad(j) for j in arm]),
+                   counts_per_rad={str(device[j.name]): _counts_per_rad(j) for j in p.joints},
                    servo_timeout_s=p.safety.servo_timeout_s, rate_hz=float(p.loop.rate_hz), goals=goals,
                    row=row, capabilities=robot_capabilities(p, grip_ns is not None))
 

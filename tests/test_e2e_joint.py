@@ -393,7 +393,7 @@ def test_free_torques_off_the_namespace_and_move_resumes_without_a_jump(rig, sim
     h_j = 1
     sid = int(bot.arm_ids[h_j])
     start = measured(arm)
-    bot.row.set_present(sim, sid, bot.row.present(sim, sid) + round(0.6 * bot.counts_per_rad[h_j]))
+    bot.row.set_present(sim, sid, bot.row.present(sim, sid) + round(0.6 * bot.counts_per_rad[str(sid)]))
     wait_until(lambda: abs(measured(arm)[h_j] - start[h_j] - 0.6) < TOL, 2, what="hand motion measured")
     before = measured(arm)
     m = bot.j(4) if bot.j(4) != h_j else 0  # wrist_roll on the five-joint arms

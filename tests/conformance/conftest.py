@@ -27,7 +27,6 @@ from crtk_bridge.core.controller import Controller
 from crtk_bridge.profile import Profile, load_profile
 from crtk_bridge.sim import simulator_class
 
-from ..conftest import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -49,6 +48,10 @@ class Row:
     error_latched: bool  # the error stays until enable resets the device (Dynamixel reboot)
     set_present: Callable[[object, int, int], None]  # move the device's shaft (raw position) by hand
     error_code: str = "servo_error"  # the fault code of inject_error
+    silent_code: str = "bus_timeout"  # the fault code of silence (naming the joint)
+    #: a silenced device still takes what it is sent (a servo that does not reply); False: it
+    #: hears nothing either (a CAN node off the bus), so torque off cannot reach it until it is back
+    silent_hears: bool = True
     #: whether the FAULT that inject_error causes names the joint
     error_names_joint: bool = True
     #: a device per joint that can be silenced alone, with raw goal / present registers that a
@@ -121,6 +124,8 @@ class URSimAdapter:
         """Ten controller ticks (20 ms): RTDE inputs sent before now have been applied (the
         simulator takes them on its own thread; two ticks were not always enough under load)."""
         t0 = self.state()["ticks"]
+        from ..conftest import wait_until  # here: tests/conftest.py imports this module's ROWS
+
         wait_until(lambda: self.state()["ticks"] >= t0 + 10, 2, interval=0.001, what="ten controller ticks")
 
 
@@ -141,7 +146,7 @@ ROWS = {
         present=lambda sim, nid: sim.drive(nid).read("Present_Position"),
         error_latched=True,
         set_present=lambda sim, nid, raw: sim.drive(nid).write("Present_Position", raw),
-        error_code="drive_fault",
+        error_code="drive_fault", silent_code="tpdo_missing", silent_hears=False,
         # free: the power stage stays on, in CST with zero target torque (backend.py write)
         free=lambda sim, nid: sim.drive(nid).read("Torque_Enable") == 0 or (
             sim.drive(nid).read("mode") == 10 and sim.drive(nid).read("target_torque") == 0),

@@ -636,8 +636,8 @@ class Canopen402Backend(Actuator):
                           f"{self._tpdo_timeout_s * 1000:.3g} ms on {self._where} ({missing.missed} in a row)",
                           joint=missing.name, transient=True)
         for d in self.drives:
-            if d is not missing:
-                d.missed = 0
+            if d is not missing and self._answered(d) >= want:  # it answered: waited for again
+                d.missed = 0  # (a silent one stays missed: no tpdo_timeout wait every other cycle)
             silent = now - d.hb_t
             if silent > self._hb_timeout_s:
                 fault = Fault("heartbeat_lost",
@@ -882,7 +882,7 @@ class Canopen402Backend(Actuator):
                     raise BackendError(f"{self.robot}: {d.label} is in {d.state.value} "
                                        f"(statusword 0x{d.sw:04X}); cannot {goal.value}")
                 d.cw = int(step.command)
-                if not step.done:
+                if not step.done or d.missed:  # a stale statusword (TPDOs missing) confirms nothing
                     pending = d
             if pending is None:
                 return
