@@ -1,6 +1,7 @@
 """``crtk-bridge``: run the daemon, or check a profile.
 
     crtk-bridge --profile FILE [--sim] [--socket PATH] [--log-level L] [--no-realtime]
+                [--zenoh-connect ENDPOINT] [--zenoh-listen ENDPOINT] [--ros-domain-id N]
     crtk-bridge check --profile FILE [--scan]
     crtk-bridge find-port [--replug]
 """
@@ -35,6 +36,17 @@ def _run_parser() -> argparse.ArgumentParser:
     p.add_argument("--profile", required=True, help="robot profile (YAML), e.g. profiles/so101.yaml")
     p.add_argument("--sim", action="store_true", help="run on the built-in simulator instead of hardware")
     p.add_argument("--socket", help="Unix socket path (default: $XDG_RUNTIME_DIR/crtk-bridge/<robot>.sock)")
+    z = p.add_argument_group("Zenoh transport (off unless an endpoint is given here or in the profile's "
+                             "transport.zenoh; docs/zenoh.md)")
+    z.add_argument("--zenoh-connect", metavar="ENDPOINT", action="append",
+                   help="join the Zenoh router or peer at ENDPOINT, e.g. tcp/127.0.0.1:7447 (repeatable; "
+                        "replaces transport.zenoh.connect)")
+    z.add_argument("--zenoh-listen", metavar="ENDPOINT", action="append",
+                   help="accept Zenoh peers and clients on ENDPOINT, e.g. tcp/127.0.0.1:7448 (repeatable; "
+                        "replaces transport.zenoh.listen). Beyond loopback only as tls/ with "
+                        "transport.zenoh.tls and transport.zenoh.access_control")
+    z.add_argument("--ros-domain-id", metavar="N", type=int,
+                   help="ROS_DOMAIN_ID of the ROS 2 graph (default: transport.zenoh.ros_domain_id, else 0)")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO / mlockall")
     p.add_argument("--version", action="version", version=f"crtk-bridge {__version__}")
@@ -47,9 +59,16 @@ def _check(argv: list[str]) -> int:
     p.add_argument("--scan", action="store_true",
                    help="also open each bus (the daemon must not be running) and ping every id at "
                         "the profile's baud rate: report each servo's model, firmware and torque "
-                        "state, the joints whose id did not answer and the ids no joint has; exit 1 "
-                        "on any mismatch. Writes nothing to the servos")
+                        "state, the joints whose id did not answer, the ids no joint has, and the "
+                        "EEPROM settings that differ from the profile and the backend (register "
+                        "named: Homing_Offset, position limits, Return_Delay_Time, operating mode, "
+                        "direction bits); exit 1 on any mismatch. Writes nothing to the servos")
+    p.add_argument("--all-bauds", action="store_true",
+                   help="with --scan: also ping at every other baud rate the servos support and "
+                        "report the servos found there (exit 1; crtk-bridge setup-servos moves them)")
     args = p.parse_args(argv)
+    if args.all_bauds and not args.scan:
+        p.error("--all-bauds needs --scan")
     from .backends import create_backend
     from .core.kinematics_check import check_kinematics
     from .profile import load_profile
@@ -64,10 +83,10 @@ def _check(argv: list[str]) -> int:
     print(f"{args.profile}: valid profile for robot {profile.name!r} ({profile.backend_type}, "
           f"{len(profile.joints)} joints, namespaces {', '.join(ns.name for ns in profile.namespaces)}"
           f"{'; kinematics ' + ', '.join(cartesian) if cartesian else ''})")
-    return _scan(profile, backend) if args.scan else 0
+    return _scan(profile, backend, args.profile, args.all_bauds) if args.scan else 0
 
 
-def _scan(profile, backend) -> int:
+def _scan(profile, backend, source: str, all_bauds: bool) -> int:
     """``check --scan``: each bus's servos against the profile. 0 when they match, else 1."""
     buses = dict(zip(backend.bus_names, backend.parts)) if profile.backends is not None else {"": backend}
     failed = False
@@ -78,16 +97,19 @@ def _scan(profile, backend) -> int:
                   file=sys.stderr)
             failed = True
             continue
-        print(f"scanning {where} ({part.vendor}) at {part.config.baudrate} baud, ids 0-{part.MAX_ID}...",
-              flush=True)
+        print(f"scanning {where} ({part.vendor}) at {part.config.baudrate} baud"
+              f"{' (then every other rate)' if all_bauds else ''}, ids 0-{part.MAX_ID}...", flush=True)
         try:
-            found = part.scan()
+            found = part.scan(all_bauds=all_bauds)
         except CrtkBridgeError as exc:
             print(f"crtk-bridge: {exc}", file=sys.stderr)
             failed = True
             continue
-        lines, problems = part.scan_report(found)
-        print(f"{where}: {part.port_name}: {len(found)} servo{'s' if len(found) != 1 else ''} answered")
+        bus_opt = f" --bus {bus}" if bus else ""
+        lines, problems = part.scan_report(
+            found, f": run crtk-bridge setup-servos --profile {source}{bus_opt} with only that servo connected")
+        n = len(found.servos)
+        print(f"{where}: {part.port_name}: {n} servo{'s' if n != 1 else ''} answered")
         for line in lines:
             print("  " + line)
         if problems:
@@ -131,7 +153,9 @@ def main(argv: list[str] | None = None) -> int:
     from .daemon import run
 
     try:
-        return run(args.profile, sim=args.sim, socket_path=args.socket, realtime=not args.no_realtime)
+        return run(args.profile, sim=args.sim, socket_path=args.socket, realtime=not args.no_realtime,
+                   zenoh_connect=args.zenoh_connect, zenoh_listen=args.zenoh_listen,
+                   ros_domain_id=args.ros_domain_id)
     except CrtkBridgeError as exc:
         print(f"crtk-bridge: {exc}", file=sys.stderr)
         return 1

@@ -129,6 +129,7 @@ class EventCode(StrEnum):
     """The ``data.code`` of a status, warning or error event (docs/protocol.md, Event codes)."""
     BUS_TIMEOUT = "bus_timeout"
     BUS_CORRUPT = "bus_corrupt"
+    PORT_LOST = "port_lost"
     SERVO_ERROR = "servo_error"
     TRACKING_ERROR = "tracking_error"
     INVALID_COMMAND = "invalid_command"

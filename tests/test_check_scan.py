@@ -119,3 +119,47 @@ def test_scan_of_a_port_that_does_not_open_fails(tmp_path):
     assert proc.returncode == 1
     assert f"so101: cannot open port {tmp_path / 'ttyACM9'}: no such device" in proc.stderr
     assert "  id " not in proc.stdout
+
+
+def scan_all(tmp_path, data: dict) -> subprocess.CompletedProcess:
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return subprocess.run([sys.executable, "-m", "crtk_bridge.cli", "check", "--profile", str(path), "--scan",
+                           "--all-bauds"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+
+
+def test_all_bauds_finds_a_servo_at_another_rate_with_the_setup_hint(tmp_path):
+    with FeetechSimulator(servo_ids=range(1, 7)) as sim:
+        sim.servo(6).write("Baud_Rate", 4)  # 115200: deaf at the profile's 1 Mbps
+        data = so101_data()
+        data["backend"]["port"] = sim.port
+        proc = scan_all(tmp_path, data)
+    assert proc.returncode == 1
+    assert "id   6  gripper          MISSING: no reply" in proc.stdout
+    assert "id   6  at 115200 baud  sts3215  OTHER RATE: the profile's is 1000000" in proc.stdout
+    assert (f"id 6 (sts3215) answers at 115200 baud, not the profile's 1000000: run crtk-bridge setup-servos "
+            f"--profile {tmp_path / 'robot.yaml'} with only that servo connected") in proc.stderr
+    assert proc.stdout.count("OTHER RATE") == 1  # the others are found at the profile's rate only
+
+
+def test_eeprom_settings_that_differ_are_reported_per_joint_naming_the_register(tmp_path):
+    with FeetechSimulator(servo_ids=range(1, 7)) as sim:
+        sim.servo(2).write("Homing_Offset", -50)
+        sim.servo(4).write("Return_Delay_Time", 250)
+        sim.servo(5).write("Min_Position_Limit", 100)  # wrist_roll's range is the whole turn
+        sim.servo(1).write("Operating_Mode", 1)
+        data = so101_data()
+        data["backend"]["port"] = sim.port
+        proc = scan(tmp_path, data)
+    assert proc.returncode == 1
+    out, err = proc.stdout, proc.stderr
+    assert "EEPROM Homing_Offset = -50, expected 0 (joints[1] (shoulder_lift).calibration.homing_offset)" \
+           "  (enable refused)" in out
+    assert "EEPROM Return_Delay_Time = 250, expected 0 (backend.return_delay)\n" in out
+    assert "EEPROM Min_Position_Limit = 100, expected <= 0 (joints[4] (wrist_roll).calibration.range)" in out
+    assert "EEPROM Operating_Mode = 1, expected 0 (position)" in out
+    assert "joint 'shoulder_lift' (id 2): Homing_Offset is -50" in err
+    assert "joint 'wrist_flex' (id 4): Return_Delay_Time is 250, expected 0 (backend.return_delay): each " \
+           "reply waits 500 us" in err
+    assert "elbow_flex" not in err and "gripper" not in err
+

@@ -293,7 +293,7 @@ def test_client_can_close_and_reopen_the_port(sim):
 def test_emulated_baud_delays_replies_by_wire_time():
     with FeetechSimulator(IDS, baudrate=115_200, emulate_baud=True) as sim:
         port = sdk.PortHandler(sim.port)
-        assert port.openPort()
+        assert port.openPort() and port.setBaudRate(115_200)  # the servos' rate
         ph = sdk.PacketHandler(0)
         wire_s = (8 + len(IDS) + len(IDS) * (6 + BLOCK[1])) * 10 / 115_200  # ~11.7 ms
         t0 = time.perf_counter()

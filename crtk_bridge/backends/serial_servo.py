@@ -19,6 +19,19 @@ per cycle (goal = its fresh present position, then torque on), then one check pe
 every servo reads Torque_Enable = 1 (a servo may take its time: the simulators' ``torque_delay``).
 Torque off (DISABLE, the fault reaction) is one step: a stop is not spread over cycles.
 
+Hot replug. A failed sync read whose port reports an OS error (EIO: the USB adapter was pulled
+out) or whose device path is gone loses the port: the read returns a non-transient ``port_lost``
+Fault naming the port (FAULT when ENABLED, a ``device_fault`` warning when DISABLED), the dead
+port is closed, and a worker thread (never the cycle) tries every ``REOPEN_INTERVAL_S`` to open
+``backend.port`` again -- resolved again, so the same ``/dev/serial/by-id`` link or USB serial
+number finds the adapter under a new ``ttyACM`` number --, pings every servo, reads back each
+servo's Torque_Enable (a servo that lost power comes back with torque off; one that kept power
+holds torque on) and writes the configuration again with torque off (a power loss reset the
+servos' RAM). Meanwhile no bus transaction is made from the cycle and every lifecycle transition
+(enable, and the fault reaction's torque off) is refused naming the port. The next read after the
+worker succeeded installs the new port and reports the fault cleared (``fault_cleared`` event
+naming the port and the torque read back); ``enable`` then works as after any fault.
+
 Each vendor fills a few hooks: its tables (``MODEL_NUMBERS``, ``RESOLUTION``), its ``Config``
 struct, how a register name maps to (address, size) for a joint and how values are encoded
 (sign-magnitude on STS, two's complement on Dynamixel), how a status ERR byte is described, and
@@ -27,10 +40,12 @@ its ``_read`` / ``_write`` hot paths (the block layouts differ).
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import select
 import termios
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -38,12 +53,14 @@ from typing import Any, ClassVar
 import numpy as np
 import serial
 
-from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Lifecycle, Steps
+from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Fault, Lifecycle, Steps
 from ..errors import BackendError, ProfileError
 from ..profile import Profile, backend_config, unknown_key_message
 from .port_errors import open_error_reason, silent_bus_hint
 from .ports import resolve_port
 from .servo_keys import ServoJoint, servo_joints
+
+log = logging.getLogger(__name__)
 
 DEFAULT_MARGIN_MS = 10.0
 COMM_SUCCESS = 0  # the same value in scservo_sdk and dynamixel_sdk
@@ -184,6 +201,26 @@ class SerialPortFixes:
 
 
 @dataclass(frozen=True)
+class EepromDiff:
+    """An EEPROM setting of a joint's servo that differs from what the profile and the backend
+    expect (:meth:`SerialServoBackend.eeprom_diffs`)."""
+
+    joint: str
+    id: int
+    register: str
+    value: int
+    expected: str  # e.g. "0", "<= 700"
+    key: str  # the profile key that says so, e.g. "joints[2] (elbow_flex).calibration.homing_offset"
+    wrong_positions: bool  # True: positions (or reachable positions) would be wrong: enable refused
+    why: str  # what the difference does
+    remedy: str  # what to do
+
+    def message(self) -> str:
+        return (f"joint {self.joint!r} (id {self.id}): {self.register} is {self.value}, expected "
+                f"{self.expected} ({self.key}): {self.why}; {self.remedy}")
+
+
+@dataclass(frozen=True)
 class ScannedServo:
     """One servo that answered a bus scan (:meth:`SerialServoBackend.scan`)."""
 
@@ -192,6 +229,17 @@ class ScannedServo:
     model: str | None  # the model's name, None when the backend does not know the number
     firmware: str | None  # None: it did not say
     torque: bool | None  # Torque_Enable; None: it did not say
+    eeprom: tuple[EepromDiff, ...] = ()  # its joint's EEPROM differences (profile ids only)
+    eeprom_error: str | None = None  # why its EEPROM could not be read
+
+
+@dataclass(frozen=True)
+class BusScan:
+    """A :meth:`SerialServoBackend.scan`: the servos at the profile's rate, and (``all_bauds``)
+    those answering at the other rates, by rate: [(id, model number)]."""
+
+    servos: list[ScannedServo]
+    elsewhere: dict[int, list[tuple[int, int]]]
 
 
 class SerialServoBackend(Actuator):
@@ -212,6 +260,12 @@ class SerialServoBackend(Actuator):
     RESOLUTION: ClassVar[dict[str, int]] = {}
     MAX_ID: ClassVar[int] = 253
     SUPPORTED_BAUDS: ClassVar[list[int]] = []
+    #: bus baud rate -> Baud_Rate register code
+    BAUD_CODES: ClassVar[dict[int, int]] = {}
+    #: a factory-fresh servo's baud rate (setup-servos looks there first after the profile's)
+    FACTORY_BAUD: ClassVar[int] = 1_000_000
+    #: largest |Homing_Offset| the servo takes (calibration.homing_offset is checked against it)
+    HOMING_OFFSET_MAX: ClassVar[int] = 2047
     #: SDK result codes that mean "no reply" / "bad reply"
     RX_TIMEOUT: ClassVar[int] = -1
     RX_CORRUPT: ClassVar[int] = -2
@@ -257,6 +311,13 @@ class SerialServoBackend(Actuator):
         self._port_path: str | None = None  # backend.port resolved at open (a serial_number)
         self._ph: Any = None
         self._details: dict = {}
+        self._enable_refusal: str | None = None  # set at open (_startup_check)
+        # hot replug (module docstring): set by the cycle when the port went away, cleared by the
+        # cycle once the worker reopened it
+        self._lost: Any = None  # the port_lost Fault while the port is gone
+        self._reopened: str | None = None  # set by the reopen worker: what it found
+        self._reopen_thread: threading.Thread | None = None
+        self._reopen_stop = threading.Event()
 
     # ------------------------------------------------------------------ hooks
     def _check_joint(self, i: int, key: str, j: ServoJoint, problems: list[str]) -> None:
@@ -268,6 +329,10 @@ class SerialServoBackend(Actuator):
             problems.append(f"{key}.calibration.range: {list(r)} is outside 0..{res - 1}")
         if not 0 <= j.calibration.offset <= res - 1:
             problems.append(f"{key}.calibration.offset: {j.calibration.offset} is outside 0..{res - 1}")
+        h = self.HOMING_OFFSET_MAX
+        if not -h <= j.calibration.homing_offset <= h:
+            problems.append(f"{key}.calibration.homing_offset: {j.calibration.homing_offset} is outside "
+                            f"-{h}..{h} (the servo's Homing_Offset register)")
 
     def _make_port(self, margin_ms: float) -> Any:
         """A :class:`SerialPortFixes` port handler of this vendor's SDK (not opened)."""
@@ -292,6 +357,22 @@ class SerialServoBackend(Actuator):
 
     def _after_open(self) -> None:
         """Set up sync groups etc. once the servos answered. Blocks; raises BackendError."""
+
+    def _broadcast_ping(self) -> tuple[dict[int, int], bool]:
+        """(id -> model number of every servo answering one broadcast PING at the port's current
+        rate, whether some reply was garbled -- several servos answering at once, or noise).
+        Blocks for the vendor's listening window. The port is open."""
+        raise NotImplementedError
+
+    def _vendor_eeprom_diffs(self, i: int, key: str) -> list[EepromDiff]:
+        """The vendor's own EEPROM expectations of joint ``i`` (operating mode, direction bits).
+        Blocks; raises BackendError."""
+        return []
+
+    def _limits_apply(self, i: int) -> bool:
+        """Whether the servo's Min/Max_Position_Limit bound joint ``i``'s positions in the mode
+        the backend drives it in."""
+        return True
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -339,12 +420,14 @@ class SerialServoBackend(Actuator):
                 break
         return out
 
-    def _write_register(self, i: int, name: str, value: int, check_error: bool = False) -> None:
-        """Write one register of joint ``i`` and wait for its ack. Blocks. Raises BackendError."""
+    def _write_register(self, i: int, name: str, value: int, check_error: bool = False,
+                        sid: int | None = None) -> None:
+        """Write one register of joint ``i`` (of the servo with bus id ``sid`` if given: a servo
+        being set up) and wait for its ack. Blocks. Raises BackendError."""
         address, size = self._register(i, name)
         raw = self._encode(i, name, value)
         fn = {1: self._ph.write1ByteTxRx, 2: self._ph.write2ByteTxRx, 4: self._ph.write4ByteTxRx}[size]
-        result, error = self._txrx(fn, self._ids[i], address, raw)
+        result, error = self._txrx(fn, self._ids[i] if sid is None else sid, address, raw)
         if result != COMM_SUCCESS:
             raise BackendError(
                 f"{self.robot}: {self._label[i]}: writing {name} = {value} on {self._where} "
@@ -355,19 +438,171 @@ class SerialServoBackend(Actuator):
                 raise BackendError(f"{self.robot}: {self._label[i]} reports {text} "
                                    f"(status error 0x{error:02X}) when writing {name}")
 
-    def _read_register(self, i: int, name: str) -> int:
-        """Read one register of joint ``i``, decoded (signed where the table says). Blocks."""
+    def _read_register(self, i: int, name: str, sid: int | None = None) -> int:
+        """Read one register of joint ``i`` (of the servo with bus id ``sid`` if given), decoded
+        (signed where the table says). Blocks. Raises BackendError."""
         address, size = self._register(i, name)
         fn = {1: self._ph.read1ByteTxRx, 2: self._ph.read2ByteTxRx, 4: self._ph.read4ByteTxRx}[size]
-        value, result, _ = self._txrx(fn, self._ids[i], address)
+        value, result, _ = self._txrx(fn, self._ids[i] if sid is None else sid, address)
         if result != COMM_SUCCESS:
             raise BackendError(f"{self.robot}: {self._label[i]}: reading {name} on {self._where} "
                                f"failed: {self._result_text(result)}")
         return self._decode(i, name, value)
 
+    def _write_unacknowledged(self, i: int, name: str, value: int, sid: int) -> bool:
+        """Write one register of the servo with bus id ``sid`` (joint ``i``'s model) without
+        waiting for a status: for ID and Baud_Rate, whose status may come back under the new id
+        or at the new rate. True when the packet went out. Blocks briefly."""
+        address, size = self._register(i, name)
+        raw = self._encode(i, name, value)
+        fn = {1: self._ph.write1ByteTxOnly, 2: self._ph.write2ByteTxOnly, 4: self._ph.write4ByteTxOnly}[size]
+        self._port.is_using = False
+        result = fn(self._port, sid, address, raw)
+        self._port.is_using = False
+        return result == COMM_SUCCESS
+
+    # ------------------------------------------------------------------ EEPROM against the profile
+    def eeprom_diffs(self, i: int) -> list[EepromDiff]:
+        """Joint ``i``'s servo's EEPROM settings that differ from the profile and the backend:
+        Homing_Offset (``calibration.homing_offset``), Min/Max_Position_Limit cutting into
+        ``calibration.range`` (or the whole turn without one), Return_Delay_Time
+        (``backend.return_delay``), and the vendor's (:meth:`_vendor_eeprom_diffs`). Reads the
+        servo (the bus is open); writes nothing. Blocks. Raises BackendError."""
+        name = self.joint_names[i]
+        j = self.joint_keys[i]
+        sid = self._ids[i]
+        key = f"joints[{self.profile.joint_names.index(name)}] ({name})"
+        never = "the daemon never rewrites EEPROM"
+        out = []
+        h = self._read_register(i, "Homing_Offset")
+        if h != j.calibration.homing_offset:
+            out.append(EepromDiff(
+                name, sid, "Homing_Offset", h, str(j.calibration.homing_offset),
+                f"{key}.calibration.homing_offset", True,
+                f"every position it reports is shifted by {h - j.calibration.homing_offset} ticks "
+                f"from the calibration's",
+                f"recalibrate (crtk-ctl calibrate), or set {key}.calibration.homing_offset: {h} if "
+                f"the calibration was made with it ({never})"))
+        if self._limits_apply(i):
+            res = self.RESOLUTION[j.model]
+            lo, hi = j.calibration.range or (0, res - 1)
+            where = f"{key}.calibration.range" if j.calibration.range else f"{key}.model ({j.model}: 0..{res - 1})"
+            low = self._read_register(i, "Min_Position_Limit")
+            high = self._read_register(i, "Max_Position_Limit")
+            if not self._no_limits(low, high):
+                remedy = (f"widen the servo's limits (e.g. with the vendor's tool) or narrow "
+                          f"{key}.calibration.range ({never})")
+                if low > lo:
+                    out.append(EepromDiff(name, sid, "Min_Position_Limit", low, f"<= {lo}", where, True,
+                                          f"the servo refuses positions below {low} ticks", remedy))
+                if high < hi:
+                    out.append(EepromDiff(name, sid, "Max_Position_Limit", high, f">= {hi}", where, True,
+                                          f"the servo refuses positions above {high} ticks", remedy))
+        rd = self._read_register(i, "Return_Delay_Time")
+        if rd != self.config.return_delay:
+            out.append(EepromDiff(
+                name, sid, "Return_Delay_Time", rd, str(self.config.return_delay), "backend.return_delay",
+                False, f"each reply waits {rd * 2} us",
+                "the daemon sets it at start-up until the next power cycle; crtk-bridge setup-servos "
+                "stores it"))
+        return out + self._vendor_eeprom_diffs(i, key)
+
+    @staticmethod
+    def _no_limits(low: int, high: int) -> bool:
+        """Whether Min/Max_Position_Limit mean "no limit" (Feetech: both 0, multi-turn)."""
+        return False
+
+    def _startup_check(self) -> None:
+        """At open: EEPROM settings that would make positions wrong (:meth:`eeprom_diffs`) make
+        ENABLE refuse, naming robot, joint, register and the remedy. Blocks. Raises BackendError."""
+        wrong = [d for i in range(self.n) for d in self.eeprom_diffs(i) if d.wrong_positions]
+        self._enable_refusal = None
+        if wrong:
+            self._enable_refusal = (f"{self.robot}: enable refused, the servos' EEPROM disagrees "
+                                    f"with the profile {self.source}: "
+                                    + "; ".join(d.message() for d in wrong))
+            log.warning("%s", self._enable_refusal)
+
     def _require_open(self, what: str) -> None:
+        self._check_not_lost(what)
         if self._port is None:
             raise BackendError(f"{self.robot}: {what} needs an open bus; call open() first")
+
+    # ------------------------------------------------------------------ hot replug
+    #: s between two attempts of the reopen worker (adapter unplugged, module docstring)
+    REOPEN_INTERVAL_S = 0.2
+
+    def _check_not_lost(self, what: str) -> None:
+        """Raise BackendError while the port is gone (except on the reopen worker, which is the
+        one bringing it back)."""
+        if self._lost is not None and threading.current_thread() is not self._reopen_thread:
+            raise BackendError(f"{self.robot}: {what} impossible: serial port {self._where} is gone "
+                               f"(adapter unplugged?); waiting for it to come back")
+
+    def _port_gone(self) -> bool:
+        """After a failed read: did the port itself go away (OS error on its fd, or its device
+        path no longer exists)? A silent servo on a live port is not that."""
+        port = self._port
+        err = port.last_os_error if port is not None else None
+        if err is not None and not isinstance(err, (BlockingIOError, InterruptedError)):
+            return True
+        path = self._port_path
+        return path is not None and not os.path.exists(path)
+
+    def _lose_port(self) -> Any:
+        """The cycle found the port gone: close it, report FAULT, start the reopen worker (once:
+        a rare event, so starting a thread here is acceptable). Returns the port_lost Fault."""
+        err = self._port.last_os_error if self._port is not None else None
+        reason = f"{err.strerror or err}" if isinstance(err, OSError) and (err.strerror or str(err)) else "no such device"
+        fault = Fault("port_lost", f"{self.robot}: serial port {self._where} is gone ({reason}): adapter "
+                      f"unplugged? Reopening it as soon as it is back", transient=False)
+        if self._port is not None:
+            self._port.closePort()
+        self._lost = fault
+        self._reopened = None
+        self.report_status(DeviceStatus.FAULT, fault)
+        self._reopen_stop.clear()
+        self._reopen_thread = threading.Thread(target=self._reopen_loop, name=f"reopen-{self.robot}",
+                                               daemon=True)
+        self._reopen_thread.start()
+        return fault
+
+    def _still_lost(self) -> bool:
+        """Called by the cycle while the port is lost: False once the worker reopened it (the
+        new port is installed and the fault reported cleared), else True (no bus I/O)."""
+        found = self._reopened
+        if found is None:
+            return True
+        self._lost = None
+        self._reopened = None
+        self.report_status(DeviceStatus.FAULT_CLEARED, Fault("fault_cleared", found))
+        return False
+
+    def _reopen_loop(self) -> None:
+        """The reopen worker: retry until the port is back and every servo answers, or close."""
+        while not self._reopen_stop.wait(self.REOPEN_INTERVAL_S):
+            try:
+                self._reopened = self._reopen_once()
+                return
+            except (BackendError, OSError):
+                continue  # not back yet (no device, servos unpowered): try again
+
+    def _reopen_once(self) -> str:
+        """Open ``backend.port`` again (resolved again), check the servos, read back torque,
+        configure again (torque off first). Runs on the worker. Returns what it found."""
+        port, _ = self._open_port()
+        try:
+            self._check_servos()
+            self._after_open()
+            torque = [self._read_register(i, "Torque_Enable") for i in range(self.n)]
+            self._configure_hook()
+        except BaseException:
+            port.closePort()
+            raise
+        on = [name for name, t in zip(self.joint_names, torque) if t]
+        said = ("every servo had torque off (they lost power)" if not on else
+                f"torque was on at {', '.join(on)} (kept power), switched off")
+        return f"serial port {self._where} is back; {said}"
 
     def _first_missing(self, data: dict, length: int) -> int | None:
         """Index of the first joint whose sync-read entry is shorter than ``length``: the SDKs
@@ -380,6 +615,8 @@ class SerialServoBackend(Actuator):
     def _sync_read_fault(self, result: int, data: dict, length: int) -> Any:
         from ..core.actuator import Fault
 
+        if self._port_gone():
+            return self._lose_port()
         i = None
         if result in (self.RX_TIMEOUT, self.RX_CORRUPT):
             i = self._first_missing(data, length)
@@ -413,31 +650,52 @@ class SerialServoBackend(Actuator):
         return port, margin
 
     # ------------------------------------------------------------------ bus scan (check --scan)
-    def scan(self) -> list[ScannedServo]:
+    def scan(self, all_bauds: bool = False) -> BusScan:
         """Every servo answering on the bus at the profile's baud rate, by id: model number,
-        firmware, torque state. Opens the port only for the scan (call it on a backend that is
-        not open); writes nothing. Ids 0..MAX_ID are swept (:meth:`_discover`: the vendor's
-        broadcast ping, else one ping per id); a profile id silent in the sweep is pinged again
-        with the usual retries before it counts as missing. Blocks (~1-3 s). Raises
-        BackendError when the port does not open."""
+        firmware, torque state, and for a joint's servo of the right model its EEPROM
+        differences (:meth:`eeprom_diffs`). Opens the port only for the scan (call it on a
+        backend that is not open); writes nothing. Ids 0..MAX_ID are swept (:meth:`_discover`:
+        the vendor's broadcast ping, else one ping per id); a profile id silent in the sweep is
+        pinged again with the usual retries before it counts as missing. ``all_bauds``: also a
+        broadcast ping at every other supported rate. Blocks (~1-3 s, more with all_bauds).
+        Raises BackendError when the port does not open."""
         port, _ = self._open_port()
         try:
-            found = self._discover()
-            for sid in self._ids:
-                if sid not in found:
-                    model, result, _ = self._txrx(self._ph.ping, sid)
-                    if result == COMM_SUCCESS:
-                        found[sid] = (model, None)
-            names = {number: name for name, number in self.MODEL_NUMBERS.items()}
-            out = []
-            for sid, (number, firmware) in sorted(found.items()):
-                model = names.get(number)
-                firmware, torque = self._identify(sid, model, firmware)
-                out.append(ScannedServo(sid, number, model, firmware, torque))
-            return out
+            servos = self._scan_servos()
+            elsewhere = {}
+            for baud in (b for b in self.SUPPORTED_BAUDS if all_bauds and b != self.config.baudrate):
+                if not port.setBaudRate(baud):
+                    continue
+                found, _ = self._broadcast_ping()
+                if found:
+                    elsewhere[baud] = sorted(found.items())
+            return BusScan(servos, elsewhere)
         finally:
             port.closePort()
             self._port = None
+
+    def _scan_servos(self) -> list[ScannedServo]:
+        """The servos answering at the port's rate (see :meth:`scan`). Blocks."""
+        found = self._discover()
+        for sid in self._ids:
+            if sid not in found:
+                model, result, _ = self._txrx(self._ph.ping, sid)
+                if result == COMM_SUCCESS:
+                    found[sid] = (model, None)
+        names = {number: name for name, number in self.MODEL_NUMBERS.items()}
+        out = []
+        for sid, (number, firmware) in sorted(found.items()):
+            model = names.get(number)
+            firmware, torque = self._identify(sid, model, firmware)
+            eeprom, error = (), None
+            i = self._ids.index(sid) if sid in self._ids else None
+            if i is not None and number == self.MODEL_NUMBERS[self.joint_keys[i].model]:
+                try:
+                    eeprom = tuple(self.eeprom_diffs(i))
+                except BackendError as exc:
+                    error = str(exc).removeprefix(f"{self.robot}: ")
+            out.append(ScannedServo(sid, number, model, firmware, torque, eeprom, error))
+        return out
 
     def _discover(self) -> dict[int, tuple[int, int | None]]:
         """id -> (model number, firmware or None) of every servo answering a ping: one ping per
@@ -465,11 +723,13 @@ class SerialServoBackend(Actuator):
         read from it; None where it did not say."""
         raise NotImplementedError
 
-    def scan_report(self, found: list[ScannedServo]) -> tuple[list[str], list[str]]:
-        """(one line per servo and per missing joint, the mismatches) of a :meth:`scan` against
-        the profile: a joint's id that did not answer, a servo of another model than the joint's,
-        an id that answered but no joint has."""
-        by_id = {s.id: s for s in found}
+    def scan_report(self, scan: BusScan, hint: str = "") -> tuple[list[str], list[str]]:
+        """(one line per servo, per missing joint, per EEPROM difference and per servo at another
+        rate; the mismatches) of a :meth:`scan` against the profile: a joint's id that did not
+        answer, a servo of another model than the joint's, an id that answered but no joint has,
+        an EEPROM setting that differs (naming the register), a servo at another baud rate
+        (``hint``: the command that fixes it)."""
+        by_id = {s.id: s for s in scan.servos}
         lines, problems = [], []
 
         def describe(s: ScannedServo) -> str:
@@ -490,10 +750,25 @@ class SerialServoBackend(Actuator):
             if not ok:
                 problems.append(f"{self._label[i]}: is model number {s.model_number} "
                                 f"({s.model or 'unknown'}), the profile says {j.model} ({expected})")
+            for d in s.eeprom:
+                lines.append(f"         EEPROM {d.register} = {d.value}, expected {d.expected} ({d.key})"
+                             f"{'  (enable refused)' if d.wrong_positions else ''}")
+                problems.append(d.message())
+            if s.eeprom_error:
+                lines.append(f"         EEPROM not read: {s.eeprom_error}")
+                problems.append(s.eeprom_error)
         for s in by_id.values():
             lines.append(f"id {s.id:3d}  {'(no joint)':<16} {describe(s)}  EXTRA: not in the profile")
             problems.append(f"id {s.id} ({s.model or f'model number {s.model_number}'}) answered "
                             f"but no joint has this id")
+        names = {number: name for name, number in self.MODEL_NUMBERS.items()}
+        for baud, servos in sorted(scan.elsewhere.items()):
+            for sid, number in servos:
+                what = names.get(number) or f"model number {number}"
+                lines.append(f"id {sid:3d}  at {baud} baud  {what}  OTHER RATE: the profile's is "
+                             f"{self.config.baudrate}")
+                problems.append(f"id {sid} ({what}) answers at {baud} baud, not the profile's "
+                                f"{self.config.baudrate}{hint}")
         return lines, problems
 
     def _open_hook(self) -> None:
@@ -502,6 +777,7 @@ class SerialServoBackend(Actuator):
         port, margin = self._open_port()
         try:
             self._check_servos()
+            self._startup_check()
             self._after_open()
         except BaseException:
             port.closePort()
@@ -539,7 +815,9 @@ class SerialServoBackend(Actuator):
 
         Tries every servo even if one fails, then raises BackendError naming those that did not
         confirm. Status error bits do not count as failure here (torque off is what we want).
+        Raises at once while the port is gone (hot replug): torque off is not confirmed then.
         """
+        self._check_not_lost("torque off")
         if self._port is None:
             return
         failed = []
@@ -564,6 +842,8 @@ class SerialServoBackend(Actuator):
         BackendError naming joint and register; on failure the servos already on are switched
         off again (best effort)."""
         self._require_open("enable")
+        if self._enable_refusal:
+            raise BackendError(self._enable_refusal)
         yield from self._before_enable()
         self._free = [False] * self.n
         try:
@@ -621,6 +901,10 @@ class SerialServoBackend(Actuator):
             self.report_status(DeviceStatus.FAULT_CLEARED)
 
     def _close_hook(self) -> None:
+        self._reopen_stop.set()
+        worker = self._reopen_thread
+        if worker is not None and worker is not threading.current_thread():
+            worker.join(5.0)
         if self._port is not None:
             self._port.closePort()
         self._port = None

@@ -30,6 +30,10 @@ class Calibration(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_on
     offset: int = 0  # ticks at joint zero (e.g. 2048 = middle of a 4096-tick turn)
     direction: int = 1  # +1 or -1
     range: tuple[int, int] | None = None  # valid tick range [min, max]; commands are clamped to it
+    # the servo's Homing_Offset register (EEPROM) this calibration was measured with: the servo
+    # reports ticks already shifted by it, so another value would shift every joint position.
+    # 0 = a factory servo's. The daemon reads it at open and refuses to enable when it differs.
+    homing_offset: int = 0
 
 
 class ServoJoint(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_only=True):

@@ -7,6 +7,7 @@ serial buses), so ``--sim`` and the tests run the same backend code path as hard
 - :mod:`crtk_bridge.sim.bus`      what both servo-bus simulators share (:class:`BusSimulator`)
 - :mod:`crtk_bridge.sim.feetech`  Feetech STS3215 servo bus (:class:`FeetechSimulator`)
 - :mod:`crtk_bridge.sim.dynamixel` Dynamixel X-series Protocol 2.0 bus (:class:`DynamixelSimulator`)
+- :mod:`crtk_bridge.sim.canopen402` CiA 402 drives on a CAN bus (:class:`CanopenSimulator`)
 - :mod:`crtk_bridge.sim.control`  JSON-lines control socket to inspect and change a running sim
 - :mod:`crtk_bridge.sim.cli`      ``crtk-sim`` console script
 
@@ -27,6 +28,7 @@ class SimulatorError(CrtkBridgeError):
 DEVICES: dict[str, tuple[str, str]] = {
     "feetech": ("crtk_bridge.sim.feetech", "FeetechSimulator"),
     "dynamixel": ("crtk_bridge.sim.dynamixel", "DynamixelSimulator"),
+    "canopen": ("crtk_bridge.sim.canopen402", "CanopenSimulator"),
 }
 
 

@@ -6,13 +6,24 @@ pseudo-terminal, as LeRobot's ``MotorsBus`` is for the real ones:
 - lifecycle: the pty (and its optional stable link), the optional JSON-lines control socket, and
   one background thread blocked in poll() on the pty master and a wake pipe; ``start()`` returns
   once clients may open :attr:`~BusSimulator.port`, ``stop()`` is idempotent, context manager;
-- state: the servos by id (an id change over the bus re-keys them), the fault flags every servo
+- state: the servos by id (an id change over the bus re-keys them), servos added factory-fresh,
+  detached from the bus (keeping their EEPROM) and attached again, each known by a ``serial``
+  handle; power cycles (EEPROM from flash, RAM defaults); the fault flags every servo
   carries (``silent``, ``corrupt``, ``frozen``), the unplugged state of the whole bus, and a
   slow torque-on (``torque_delay_s``: a Torque_Enable = 1 written over the bus is acknowledged
   at once but takes effect -- and reads back 1 -- only that many seconds later, as a slow device
   would; how tests prove an enable never stalls the control loop);
 - the control-socket protocol (``dump``, ``read``, ``write``, ``fault``, ``clear_faults``,
-  ``unplug``, ``torque_delay``; see :mod:`crtk_bridge.sim.control`);
+  ``unplug``, ``torque_delay``, ``hand``, ``usb_unplug``, ``usb_plug``, ``add_servo``, ``detach``,
+  ``attach``, ``power_cycle``; see :mod:`crtk_bridge.sim.control` and :meth:`BusSimulator.control`):
+  ``hand`` moves a servo whose torque is off as a hand would (at a
+  bounded speed, so a reader sees it travel), ``usb_unplug`` / ``usb_plug`` pull the USB adapter
+  out and plug it back in (the pty closes, and comes back under a new device name behind the same
+  link; :class:`~crtk_bridge.sim.pty.PtyPort`), optionally with the servos' power lost meanwhile
+  (torque off, as real servos come back);
+- the wire rate: the rate the client set on the pty (:func:`~crtk_bridge.sim.pty.line_baud`;
+  ``baudrate`` until a client sets one). A servo whose Baud_Rate register holds another rate's
+  code is deaf and mute, as on a real bus: after a Baud_Rate write it answers only at the new rate;
 - the wire: a half-received packet is dropped after ``FRAME_TIMEOUT_S`` of silence, and with
   ``emulate_baud`` each reply leaves no earlier than the request and the reply would have taken
   on a real wire (10 bits per byte, plus the replying servos' Return_Delay_Time, 2 us units),
@@ -43,7 +54,7 @@ from ..backends.servo_keys import ServoJoint
 from ..profile import Profile, joint_keys
 from . import SimulatorError
 from .control import ControlServer
-from .pty import PtyPort
+from .pty import PtyPort, line_baud
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +110,7 @@ class BusServo:
         self.silent = self.corrupt = self.frozen = False
         self._pending: tuple[int, bytes] | None = None  # REG_WRITE awaiting ACTION
         self._torque_on_at: float | None = None  # a delayed torque-on takes effect then (sim clock)
+        self._hand: tuple[float, float] | None = None  # (actual ticks, ticks/s): moved by hand
         self._t = sim.clock()  # physics time of the registers' Present_* values
 
     # --- public, thread-safe ---
@@ -150,6 +162,23 @@ class BusServo:
             self._torque_on_at = None
             self.registers[self._sim.TORQUE_ADDRESS] = 1
 
+    # --- moved by hand while torque is off (caller holds the simulator lock) ---
+    def _hand_step(self, pos: float, dt: float) -> float:
+        """The actual position ``pos`` (ticks) after ``dt`` s of a hand moving the horn toward
+        its target at its speed. Vendors call it in ``_update`` while torque is off."""
+        if self._hand is None:
+            return pos
+        target, speed = self._hand
+        step = speed * dt
+        if abs(target - pos) <= step:
+            self._hand = None
+            return target
+        return pos + math.copysign(step, target - pos)
+
+    def _actual(self, present: int) -> float:
+        """Actual (encoder) ticks at which the servo reports Present_Position ``present``."""
+        raise NotImplementedError
+
     # --- vendor hooks (caller holds the simulator lock) ---
     def _get(self, name: str) -> int:
         raise NotImplementedError
@@ -178,12 +207,17 @@ class BusSimulator:
     vendor: ClassVar[str] = ""
     #: bus baud rate -> Baud_Rate register code (servos with another code are deaf and mute)
     BAUD_CODES: ClassVar[dict[int, int]] = {}
-    #: control table address of ID, Return_Delay_Time and Torque_Enable (one byte each)
+    #: control table address of ID, Baud_Rate, Return_Delay_Time and Torque_Enable (one byte each)
     ID_ADDRESS: ClassVar[int]
+    BAUD_ADDRESS: ClassVar[int]
     RETURN_DELAY_ADDRESS: ClassVar[int]
     TORQUE_ADDRESS: ClassVar[int]
     #: highest id a servo may take over the bus
     MAX_ID: ClassVar[int] = 253
+    #: a factory-fresh servo's id, baud rate and model (``add_servo``'s defaults)
+    FACTORY_ID: ClassVar[int] = 1
+    FACTORY_BAUD: ClassVar[int] = 1_000_000
+    DEFAULT_MODEL: ClassVar[str] = ""
 
     def __init__(
         self,
@@ -192,12 +226,18 @@ class BusSimulator:
         control: str | os.PathLike | None,
         emulate_baud: bool,
     ):
-        if baudrate <= 0:
-            raise SimulatorError(f"baudrate {baudrate} must be > 0")
+        if baudrate not in self.BAUD_CODES:
+            raise SimulatorError(f"baudrate {baudrate} is not a {self.vendor} servo baud rate; valid: "
+                                 f"{', '.join(map(str, sorted(self.BAUD_CODES)))}")
         self.baudrate = int(baudrate)
         self.emulate_baud = bool(emulate_baud)
+        self._wire_baud = 0
         self._byte_s = BITS_PER_BYTE / self.baudrate
-        self._baud_code = self.BAUD_CODES.get(self.baudrate)
+        self._baud_code = -1  # code of the wire rate; set with it (_set_wire_baud)
+        self._set_wire_baud(self.baudrate)
+        #: servos taken off the bus (``detach``), by serial handle; they keep their EEPROM
+        self._detached: dict[int, BusServo] = {}
+        self._next_serial = 1
         self._lock = threading.Lock()
         #: the physics clock (seconds); tests may swap in a fake one before start()
         self.clock = time.monotonic
@@ -205,12 +245,13 @@ class BusSimulator:
         self.unplugged = False
         #: seconds a Torque_Enable = 1 written over the bus takes to take effect (0: at once)
         self.torque_delay_s = 0.0
-        self._pty = PtyPort(link)
+        self._pty = PtyPort(link, self.baudrate)
         self._control = ControlServer(control, self.control) if control is not None else None
         self.control_path = Path(control) if control is not None else None
         self._thread: threading.Thread | None = None
         self._wake_r = self._wake_w = -1
         self._stopping = False
+        self._port_jobs: list = []  # (fn, done event, result box): run on the wire thread
         self._bus_free_at = 0.0
         #: bytes received and sent on the wire since start (for bench/)
         self.rx_bytes = 0
@@ -261,6 +302,27 @@ class BusSimulator:
     def _clear_error_bits(self, servo: BusServo) -> None:
         """What ``clear_faults`` does to the error register (nothing where errors latch)."""
 
+    def _new_servo(self, servo_id: int, model: str, baudrate: int, position: int) -> BusServo:
+        """A servo with factory EEPROM except ``servo_id`` and ``baudrate``, of ``model``, at
+        ``position`` ticks (not yet on the bus). Raises SimulatorError for an unknown model."""
+        raise NotImplementedError
+
+    def _power_cycle(self, servo: BusServo) -> None:
+        """Power off and on: EEPROM as last persisted, RAM at its power-on defaults."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ the wire rate
+    def _set_wire_baud(self, baud: int) -> None:
+        """The client now talks at ``baud``: only servos with that rate's code hear it."""
+        self._wire_baud = baud
+        self._byte_s = BITS_PER_BYTE / baud
+        self._baud_code = self.BAUD_CODES.get(baud, -1)
+
+    @property
+    def wire_baud(self) -> int:
+        """The baud rate the bus was last talked to at (the client's; ``baudrate`` before)."""
+        return self._wire_baud
+
     # ------------------------------------------------------------------ lifecycle
     @property
     def port(self) -> str:
@@ -278,6 +340,9 @@ class BusSimulator:
     def start(self) -> None:
         if self._thread is not None:
             return
+        with self._lock:
+            for sid in sorted(self._servos):  # serial handles in id order
+                self._serial_of(self._servos[sid])
         self._pty.open()
         try:
             if self._control is not None:
@@ -367,6 +432,66 @@ class BusSimulator:
         with self._lock:
             self.unplugged = bool(on)
 
+    def hand(self, servo_id: int, position: int, speed: float = 2000.0) -> None:
+        """Move servo ``servo_id`` by hand until it reports Present_Position ``position``, at
+        ``speed`` ticks/s, as a hand turning a torque-off horn would (a servo with torque on
+        holds: refused). Returns at once; the joint travels on the simulator's clock. Raises
+        SimulatorError."""
+        if not speed > 0:
+            raise SimulatorError(f"hand: speed {speed} must be > 0 ticks/s")
+        with self._lock:
+            servo = self.servo(servo_id)
+            servo._update(self.clock())
+            if servo.registers[self.TORQUE_ADDRESS]:
+                raise SimulatorError(f"servo {servo_id}: torque is on, it holds its position: "
+                                     f"a hand cannot move it (disable the robot first)")
+            servo._hand = (servo._actual(int(position)), float(speed))
+
+    def usb_unplug(self, power_off: bool = False) -> None:
+        """Pull the USB adapter out: the pty closes (a client's fd reads EIO) and its link goes
+        away. ``power_off``: the servos lose power meanwhile (torque off when they come back, as
+        on hardware). Raises SimulatorError."""
+        self._on_wire_thread(self._pty.unplug)
+        if power_off:
+            with self._lock:
+                now = self.clock()
+                for s in self._servos.values():
+                    s._update(now)
+                    s._torque_on_at = None
+                    s.registers[self.TORQUE_ADDRESS] = 0
+
+    def usb_plug(self) -> None:
+        """Plug the adapter back in: a new pty under another device name, the same link
+        re-pointed at it. Raises SimulatorError."""
+        self._on_wire_thread(self._pty.plug)
+
+    @property
+    def plugged(self) -> bool:
+        return self._pty.master_fd is not None
+
+    def _on_wire_thread(self, fn) -> None:
+        """Run ``fn()`` on the serving thread (it owns the pty's fds: closing one under its
+        poll() would race), waiting for it. Directly when the simulator is not running."""
+        if self._thread is None or not self._thread.is_alive():
+            fn()
+            return
+        done, box = threading.Event(), {}
+        self._port_jobs.append((fn, done, box))
+        os.write(self._wake_w, b"j")
+        if not done.wait(2.0):
+            raise SimulatorError(f"{self.vendor} simulator: the serving thread did not answer")
+        if "exc" in box:
+            raise box["exc"]
+
+    def _run_port_jobs(self) -> None:
+        while self._port_jobs:
+            fn, done, box = self._port_jobs.pop(0)
+            try:
+                fn()
+            except BaseException as exc:  # handed to the caller
+                box["exc"] = exc
+            done.set()
+
     def set_torque_delay(self, seconds: float) -> None:
         """From now on a torque-on written over the bus takes ``seconds`` to take effect."""
         if seconds < 0:
@@ -380,6 +505,87 @@ class BusSimulator:
         if self._error_bits(servo):
             out.append(FaultKind.ERROR_BITS.value)
         return out
+
+    # ------------------------------------------------------------------ servos on and off the bus
+    def _serial_of(self, servo: BusServo) -> int:
+        serial = getattr(servo, "serial", None)
+        if serial is None:
+            serial = servo.serial = self._next_serial
+            self._next_serial += 1
+        return serial
+
+    def add_servo(self, servo_id: int | None = None, model: str | None = None,
+                  baudrate: int | None = None, position: int = 2048) -> int:
+        """Plug a factory-fresh servo onto the bus: id :attr:`FACTORY_ID` and baud rate
+        :attr:`FACTORY_BAUD` unless given, factory EEPROM otherwise. Returns its serial handle.
+        Raises SimulatorError (id taken on the bus, bad id, model or rate)."""
+        servo_id = self.FACTORY_ID if servo_id is None else int(servo_id)
+        baudrate = self.FACTORY_BAUD if baudrate is None else int(baudrate)
+        if not 0 <= servo_id <= self.MAX_ID:
+            raise SimulatorError(f"servo id {servo_id} is not a {self.vendor} id (0..{self.MAX_ID})")
+        if baudrate not in self.BAUD_CODES:
+            raise SimulatorError(f"baudrate {baudrate} is not a {self.vendor} servo baud rate; valid: "
+                                 f"{', '.join(map(str, sorted(self.BAUD_CODES)))}")
+        with self._lock:
+            if servo_id in self._servos:
+                raise SimulatorError(f"id {servo_id} is taken on the bus (ids: {sorted(self._servos)}); "
+                                     f"detach that servo first")
+            servo = self._new_servo(servo_id, model or self.DEFAULT_MODEL, baudrate, int(position))
+            self._servos[servo_id] = servo
+            return self._serial_of(servo)
+
+    def remove_servo(self, servo_id: int) -> None:
+        """Take the servo with this id off the bus for good. Raises SimulatorError."""
+        with self._lock:
+            self.servo(servo_id)
+            del self._servos[servo_id]
+
+    def replace_model(self, servo_id: int, model: str) -> None:
+        """Swap the servo with this id for one of ``model`` (same id, baud rate and position;
+        factory EEPROM otherwise): a servo of another model than the profile says."""
+        with self._lock:
+            old = self.servo(servo_id)
+            baud = next(b for b, c in self.BAUD_CODES.items() if c == old.registers[self.BAUD_ADDRESS])
+            self._servos[servo_id] = self._new_servo(servo_id, model, baud, round(old._pos))
+
+    def detach(self, serial: int) -> None:
+        """Take the servo with this serial handle off the bus (it keeps its EEPROM, as a servo
+        unplugged by hand). Raises SimulatorError."""
+        with self._lock:
+            for sid, s in self._servos.items():
+                if self._serial_of(s) == serial:
+                    s._update(self.clock())
+                    self._detached[serial] = self._servos.pop(sid)
+                    return
+        raise SimulatorError(f"no servo with serial {serial} on the bus")
+
+    def attach(self, serial: int) -> None:
+        """Plug a detached servo back (powered up again: :meth:`_power_cycle`). Raises
+        SimulatorError when its id is taken on the bus."""
+        with self._lock:
+            s = self._detached.get(serial)
+            if s is None:
+                raise SimulatorError(f"no detached servo with serial {serial} "
+                                     f"(detached: {sorted(self._detached)})")
+            if s.id in self._servos:
+                raise SimulatorError(f"servo serial {serial} has id {s.id}, taken on the bus")
+            del self._detached[serial]
+            s._t = self.clock()
+            self._power_cycle(s)
+            self._servos[s.id] = s
+
+    def power_cycle(self, servo_id: int | None = None) -> None:
+        """Power one servo (or all) off and on: EEPROM as persisted, RAM defaults (torque off).
+        An id changed while the EEPROM was locked comes back as it was. Raises SimulatorError
+        when a servo's persisted id is taken."""
+        with self._lock:
+            servos = [self.servo(servo_id)] if servo_id is not None else list(self._servos.values())
+            now = self.clock()
+            for s in servos:
+                s._update(now)
+                old = s.id
+                self._power_cycle(s)
+                self._rekey(s, old)
 
     def _rekey(self, servo: BusServo, old_id: int) -> None:
         """File ``servo`` under its new ID after a write changed it (caller holds the lock);
@@ -396,8 +602,15 @@ class BusSimulator:
 
     # ------------------------------------------------------------------ control socket
     def control(self, request: dict) -> dict:
-        """Answer one control request (dict in, dict out): dump, read, write, fault,
-        clear_faults, unplug. Never raises for a bad request."""
+        """Answer one control request (dict in, dict out). Never raises for a bad request.
+
+        ``dump``; ``read`` / ``write`` {id, register[, value]} (a register by hand: no access
+        checks; an EEPROM register so written counts as persisted); ``fault`` {id, kind[, bits]};
+        ``clear_faults`` [{id}]; ``unplug`` {on}; ``torque_delay`` {seconds}; ``add_servo``
+        [{id, model, baudrate, position}] -> {serial} (a factory-fresh servo, id and baud rate
+        the factory's unless given); ``detach`` {serial} / ``attach`` {serial} (take a servo off
+        the bus and plug it back, keeping its EEPROM); ``power_cycle`` [{id}].
+        """
         cmd = request.get("cmd")
         try:
             if cmd == "dump":
@@ -429,6 +642,41 @@ class BusSimulator:
             if cmd == "unplug":
                 self.set_unplugged(bool(request.get("on", True)))
                 return {"ok": True}
+            if cmd == "add_servo":
+                args = {k: request.get(k) for k in ("id", "baudrate", "position") if request.get(k) is not None}
+                for k, v in args.items():
+                    if not isinstance(v, int) or isinstance(v, bool):
+                        return {"ok": False, "error": f"{k!r} must be an integer, got {v!r}"}
+                model = request.get("model")
+                if model is not None and not isinstance(model, str):
+                    return {"ok": False, "error": f"'model' must be a model name, got {model!r}"}
+                serial = self.add_servo(args.get("id"), model, args.get("baudrate"), args.get("position", 2048))
+                return {"ok": True, "serial": serial}
+            if cmd in ("detach", "attach"):
+                serial = request.get("serial")
+                if not isinstance(serial, int) or isinstance(serial, bool):
+                    return {"ok": False, "error": f"'serial' must be a servo's serial handle, got {serial!r}"}
+                (self.detach if cmd == "detach" else self.attach)(serial)
+                return {"ok": True}
+            if cmd == "power_cycle":
+                sid = request.get("id")
+                self.power_cycle(None if sid is None else self._control_servo(request).id)
+                return {"ok": True}
+            if cmd == "hand":
+                servo = self._control_servo(request)
+                position, speed = request.get("position"), request.get("speed", 2000.0)
+                if not isinstance(position, int) or isinstance(position, bool):
+                    return {"ok": False, "error": f"'position' must be an integer (Present_Position ticks), got {position!r}"}
+                if not isinstance(speed, (int, float)) or isinstance(speed, bool) or not speed > 0:
+                    return {"ok": False, "error": f"'speed' must be a number > 0 (ticks/s), got {speed!r}"}
+                self.hand(servo.id, position, float(speed))
+                return {"ok": True}
+            if cmd == "usb_unplug":
+                self.usb_unplug(bool(request.get("power_off", False)))
+                return {"ok": True}
+            if cmd == "usb_plug":
+                self.usb_plug()
+                return {"ok": True, "pty": self.pty_path, "port": self.port}
             if cmd == "torque_delay":
                 seconds = request.get("seconds")
                 if not isinstance(seconds, (int, float)) or isinstance(seconds, bool) or not seconds >= 0:
@@ -438,7 +686,8 @@ class BusSimulator:
         except SimulatorError as exc:
             return {"ok": False, "error": str(exc)}
         return {"ok": False, "error": f"unknown cmd {cmd!r}; valid: dump, read, write, fault, "
-                "clear_faults, unplug, torque_delay"}
+                "clear_faults, unplug, torque_delay, hand, usb_unplug, usb_plug, add_servo, detach, attach, "
+                "power_cycle"}
 
     def _control_servo(self, request: dict):
         sid = request.get("id")
@@ -453,34 +702,57 @@ class BusSimulator:
             for sid in sorted(self._servos):
                 s = self._servos[sid]
                 s._update(now)
-                servos[str(sid)] = self._snapshot(s)
+                servos[str(sid)] = {**self._snapshot(s), "serial": self._serial_of(s)}
                 f = self._faults(s)
                 if f:
                     faults[str(sid)] = f
+            detached = {str(serial): {**self._snapshot(s), "serial": serial}
+                        for serial, s in sorted(self._detached.items())}
             return {"servos": servos, "faults": faults, "unplugged": self.unplugged,
-                    "baudrate": self.baudrate, "torque_delay_s": self.torque_delay_s}
+                    "baudrate": self.baudrate, "wire_baud": self._wire_baud,
+                    "torque_delay_s": self.torque_delay_s, "detached": detached,
+                    "usb_plugged": self.plugged, "pty": self.pty_path,
+                    "by_hand": sorted(sid for sid, s in self._servos.items() if s._hand is not None)}
 
     # ------------------------------------------------------------------ the wire
     def _run(self) -> None:
-        master = self._pty.master_fd
-        assert master is not None
         poller = select.poll()
-        poller.register(master, select.POLLIN)
         poller.register(self._wake_r, select.POLLIN)
+        master = None  # the pty master polled; changes when the adapter is unplugged / plugged
         buf = bytearray()
         last_rx = 0.0
         if self.emulate_baud:
             _tighten_timer_slack()
         try:
             while True:
-                poller.poll()
+                if self._pty.master_fd != master:
+                    if master is not None:
+                        poller.unregister(master)
+                    master = self._pty.master_fd
+                    if master is not None:
+                        poller.register(master, select.POLLIN)
+                    buf.clear()
+                events = poller.poll()
                 if self._stopping:
                     return
+                if any(fd == self._wake_r for fd, _ in events):
+                    try:
+                        os.read(self._wake_r, 64)
+                    except BlockingIOError:
+                        pass
+                    self._run_port_jobs()
+                    continue
+                if master is None:
+                    continue
                 try:
                     data = os.read(master, 4096)
                 except BlockingIOError:
                     continue
                 now = time.monotonic()
+                baud = line_baud(master) or self.baudrate
+                if baud != self._wire_baud:
+                    buf.clear()  # bytes at another rate are garbage to the servos
+                    self._set_wire_baud(baud)
                 if buf and now - last_rx > FRAME_TIMEOUT_S:
                     buf.clear()  # a servo forgets a half-received packet after a silence
                 last_rx = now

@@ -5,6 +5,12 @@
     crtk-sim dynamixel --profile profiles/koch.yaml --link /tmp/ttySIM [...same options]
     crtk-sim feetech --profile profiles/bimanual_so101.yaml --bus left --link /tmp/ttyLEFT
 
+Day-one buses (what `crtk-bridge setup-servos` and `check --scan --all-bauds` meet on a new arm):
+
+    crtk-sim feetech --profile P --empty --factory-servo    one unconfigured servo (id 1, factory rate)
+    crtk-sim feetech --profile P --servo-baud 115200        the servos at another rate than the profile
+    crtk-sim feetech --profile P --model 3=sts3250          servo 3 of another model
+
 Prints one line once the port (and control socket) exist, then serves until signalled; exits 0
 after removing the link and the control socket. Exit 2: bad arguments or profile; 1: the
 simulator could not start (e.g. the link path is a regular file) or died.
@@ -41,9 +47,41 @@ def _parser() -> argparse.ArgumentParser:
         d.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
         d.add_argument("--torque-delay", type=float, default=0.0, metavar="S",
                        help="a torque-on takes S seconds to take effect (a slow device; default 0)")
+        d.add_argument("--empty", action="store_true",
+                       help="start with no servo on the bus (add them with --factory-servo or the "
+                            "control socket's add_servo)")
+        d.add_argument("--factory-servo", action="append", nargs="?", const="", metavar="MODEL",
+                       help="add a factory-fresh servo (id 1 at the factory baud rate; default model: "
+                            "the vendor's usual); repeatable")
+        d.add_argument("--servo-baud", type=int, metavar="BAUD",
+                       help="the profile's servos sit at this rate instead of the profile's (a baud "
+                            "rate mismatch)")
+        d.add_argument("--model", action="append", default=[], metavar="ID=MODEL",
+                       help="the servo with this id is of another model; repeatable")
         d.add_argument("--log-level", default="warning",
                        choices=["debug", "info", "warning", "error"], help="default: warning")
     return p
+
+
+def _day_one(sim, args) -> None:
+    """Apply --empty, --model, --servo-baud, --factory-servo (in that order). Raises
+    SimulatorError or ProfileError."""
+    for sid in sim.ids if args.empty else ():
+        sim.remove_servo(sid)
+    for spec in args.model:
+        sid, sep, model = spec.partition("=")
+        if not sep or not sid.strip().isdigit():
+            raise ProfileError(f"--model {spec!r}: expected ID=MODEL, e.g. 3=sts3250")
+        sim.replace_model(int(sid), model.strip())
+    if args.servo_baud is not None:
+        code = sim.BAUD_CODES.get(args.servo_baud)
+        if code is None:
+            raise ProfileError(f"--servo-baud {args.servo_baud}: not a {sim.vendor} servo baud rate; "
+                               f"valid: {', '.join(map(str, sorted(sim.BAUD_CODES)))}")
+        for sid in sim.ids:
+            sim.servo(sid).write("Baud_Rate", code)
+    for model in args.factory_servo or ():
+        sim.add_servo(model=model or None)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -70,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         sim = Simulator.from_profile(
             profile, link=args.link, control=args.control, emulate_baud=args.emulate_baud)
         sim.set_torque_delay(args.torque_delay)
+        _day_one(sim, args)
         sim.start()
     except CrtkBridgeError as exc:
         print(f"crtk-sim: {exc}", file=sys.stderr)

@@ -15,7 +15,7 @@ monotonic clock whenever a packet or a caller touches it:
 - velocity mode (1): Present_Velocity follows Goal_Velocity (clamped to Velocity_Limit), first order;
 - current mode (0): an unloaded motor: the speed settles at ``TICKS_PER_S_PER_MA`` per mA of
   Goal_Current; Present_Current = Goal_Current;
-- torque off: the joint stays where it is (no gravity). Present_Current (Present_Load on the
+- torque off: the joint stays where it is (no gravity), unless moved by hand (control ``hand``). Present_Current (Present_Load on the
   XL430) grows with the tracking error; Moving is 1 while the servo moves.
 
 Bus behaviour: broadcast id 0xFE (no reply, except PING and the sync/bulk reads), Status_Return_
@@ -32,6 +32,12 @@ Shutdown mask (63) torque goes off; only a REBOOT clears it, so ``clear_faults``
 ``freeze`` (the joint stops moving), and ``unplug`` of the whole bus. A REBOOT restores the RAM
 defaults (torque off, goal = present position, error cleared) and leaves the servo deaf for
 ``REBOOT_S``.
+
+EEPROM (addresses below 64: id, baud rate, return delay, drive and operating mode, homing offset,
+limits...) is written only with torque off (else error 7, access) and then persists, as on an X
+servo; a power cycle (``power_cycle``, or ``attach`` of a detached servo) restores the RAM defaults
+only. A factory-fresh servo (``add_servo``) has id 1 and 57600 baud (Baud_Rate 1; servos.md
+section 5). A servo whose Baud_Rate is not the client's rate neither hears nor answers.
 """
 
 from __future__ import annotations
@@ -126,7 +132,8 @@ class SimServo(BusServo):
     :meth:`read` / :meth:`write` (by register name) are thread-safe and update the physics first.
     """
 
-    def __init__(self, sim: DynamixelSimulator, servo_id: int, model: str, position: int):
+    def __init__(self, sim: DynamixelSimulator, servo_id: int, model: str, position: int,
+                 baudrate: int | None = None, return_delay: int = 0):
         super().__init__(sim)
         self.model = model
         self.table = T.CONTROL_TABLES[model]
@@ -138,7 +145,7 @@ class SimServo(BusServo):
         self._pos = float(position)
         self._vel = 0.0
         self._err_ticks = 0.0  # tracking error (ticks), drives Present_Current / Present_Load
-        self._eeprom_defaults(servo_id)
+        self._eeprom_defaults(servo_id, baudrate or sim.baudrate, return_delay)
         self._ram_defaults()
 
     # --- defaults ---
@@ -147,18 +154,22 @@ class SimServo(BusServo):
         raw = T.to_raw(value, reg.size) if reg.signed else int(value)
         self.registers[reg.address: reg.address + reg.size] = raw.to_bytes(reg.size, "little")
 
+    def _actual(self, present: int) -> float:
+        return float(present - self._get("Homing_Offset"))  # Present = Actual + Homing_Offset
+
     def _get(self, name: str) -> int:
         reg = self.table[name]
         raw = int.from_bytes(self.registers[reg.address: reg.address + reg.size], "little")
         return T.to_signed(raw, reg.size) if reg.signed else raw
 
-    def _eeprom_defaults(self, servo_id: int) -> None:
+    def _eeprom_defaults(self, servo_id: int, baudrate: int, return_delay: int) -> None:
         m = self.model
         self._put("Model_Number", T.MODEL_NUMBERS[m])
         self._put("Firmware_Version", FIRMWARE)
         self._put("ID", servo_id)
-        self._put("Baud_Rate", T.BAUD_CODES.get(self._sim.baudrate, 1))
-        self._put("Return_Delay_Time", 250)
+        self._put("Baud_Rate", T.BAUD_CODES[baudrate])
+        # the simulated arm's servos: 0, as the backends set it; a factory-fresh one: 250 (x2 us)
+        self._put("Return_Delay_Time", return_delay)
         self._put("Operating_Mode", int(T.OperatingMode.POSITION))
         self._put("Protocol_Type", 2)
         self._put("Moving_Threshold", 10)
@@ -237,6 +248,10 @@ class SimServo(BusServo):
         if not r[_TORQUE] or self.frozen or dt <= 0.0:
             if not r[_TORQUE] or self.frozen:
                 self._vel = 0.0
+            if not r[_TORQUE] and self._hand is not None and dt > 0.0:  # a hand turns the horn
+                new = self._hand_step(self._pos, dt)
+                self._vel = (new - self._pos) / dt
+                self._pos = new
             return
         mode = r[_MODE]
         vlim = max(1, self._get("Velocity_Limit")) * TICKS_PER_S_PER_RAW_VEL
@@ -309,7 +324,10 @@ class DynamixelSimulator(BusSimulator):
 
     vendor = "dynamixel"
     BAUD_CODES = T.BAUD_CODES
+    FACTORY_BAUD = 57_600  # X series: Baud_Rate code 1 (servos.md section 5)
+    DEFAULT_MODEL = "xl430-w250"
     ID_ADDRESS = _ID
+    BAUD_ADDRESS = _BAUD
     RETURN_DELAY_ADDRESS = _RETURN_DELAY
     TORQUE_ADDRESS = _TORQUE
     MAX_ID = T.MAX_ID
@@ -376,6 +394,17 @@ class DynamixelSimulator(BusSimulator):
 
     def _clear_error_bits(self, servo: SimServo) -> None:
         """Nothing: Hardware_Error_Status stays latched until a REBOOT, as on hardware."""
+
+    def _new_servo(self, servo_id: int, model: str, baudrate: int, position: int) -> SimServo:
+        model = model.lower()
+        if model not in T.CONTROL_TABLES:
+            raise SimulatorError(f"unknown model {model!r} (known: {', '.join(T.CONTROL_TABLES)})")
+        return SimServo(self, servo_id, model, position, baudrate=baudrate, return_delay=250)
+
+    def _power_cycle(self, servo: SimServo) -> None:
+        servo._pending = None
+        servo._torque_on_at = None
+        servo._ram_defaults()  # the EEPROM persisted with every write
 
     # --- the bus ---
     def _parse(self, buf: bytearray, now: float) -> list[Reply]:

@@ -10,7 +10,8 @@ physics, advanced lazily from the monotonic clock whenever a packet or a caller 
   Min/Max_Position_Limit) as a first-order lag (time constant ``TAU_S``) with the speed capped at
   ``VELOCITY_MAX_TPS`` (STS3215 no-load speed at 7.4 V) or at Goal_Velocity when that is nonzero;
 - constant-speed mode (Operating_Mode 1), torque on: turns at Goal_Velocity (wraps 0..4095);
-- torque off (or any other mode): the joint stays where it is (no gravity);
+- torque off (or any other mode): the joint stays where it is (no gravity), unless moved by hand
+  (control ``hand``: toward a position at a bounded speed);
 - Present_Velocity is the instantaneous rate, Present_Current / Present_Load grow with the
   tracking error, Moving is 1 while the servo is still closing in; Present = Actual - Homing_Offset.
 - enabling torque drives to whatever Goal_Position holds (it is not reset to Present_Position), so
@@ -21,8 +22,14 @@ Bus behaviour modelled: broadcast id 0xFE (no status reply, except PING and SYNC
 addressed servo answers in turn), Response_Status_Level 0 (answer only reads and pings), bad
 checksums ignored, garbage skipped (resync on the next ``FF FF``), a half-received packet dropped
 after ``FRAME_TIMEOUT_S`` of silence, unknown ids silent, a servo whose Baud_Rate code differs
-from the bus's deaf and mute, writes to read-only registers ignored (EEPROM writes are kept in
-memory whatever Lock says), the status ERR byte = the Status register (65).
+from the rate the client talks at deaf and mute, writes to read-only registers ignored, the status
+ERR byte = the Status register (65).
+
+EEPROM (the registers the table marks EEPROM: id, baud rate, return delay, limits, homing offset,
+operating mode...): a write takes effect at once; it is also persisted ("flash") only while Lock
+(55) is 0, as on the STS. A power cycle (``power_cycle``, or ``attach`` of a detached servo) brings
+the EEPROM back from flash and the RAM to its power-on defaults (torque off, Lock 1, goal =
+present). A factory-fresh servo (``add_servo``) has id 1 and 1 Mbps (servos.md section 2).
 
 Faults (control socket or :meth:`FeetechSimulator.set_fault`): ``silent`` (servo receives but
 never replies), ``corrupt`` (its replies carry a bad checksum), ``error_bits`` (OR bits into
@@ -65,6 +72,14 @@ for _addr in (64, 67, 68):
 _READ_ONLY = bytes(_READ_ONLY)
 
 _NAMES = {name.lower(): name for name in T.STS_CONTROL_TABLE}
+
+# EEPROM bytes (persisted while Lock is 0); the rest of 0..79 is RAM, reset by a power cycle.
+_EEPROM = bytearray(256)
+for _reg in T.STS_CONTROL_TABLE.values():
+    if _reg.eeprom:
+        _EEPROM[_reg.address : _reg.address + _reg.size] = b"\x01" * _reg.size
+_EEPROM = bytes(_EEPROM)
+_RAM_START, _RAM_END = 40, 80
 
 _A = {name: reg.address for name, reg in T.STS_CONTROL_TABLE.items()}
 _ID = _A["ID"]
@@ -112,15 +127,18 @@ class SimServo(BusServo):
     are thread-safe and bring the physics up to date first.
     """
 
-    def __init__(self, sim: FeetechSimulator, servo_id: int, position: int, model_number: int = 777):
+    def __init__(self, sim: FeetechSimulator, servo_id: int, position: int, model_number: int = 777,
+                 baudrate: int | None = None, return_delay: int = 0):
         super().__init__(sim)
         self._pos = float(position)  # actual (un-offset) position, ticks
         r = self.registers
         r[0], r[1] = 3, 10  # firmware 3.10
         r[3], r[4] = model_number & 0xFF, model_number >> 8
         r[_ID] = servo_id
-        r[_BAUD] = T.BAUD_CODES.get(sim.baudrate, 0)
-        r[_RETURN_DELAY] = 0  # LeRobot writes 0; the real turnaround is unverified (servos.md §1)
+        r[_BAUD] = T.BAUD_CODES[baudrate or sim.baudrate]
+        # the simulated arm's servos: 0, as LeRobot writes it (the real turnaround is unverified,
+        # servos.md section 1); a factory-fresh one: 250 (x2 us)
+        r[_RETURN_DELAY] = return_delay
         r[_STATUS_LEVEL] = 1
         self._put(_MIN_POS, 2, 0)
         self._put(_MAX_POS, 2, 4095)
@@ -141,7 +159,32 @@ class SimServo(BusServo):
         self._put(_A["Present_Temperature"], 1, 30)
         self._put(_A["Maximum_Acceleration"], 1, 254)
         self._put(_GOAL_POS, 2, _sm16(position))
+        self._flash = bytearray(self.registers)  # what a power cycle restores (EEPROM bytes)
         self._update(self._t)
+
+    def _power_on(self) -> None:
+        """EEPROM back from flash; RAM at power-on defaults (torque off, Lock 1, goal = present,
+        Torque_Limit = Max_Torque_Limit, no error) (caller holds the simulator lock)."""
+        r = self.registers
+        for addr in range(256):
+            if _EEPROM[addr]:
+                r[addr] = self._flash[addr]
+        r[_RAM_START:_RAM_END] = bytes(_RAM_END - _RAM_START)
+        self._torque_on_at = None
+        self._pending = None
+        self._put(_TORQUE_LIMIT, 2, self._get("Max_Torque_Limit"))
+        self._put(_A["Lock"], 1, 1)
+        self._put(_A["Present_Voltage"], 1, 74)
+        self._put(_A["Present_Temperature"], 1, 30)
+        self._put(_GOAL_POS, 2, _sm16(round(self._pos) - self._offset()))
+        self._update(self._t)
+
+    def _persist(self, addr: int, end: int, force: bool = False) -> None:
+        """Copy the EEPROM bytes of ``addr..end`` to flash when Lock is 0 (or ``force``)."""
+        if force or self.registers[_A["Lock"]] == 0:
+            for i in range(addr, end):
+                if _EEPROM[i]:
+                    self._flash[i] = self.registers[i]
 
     # --- internal (caller holds the simulator lock) ---
     def _put(self, addr: int, size: int, raw: int) -> None:
@@ -167,6 +210,7 @@ class SimServo(BusServo):
         if reg.address == _PRESENT_POS:
             self._pos = float(value + self._offset())
         self._side_effects(reg.address, reg.address + reg.size)
+        self._persist(reg.address, reg.address + reg.size, force=True)  # set up "earlier": persisted
 
     def _bus_write(self, addr: int, data: bytes | bytearray) -> None:
         """A WRITE/SYNC_WRITE/ACTION payload: read-only bytes keep their value."""
@@ -180,6 +224,7 @@ class SimServo(BusServo):
         else:
             r[addr:end] = data[: end - addr]
         self._side_effects(addr, end)
+        self._persist(addr, end)
 
     def _side_effects(self, addr: int, end: int) -> None:
         r = self.registers
@@ -187,6 +232,10 @@ class SimServo(BusServo):
             offset = max(-2047, min(2047, round(self._pos) - 2048))
             self._put(_HOMING, 2, T.encode_sign_magnitude(offset, 11))
             r[_TORQUE] = 0
+            self._persist(_HOMING, _HOMING + 2)
+
+    def _actual(self, present: int) -> float:
+        return float(present + self._offset())  # Present = Actual - Homing_Offset
 
     def _offset(self) -> int:
         r = self.registers
@@ -229,6 +278,10 @@ class SimServo(BusServo):
                 vel = max(-VELOCITY_MAX_TPS, min(VELOCITY_MAX_TPS, float(gv)))
                 pos = (pos + vel * dt) % TICKS_PER_TURN
                 err = vel * TAU_S  # the effort a real servo spends to hold that speed
+        elif self._hand is not None:  # torque off: a hand turns the horn
+            new = self._hand_step(pos, dt)
+            vel = (new - pos) / dt if dt > 0.0 else 0.0
+            pos = new
         self._pos = pos
         a = abs(err)
         present = round(pos) - offset
@@ -278,7 +331,10 @@ class FeetechSimulator(BusSimulator):
 
     vendor = "feetech"
     BAUD_CODES = T.BAUD_CODES
+    FACTORY_BAUD = 1_000_000  # STS3215: Baud_Rate code 0 (servos.md section 2)
+    DEFAULT_MODEL = "sts3215"
     ID_ADDRESS = _ID
+    BAUD_ADDRESS = _BAUD
     RETURN_DELAY_ADDRESS = _RETURN_DELAY
     TORQUE_ADDRESS = _TORQUE
     MAX_ID = 253
@@ -326,6 +382,7 @@ class FeetechSimulator(BusSimulator):
             model = T.MODEL_NUMBERS.get((j.model or "sts3215").lower(), 777)
             servo = sim._servos[j.id]
             servo.registers[3], servo.registers[4] = model & 0xFF, model >> 8
+            servo._persist(3, 5, force=True)
         return sim
 
     # --- vendor hooks (see BusSimulator) ---
@@ -349,6 +406,15 @@ class FeetechSimulator(BusSimulator):
 
     def _clear_error_bits(self, servo: SimServo) -> None:
         servo.registers[_STATUS] = 0
+
+    def _new_servo(self, servo_id: int, model: str, baudrate: int, position: int) -> SimServo:
+        number = T.MODEL_NUMBERS.get(model.lower())
+        if number is None:
+            raise SimulatorError(f"unknown model {model!r} (known: {', '.join(T.MODEL_NUMBERS)})")
+        return SimServo(self, servo_id, position, number, baudrate=baudrate, return_delay=250)
+
+    def _power_cycle(self, servo: SimServo) -> None:
+        servo._power_on()
 
     # --- the bus ---
     def _parse(self, buf: bytearray, now: float) -> list[Reply]:

@@ -3,10 +3,16 @@
 The simulator owns the master side; clients (pyserial, vendor SDKs) open the slave path, or the
 symlink to it. The simulator also keeps one slave fd open for its whole life: without it, the
 master reads EIO whenever no client has the slave open (between a client's close and reopen).
+
+A USB adapter unplugged and plugged back is :meth:`PtyPort.unplug` (the pair is closed, so a
+client's open fd reads EIO, and the link goes away, as a ``/dev/serial/by-id`` link does) then
+:meth:`PtyPort.plug` (a new pair under a NEW device name, the same link re-pointed at it, as udev
+does when the adapter comes back as another ``ttyACM`` number).
 """
 
 from __future__ import annotations
 
+import array
 import fcntl
 import os
 import stat
@@ -29,6 +35,37 @@ def _make_raw(fd: int) -> None:
     termios.tcsetattr(fd, termios.TCSANOW, attrs)
 
 
+# Linux termios2 (any baud rate, as pyserial sets non-standard ones): struct termios2 is four
+# 32-bit flag words, c_line, c_cc[19], then c_ispeed and c_ospeed (32-bit words 9 and 10).
+_TCGETS2 = 0x802C542A
+_TCSETS2 = 0x402C542B
+_BOTHER = 0o010000
+_CBAUD = 0o010017
+
+
+def line_baud(fd: int) -> int | None:
+    """The baud rate the client last set on the pty (either side's fd; Linux keeps one termios for
+    the pair), or None where the OS will not say. A real servo hears only its own rate."""
+    buf = array.array("I", [0] * 16)
+    try:
+        fcntl.ioctl(fd, _TCGETS2, buf)
+    except OSError:
+        return None
+    return int(buf[10]) or None
+
+
+def set_line_baud(fd: int, baud: int) -> None:
+    """Set the pty's baud rate (the rate a client that sets none talks at). Best effort."""
+    buf = array.array("I", [0] * 16)
+    try:
+        fcntl.ioctl(fd, _TCGETS2, buf)
+        buf[2] = (buf[2] & ~_CBAUD) | _BOTHER
+        buf[9] = buf[10] = int(baud)
+        fcntl.ioctl(fd, _TCSETS2, buf)
+    except OSError:
+        pass
+
+
 def _set_nonblocking(fd: int) -> None:
     fcntl.fcntl(fd, fcntl.F_SETFL, fcntl.fcntl(fd, fcntl.F_GETFL) | os.O_NONBLOCK)
 
@@ -38,13 +75,15 @@ class PtyPort:
 
     ``master_fd`` is non-blocking: the simulator waits with poll() and must never block on a write
     when a client stops reading (a real bus would lose those bytes too).
+    ``baudrate``: the line's rate until a client sets its own (:func:`line_baud` reads it).
     ``link``: if given, a symlink ``link -> slave path`` is created (a stale symlink is replaced;
     an existing regular file, directory or other non-symlink raises :class:`SimulatorError`) and
     removed on close.
     """
 
-    def __init__(self, link: str | os.PathLike | None = None):
+    def __init__(self, link: str | os.PathLike | None = None, baudrate: int | None = None):
         self.link = Path(link) if link is not None else None
+        self.baudrate = baudrate  # the line's rate until a client sets its own
         self.master_fd: int | None = None
         self._slave_fd: int | None = None
         self.slave_path: str | None = None
@@ -65,6 +104,8 @@ class PtyPort:
         master, slave = os.openpty()
         try:
             _make_raw(slave)
+            if self.baudrate:
+                set_line_baud(slave, self.baudrate)
             _set_nonblocking(master)
             self.slave_path = os.ttyname(slave)
             self.master_fd, self._slave_fd = master, slave
@@ -97,6 +138,31 @@ class PtyPort:
             tmp.unlink(missing_ok=True)
             raise SimulatorError(f"{self.link}: cannot create symlink: {exc.strerror or exc}") from exc
         self._link_made = True
+
+    def unplug(self) -> None:
+        """The adapter is pulled out: the link goes away and the pair is closed (a client's open
+        fd reads EIO from now on). :meth:`plug` brings it back. Idempotent."""
+        self.close()
+
+    def plug(self) -> None:
+        """The adapter is plugged back in: a new pair whose slave has another device name than
+        before, behind the same link. No-op while plugged in."""
+        if self.master_fd is not None:
+            return
+        old = self.slave_path
+        held = []  # pairs holding the old name: the kernel hands out the lowest free pts number
+        try:
+            while True:
+                self.open()
+                if self.slave_path != old or len(held) >= 4:
+                    break
+                held.append((self.master_fd, self._slave_fd))
+                self.master_fd = self._slave_fd = None
+                self._link_made = False
+        finally:
+            for fds in held:
+                for fd in fds:
+                    os.close(fd)
 
     def close(self) -> None:
         if self._link_made and self.link is not None:

@@ -82,7 +82,7 @@ from ...core.actuator import (
 )
 from ...errors import BackendError
 from ...profile import Profile
-from ..serial_servo import SerialPortFixes, SerialServoBackend
+from ..serial_servo import EepromDiff, SerialPortFixes, SerialServoBackend
 from ..servo_keys import PortMatch, ServoJoint
 from . import tables as T
 from .tables import OperatingMode
@@ -153,6 +153,9 @@ class DynamixelBackend(SerialServoBackend):
     RESOLUTION = T.RESOLUTION
     MAX_ID = T.MAX_ID
     SUPPORTED_BAUDS = SUPPORTED_BAUDS
+    BAUD_CODES = T.BAUD_CODES
+    FACTORY_BAUD = 57_600  # X series: Baud_Rate 1 (servos.md section 5)
+    HOMING_OFFSET_MAX = 1_044_479
     RX_TIMEOUT = COMM_RX_TIMEOUT
     RX_CORRUPT = COMM_RX_CORRUPT
 
@@ -233,6 +236,31 @@ class DynamixelBackend(SerialServoBackend):
         self._port.is_using = False
         found, _ = self._ph.broadcastPing(self._port)  # no reply at all: an empty dict
         return {sid: (model, firmware) for sid, (model, firmware) in found.items()}
+
+    def _broadcast_ping(self) -> tuple[dict[int, int], bool]:
+        """Protocol 2.0's broadcast ping (the SDK's, listening its full window, ~0.8 s)."""
+        self._port.is_using = False
+        found, result = self._ph.broadcastPing(self._port)
+        self._port.is_using = False
+        return {sid: model for sid, (model, _) in found.items()}, result == COMM_RX_CORRUPT
+
+    def _limits_apply(self, i: int) -> bool:
+        return self._pos_mode[i] is OperatingMode.POSITION  # the extended modes ignore them
+
+    def _vendor_eeprom_diffs(self, i: int, key: str) -> list[EepromDiff]:
+        """Drive_Mode bit 0 (reverse: the servo flips its own direction; the profile's
+        calibration.direction says it instead). Not Operating_Mode: the backend switches it at
+        run time with each joint's command mode, so the EEPROM holds whatever the last run left."""
+        name, sid = self.joint_names[i], self._ids[i]
+        out = []
+        drive = self._read_register(i, "Drive_Mode")
+        if drive & 1:
+            out.append(EepromDiff(name, sid, "Drive_Mode", drive, f"bit 0 clear ({drive & ~1})",
+                                  f"{key}.calibration.direction", True,
+                                  "bit 0 (reverse) flips every position and command on the servo",
+                                  f"clear it with the vendor's tool and say the direction in "
+                                  f"{key}.calibration.direction (the daemon never rewrites EEPROM)"))
+        return out
 
     def _identify(self, sid: int, model: str | None, firmware: int | None) -> tuple[str | None, bool | None]:
         """Firmware (from the ping, else read) and Torque_Enable (same address on every X model)."""
@@ -355,6 +383,8 @@ class DynamixelBackend(SerialServoBackend):
         non-transient ``servo_error`` Fault naming the Hardware_Error_Status bits when a servo's
         status carries the Alert bit (``feedback`` filled: the data is valid).
         """
+        if self._lost is not None and self._still_lost():
+            return self._lost  # the port is gone (hot replug): no bus I/O until it is back
         port = self._port
         if port is None:
             return Fault("bus_timeout", f"{self.robot}: read on a closed bus", transient=False)

@@ -51,7 +51,7 @@ from ...core.actuator import (
     SimWiring,
 )
 from ...profile import Profile
-from ..serial_servo import SerialServoBackend
+from ..serial_servo import EepromDiff, SerialServoBackend
 from ..servo_keys import PortMatch
 from . import tables
 from .port import FastPortHandler
@@ -128,6 +128,9 @@ class FeetechBackend(SerialServoBackend):
     RESOLUTION = tables.RESOLUTION
     MAX_ID = 253
     SUPPORTED_BAUDS = SUPPORTED_BAUDS
+    BAUD_CODES = tables.BAUD_CODES
+    FACTORY_BAUD = 1_000_000  # STS3215 (servos.md section 2)
+    HOMING_OFFSET_MAX = 2047  # sign-magnitude, sign in bit 11
     RX_TIMEOUT = COMM_RX_TIMEOUT
     RX_CORRUPT = COMM_RX_CORRUPT
 
@@ -173,6 +176,58 @@ class FeetechBackend(SerialServoBackend):
         torque = self._read_id(sid, t["Torque_Enable"].address)
         return (None if major is None or minor is None else f"{major}.{minor}",
                 None if torque is None else torque != 0)
+
+    def _broadcast_ping(self) -> tuple[dict[int, int], bool]:
+        """A PING to the broadcast id (the pip SDK has no broadcast ping), every status read for
+        the wire time of MAX_ID + 1 of them (the servos answer at once, as LeRobot's broadcast ping
+        assumes), then each one's Model_Number read. A corrupt status counts as garbled."""
+        ph, port = self._ph, self._port
+        port.is_using = False
+        result = ph.txPacket(port, [0, 0, tables.BROADCAST_ID, 2, tables.INST_PING, 0])
+        if result != COMM_SUCCESS:
+            port.is_using = False
+            return {}, False
+        port.setPacketTimeoutMillis(port.tx_time_per_byte * 6 * (self.MAX_ID + 2) + port.margin_ms)
+        ids, garbled = [], False
+        while True:
+            packet, result = ph.rxPacket(port)
+            if result == COMM_SUCCESS:
+                ids.append(packet[2])
+            elif result == COMM_RX_CORRUPT:
+                garbled = True
+            if result == COMM_RX_TIMEOUT or port.isPacketTimeout():
+                break
+        port.is_using = False
+        found = {}
+        model = tables.STS_CONTROL_TABLE["Model_Number"].address
+        for sid in ids:
+            number = self._read_id(sid, model, 2)
+            if number is None:
+                garbled = True
+            else:
+                found[sid] = number
+        return found, garbled
+
+    def _vendor_eeprom_diffs(self, i: int, key: str) -> list[EepromDiff]:
+        """Operating_Mode (the backend drives position mode 0 and writes it at start-up); Phase
+        bit 4 (multi-turn angle feedback: positions leave 0..4095; LeRobot clears it too)."""
+        name, sid = self.joint_names[i], self._ids[i]
+        out = []
+        mode = self._read_register(i, "Operating_Mode")
+        if mode != 0:
+            out.append(EepromDiff(name, sid, "Operating_Mode", mode, "0 (position)", f"{key}.model", False,
+                                  "not position mode", "the daemon sets it at start-up until the next "
+                                  "power cycle"))
+        phase = self._read_register(i, "Phase")
+        if phase & 0x10:
+            out.append(EepromDiff(name, sid, "Phase", phase, f"bit 4 clear ({phase & ~0x10})", f"{key}.model",
+                                  True, "bit 4 (multi-turn angle feedback) makes positions leave 0..4095",
+                                  "clear bit 4 with the vendor's tool (the daemon never rewrites EEPROM)"))
+        return out
+
+    @staticmethod
+    def _no_limits(low: int, high: int) -> bool:
+        return low == 0 and high == 0  # 0/0: no angle limits (multi-turn)
 
     def _encode(self, i: int, name: str, value: int) -> int:
         if name in tables.SIGN_BITS:
@@ -242,6 +297,8 @@ class FeetechBackend(SerialServoBackend):
         or a non-transient ``servo_error`` Fault when a servo's Status register has an error bit
         (``feedback`` filled: the data is valid).
         """
+        if self._lost is not None and self._still_lost():
+            return self._lost  # the port is gone (hot replug): no bus I/O until it is back
         gsr = self._sync_read
         if gsr is None:
             return Fault("bus_timeout", f"{self.robot}: read on a closed bus", transient=False)

@@ -1,0 +1,1136 @@
+"""Simulated CiA 402 servo drives on a CAN bus (canopen ``LocalNode`` plus what it lacks).
+
+canopen 2.4.1's :class:`canopen.LocalNode` serves SDO, NMT and heartbeat from an object
+dictionary, but has no PDO behaviour and no device profile (canopen issue #558; see
+../shared/reference/canopen-ur.md part A). :class:`Drive402` adds, for one node id:
+
+- the object dictionary built in code (:func:`make_object_dictionary`): CiA 301 communication
+  objects (0x1000, 0x1001, 0x1005, 0x1014, 0x1017, 0x1018, RPDO 0x1400-0x1403 / 0x1600-0x1603,
+  TPDO 0x1800-0x1803 / 0x1A00-0x1A03) and the CiA 402 objects the bridge uses (0x603F, 0x6040,
+  0x6041, 0x605A, 0x6060, 0x6061, 0x6064, 0x6065, 0x6066, 0x606C, 0x6071, 0x6072, 0x6077,
+  0x607A, 0x607C, 0x6085, 0x6098, 0x6099, 0x609A, 0x60C2, 0x60F4, 0x60FF, 0x6502); every
+  variable has a default, so every SDO read answers;
+- PDOs as CiA 301 says: the configuration the master writes over SDO is re-read when the node
+  enters OPERATIONAL and on every write to 0x14xx-0x1Axx; mapping writes are checked (abort
+  0x06040041 not mappable, 0x06040042 too long, 0x06010000 while the PDO is valid); received
+  RPDOs are applied only in OPERATIONAL (SYNC-type ones at the next SYNC, event ones at once; a
+  too-short RPDO is dropped with EMCY 0x8210); SYNC-type TPDOs (transmission type 1-240: every
+  n-th SYNC; 0: at SYNC when changed) are sampled and sent on SYNC, event ones (254/255) on change
+  (inhibit time) and on their event timer;
+- the CiA 402 state machine (:class:`State`, :data:`STATUSWORD`; transitions numbered as in
+  CiA 402-2 figure "State machine"): shutdown / switch on / enable operation / disable voltage /
+  quick stop (stays in QUICK STOP ACTIVE after the ramp, 0x605A = 6; 1-2 go on to SWITCH ON
+  DISABLED), fault reaction (quick-stop ramp, then FAULT), fault reset on a rising edge of
+  controlword bit 7 (EMCY 0x0000 "error reset" on leaving FAULT);
+- motion at a fixed internal rate (:data:`PHYSICS_DT_S`) advanced to the current time on every
+  SYNC, SDO read and simulator tick: CSP (8) tracks 0x607A as a first-order lag capped at the
+  drive's top speed, CSV (9) 0x60FF, CST (10) 0x6071 (speed proportional to torque, first order);
+  homing (6) methods 35 / 37 (current position: at once) and 17 / 18 (search the negative /
+  positive limit switch at 0x6099:1, taking time), statusword bits 10 / 12 / 13 as CiA 402 says;
+- following error: in CSP, |0x607A - 0x6064| above 0x6065 for longer than 0x6066 ms faults
+  the drive with EMCY 0x8611 and statusword bit 13;
+- boot-up message, heartbeat producer (0x1017), EMCY producer (0x1001 / 0x603F kept in step).
+
+:class:`CanopenSimulator` is several drives on one bus in the shape of the serial simulators
+(``from_profile``, ``start``, ``stop``, ``port``, fault injection, a control socket). Each drive
+has its own :class:`canopen.Network` on the bus (python-can ``virtual`` channel in-process, or
+socketcan ``vcan0`` where the kernel has it), so a silenced node truly sends and hears nothing.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import canopen
+from canopen import objectdictionary as odm
+from canopen.sdo import SdoAbortedError
+
+from ..profile import Profile
+from . import SimulatorError
+
+log = logging.getLogger(__name__)
+
+#: internal motion step (s): the drive's own control rate, whatever the SYNC period is
+PHYSICS_DT_S = 0.001
+#: the simulator thread's period (s): event TPDOs, following error and homing between SYNCs
+TICK_S = 0.005
+#: how long a Network's notifier waits per iteration: bounds stop() (canopen's default is 1 s)
+NOTIFIER_CYCLE_S = 0.02
+_MAX_CATCH_UP_S = 1.0  # a stalled simulator jumps rather than replaying more than this
+
+# --- CiA 301 ------------------------------------------------------------------------------
+NMT_BOOTUP, NMT_STOPPED, NMT_OPERATIONAL, NMT_PRE_OPERATIONAL = 0, 4, 5, 127
+PDO_INVALID = 1 << 31  # COB-ID bit 31: the PDO does not exist / is not valid
+ABORT_UNSUPPORTED_ACCESS = 0x06010000
+ABORT_NOT_MAPPABLE = 0x06040041
+ABORT_PDO_TOO_LONG = 0x06040042
+ABORT_VALUE_RANGE = 0x06090030
+EMCY_PDO_LENGTH = 0x8210  # PDO not processed due to length error
+EMCY_PDO_TOO_LONG = 0x8220  # PDO length exceeded
+EMCY_FOLLOWING_ERROR = 0x8611
+EMCY_RESET = 0x0000
+#: error register 0x1001 bits by EMCY code class (CiA 301 table "Error register")
+_ERROR_REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}
+
+
+def error_register(code: int) -> int:
+    """0x1001 for an active error with EMCY ``code``: bit 0 (generic) plus its class bit."""
+    return 0 if code == 0 else 0x01 | _ERROR_REGISTER_BITS.get(code >> 12, 0)
+
+
+# --- CiA 402 ------------------------------------------------------------------------------
+class State(enum.Enum):
+    """CiA 402 power drive system states; value: the statusword bits of the state (mask in
+    :data:`STATE_MASK`), CiA 402-2 table "Statusword state bits"."""
+
+    NOT_READY_TO_SWITCH_ON = 0x00
+    SWITCH_ON_DISABLED = 0x40
+    READY_TO_SWITCH_ON = 0x21
+    SWITCHED_ON = 0x23
+    OPERATION_ENABLED = 0x27
+    QUICK_STOP_ACTIVE = 0x07
+    FAULT_REACTION_ACTIVE = 0x0F
+    FAULT = 0x08
+
+
+STATE_MASK = {s: (0x4F if s in (State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED,
+                                State.FAULT_REACTION_ACTIVE, State.FAULT) else 0x6F) for s in State}
+SW_VOLTAGE_ENABLED = 1 << 4
+SW_QUICK_STOP = 1 << 5  # 0: quick stop active
+SW_WARNING = 1 << 7
+SW_REMOTE = 1 << 9
+SW_TARGET_REACHED = 1 << 10
+SW_BIT12 = 1 << 12  # CSP/CSV/CST: drive follows the command value; HM: homing attained
+SW_BIT13 = 1 << 13  # CSP: following error; HM: homing error
+CW_SWITCH_ON, CW_ENABLE_VOLTAGE, CW_QUICK_STOP, CW_ENABLE_OPERATION = 1, 2, 4, 8
+CW_HOMING_START = 1 << 4
+CW_FAULT_RESET = 1 << 7
+CW_HALT = 1 << 8
+
+
+class Mode(enum.IntEnum):
+    """Modes of operation (0x6060 / 0x6061) this drive supports."""
+
+    HOMING = 6
+    CSP = 8
+    CSV = 9
+    CST = 10
+
+
+#: 0x6502 bit of each mode (CiA 402-2 "Supported drive modes")
+MODE_BIT = {Mode.HOMING: 1 << 5, Mode.CSP: 1 << 7, Mode.CSV: 1 << 8, Mode.CST: 1 << 9}
+HOMING_CURRENT_POSITION = (35, 37)
+HOMING_LIMIT_SWITCH = {17: -1, 18: +1}  # method -> search direction
+
+
+def command_transition(state: State, cw: int) -> State:
+    """The state the controlword ``cw`` leads to from ``state`` (CiA 402-2 table "Command
+    coding"; fault reset and the timed states are handled by the caller). Numbers: transitions."""
+    voltage, quick, on, enable = cw & CW_ENABLE_VOLTAGE, cw & CW_QUICK_STOP, cw & CW_SWITCH_ON, cw & CW_ENABLE_OPERATION
+    if state in (State.NOT_READY_TO_SWITCH_ON, State.FAULT_REACTION_ACTIVE, State.FAULT):
+        return state
+    if not voltage:  # disable voltage: 7, 9, 10, 12
+        return State.SWITCH_ON_DISABLED
+    if not quick:  # quick stop: 7, 10 -> SWITCH ON DISABLED; 11 -> QUICK STOP ACTIVE
+        if state is State.OPERATION_ENABLED:
+            return State.QUICK_STOP_ACTIVE
+        return State.QUICK_STOP_ACTIVE if state is State.QUICK_STOP_ACTIVE else State.SWITCH_ON_DISABLED
+    if state is State.QUICK_STOP_ACTIVE:
+        return State.OPERATION_ENABLED if on and enable else state  # 16 (0x605A 5..8)
+    if not on:  # shutdown: 2, 6, 8
+        return State.READY_TO_SWITCH_ON
+    if state is State.SWITCH_ON_DISABLED:
+        return state  # switch on needs READY TO SWITCH ON first
+    if not enable:  # switch on: 3, disable operation: 5
+        return State.SWITCHED_ON
+    return State.OPERATION_ENABLED  # enable operation: 4 (3 + 4 from READY TO SWITCH ON)
+
+
+# --- object dictionary ---------------------------------------------------------------------
+U8, U16, U32 = odm.UNSIGNED8, odm.UNSIGNED16, odm.UNSIGNED32
+I8, I16, I32 = odm.INTEGER8, odm.INTEGER16, odm.INTEGER32
+
+
+def _var(name: str, index: int, sub: int, dtype: int, access: str, default, pdo: bool = False):
+    v = odm.ODVariable(name, index, sub)
+    v.data_type, v.access_type, v.default, v.pdo_mappable = dtype, access, default, pdo
+    return v
+
+
+def _record(od, cls, name: str, index: int, members: list[tuple[int, str, int, str, object]]):
+    rec = cls(name, index)
+    rec.add_member(_var("Highest sub-index supported", index, 0, U8, "ro", max(m[0] for m in members)))
+    for sub, mname, dtype, access, default in members:
+        rec.add_member(_var(mname, index, sub, dtype, access, default))
+    od.add_object(rec)
+
+
+@dataclass(frozen=True)
+class DriveOptions:
+    """What a simulated drive is like (raw device units: counts, counts/s, per mille)."""
+
+    position: int = 0  #: position actual at power-on (counts)
+    max_velocity: float = 200_000.0  #: top speed (counts/s)
+    tau_s: float = 0.01  #: position / velocity tracking time constant (s)
+    torque_velocity: float = 200.0  #: CST: steady speed per per-mille of torque (counts/s)
+    following_window: int = 50_000  #: 0x6065 default (counts)
+    following_timeout_ms: int = 10  #: 0x6066 default
+    heartbeat_ms: int = 0  #: 0x1017 default (0: the master sets it)
+    limit_switch: int = 20_000  #: homing 17/18: the switch is this far from power-on (counts)
+    homing_speed: int = 100_000  #: 0x6099:1 default (counts/s)
+    modes: tuple[int, ...] = (6, 8, 9, 10)  #: supported modes of operation (0x6502)
+    vendor_id: int = 0x00C2B51D  #: 0x1018:1 (not a registered vendor: a simulator)
+    product_code: int = 0x402
+
+
+def make_object_dictionary(node_id: int, opts: DriveOptions = DriveOptions()) -> odm.ObjectDictionary:
+    """The drive's object dictionary, built in code; every variable has a default."""
+    od = odm.ObjectDictionary()
+    od.node_id = node_id
+    add = od.add_object
+    add(_var("Device type", 0x1000, 0, U32, "ro", 0x00020192))
+    add(_var("Error register", 0x1001, 0, U8, "ro", 0, pdo=True))
+    add(_var("COB-ID SYNC", 0x1005, 0, U32, "rw", 0x80))
+    add(_var("Manufacturer device name", 0x1008, 0, odm.VISIBLE_STRING, "const", "crtk-bridge sim402"))
+    add(_var("COB-ID EMCY", 0x1014, 0, U32, "ro", 0x80 + node_id))
+    add(_var("Producer heartbeat time", 0x1017, 0, U16, "rw", opts.heartbeat_ms))
+    _record(od, odm.ODRecord, "Identity object", 0x1018, [
+        (1, "Vendor-ID", U32, "ro", opts.vendor_id), (2, "Product code", U32, "ro", opts.product_code),
+        (3, "Revision number", U32, "ro", 0x00010000), (4, "Serial number", U32, "ro", node_id)])
+    for n in range(4):
+        # CiA 402 predefined connection: RPDO1 = controlword, TPDO1 = statusword, event driven
+        rx_cob = (0x200 + 0x100 * n + node_id) | (0 if n == 0 else PDO_INVALID)
+        tx_cob = (0x180 + 0x100 * n + node_id) | (0 if n == 0 else PDO_INVALID)
+        _record(od, odm.ODRecord, f"RPDO {n + 1} communication parameter", 0x1400 + n, [
+            (1, "COB-ID", U32, "rw", rx_cob), (2, "Transmission type", U8, "rw", 255),
+            (3, "Inhibit time", U16, "rw", 0), (5, "Event timer", U16, "rw", 0)])
+        _record(od, odm.ODRecord, f"TPDO {n + 1} communication parameter", 0x1800 + n, [
+            (1, "COB-ID", U32, "rw", tx_cob), (2, "Transmission type", U8, "rw", 255),
+            (3, "Inhibit time", U16, "rw", 0), (5, "Event timer", U16, "rw", 0)])
+        for base, first in ((0x1600, 0x60400010), (0x1A00, 0x60410010)):
+            # a RECORD, as CiA 301 declares it (canopen's PdoMap.save() writes a RECORD's entries
+            # whatever sub0 says; an ARRAY's only up to sub0, which it has just set to 0)
+            arr = odm.ODRecord(f"{'R' if base == 0x1600 else 'T'}PDO {n + 1} mapping parameter", base + n)
+            arr.add_member(_var("Number of mapped objects", base + n, 0, U8, "rw", 1 if n == 0 else 0))
+            for sub in range(1, 9):
+                arr.add_member(_var(f"Mapped object {sub}", base + n, sub, U32, "rw",
+                                    first if (n == 0 and sub == 1) else 0))
+            add(arr)
+    add(_var("Error code", 0x603F, 0, U16, "ro", 0, pdo=True))
+    add(_var("Controlword", 0x6040, 0, U16, "rw", 0, pdo=True))
+    add(_var("Statusword", 0x6041, 0, U16, "ro", 0, pdo=True))
+    add(_var("Quick stop option code", 0x605A, 0, I16, "rw", 6))
+    add(_var("Modes of operation", 0x6060, 0, I8, "rw", 0, pdo=True))
+    add(_var("Modes of operation display", 0x6061, 0, I8, "ro", 0, pdo=True))
+    add(_var("Position actual value", 0x6064, 0, I32, "ro", 0, pdo=True))
+    add(_var("Following error window", 0x6065, 0, U32, "rw", opts.following_window))
+    add(_var("Following error time out", 0x6066, 0, U16, "rw", opts.following_timeout_ms))
+    add(_var("Velocity actual value", 0x606C, 0, I32, "ro", 0, pdo=True))
+    add(_var("Target torque", 0x6071, 0, I16, "rw", 0, pdo=True))
+    add(_var("Max torque", 0x6072, 0, U16, "rw", 3000))
+    add(_var("Torque actual value", 0x6077, 0, I16, "ro", 0, pdo=True))
+    add(_var("Target position", 0x607A, 0, I32, "rw", 0, pdo=True))
+    add(_var("Home offset", 0x607C, 0, I32, "rw", 0))
+    add(_var("Quick stop deceleration", 0x6085, 0, U32, "rw", int(opts.max_velocity * 20)))
+    add(_var("Homing method", 0x6098, 0, I8, "rw", 37))
+    # declared a RECORD: canopen's ODArray invents any sub-index 1..255, and a missing one must abort
+    _record(od, odm.ODRecord, "Homing speeds", 0x6099, [
+        (1, "Speed during search for switch", U32, "rw", opts.homing_speed),
+        (2, "Speed during search for zero", U32, "rw", opts.homing_speed // 10)])
+    add(_var("Homing acceleration", 0x609A, 0, U32, "rw", int(opts.max_velocity * 20)))
+    _record(od, odm.ODRecord, "Interpolation time period", 0x60C2, [
+        (1, "Interpolation time period value", U8, "rw", 1), (2, "Interpolation time index", I8, "rw", -3)])
+    add(_var("Following error actual value", 0x60F4, 0, I32, "ro", 0, pdo=True))
+    add(_var("Target velocity", 0x60FF, 0, I32, "rw", 0, pdo=True))
+    add(_var("Supported drive modes", 0x6502, 0, U32, "ro",
+             sum(MODE_BIT[Mode(m)] for m in opts.modes if m in MODE_BIT)))
+    return od
+
+
+# --- PDOs ----------------------------------------------------------------------------------
+@dataclass
+class _Pdo:
+    """One PDO as the node's communication and mapping parameters say (re-read when changed)."""
+
+    comm: int  # 0x14xx / 0x18xx
+    cob: int = 0
+    valid: bool = False
+    trans: int = 255
+    inhibit_s: float = 0.0
+    event_s: float = 0.0
+    entries: list[tuple[int, int, int]] = field(default_factory=list)  # (index, sub, bytes)
+    size: int = 0
+    syncs: int = 0  # SYNCs seen since the last transmission (TPDO)
+    pending: bytes | None = None  # SYNC-type RPDO data awaiting the next SYNC
+    last: bytes | None = None  # TPDO: data last sent
+    sent_at: float = -math.inf
+
+
+class _DriveNetwork(canopen.Network):
+    """One drive's view of the bus: a muted drive (silent node, bus-off) sends and hears nothing,
+    and a malformed frame never reaches (and kills) the notifier thread."""
+
+    NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
+    NOTIFIER_SHUTDOWN_TIMEOUT = 1.0
+
+    def __init__(self, drive: Drive402):
+        super().__init__()
+        self.drive = drive
+        self.muted = False
+        self._reported: set[int] = set()
+
+    def send_message(self, can_id: int, data, remote: bool = False) -> None:
+        if not self.muted:
+            super().send_message(can_id, data, remote)
+
+    def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if self.muted:
+            return
+        try:
+            self.drive._on_frame(can_id, bytes(data), super().notify)
+        except Exception as exc:  # a bad frame is dropped; the drive keeps serving
+            if can_id not in self._reported:  # once per COB-ID: a flood must not flood the log
+                self._reported.add(can_id)
+                log.warning("drive %d: frame 0x%03X %s dropped: %r", self.drive.node_id, can_id,
+                            bytes(data).hex(), exc)
+
+
+class Drive402:
+    """One simulated CiA 402 drive (node ``node_id``) on ``channel`` of python-can ``interface``.
+
+    Thread-safe: the bus thread (SDO, NMT, SYNC, RPDOs), the simulator tick and the caller's
+    inspection / fault injection all take :attr:`lock`. Units are the drive's: counts, counts/s,
+    per mille of rated torque. ``clock``: monotonic seconds (a test may pass a fake one).
+    """
+
+    def __init__(self, node_id: int, options: DriveOptions = DriveOptions(), *,
+                 clock: Callable[[], float] = time.monotonic):
+        if not 1 <= node_id <= 127:
+            raise SimulatorError(f"CANopen node id {node_id} must be 1..127")
+        self.node_id = node_id
+        self.options = options
+        self.clock = clock
+        self.lock = threading.RLock()
+        self.od = make_object_dictionary(node_id, options)
+        self.local = canopen.LocalNode(node_id, self.od)
+        self.local.add_read_callback(self._on_read)
+        self.local.add_write_callback(self._on_write)
+        self.network = _DriveNetwork(self)
+        self.network.add_node(self.local)
+        # drive state (the object dictionary's dynamic values live here, not in data_store)
+        self.state = State.NOT_READY_TO_SWITCH_ON
+        self.position = float(options.position)  # counts
+        self.velocity = 0.0  # counts/s
+        self.torque = 0.0  # per mille
+        self.controlword = 0
+        self.mode = 0  # display (0x6061)
+        self.target_position = int(options.position)
+        self.target_velocity = 0
+        self.target_torque = 0
+        self.error_code = 0
+        self.warning = False
+        self.following_error = False
+        self.homing: tuple[str, int] = ("idle", 0)  # (phase, direction)
+        self.homing_status = 0  # statusword bits 10/12/13 in HM
+        self.homed = False
+        self._switch_origin = float(options.position)  # homing 17/18: where the switches are
+        self.jammed = False  # an external block: the shaft does not move (following error)
+        self.heartbeat_stopped = False
+        self.enable_delay_s = 0.0  # enable operation takes this long (brake release)
+        self._enable_at: float | None = None
+        self._ferr_since: float | None = None
+        self._t = clock()
+        self._rpdos = [_Pdo(0x1400 + n) for n in range(4)]
+        self._tpdos = [_Pdo(0x1800 + n) for n in range(4)]
+        self._pdo_dirty = True
+        self._sync_cob = 0x80
+        self.rx_frames = 0  # frames this drive received while not muted (bench / tests)
+        self.sync_count = 0
+
+    # ------------------------------------------------------------------ lifecycle
+    def connect(self, interface: str, channel: str, **kwargs) -> None:
+        """Join the bus and boot: boot-up message, PRE-OPERATIONAL, heartbeat if 0x1017 > 0."""
+        self.network.connect(interface=interface, channel=channel, receive_own_messages=False, **kwargs)
+        self.boot()
+
+    def disconnect(self) -> None:
+        self.local.nmt.stop_heartbeat()
+        if self.network.bus is not None:
+            self.network.disconnect()
+
+    def boot(self) -> None:
+        """Power-on / reset: INITIALISING -> boot-up message -> PRE-OPERATIONAL (CiA 301), and the
+        402 state machine's automatic transitions 0 and 1 to SWITCH ON DISABLED."""
+        with self.lock:
+            self.state = State.SWITCH_ON_DISABLED
+            self._pdo_dirty = True
+            self.local.nmt.send_command(0x81)  # INITIALISING: sends the boot-up message
+            self.local.nmt.send_command(0x80)  # PRE-OPERATIONAL: starts the heartbeat (0x1017)
+            if self.heartbeat_stopped or self.network.muted:
+                self.local.nmt.stop_heartbeat()
+
+    # ------------------------------------------------------------------ bus side
+    def _on_frame(self, can_id: int, data: bytes, dispatch) -> None:
+        """Every frame this drive hears (bus thread). ``dispatch``: canopen's own handling
+        (SDO server, NMT slave)."""
+        with self.lock:
+            self.rx_frames += 1
+            if self._pdo_dirty:
+                self._load_pdos()
+            if can_id == 0:
+                if len(data) == 2:  # CiA 301: an NMT frame of another length is not one
+                    before = self.local.nmt._state
+                    dispatch(can_id, data, 0.0)
+                    self._after_nmt(data[0], data[1], before)
+                return
+            if can_id == self._sync_cob:
+                if len(data) <= 1:
+                    self._on_sync()
+                return
+            if can_id == 0x600 + self.node_id:
+                if len(data) == 8:  # an SDO request is always 8 bytes; others are ignored
+                    dispatch(can_id, data, 0.0)
+                return
+            if self.local.nmt._state != NMT_OPERATIONAL:
+                return  # PDOs only in OPERATIONAL
+            for pdo in self._rpdos:
+                if pdo.valid and pdo.cob == can_id:
+                    self._on_rpdo(pdo, data)
+
+    def _after_nmt(self, cs: int, target: int, before: int) -> None:
+        if target not in (0, self.node_id):
+            return
+        state = self.local.nmt._state
+        if cs in (0x81, 0x82):  # reset node / communication: defaults back, boot again
+            keep = range(0x1000, 0x2000) if cs == 0x82 else range(0x1000, 0x10000)
+            for index in [i for i in self.local.data_store if i in keep]:
+                del self.local.data_store[index]
+            if cs == 0x81:
+                self._reset_application()
+            self.boot()
+        elif state == NMT_OPERATIONAL and before != NMT_OPERATIONAL:
+            self._pdo_dirty = True
+            self._load_pdos()  # CiA 301: the PDO configuration takes effect on start
+
+    def _reset_application(self) -> None:
+        now = self.clock()
+        self._advance(now)
+        self.controlword = self.mode = self.target_velocity = self.target_torque = 0
+        self.target_position = round(self.position)
+        self.error_code = 0
+        self.warning = self.following_error = False
+        self.homing, self.homing_status = ("idle", 0), 0
+
+    def _on_sync(self) -> None:
+        now = self.clock()
+        self._advance(now)
+        self.sync_count += 1
+        if self.local.nmt._state != NMT_OPERATIONAL:
+            return
+        # CiA 301: RPDOs received since the previous SYNC take effect at this one; the TPDOs carry
+        # the values sampled at it, after them (so a controlword's effect shows in the next reply)
+        for pdo in self._rpdos:
+            if pdo.pending is not None:
+                data, pdo.pending = pdo.pending, None
+                self._apply(pdo, data)
+        for pdo in self._tpdos:
+            if not pdo.valid or pdo.trans > 240:
+                continue
+            data = self._sample(pdo)
+            if pdo.trans == 0:
+                if data != pdo.last:
+                    self._send_pdo(pdo, data, now)
+                continue
+            pdo.syncs += 1
+            if pdo.syncs >= pdo.trans:
+                pdo.syncs = 0
+                self._send_pdo(pdo, data, now)
+
+    def _on_rpdo(self, pdo: _Pdo, data: bytes) -> None:
+        if len(data) < pdo.size:
+            self._emcy(EMCY_PDO_LENGTH, fault=False)
+            return
+        if len(data) > pdo.size:
+            self._emcy(EMCY_PDO_TOO_LONG, fault=False)
+            data = data[: pdo.size]
+        if pdo.trans <= 240:
+            pdo.pending = data
+        else:
+            self._advance(self.clock())
+            self._apply(pdo, data)
+
+    def _apply(self, pdo: _Pdo, data: bytes) -> None:
+        offset = 0
+        for index, sub, size in pdo.entries:
+            try:
+                self.local.set_data(index, sub, data[offset:offset + size])
+            except SdoAbortedError:
+                pass  # e.g. an unsupported mode: the drive keeps its previous one
+            offset += size
+
+    def _sample(self, pdo: _Pdo) -> bytes:
+        return b"".join(self.local.get_data(index, sub)[:size] for index, sub, size in pdo.entries)
+
+    def _send_pdo(self, pdo: _Pdo, data: bytes, now: float) -> None:
+        pdo.last, pdo.sent_at = data, now
+        self.network.send_message(pdo.cob, data)
+
+    def _load_pdos(self) -> None:
+        """Re-read every PDO's communication and mapping parameters from the node's own store."""
+        self._pdo_dirty = False
+        raw = lambda index, sub: int.from_bytes(self.local.get_data(index, sub), "little")  # noqa: E731
+        self._sync_cob = raw(0x1005, 0) & 0x7FF
+        for pdos, tx in ((self._rpdos, False), (self._tpdos, True)):
+            for n, pdo in enumerate(pdos):
+                cob = raw(pdo.comm, 1)
+                pdo.cob, pdo.valid = cob & 0x7FF, not cob & PDO_INVALID
+                pdo.trans = raw(pdo.comm, 2)
+                pdo.inhibit_s = raw(pdo.comm, 3) * 100e-6
+                pdo.event_s = raw(pdo.comm, 5) / 1000.0
+                mapping = pdo.comm + 0x200
+                pdo.entries = []
+                for sub in range(1, raw(mapping, 0) + 1):
+                    entry = raw(mapping, sub)
+                    pdo.entries.append((entry >> 16, (entry >> 8) & 0xFF, (entry & 0xFF) // 8))
+                pdo.size = sum(e[2] for e in pdo.entries)
+                pdo.syncs, pdo.pending, pdo.last = 0, None, None
+
+    # ------------------------------------------------------------------ object access
+    def _on_read(self, index: int, subindex: int, od) -> int | None:
+        if index == 0x6041:
+            self._advance(self.clock())
+            return self.statusword()
+        if index == 0x6064:
+            self._advance(self.clock())
+            return round(self.position)
+        if index == 0x606C:
+            return round(self.velocity)
+        if index == 0x6077:
+            return round(self.torque)
+        if index == 0x6061:
+            return self.mode
+        if index == 0x603F:
+            return self.error_code
+        if index == 0x1001:
+            return error_register(self.error_code)
+        if index == 0x60F4:
+            return self.target_position - round(self.position)
+        if index == 0x6040:
+            return self.controlword
+        if index == 0x607A:
+            return self.target_position
+        if index == 0x60FF:
+            return self.target_velocity
+        if index == 0x6071:
+            return self.target_torque
+        return None
+
+    def _on_write(self, index: int, subindex: int, od, data: bytes) -> None:
+        value = od.decode_raw(data) if od.data_type in odm.NUMBER_TYPES else data
+        if 0x1400 <= index <= 0x1403 or 0x1800 <= index <= 0x1803:
+            self._check_comm_write(index, subindex, value)
+        elif 0x1600 <= index <= 0x1603 or 0x1A00 <= index <= 0x1A03:
+            self._check_mapping_write(index, subindex, value)
+        elif index == 0x1017 and (self.heartbeat_stopped or self.network.muted):
+            # LocalNode's own callback (registered before this one) has just restarted the
+            # producer: an injected stop holds
+            self.local.nmt.stop_heartbeat()
+        elif index == 0x1005:
+            self._pdo_dirty = True
+        now = self.clock()
+        if index == 0x6040:
+            self._advance(now)
+            self._on_controlword(value, now)
+        elif index == 0x6060:
+            if value not in self.options.modes:
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+            self._advance(now)
+            self._set_mode(value)
+        elif index == 0x607A:
+            self.target_position = value
+        elif index == 0x60FF:
+            self.target_velocity = value
+        elif index == 0x6071:
+            self.target_torque = value
+
+    def _check_comm_write(self, index: int, sub: int, value: int) -> None:
+        if sub == 1:
+            cob = value & 0x7FF
+            if not value & PDO_INVALID and (value & (1 << 29) or not 0x180 <= cob <= 0x57F):
+                raise SdoAbortedError(ABORT_VALUE_RANGE)  # no 29-bit ids; a PDO COB-ID range
+        self._pdo_dirty = True
+
+    def _check_mapping_write(self, index: int, sub: int, value: int) -> None:
+        comm = index - 0x200
+        if int.from_bytes(self.local.get_data(comm, 1), "little") & PDO_INVALID == 0:
+            raise SdoAbortedError(ABORT_UNSUPPORTED_ACCESS)  # CiA 301: disable the PDO first
+        if sub == 0:
+            if value > 8:
+                raise SdoAbortedError(ABORT_VALUE_RANGE)
+            size = 0
+            for s in range(1, value + 1):
+                size += int.from_bytes(self.local.get_data(index, s), "little") & 0xFF
+            if size > 64:
+                raise SdoAbortedError(ABORT_PDO_TOO_LONG)
+        elif value != 0:
+            obj_index, obj_sub, bits = value >> 16, (value >> 8) & 0xFF, value & 0xFF
+            try:
+                obj = self.local._find_object(obj_index, obj_sub)
+            except SdoAbortedError:
+                raise SdoAbortedError(ABORT_NOT_MAPPABLE) from None
+            readable_or_writable = obj.writable if index < 0x1A00 else obj.readable
+            if not obj.pdo_mappable or not readable_or_writable or bits != len(obj):
+                raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+        self._pdo_dirty = True
+
+    # ------------------------------------------------------------------ 402 behaviour
+    def statusword(self) -> int:
+        sw = self.state.value | SW_REMOTE
+        if self.state is not State.NOT_READY_TO_SWITCH_ON:
+            sw |= SW_VOLTAGE_ENABLED
+        if self.state is not State.QUICK_STOP_ACTIVE:
+            sw |= SW_QUICK_STOP
+        if self.warning:
+            sw |= SW_WARNING
+        enabled = self.state is State.OPERATION_ENABLED
+        if self.mode == Mode.HOMING:
+            sw |= self.homing_status
+        elif self.mode in (Mode.CSP, Mode.CSV, Mode.CST):
+            if enabled:
+                sw |= SW_BIT12
+            if self.mode == Mode.CSP and self.following_error:
+                sw |= SW_BIT13
+            if enabled and self.mode == Mode.CSP and abs(self.target_position - self.position) <= 10:
+                sw |= SW_TARGET_REACHED
+        return sw
+
+    def _on_controlword(self, cw: int, now: float) -> None:
+        rising = cw & CW_FAULT_RESET and not self.controlword & CW_FAULT_RESET
+        homing_start = cw & CW_HOMING_START and not self.controlword & CW_HOMING_START
+        self.controlword = cw
+        if self.state is State.FAULT:
+            if rising:  # 15: fault reset
+                self.state = State.SWITCH_ON_DISABLED
+                self.error_code = 0
+                self.following_error = False
+                self._ferr_since = None
+                self.local.emcy.reset()
+            return
+        new = command_transition(self.state, cw)
+        if new is State.OPERATION_ENABLED and self.state is not State.OPERATION_ENABLED:
+            if self.state is not State.QUICK_STOP_ACTIVE and self.enable_delay_s > 0:
+                if self._enable_at is None:
+                    self._enable_at = now + self.enable_delay_s
+                new = State.SWITCHED_ON  # 3 happens now, 4 when the brake has released
+            self._ferr_since = None
+        else:
+            self._enable_at = None
+        self._set_state(new)
+        if self.mode == Mode.HOMING and self.state is State.OPERATION_ENABLED:
+            if homing_start:
+                self._start_homing()
+            elif not cw & CW_HOMING_START and self.homing[0] == "search":
+                self._end_homing(0x0400)  # interrupted
+
+    def _set_state(self, new: State) -> None:
+        if new is not State.OPERATION_ENABLED and self.homing[0] == "search":
+            self._end_homing(0x0400)
+        self.state = new
+
+    def _set_mode(self, mode: int) -> None:
+        if mode == self.mode:
+            return
+        if self.homing[0] == "search":
+            self._end_homing(0x0400)
+        self.mode = mode
+        if mode == Mode.HOMING:
+            self.homing_status = SW_BIT12 | SW_TARGET_REACHED if self.homed else 0
+
+    def _start_homing(self) -> None:
+        method = int.from_bytes(self.local.get_data(0x6098, 0), "little", signed=True)
+        self.homing_status = 0
+        if method in HOMING_CURRENT_POSITION:
+            self._home_here()
+        elif method in HOMING_LIMIT_SWITCH:
+            self.homing = ("search", HOMING_LIMIT_SWITCH[method])
+        else:
+            self.homing_status = 0x2400  # homing error, velocity zero
+            self.homed = False
+
+    def _home_here(self) -> None:
+        offset = int.from_bytes(self.local.get_data(0x607C, 0), "little", signed=True)
+        shift = offset - self.position
+        self.position += shift
+        self._switch_origin += shift  # the limit switch stays where it is on the machine
+        self.target_position = round(self.position)
+        self._end_homing(0x1400)
+        self.homed = True
+
+    def _end_homing(self, status: int) -> None:
+        self.homing = ("idle", 0)
+        self.homing_status = status
+        if status != 0x1400:
+            self.homed = False
+        self.velocity = 0.0
+
+    def _emcy(self, code: int, fault: bool, data: bytes = b"") -> None:
+        """Send EMCY ``code``; with ``fault``, the drive enters FAULT REACTION ACTIVE (13/14)."""
+        if fault:
+            self.error_code = code
+            if self.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+                self._enable_at = None
+                self._set_state(State.FAULT_REACTION_ACTIVE)
+        else:
+            self.warning = True
+        self.local.emcy.send(code, error_register(code), data)
+
+    def _advance(self, now: float) -> None:
+        """Run the drive's internal control at :data:`PHYSICS_DT_S` up to ``now``."""
+        if now - self._t > _MAX_CATCH_UP_S:
+            self._t = now - _MAX_CATCH_UP_S
+        while self._t + PHYSICS_DT_S <= now:
+            self._t += PHYSICS_DT_S
+            self._step(PHYSICS_DT_S, self._t)
+
+    def _step(self, dt: float, t: float) -> None:
+        o = self.options
+        if self._enable_at is not None and t >= self._enable_at:
+            self._enable_at = None
+            if self.state is State.SWITCHED_ON and command_transition(
+                    State.SWITCHED_ON, self.controlword) is State.OPERATION_ENABLED:
+                self.state = State.OPERATION_ENABLED
+        state = self.state
+        if state in (State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE) or (
+                state is State.OPERATION_ENABLED and self.controlword & CW_HALT):
+            decel = int.from_bytes(self.local.get_data(0x6085, 0), "little") * dt
+            self.velocity = 0.0 if abs(self.velocity) <= decel else self.velocity - math.copysign(decel, self.velocity)
+            self.torque = 0.0 if self.velocity == 0 else -math.copysign(1000.0, self.velocity)
+            if self.velocity == 0.0:
+                if state is State.FAULT_REACTION_ACTIVE:
+                    self.state = State.FAULT  # 14
+                elif state is State.QUICK_STOP_ACTIVE:
+                    qs = int.from_bytes(self.local.get_data(0x605A, 0), "little", signed=True)
+                    if qs in (1, 2, 3, 4):
+                        self.state = State.SWITCH_ON_DISABLED  # 12 after the ramp
+        elif state is not State.OPERATION_ENABLED:
+            self.velocity = self.torque = 0.0
+        elif self.mode == Mode.CSP:
+            err = self.target_position - self.position
+            self.velocity = max(-o.max_velocity, min(o.max_velocity, err / o.tau_s))
+            self.torque = max(-1000.0, min(1000.0, 1000.0 * err / max(1, o.following_window)))
+        elif self.mode == Mode.CSV:
+            target = max(-o.max_velocity, min(o.max_velocity, float(self.target_velocity)))
+            err = target - self.velocity
+            self.velocity += err * (1.0 - math.exp(-dt / o.tau_s))
+            self.torque = max(-1000.0, min(1000.0, 1000.0 * err / o.max_velocity))
+        elif self.mode == Mode.CST:
+            limit = int.from_bytes(self.local.get_data(0x6072, 0), "little")
+            self.torque = float(max(-limit, min(limit, self.target_torque)))
+            target = max(-o.max_velocity, min(o.max_velocity, self.torque * o.torque_velocity))
+            self.velocity += (target - self.velocity) * (1.0 - math.exp(-dt / o.tau_s))
+        elif self.mode == Mode.HOMING and self.homing[0] == "search":
+            speed = int.from_bytes(self.local.get_data(0x6099, 1), "little")
+            direction = self.homing[1]
+            self.velocity = direction * speed
+            switch = self._switch_origin + direction * o.limit_switch
+            if (self.position - switch) * direction >= 0:
+                self.velocity = 0.0
+                self._home_here()
+        else:
+            self.velocity = self.torque = 0.0
+        if self.jammed:
+            self.velocity = 0.0
+        self.position += self.velocity * dt
+        self._check_following_error(t)
+
+    def _check_following_error(self, t: float) -> None:
+        if self.state is not State.OPERATION_ENABLED or self.mode != Mode.CSP:
+            self._ferr_since = None
+            return
+        window = int.from_bytes(self.local.get_data(0x6065, 0), "little")
+        if window == 0xFFFFFFFF or abs(self.target_position - self.position) <= window:
+            self._ferr_since = None
+            return
+        if self._ferr_since is None:
+            self._ferr_since = t
+        timeout = int.from_bytes(self.local.get_data(0x6066, 0), "little") / 1000.0
+        if t - self._ferr_since >= timeout:
+            self.trip_following_error()
+
+    def trip_following_error(self) -> None:
+        """The following-error monitor trips: bit 13, EMCY 0x8611, fault reaction."""
+        with self.lock:
+            self.following_error = True
+            self._ferr_since = None
+            self._emcy(EMCY_FOLLOWING_ERROR, fault=True)
+
+    def tick(self) -> None:
+        """Advance to now; send the event-driven TPDOs that are due (simulator thread)."""
+        with self.lock:
+            now = self.clock()
+            self._advance(now)
+            if self._pdo_dirty:
+                self._load_pdos()
+            if self.local.nmt._state != NMT_OPERATIONAL or self.network.muted:
+                return
+            for pdo in self._tpdos:
+                if not pdo.valid or pdo.trans < 254 or not pdo.entries:
+                    continue
+                if now - pdo.sent_at < pdo.inhibit_s:
+                    continue
+                data = self._sample(pdo)
+                if data != pdo.last or (pdo.event_s > 0 and now - pdo.sent_at >= pdo.event_s):
+                    self._send_pdo(pdo, data, now)
+
+    # ------------------------------------------------------------------ inspection / injection
+    def send_emcy(self, code: int, fault: bool = True, data: bytes = b"") -> None:
+        """The drive reports EMCY ``code``; with ``fault`` (default) it also faults."""
+        if not 0 <= code <= 0xFFFF:
+            raise SimulatorError(f"node {self.node_id}: EMCY code {code} is not a 16-bit value")
+        with self.lock:
+            self._advance(self.clock())
+            self._emcy(code, fault, data)
+
+    def set_muted(self, on: bool) -> None:
+        """A silent node: it sends nothing (no heartbeat, PDO, SDO answer, EMCY) and hears nothing."""
+        with self.lock:
+            self.network.muted = bool(on)
+            if on:
+                self.local.nmt.stop_heartbeat()
+            else:
+                self._restart_heartbeat()
+
+    def set_heartbeat_stopped(self, on: bool) -> None:
+        """The heartbeat producer stops (the node otherwise keeps working)."""
+        with self.lock:
+            self.heartbeat_stopped = bool(on)
+            if on:
+                self.local.nmt.stop_heartbeat()
+            else:
+                self._restart_heartbeat()
+
+    def _restart_heartbeat(self) -> None:
+        if self.network.muted or self.heartbeat_stopped or self.network.bus is None:
+            return
+        period = int.from_bytes(self.local.get_data(0x1017, 0), "little")
+        self.local.nmt.start_heartbeat(period)
+
+    def set_position(self, counts: int) -> None:
+        """Move the shaft by hand to ``counts`` (position actual)."""
+        with self.lock:
+            self._advance(self.clock())
+            self.position = float(counts)
+
+    def clear_faults(self) -> None:
+        """Remove injected conditions (silence, heartbeat stop, jam, warning). A drive in FAULT
+        stays there until the master's fault reset, as a real one does."""
+        with self.lock:
+            self.jammed = False
+            self.warning = False
+            self.set_muted(False)
+            self.set_heartbeat_stopped(False)
+
+    def snapshot(self) -> dict:
+        """The drive's state, for the control socket's ``dump`` and tests."""
+        with self.lock:
+            self._advance(self.clock())
+            return {
+                "nmt": canopen.nmt.NMT_STATES.get(self.local.nmt._state, "?"),
+                "state": self.state.name, "statusword": self.statusword(),
+                "controlword": self.controlword, "mode": self.mode,
+                "position": round(self.position), "velocity": round(self.velocity),
+                "torque": round(self.torque), "target_position": self.target_position,
+                "target_velocity": self.target_velocity, "target_torque": self.target_torque,
+                "error_code": self.error_code, "homed": self.homed, "muted": self.network.muted,
+                "heartbeat_stopped": self.heartbeat_stopped, "jammed": self.jammed,
+            }
+
+    @property
+    def enabled(self) -> bool:
+        """The power stage is on (torque applied): OPERATION ENABLED or stopping under power."""
+        return self.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE)
+
+
+# --- several drives on one bus ---------------------------------------------------------------
+_channel_seq = iter(range(1, 1 << 30))
+
+
+def _private_channel() -> str:
+    """A python-can ``virtual`` channel name no other simulator in this process uses."""
+    return f"crtk-sim-canopen-{os.getpid()}-{next(_channel_seq)}"
+
+
+class FaultKind(str, enum.Enum):
+    """What :meth:`CanopenSimulator.set_fault` injects into one drive."""
+
+    SILENT = "silent"  # the node sends and hears nothing
+    EMCY = "emcy"  # an EMCY with a code; the drive faults
+    WARNING = "warning"  # an EMCY with a code; the drive keeps running (statusword bit 7)
+    HEARTBEAT_STOP = "heartbeat_stop"  # the heartbeat producer stops, the rest works
+    FOLLOWING_ERROR = "following_error"  # the following-error monitor trips (EMCY 0x8611)
+    JAM = "jam"  # the shaft is blocked: a moving CSP target trips the monitor by itself
+
+
+class CanopenSimulator:
+    """Simulated CiA 402 drives (one per node id) on one CAN bus, in the serial simulators' shape.
+
+    ``interface`` / ``channel``: where the drives live. ``"virtual"`` (default) uses a private
+    python-can virtual channel (in-process clients connect to :attr:`port` with
+    ``interface="virtual"``); ``"socketcan"`` joins a kernel CAN interface such as ``vcan0``.
+    ``control``: serve the JSON-lines control socket (:mod:`crtk_bridge.sim.control`) there.
+    Nothing is opened before :meth:`start`; :meth:`stop` is idempotent.
+    """
+
+    vendor = "canopen"
+
+    def __init__(self, node_ids: list[int], options: dict[int, DriveOptions] | None = None, *,
+                 interface: str = "virtual", channel: str | None = None, bitrate: int = 1_000_000,
+                 control: str | os.PathLike | None = None, clock: Callable[[], float] = time.monotonic):
+        if not node_ids:
+            raise SimulatorError("a CANopen simulator needs at least one node id")
+        if len(set(node_ids)) != len(node_ids):
+            raise SimulatorError(f"node ids {node_ids} are not unique")
+        if interface != "virtual" and not channel:
+            raise SimulatorError(f"interface {interface!r} needs a channel (e.g. vcan0)")
+        self.interface = interface
+        self.channel = channel or _private_channel()
+        self.bitrate = int(bitrate)
+        options = options or {}
+        self.drives: dict[int, Drive402] = {
+            n: Drive402(n, options.get(n, DriveOptions()), clock=clock) for n in node_ids}
+        self.bus_off = False
+        self.control_path = Path(control) if control is not None else None
+        self._control = None
+        if control is not None:
+            from .control import ControlServer
+
+            self._control = ControlServer(control, self.control)
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    @classmethod
+    def from_profile(cls, profile: Profile, *, interface: str | None = None, channel: str | None = None,
+                     control: str | os.PathLike | None = None, **_ignored) -> CanopenSimulator:
+        """One drive per joint with a ``node_id`` (backend-owned joint key). The bus's
+        ``bitrate`` comes from the profile's backend section; ``interface`` / ``channel`` default
+        to a private virtual channel (the profile's are the master's, not the simulator's)."""
+        node_ids, options = [], {}
+        for i, j in enumerate(profile.joints):
+            nid = j.backend.get("node_id")
+            if nid is None:
+                continue
+            if not isinstance(nid, int) or isinstance(nid, bool) or not 1 <= nid <= 127:
+                raise SimulatorError(f"profile {profile.name!r}: joints[{i}] ({j.name}).node_id "
+                                     f"must be an integer 1..127, got {nid!r}")
+            node_ids.append(nid)
+            options[nid] = _joint_options(j)
+        if not node_ids:
+            raise SimulatorError(f"profile {profile.name!r}: no joint has a node_id")
+        bitrate = (profile.backend or {}).get("bitrate", 1_000_000)
+        if not isinstance(bitrate, int) or isinstance(bitrate, bool):
+            raise SimulatorError(f"profile {profile.name!r}: backend.bitrate must be an integer")
+        return cls(node_ids, options, interface=interface or "virtual", channel=channel,
+                   bitrate=bitrate, control=control)
+
+    # ------------------------------------------------------------------ lifecycle
+    @property
+    def port(self) -> str:
+        """The endpoint a master opens as its ``channel`` (with :attr:`interface`)."""
+        return self.channel
+
+    @property
+    def ids(self) -> list[int]:
+        return sorted(self.drives)
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> None:
+        """Connect every drive (each boots: boot-up message, PRE-OPERATIONAL) and start the
+        simulator thread. Raises SimulatorError if the bus cannot be opened."""
+        if self._thread is not None:
+            return
+        started = []
+        try:
+            for drive in self.drives.values():
+                drive.connect(self.interface, self.channel, **self._bus_kwargs())
+                started.append(drive)
+            if self._control is not None:
+                self._control.start()
+        except Exception as exc:
+            for drive in started:
+                drive.disconnect()
+            if isinstance(exc, SimulatorError):
+                raise
+            raise SimulatorError(f"CANopen simulator: cannot open {self.interface} channel "
+                                 f"{self.channel!r}: {exc}") from exc
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="sim-canopen", daemon=True)
+        self._thread.start()
+        log.info("canopen simulator: node(s) %s on %s %s", self.ids, self.interface, self.channel)
+
+    def _bus_kwargs(self) -> dict:
+        return {}
+
+    def stop(self) -> None:
+        if self._thread is None:
+            return
+        self._stop.set()
+        self._thread.join()
+        self._thread = None
+        if self._control is not None:
+            self._control.stop()
+        for drive in self.drives.values():
+            drive.disconnect()
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.wait(TICK_S):
+                for drive in self.drives.values():
+                    drive.tick()
+        except Exception:
+            log.exception("canopen simulator thread died")
+            raise
+
+    # ------------------------------------------------------------------ conformance-row hooks
+    def drive(self, node_id: int) -> Drive402:
+        try:
+            return self.drives[node_id]
+        except KeyError:
+            raise SimulatorError(f"no simulated drive with node id {node_id} (ids: {self.ids})") from None
+
+    def set_fault(self, node_id: int, kind: str | FaultKind, code: int = 0) -> None:
+        """Inject a fault into one drive (see :class:`FaultKind`); ``code``: the EMCY code of
+        ``emcy`` / ``warning`` (default 0x5000 device hardware / 0x4210 temperature warning)."""
+        drive = self.drive(node_id)
+        try:
+            kind = FaultKind(kind)
+        except ValueError:
+            raise SimulatorError(f"unknown fault kind {kind!r}; valid: "
+                                 f"{', '.join(k.value for k in FaultKind)}") from None
+        if kind is FaultKind.SILENT:
+            drive.set_muted(True)
+        elif kind is FaultKind.EMCY:
+            drive.send_emcy(code or 0x5000, fault=True)
+        elif kind is FaultKind.WARNING:
+            drive.send_emcy(code or 0x4210, fault=False)
+        elif kind is FaultKind.HEARTBEAT_STOP:
+            drive.set_heartbeat_stopped(True)
+        elif kind is FaultKind.FOLLOWING_ERROR:
+            drive.trip_following_error()
+        else:
+            with drive.lock:
+                drive._advance(drive.clock())
+                drive.jammed = True
+
+    def clear_faults(self, node_id: int | None = None) -> None:
+        """Remove injected conditions (of one drive, or all and bus-off too). Drives in FAULT
+        stay there until the master resets them (controlword bit 7)."""
+        for drive in ([self.drive(node_id)] if node_id is not None else self.drives.values()):
+            drive.clear_faults()
+        if node_id is None:
+            self.set_bus_off(False)
+
+    def set_bus_off(self, on: bool) -> None:
+        """The bus is unusable (bus-off, cable cut): nothing passes either way."""
+        self.bus_off = bool(on)
+        for drive in self.drives.values():
+            drive.set_muted(on)
+
+    # the serial simulators' name for "the bus is gone"
+    set_unplugged = set_bus_off
+
+    def set_torque_delay(self, seconds: float) -> None:
+        """Enable operation takes ``seconds`` (a brake releasing): the drive stays SWITCHED ON
+        that long before OPERATION ENABLED. How tests prove an enable never stalls the loop."""
+        if seconds < 0:
+            raise SimulatorError(f"enable delay {seconds} s must be >= 0")
+        for drive in self.drives.values():
+            with drive.lock:
+                drive.enable_delay_s = float(seconds)
+
+    @property
+    def rx_frames(self) -> int:
+        """Frames the drives have heard (each frame counted once per drive)."""
+        return sum(d.rx_frames for d in self.drives.values())
+
+    # ------------------------------------------------------------------ control socket
+    def control(self, request: dict) -> dict:
+        """Answer one control request: dump, fault, clear_faults, bus_off (alias unplug),
+        position, enable_delay. Never raises for a bad request."""
+        cmd = request.get("cmd")
+        try:
+            if cmd == "dump":
+                return {"ok": True, "drives": {str(n): d.snapshot() for n, d in sorted(self.drives.items())},
+                        "bus_off": self.bus_off, "interface": self.interface, "channel": self.channel,
+                        "bitrate": self.bitrate}
+            if cmd == "fault":
+                code = request.get("code", 0)
+                if isinstance(code, str):
+                    code = int(code, 0)
+                if not isinstance(code, int) or isinstance(code, bool):
+                    return {"ok": False, "error": f"'code' must be an integer, got {code!r}"}
+                self.set_fault(self._node(request), str(request.get("kind")), code)
+                return {"ok": True}
+            if cmd == "clear_faults":
+                self.clear_faults(None if request.get("node") is None else self._node(request))
+                return {"ok": True}
+            if cmd in ("bus_off", "unplug"):
+                self.set_bus_off(bool(request.get("on", True)))
+                return {"ok": True}
+            if cmd == "position":
+                value = request.get("value")
+                if not isinstance(value, int) or isinstance(value, bool):
+                    return {"ok": False, "error": f"'value' must be an integer count, got {value!r}"}
+                self.drive(self._node(request)).set_position(value)
+                return {"ok": True}
+            if cmd == "enable_delay":
+                seconds = request.get("seconds")
+                if not isinstance(seconds, (int, float)) or isinstance(seconds, bool) or not seconds >= 0:
+                    return {"ok": False, "error": f"'seconds' must be a number >= 0, got {seconds!r}"}
+                self.set_torque_delay(float(seconds))
+                return {"ok": True}
+        except (SimulatorError, ValueError) as exc:
+            return {"ok": False, "error": str(exc)}
+        return {"ok": False, "error": f"unknown cmd {cmd!r}; valid: dump, fault, clear_faults, "
+                "bus_off, unplug, position, enable_delay"}
+
+    def _node(self, request: dict) -> int:
+        nid = request.get("node")
+        if not isinstance(nid, int) or isinstance(nid, bool):
+            raise SimulatorError(f"'node' must be an integer node id, got {nid!r}")
+        return self.drive(nid).node_id
+
+
+def _joint_options(joint) -> DriveOptions:
+    """A joint's drive: at power-on at its ``offset`` counts if the backend keys give one; its
+    top speed 1.5 x the joint's velocity limit when the keys give counts per revolution."""
+    keys = joint.backend
+    opts = DriveOptions()
+    offset = keys.get("offset")
+    if isinstance(offset, int) and not isinstance(offset, bool):
+        opts = replace(opts, position=offset)
+    cpr = keys.get("counts_per_revolution", keys.get("counts_per_rev"))
+    gear = keys.get("gear_ratio", 1.0)
+    if isinstance(cpr, (int, float)) and isinstance(gear, (int, float)) and cpr > 0 and gear > 0:
+        vmax = 1.5 * joint.limits.velocity_max * cpr * gear / (2 * math.pi)
+        opts = replace(opts, max_velocity=max(vmax, 1.0), torque_velocity=max(vmax, 1.0) / 1000.0,
+                       following_window=max(int(cpr * gear / 8), 100),
+                       limit_switch=max(int(cpr * gear / 20), 10), homing_speed=max(int(vmax / 4), 1))
+    return opts

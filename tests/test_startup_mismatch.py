@@ -1,0 +1,97 @@
+"""Start-up mismatch refusal: the daemon reads each servo's EEPROM when it opens the bus (model,
+Homing_Offset, position limits, direction bits) and refuses ENABLE, naming robot, joint, register
+and what to do, when they would make positions wrong; it never rewrites the EEPROM. The real daemon
+in its own process, on the Feetech and Dynamixel simulators (a servo's EEPROM set by hand, as a
+servo configured elsewhere, e.g. by LeRobot's calibration)."""
+
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from crtk_bridge.client import connect
+from crtk_bridge.errors import CommandError
+from crtk_bridge.profile import parse_profile
+from crtk_bridge.sim.dynamixel import DynamixelSimulator
+from crtk_bridge.sim.feetech import FeetechSimulator
+
+from .conftest import KOCH, DaemonProcess, profile_data, so101_data
+
+
+def run_daemon(tmp, data: dict, tag: str) -> DaemonProcess:
+    path = tmp / f"{tag}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return DaemonProcess(["--profile", str(path), "--no-realtime"], tmp / f"{tag}.sock", tmp / f"{tag}.log")
+
+
+def enable_error(daemon: DaemonProcess, namespace: str) -> str | None:
+    """The error of an enable (None when the robot got ENABLED)."""
+    robot = connect(socket=str(daemon.socket_path))
+    try:
+        arm = robot.device(namespace)
+        try:
+            assert arm.enable(5.0)
+        except CommandError as exc:
+            return str(exc)
+        return None
+    finally:
+        robot.close()
+
+
+def test_feetech_homing_offset_and_limits_refuse_enable_until_the_profile_says_so(short_tmp):
+    data = so101_data()
+    with FeetechSimulator.from_profile(parse_profile(data)) as sim:
+        sim.servo(3).write("Homing_Offset", 120)  # elbow_flex: calibrated elsewhere with an offset
+        sim.servo(1).write("Max_Position_Limit", 3000)  # shoulder_pan: cuts into range [700, 3400]
+        data["backend"]["port"] = sim.port
+        d = run_daemon(short_tmp, data, "mismatch")
+        try:
+            err = enable_error(d, "so101")
+        finally:
+            d.stop()
+        assert err is not None and "so101: enable refused" in err
+        assert ("joint 'elbow_flex' (id 3): Homing_Offset is 120, expected 0 "
+                "(joints[2] (elbow_flex).calibration.homing_offset): every position it reports is shifted "
+                "by 120 ticks") in err
+        assert "set joints[2] (elbow_flex).calibration.homing_offset: 120 if the calibration was made with it" in err
+        assert ("joint 'shoulder_pan' (id 1): Max_Position_Limit is 3000, expected >= 3400 "
+                "(joints[0] (shoulder_pan).calibration.range)") in err
+        assert "wrist_flex" not in err  # the servos that agree are not named
+        assert sim.servo(3).read("Homing_Offset") == 120  # never rewritten
+        assert sim.servo(1).read("Max_Position_Limit") == 3000
+        assert all(sim.servo(i).read("Torque_Enable") == 0 for i in sim.ids)
+
+        # the profile now says what the servos hold: the same bus enables
+        data["joints"][2]["calibration"]["homing_offset"] = 120
+        data["joints"][0]["calibration"]["range"] = [700, 3000]
+        d = run_daemon(short_tmp, data, "agreed")
+        try:
+            assert enable_error(d, "so101") is None
+            assert sim.servo(3).read("Torque_Enable") == 1
+        finally:
+            d.stop()
+
+
+def test_dynamixel_homing_offset_and_reverse_drive_mode_refuse_enable(short_tmp):
+    data = profile_data(KOCH)
+    servos = {j["id"]: j["model"] for j in data["joints"]}
+    first, last = data["joints"][0], data["joints"][-1]
+    with DynamixelSimulator(servos) as sim:
+        sim.servo(first["id"]).write("Homing_Offset", -300)
+        sim.servo(last["id"]).write("Drive_Mode", 1)
+        data["backend"]["port"] = sim.port
+        d = run_daemon(short_tmp, data, "koch")
+        try:
+            err = enable_error(d, data["namespaces"][0]["name"])
+        finally:
+            d.stop()
+        assert err is not None and f"{data['name']}: enable refused" in err
+        assert (f"joint {first['name']!r} (id {first['id']}): Homing_Offset is -300, expected 0 "
+                f"(joints[0] ({first['name']}).calibration.homing_offset)") in err
+        n = len(data["joints"]) - 1
+        assert (f"joint {last['name']!r} (id {last['id']}): Drive_Mode is 1, expected bit 0 clear (0) "
+                f"(joints[{n}] ({last['name']}).calibration.direction): bit 0 (reverse) flips every "
+                f"position") in err
+        assert sim.servo(first["id"]).read("Homing_Offset") == -300
+        assert sim.servo(last["id"]).read("Drive_Mode") == 1
+        assert all(sim.servo(i).read("Torque_Enable") == 0 for i in sim.ids)
