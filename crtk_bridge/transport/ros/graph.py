@@ -49,7 +49,7 @@ import zenoh
 
 from ...errors import CrtkBridgeError
 from ...server.protocol import STATE_COMMANDS, STOP_COMMANDS
-from ...server.server import Server, Session
+from ...server.server import Server, Session, sleep_until_next
 from . import types as T
 from .rmw import LATCHED, Node, Publisher, QoS, Subscription, mangle, type_mismatch
 
@@ -230,20 +230,14 @@ class RosGraph:
 
     # ---------------------------------------------------------------- publications
     async def _publish_loop(self) -> None:
-        loop = asyncio.get_running_loop()
         period = 1.0 / self.rate_hz
-        next_t = loop.time()
+        next_t = asyncio.get_running_loop().time()
         while True:
             try:
                 self.publish_once()
             except Exception:  # a bug here must not end the daemon's publications silently
                 log.exception("%s: publishing the ROS topics failed", self.server.robot)
-            next_t += period
-            delay = next_t - loop.time()
-            if delay < 0:  # fell behind: skip ticks rather than burst
-                next_t = loop.time()
-                delay = 0
-            await asyncio.sleep(delay)
+            next_t = await sleep_until_next(next_t, period)
 
     def publish_once(self) -> None:
         """One sample of every periodic topic somebody subscribes to, from the snapshot."""
