@@ -2,13 +2,15 @@
 
     crtk-bridge --profile FILE [--sim] [--socket PATH] [--log-level L] [--no-realtime]
                 [--zenoh-connect ENDPOINT] [--zenoh-listen ENDPOINT] [--ros-domain-id N]
-    crtk-bridge check --profile FILE [--scan]
+    crtk-bridge check --profile FILE [--scan [--all-bauds]]
     crtk-bridge find-port [--replug]
+    crtk-bridge setup-servos --profile FILE [--yes] [--json] [--joint NAME]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 
@@ -20,18 +22,23 @@ def _run_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="crtk-bridge",
         usage="%(prog)s --profile FILE [--sim] [--socket PATH] [options]\n"
-              "       %(prog)s check --profile FILE [--scan]\n"
-              "       %(prog)s find-port [--replug]",
+              "       %(prog)s check --profile FILE [--scan [--all-bauds]]\n"
+              "       %(prog)s find-port [--replug]\n"
+              "       %(prog)s setup-servos --profile FILE [--yes] [--json] [--joint NAME]",
         description="Serve the CRTK robot API for the robot a profile describes.",
         epilog="commands:\n"
                "  check --profile FILE  validate a profile without opening the bus: every key, the\n"
                "                        backend section, and the kinematics where it names a URDF\n"
                "                        (frames and joints); exit 0 if valid. --scan also pings\n"
                "                        every id on the bus: model, firmware, torque of each\n"
-               "                        servo; missing and extra ids (exit 1 on a mismatch)\n"
+               "                        servo; missing and extra ids; EEPROM settings that differ\n"
+               "                        (register named); --all-bauds also the servos at other\n"
+               "                        baud rates (exit 1 on a mismatch)\n"
                "  find-port [--replug]  list serial ports with their /dev/serial/by-id names and USB\n"
                "                        vendor / product / serial number; --replug names the one\n"
-               "                        you unplug and plug back",
+               "                        you unplug and plug back\n"
+               "  setup-servos --profile FILE  one servo at a time, give each joint's servo its id\n"
+               "                        and the profile's baud rate (see setup-servos --help)",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--profile", required=True, help="robot profile (YAML), e.g. profiles/so101.yaml")
     p.add_argument("--sim", action="store_true", help="run on the built-in simulator instead of hardware")
@@ -72,11 +79,15 @@ def _check(argv: list[str]) -> int:
     from .backends import create_backend
     from .core.kinematics_check import check_kinematics
     from .profile import load_profile
+    from .transport.zenoh_session import check_exposure, zenoh_config
 
     try:
         profile = load_profile(args.profile)
         backend = create_backend(profile, source=args.profile)
         cartesian = check_kinematics(profile, args.profile)
+        zenoh = zenoh_config(profile)
+        if zenoh is not None:  # loopback, or TLS + access control (transport/zenoh_session.py)
+            check_exposure(zenoh, profile.name)
     except CrtkBridgeError as exc:
         print(f"crtk-bridge: {exc}", file=sys.stderr)
         return 1
@@ -142,12 +153,102 @@ def _find_port(argv: list[str]) -> int:
     return 0
 
 
+def _setup_servos(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(
+        prog="crtk-bridge setup-servos",
+        description="Give each joint's servo its id and the profile's baud rate, one servo at a time "
+                    "(as lerobot-setup-motors): for each joint, in reverse profile order, connect ONLY "
+                    "that joint's servo; it is found at any id and baud rate, its model checked, then "
+                    "its ID, Return_Delay_Time and Baud_Rate written (persisted) and verified. The daemon "
+                    "must not be running.",
+        epilog="exit status: 0 every servo set up and verified; 1 error (profile, port, a write or its "
+               "verification); 2 bad arguments; 3 refused: the servo found is of another model than "
+               "the joint's; 4 --yes: no single new servo appeared within --timeout (none, several, "
+               "or only the previous one); 130 interrupted",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--profile", required=True)
+    p.add_argument("--bus", help="with a several-bus profile (backends:), the bus to set up")
+    p.add_argument("--joint", action="append", default=[], metavar="NAME",
+                   help="set up only this joint's servo (e.g. a replaced one); repeatable")
+    p.add_argument("--yes", action="store_true",
+                   help="no prompts (scripts): for each joint wait until exactly one new servo answers, "
+                        "up to --timeout")
+    p.add_argument("--timeout", type=float, default=60.0, metavar="S",
+                   help="with --yes: seconds to wait for each joint's servo (default 60)")
+    p.add_argument("--json", action="store_true",
+                   help="one JSON object per line for each step, then a summary object")
+    args = p.parse_args(argv)
+    from .backends import create_backend
+    from .backends.servo_setup import EXIT_ERROR, ServoSetup
+    from .profile import load_profile
+
+    def emit(event: dict) -> None:
+        if args.json:
+            print(json.dumps(event), flush=True)
+        else:
+            _print_setup_event(event, args.profile)
+
+    try:
+        profile = load_profile(args.profile)
+        backend = create_backend(profile, source=args.profile)
+        if profile.backends is not None:
+            if args.bus not in profile.bus_names:
+                p.error(f"--bus must name one of the profile's buses ({', '.join(profile.bus_names)})")
+            backend = backend.parts[backend.bus_names.index(args.bus)]
+        elif args.bus is not None:
+            p.error("--bus: the profile has one backend; leave --bus out")
+        if not hasattr(backend, "_broadcast_ping"):
+            raise CrtkBridgeError(f"{profile.name}: a {type(backend).__name__} has no servos to set up")
+        unknown = [n for n in args.joint if n not in backend.joint_names]
+        if unknown:
+            p.error(f"--joint {unknown[0]}: not a joint of this bus ({', '.join(backend.joint_names)})")
+    except CrtkBridgeError as exc:
+        if args.json:
+            emit({"event": "summary", "ok": False, "exit_code": EXIT_ERROR, "error": str(exc)})
+        else:
+            print(f"crtk-bridge: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    joints = [i for i, n in enumerate(backend.joint_names) if not args.joint or n in args.joint][::-1]
+    ask = None if args.yes else (lambda prompt: input(prompt))
+    return ServoSetup(backend, emit, ask, args.timeout).run(joints)
+
+
+def _print_setup_event(e: dict, source: str) -> None:
+    kind = e["event"]
+    if kind == "connect":
+        print(f"[{e['index']}/{e['of']}] {e['joint']}: connect ONLY its servo ({e['model']}); it gets id "
+              f"{e['id']} at {e['baudrate']} baud" + ("" if e["interactive"] else ". Waiting for it..."),
+              flush=True)
+    elif kind == "waiting":
+        print(f"  waiting: {e['message']}", flush=True)
+    elif kind == "found":
+        print(f"  found {e['model'] or 'model number ' + str(e['model_number'])} at id {e['id']}, "
+              f"{e['baudrate']} baud", flush=True)
+    elif kind == "configured":
+        ids = f"id {e['from_id']} -> {e['id']}" if e["from_id"] != e["id"] else f"id {e['id']} (kept)"
+        rate = (f"{e['from_baudrate']} -> {e['baudrate']} baud" if e["from_baudrate"] != e["baudrate"]
+                else f"{e['baudrate']} baud (kept)")
+        print(f"  set up: {ids}, {rate} (wrote {', '.join(e['written'])}); verified", flush=True)
+    elif kind == "summary":
+        done = ", ".join(f"{r['joint']} id {r['id']}" for r in e.get("joints", []))
+        if e["ok"]:
+            print(f"{e['set_up']} of {e['of']} servos set up ({done}). Connect them all and check the bus: "
+                  f"crtk-bridge check --profile {source} --scan", flush=True)
+        else:
+            if e.get("error"):
+                print(f"crtk-bridge: {e['error']}", file=sys.stderr, flush=True)
+            print(f"{e.get('set_up', 0)} of {e.get('of', '?')} servos set up{' (' + done + ')' if done else ''}; "
+                  f"stopped (exit {e['exit_code']})", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "find-port":
         return _find_port(argv[1:])
     if argv and argv[0] == "check":
         return _check(argv[1:])
+    if argv and argv[0] == "setup-servos":
+        return _setup_servos(argv[1:])
     args = _run_parser().parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from .daemon import run

@@ -4,23 +4,31 @@ First the simulators' EEPROM (what `crtk-bridge setup-servos` and `check --scan 
 a real bus): writes that persist for the simulator's life under each vendor's lock rule (Feetech:
 Lock = 0; Dynamixel: torque off), a Baud_Rate write after which the servo answers only at the new
 rate, factory-fresh servos added, detached and attached through the control socket, and the
-`crtk-sim` options that build day-one buses."""
+`crtk-sim` options that build day-one buses.
+
+Then `crtk-bridge setup-servos`, the real command in its own process: six factory-fresh STS3215
+connected one at a time through the simulator's control socket (as a user swaps cables) ending in
+a bus the daemon enables on; a Dynamixel servo moved from its factory 57600 baud; several servos at
+once and a servo of another model refused; --json parsed line by line."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
 import dynamixel_sdk as dxl
 import pytest
 import scservo_sdk as scs
+import yaml
 
 from crtk_bridge.backends.feetech.port import FastPortHandler
+from crtk_bridge.client import connect
 from crtk_bridge.sim.control import control_request
 from crtk_bridge.sim.dynamixel import DynamixelSimulator
 from crtk_bridge.sim.feetech import FeetechSimulator
 
-from .conftest import ROOT, SO101, wait_until
+from .conftest import KOCH, ROOT, SO101, DaemonProcess, profile_data, so101_data
 
 
 def sdk_port(module, path: str, baud: int):
@@ -136,3 +144,120 @@ def test_crtk_sim_day_one_buses(short_tmp, options, expect):
     finally:
         proc.terminate()
         assert proc.wait(10) == 0
+
+
+# ---------------------------------------------------------------- crtk-bridge setup-servos
+def write_profile(tmp, data: dict, port: str) -> str:
+    data["backend"]["port"] = port
+    path = tmp / "arm.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def setup_servos(profile: str, *options, stdin=subprocess.DEVNULL) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "crtk_bridge.cli", "setup-servos", "--profile", profile,
+                             *options], cwd=ROOT, stdin=stdin, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+
+
+def test_six_factory_fresh_servos_one_at_a_time_then_the_daemon_enables(short_tmp):
+    ctl = short_tmp / "sim.ctl"
+    with FeetechSimulator(servo_ids=[], control=ctl) as sim:
+        profile = write_profile(short_tmp, so101_data(), sim.port)
+        proc = setup_servos(profile, "--yes", "--json", "--timeout", "20")
+        events, serials = [], []
+        try:
+            for line in proc.stdout:
+                event = json.loads(line)
+                events.append(event)
+                # the user swaps cables (the last one out, a new one in) only once the command
+                # says it still sees the servo it set up last: it must wait for the swap
+                first = event["event"] == "connect" and not serials
+                if first or (event["event"] == "waiting" and event["reason"] == "previous"):
+                    if serials:
+                        assert control_request(ctl, {"cmd": "detach", "serial": serials[-1]})["ok"]
+                    reply = control_request(ctl, {"cmd": "add_servo", "position": 2048})
+                    serials.append(reply["serial"])
+            assert proc.wait(30) == 0, proc.stderr.read()
+        finally:
+            proc.kill()
+            proc.wait()
+        summary = events[-1]
+        assert summary["event"] == "summary" and summary["ok"] and summary["exit_code"] == 0
+        order = ["gripper", "wrist_roll", "wrist_flex", "elbow_flex", "shoulder_lift", "shoulder_pan"]
+        assert [e["joint"] for e in events if e["event"] == "connect"] == order  # id 1 last
+        configured = [e for e in events if e["event"] == "configured"]
+        assert [(e["joint"], e["from_id"], e["id"], e["baudrate"]) for e in configured] == \
+            [(name, 1, 6 - k, 1_000_000) for k, name in enumerate(order)]
+        assert configured[0]["written"] == ["ID", "Return_Delay_Time"]
+        assert configured[-1]["written"] == ["Return_Delay_Time"]  # id 1 already: only the delay
+        waits = [e for e in events if e["event"] == "waiting" and e["reason"] == "previous"]
+        assert [e["joint"] for e in waits] == order[1:] and waits[0]["message"] == (
+            "only the servo of joint 'gripper' (id 6) answers: disconnect it and connect the servo of joint "
+            "'wrist_roll'")
+        assert summary["joints"] == [{k: e[k] for k in e if k != "event"} for e in configured]
+
+        # all six on the bus again, after a power cycle: the EEPROM kept what was written
+        control_request(ctl, {"cmd": "detach", "serial": serials[-1]})
+        for serial in serials:
+            assert control_request(ctl, {"cmd": "attach", "serial": serial})["ok"]
+        sim.power_cycle()
+        servos = control_request(ctl, {"cmd": "dump"})["servos"]
+        assert {sid: (s["baud_rate"], s["return_delay_time"], s["lock"]) for sid, s in servos.items()} == \
+            {str(i): (0, 0, 1) for i in range(1, 7)}
+        d = DaemonProcess(["--profile", profile, "--no-realtime"], short_tmp / "arm.sock", short_tmp / "arm.log")
+        try:
+            robot = connect(socket=str(d.socket_path))
+            try:
+                assert robot.device("so101").enable(5.0)
+            finally:
+                robot.close()
+        finally:
+            d.stop()
+
+
+def test_dynamixel_servo_moves_from_its_factory_rate_and_id(short_tmp):
+    with DynamixelSimulator({}) as sim:
+        sim.add_servo(model="xl330-m288")  # id 1 at 57600 baud, as shipped
+        profile = write_profile(short_tmp, profile_data(KOCH), sim.port)
+        proc = setup_servos(profile, "--yes", "--joint", "gripper", "--timeout", "10")
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+        assert "[1/1] gripper: connect ONLY its servo (xl330-m288); it gets id 6 at 1000000 baud" in out
+        assert "  found xl330-m288 at id 1, 57600 baud" in out
+        assert ("  set up: id 1 -> 6, 57600 -> 1000000 baud (wrote ID, Return_Delay_Time, Baud_Rate); "
+                "verified") in out
+        sim.power_cycle()
+        servo = sim.servo(6)
+        assert (servo.read("Baud_Rate"), servo.read("Return_Delay_Time")) == (3, 0)
+
+
+def test_several_servos_at_once_are_refused_and_nothing_is_written(short_tmp):
+    with FeetechSimulator(servo_ids=[]) as sim:
+        sim.add_servo()
+        sim.add_servo(servo_id=9)
+        profile = write_profile(short_tmp, so101_data(), sim.port)
+        proc = setup_servos(profile, "--yes", "--json", "--timeout", "1")
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 4, err
+        events = [json.loads(line) for line in out.splitlines()]
+        assert [e["event"] for e in events] == ["connect", "waiting", "summary"]
+        assert events[1]["reason"] == "several"
+        assert events[2]["error"] == ("so101: joint 'gripper': no single new servo within 1 s: 2 servos answer "
+                                      "at 1000000 baud (ids 1, 9): connect ONLY the servo of joint 'gripper'")
+        assert sim.ids == [1, 9] and sim.servo(1).read("Return_Delay_Time") == 250
+
+
+def test_a_servo_of_another_model_is_refused_at_the_prompt(short_tmp):
+    with FeetechSimulator(servo_ids=[]) as sim:
+        sim.add_servo(model="sts3250")
+        profile = write_profile(short_tmp, so101_data(), sim.port)
+        proc = setup_servos(profile, "--joint", "elbow_flex", stdin=subprocess.PIPE)
+        out, err = proc.communicate("\n", timeout=60)  # Enter at the prompt
+        assert proc.returncode == 3, err
+        assert "Connect ONLY the servo of joint 'elbow_flex' (sts3215) to the bus, power it, then press Enter." in out
+        assert err.strip() == (
+            "crtk-bridge: so101: joint 'elbow_flex': the servo found (id 1 at 1000000 baud) is model number 2825 "
+            "(sts3250), the profile says sts3215 (777): connect the servo the profile names, or correct "
+            "joints[2] (elbow_flex).model; nothing was written")
+        assert sim.ids == [1] and sim.servo(1).read("Return_Delay_Time") == 250

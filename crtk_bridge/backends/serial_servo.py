@@ -369,6 +369,14 @@ class SerialServoBackend(Actuator):
         Blocks; raises BackendError."""
         return []
 
+    def _unlock_eeprom(self, i: int, sid: int) -> None:
+        """Make the EEPROM writes that follow persist on the servo with bus id ``sid`` (joint
+        ``i``'s model; setup-servos). Default: nothing (the servo persists every EEPROM write).
+        Blocks; raises BackendError."""
+
+    def _lock_eeprom(self, i: int, sid: int) -> None:
+        """Undo :meth:`_unlock_eeprom`. Blocks; raises BackendError."""
+
     def _limits_apply(self, i: int) -> bool:
         """Whether the servo's Min/Max_Position_Limit bound joint ``i``'s positions in the mode
         the backend drives it in."""
@@ -456,9 +464,14 @@ class SerialServoBackend(Actuator):
         address, size = self._register(i, name)
         raw = self._encode(i, name, value)
         fn = {1: self._ph.write1ByteTxOnly, 2: self._ph.write2ByteTxOnly, 4: self._ph.write4ByteTxOnly}[size]
-        self._port.is_using = False
-        result = fn(self._port, sid, address, raw)
-        self._port.is_using = False
+        port = self._port
+        port.is_using = False
+        result = fn(port, sid, address, raw)
+        port.is_using = False
+        # Its status (if the servo sends one) is read off the wire here, so that no later request
+        # takes it for its own reply (the largest write status: Dynamixel's 11 bytes).
+        port.setPacketTimeout(11)
+        port.readPort(64)
         return result == COMM_SUCCESS
 
     # ------------------------------------------------------------------ EEPROM against the profile

@@ -148,6 +148,9 @@ def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
     g.add_argument("--zenoh-connect", metavar="ENDPOINT", action="append", default=d(None),
                    help="reach the daemon over Zenoh, through the router or peer at ENDPOINT "
                         "(e.g. tcp/127.0.0.1:7447; repeatable) instead of the socket (docs/zenoh.md)")
+    g.add_argument("--zenoh-config", metavar="FILE", default=d(None),
+                   help="with --zenoh-connect: a Zenoh configuration file (JSON5) for what the endpoint "
+                        "needs, e.g. transport/link/tls/root_ca_certificate for a tls/ router")
     g.add_argument("--ns", metavar="NAMESPACE", default=d(None),
                    help="CRTK namespace, e.g. so101/gripper (default: the first one)")
     g.add_argument("--json", action="store_true", default=d(False),
@@ -670,11 +673,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         request_timeout = args.timeout if args.timeout is not None else 5.0
         if args.command == "robots":
-            names = list_robots(args.zenoh_connect, request_timeout)
+            names = list_robots(args.zenoh_connect, request_timeout, args.zenoh_config)
             _emit_json({"robots": names}) if args.json else print("\n".join(names))
             return 0
         robot = connect(socket=args.socket, robot=args.robot, timeout=request_timeout,
-                        zenoh_connect=args.zenoh_connect)
+                        zenoh_connect=args.zenoh_connect, zenoh_config=args.zenoh_config)
         return _run(args, robot)
     except KeyboardInterrupt:
         return 130

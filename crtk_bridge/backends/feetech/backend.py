@@ -225,6 +225,13 @@ class FeetechBackend(SerialServoBackend):
                                   "clear bit 4 with the vendor's tool (the daemon never rewrites EEPROM)"))
         return out
 
+    def _unlock_eeprom(self, i: int, sid: int) -> None:
+        """Lock = 0: EEPROM writes persist (STS; LeRobot does the same before writing ids)."""
+        self._write_register(i, "Lock", 0, sid=sid)
+
+    def _lock_eeprom(self, i: int, sid: int) -> None:
+        self._write_register(i, "Lock", 1, sid=sid)
+
     @staticmethod
     def _no_limits(low: int, high: int) -> bool:
         return low == 0 and high == 0  # 0/0: no angle limits (multi-turn)
