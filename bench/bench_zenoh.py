@@ -155,6 +155,25 @@ def loop_window(sock: Path, seconds: float) -> tuple[list[float], list[float], i
         robot.close()
 
 
+def loop_round(tmp: Path, zen: bool, window: float) -> tuple:
+    """One daemon (with or without the Zenoh transport and a subscriber of every topic) and one
+    loop_window: (p99s, p50s, overruns, cycles, samples received)."""
+    extra = ["--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"] if zen else []
+    d, sock = sim_daemon.start(1000, tmp, args=extra)
+    listener = None
+    got = [0]
+    try:
+        if zen:  # a subscriber of every topic, so the samples really leave the process
+            listener = session(extra[1])
+            listener.declare_subscriber("0/**", lambda s: got.__setitem__(0, got[0] + 1))
+        p99, p50, ovr, cyc = loop_window(sock, window)
+        return p99, p50, ovr, cyc, got[0]
+    finally:
+        if listener is not None:
+            listener.close()
+        stop(d)
+
+
 def ms(values) -> str:
     return f"{float(np.median(values)) * 1e3:.3f} ms"
 
@@ -197,25 +216,16 @@ def main() -> int:
 
     # -- 2. loop lateness with / without the Zenoh transport, daemons alternating --
     with_z, without_z = [], []
+    failed = 0
     for r in range(args.rounds):
         for zen in (True, False):
-            extra = ["--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"] if zen else []
-            d, sock = sim_daemon.start(1000, tmp, args=extra)
-            listener = None
-            got = [0]
-            try:
-                if zen:  # a subscriber of every topic, so the samples really leave the process
-                    listener = session(extra[1])
-                    sub = listener.declare_subscriber("0/**", lambda s: got.__setitem__(0, got[0] + 1))
-                p99, p50, ovr, cyc = loop_window(sock, args.window)
-                (with_z if zen else without_z).append((p99, p50, ovr, cyc, got[0]))
-                if listener is not None:
-                    sub.undeclare()
-            finally:
-                if listener is not None:
-                    listener.close()
-                stop(d)
-
+            for attempt in range(3):  # a loaded host can starve the 1 kHz simulator at start-up
+                try:
+                    (with_z if zen else without_z).append(loop_round(tmp, zen, args.window))
+                    break
+                except (RuntimeError, AssertionError) as exc:
+                    failed += 1
+                    print(f"  (a {'with' if zen else 'without'}-Zenoh window failed, retrying: {exc})", flush=True)
     def col(rows, i):
         return [v for row in rows for v in (row[i] if isinstance(row[i], list) else [row[i]])]
 
