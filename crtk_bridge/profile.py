@@ -479,8 +479,20 @@ def load_profile(path: str | Path) -> Profile:
     return profile
 
 
-def backend_config(profile: Profile, config_type: type, source: str = "<profile>") -> Any:
-    """Convert the profile's ``backend`` section into a backend's own ``Config`` struct."""
+def backend_config(profile: Profile, config_type: type, source: str = "<profile>", *, owner: str = "",
+                   required: dict[str, str] | None = None) -> Any:
+    """Convert the profile's ``backend`` section into a backend's own ``Config`` struct.
+
+    msgspec reports unknown and missing fields "at $" (no key name), so an unknown key (listing
+    ``owner``'s valid ones, nearest first) and each key of ``required`` (key -> what to give) are
+    named here first. Raises ProfileError."""
+    given = set(profile.backend) - {"type"}
+    fields = config_type.__struct_fields__
+    for key in sorted(given - set(fields)):
+        raise ProfileError(f"{source}: backend.{key}: {unknown_key_message(key, ['type', *fields], owner)}")
+    for key, what in (required or {}).items():
+        if key not in given:
+            raise ProfileError(f"{source}: backend.{key}: required, {what}")
     data = {k: v for k, v in profile.backend.items() if k != "type"}
     try:
         return msgspec.convert(data, config_type)
