@@ -10,6 +10,8 @@
     crtk-ctl move_cp 0.3 0 0.2 0 0.7071 0 0.7071 --wait      crtk-ctl move_cr 0 0 0.02 --wait
     crtk-ctl servo_cv 0 0 0.02 0 0 0 --frame body --duration 1
     crtk-ctl fk 0 0.5 -0.5 0 0          crtk-ctl ik 0.3 0 0.2 0 0.7071 0 0.7071 --seed 0 0 0 0 0
+    crtk-ctl calibrate --profile my_arm.yaml           (by hand, robot DISABLED; docs/calibration.md)
+    crtk-ctl calibrate --profile my_arm.yaml --import ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm.json
 
 Cartesian poses are X Y Z (m) then the unit quaternion QX QY QZ QW, the tip frame in the base
 frame; relative commands (_cr) take DX DY DZ [QX QY QZ QW] in the base frame (no quaternion: no
@@ -44,6 +46,7 @@ import numpy as np
 
 from crtk_bridge import __version__, vocabulary
 
+from crtk_bridge.client import calibrate
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.client.device import (
     CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, FRAMES, JS_TOPICS, Device, Robot, connect, encode_pose,
@@ -251,6 +254,17 @@ def build_parser() -> argparse.ArgumentParser:
                         + JOINT_VECTOR_HELP)
     add("hold", "stop a move (decelerating) or a stream and hold the position")
     add("free", "torque off on the namespace's joints; the robot stays ENABLED")
+    p = add("calibrate", "calibrate the joints by hand (robot DISABLED: middle pose, then sweep every "
+                         "joint, live range bars) or --import a LeRobot calibration file; writes the "
+                         "joints' calibration into --profile, keeping its comments (docs/calibration.md)")
+    p.add_argument("--profile", required=True, metavar="FILE",
+                   help="the daemon's profile, where the calibration is written (into its calibration_file "
+                        "if it names one); the daemon uses it after a restart")
+    p.add_argument("--gripper", action="append", metavar="JOINT",
+                   help="a joint with closed / open ends (repeatable; default: the joints of the "
+                        "namespaces named .../gripper)")
+    p.add_argument("--import", dest="import_path", metavar="JSON",
+                   help="convert this LeRobot calibration file of the same arm instead of sweeping")
     p = add("events", "print status/warning/error events as they arrive, until Ctrl-C or "
                       "--count events")
     p.add_argument("--count", metavar="N", type=int, default=None, help="stop after N events")
@@ -424,6 +438,9 @@ def _run(args, robot: Robot) -> int:
             raise Failure(f"{cmd}: {TARGETS[cmd]} not reached within {timeout:g} s "
                           f"(state {st.get('state')}){_last_error(robot, n_events)}")
         return 0
+
+    if cmd == "calibrate":
+        return calibrate.run(robot, args.profile, args.gripper, args.import_path, sys.stdin.fileno(), sys.stdout)
 
     if cmd == "list":
         info = robot.list()

@@ -943,6 +943,16 @@ class Robot:
         percentiles (s), ``overruns``, ``cycles``."""
         return self.connection.request("period_statistics")
 
+    def calibrate(self, action: str, timeout: float | None = None, **data: Any) -> Any:
+        """``calibrate`` (docs/calibration.md, docs/protocol.md): ``begin`` a sweep by hand from
+        the middle pose, ``status`` (``{"seen": {joint: [lowest, highest, now]}}``, rad from the
+        middle pose), ``end`` (``grippers=[...]``: ``{"calibration": {joint: keys}}``),
+        ``cancel``; the robot must be DISABLED. ``import`` (``format="lerobot"``, ``file={...}``,
+        ``grippers=[...]``) converts another tool's calibration file, in any state. Returns the
+        reply's data; takes control. Raises :class:`CommandError` (``invalid_state`` when not
+        DISABLED, naming the state)."""
+        return self.connection.request("calibrate", None, {"action": action, **data}, timeout=timeout)
+
     def acquire(self) -> None:
         """Take control explicitly; raises :class:`CommandError` ``read_only`` if another
         session holds it."""
