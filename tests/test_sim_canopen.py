@@ -327,6 +327,30 @@ def test_heartbeat_silence_and_bus_off(bus, drive):
         wait_until(lambda: len(beats) > n, 1, what="heartbeats after the fault is cleared")
 
 
+def test_a_drive_whose_master_falls_silent_stops(bus, drive):
+    """Heartbeat consumer (0x1016) on the master's heartbeat; 0x6007 picks the reaction."""
+    sim, net = bus
+    node = drive
+    node.sdo[0x1016][1].raw = (0x7F << 16) | 40  # watch node 127 (the master here), 40 ms
+    for option, state in ((3, "QUICK STOP ACTIVE"), (1, "FAULT")):
+        node.sdo[0x6007].raw = option
+        node.rpdo[1].start(SYNC_S)
+        node.state = "OPERATION ENABLED"
+        beat = net.send_periodic(0x77F, [5], 0.01)  # the master's heartbeat
+        try:
+            time.sleep(0.1)
+            assert node.state == "OPERATION ENABLED"  # watched and alive
+        finally:
+            beat.stop()  # the master dies: no heartbeat, no RPDO
+            node.rpdo[1].stop()
+        emcy = _emcy(node, 0x8130)
+        assert emcy.data[:1] == b"\x7f"  # names the node it lost
+        wait_until(lambda: node.check_statusword() and node.state == state, 1, what=state)
+        node.emcy.log.clear()
+
+    node.sdo[0x1016][1].raw = 0
+
+
 def test_boot_up_message_and_a_second_drive_on_the_bus(bus):
     sim, net = bus
     node2 = canopen.RemoteNode(2, make_object_dictionary(2))
