@@ -6,20 +6,22 @@ what the servos did during and after the daemon's shutdown can be read from it."
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 import threading
 import time
 
 import numpy as np
 import pytest
-import yaml
 
 from crtk_bridge.client import connect
 from crtk_bridge.profile import load_profile
 from crtk_bridge.sim.control import control_request
 
 from .conftest import DaemonProcess, wait_until
+from .conftest import standalone_sim as conftest_standalone_sim
+
+# the park's rest pose needs shutdown.action: park; the servos are sampled through the serial
+# simulators' dump (ticks)
+pytestmark = pytest.mark.requires("servo_bus", "park")
 
 RAD_PER_TICK = 2 * math.pi / 4096  # both robots: joint zero at tick 2048, direction +1
 
@@ -52,21 +54,8 @@ def positions(servos: dict, ids: list[str]) -> np.ndarray:
 
 @pytest.fixture
 def standalone_sim(short_tmp, sim_robot):
-    link, control = short_tmp / "tty", short_tmp / "sim.sock"
-    sim = subprocess.Popen([sys.executable, "-m", "crtk_bridge.sim.cli", sim_robot.backend, "--profile",
-                            str(sim_robot.profile), "--link", str(link), "--control", str(control)],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    try:
-        wait_until(lambda: link.exists() and control.exists() or sim.poll() is not None, 15, what="simulator link")
-        assert sim.poll() is None, sim.stderr.read().decode()
-        data = sim_robot.data()
-        data["backend"]["port"] = str(link)
-        profile = short_tmp / "sim-profile.yaml"
-        profile.write_text(yaml.safe_dump(data))
-        yield profile, str(control)
-    finally:
-        sim.terminate()
-        sim.wait(10)
+    with conftest_standalone_sim(sim_robot, short_tmp) as (profile, sim):
+        yield profile, sim.path
 
 
 def test_sigterm_while_disabled_moves_nothing(standalone_sim, short_tmp, sim_robot):
