@@ -168,6 +168,7 @@ class _Drive:
         self.arrived = [0, 0]
         self.base = [0, 0]
         self.missed = 0  # consecutive reads with a TPDO missing
+        self.heard = 0  # sum(arrived) at the previous read: the node has sent TPDOs since if it grew
         # next RPDO values
         self.cw = int(Command.DISABLE_VOLTAGE)
         self.mode = _CSP
@@ -636,8 +637,9 @@ class Canopen402Backend(Actuator):
                           f"{self._tpdo_timeout_s * 1000:.3g} ms on {self._where} ({missing.missed} in a row)",
                           joint=missing.name, transient=True)
         for d in self.drives:
-            if d is not missing and self._answered(d) >= want:  # it answered: waited for again
-                d.missed = 0  # (a silent one stays missed: no tpdo_timeout wait every other cycle)
+            heard, d.heard = sum(d.arrived) != d.heard, sum(d.arrived)
+            if d is not missing and heard:  # it sent TPDOs: waited for again (a silent one stays
+                d.missed = 0  # missed, not waited for every other cycle while none is overdue)
             silent = now - d.hb_t
             if silent > self._hb_timeout_s:
                 fault = Fault("heartbeat_lost",
