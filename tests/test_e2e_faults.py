@@ -151,6 +151,7 @@ def test_bus_fault_on_one_device(offered, rig, sim_robot, kind):
     if deaf:  # ...and switches it off once it hears again
         sim.clear_faults()
         wait_until(lambda: all_torque(bot, sim, 0), 3, what="torque off on every device once it hears")
+        wait_until(lambda: not arm.is_busy(), 3, what="the retried torque off ended")
     else:
         assert all_torque(bot, sim, 0)
     recover(arm, sim, bot)
