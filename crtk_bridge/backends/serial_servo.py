@@ -329,6 +329,9 @@ class SerialServoBackend(Actuator):
             problems.append(f"{key}.calibration.range: {list(r)} is outside 0..{res - 1}")
         if not 0 <= j.calibration.offset <= res - 1:
             problems.append(f"{key}.calibration.offset: {j.calibration.offset} is outside 0..{res - 1}")
+        self._check_homing_offset(key, j, problems)
+
+    def _check_homing_offset(self, key: str, j: ServoJoint, problems: list[str]) -> None:
         h = self.HOMING_OFFSET_MAX
         if not -h <= j.calibration.homing_offset <= h:
             problems.append(f"{key}.calibration.homing_offset: {j.calibration.homing_offset} is outside "
@@ -606,6 +609,7 @@ class SerialServoBackend(Actuator):
         port, _ = self._open_port()
         try:
             self._check_servos()
+            self._startup_check()  # the EEPROM may have changed while the adapter was out
             self._after_open()
             torque = [self._read_register(i, "Torque_Enable") for i in range(self.n)]
             self._configure_hook()

@@ -224,6 +224,8 @@ class DynamixelBackend(SerialServoBackend):
             problems.append(f"{where}: {mode.name.lower()} mode is not available on {key}, a {j.model}")
         if mode is OperatingMode.POSITION:
             super()._check_joint(i, key, j, problems)
+        else:  # multi-turn: ticks beyond one turn are fine
+            self._check_homing_offset(key, j, problems)
 
     def _make_port(self, margin_ms: float) -> FastPortHandler:
         return FastPortHandler(self._port_path, margin_ms=margin_ms)
