@@ -261,3 +261,13 @@ def test_a_servo_of_another_model_is_refused_at_the_prompt(short_tmp):
             "(sts3250), the profile says sts3215 (777): connect the servo the profile names, or correct "
             "joints[2] (elbow_flex).model; nothing was written")
         assert sim.ids == [1] and sim.servo(1).read("Return_Delay_Time") == 250
+
+
+def test_a_several_bus_profile_needs_bus_and_an_unknown_joint_is_refused(short_tmp):
+    bimanual = str(ROOT / "profiles" / "bimanual_so101.yaml")
+    proc = setup_servos(bimanual, "--yes")
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2 and "--bus must name one of the profile's buses (left, right)" in err
+    proc = setup_servos(str(SO101), "--joint", "elbow", "--yes")
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2 and "--joint elbow: not a joint of this bus (shoulder_pan, " in err
