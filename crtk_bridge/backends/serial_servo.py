@@ -523,6 +523,20 @@ class SerialServoBackend(Actuator):
                 "stores it"))
         return out + self._vendor_eeprom_diffs(i, key)
 
+    #: how long a joint's EEPROM is read again when a read fails (a loaded host, a servo still
+    #: starting) before the failure counts
+    EEPROM_PATIENCE_S = 2.0
+
+    def _patient_eeprom_diffs(self, i: int) -> list[EepromDiff]:
+        """:meth:`eeprom_diffs`, tried again on a failed read for up to EEPROM_PATIENCE_S."""
+        deadline = time.monotonic() + self.EEPROM_PATIENCE_S
+        while True:
+            try:
+                return self.eeprom_diffs(i)
+            except BackendError:
+                if time.monotonic() > deadline:
+                    raise
+
     @staticmethod
     def _no_limits(low: int, high: int) -> bool:
         """Whether Min/Max_Position_Limit mean "no limit" (Feetech: both 0, multi-turn)."""
@@ -531,7 +545,7 @@ class SerialServoBackend(Actuator):
     def _startup_check(self) -> None:
         """At open: EEPROM settings that would make positions wrong (:meth:`eeprom_diffs`) make
         ENABLE refuse, naming robot, joint, register and the remedy. Blocks. Raises BackendError."""
-        wrong = [d for i in range(self.n) for d in self.eeprom_diffs(i) if d.wrong_positions]
+        wrong = [d for i in range(self.n) for d in self._patient_eeprom_diffs(i) if d.wrong_positions]
         self._enable_refusal = None
         if wrong:
             self._enable_refusal = (f"{self.robot}: enable refused, the servos' EEPROM disagrees "
@@ -708,7 +722,7 @@ class SerialServoBackend(Actuator):
             i = self._ids.index(sid) if sid in self._ids else None
             if i is not None and number == self.MODEL_NUMBERS[self.joint_keys[i].model]:
                 try:
-                    eeprom = tuple(self.eeprom_diffs(i))
+                    eeprom = tuple(self._patient_eeprom_diffs(i))
                 except BackendError as exc:
                     error = str(exc).removeprefix(f"{self.robot}: ")
             out.append(ScannedServo(sid, number, model, firmware, torque, eeprom, error))
