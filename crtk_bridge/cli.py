@@ -1,6 +1,7 @@
 """``crtk-bridge``: run the daemon, or check a profile.
 
     crtk-bridge --profile FILE [--sim] [--socket PATH] [--log-level L] [--no-realtime]
+                [--zenoh-connect ENDPOINT] [--zenoh-listen ENDPOINT] [--ros-domain-id N]
     crtk-bridge check --profile FILE [--scan [--all-bauds]]
     crtk-bridge find-port [--replug]
     crtk-bridge setup-servos --profile FILE [--yes] [--json] [--joint NAME]
@@ -42,6 +43,17 @@ def _run_parser() -> argparse.ArgumentParser:
     p.add_argument("--profile", required=True, help="robot profile (YAML), e.g. profiles/so101.yaml")
     p.add_argument("--sim", action="store_true", help="run on the built-in simulator instead of hardware")
     p.add_argument("--socket", help="Unix socket path (default: $XDG_RUNTIME_DIR/crtk-bridge/<robot>.sock)")
+    z = p.add_argument_group("Zenoh transport (off unless an endpoint is given here or in the profile's "
+                             "transport.zenoh; docs/zenoh.md)")
+    z.add_argument("--zenoh-connect", metavar="ENDPOINT", action="append",
+                   help="join the Zenoh router or peer at ENDPOINT, e.g. tcp/127.0.0.1:7447 (repeatable; "
+                        "replaces transport.zenoh.connect)")
+    z.add_argument("--zenoh-listen", metavar="ENDPOINT", action="append",
+                   help="accept Zenoh peers and clients on ENDPOINT, e.g. tcp/127.0.0.1:7448 (repeatable; "
+                        "replaces transport.zenoh.listen). Beyond loopback only as tls/ with "
+                        "transport.zenoh.tls and transport.zenoh.access_control")
+    z.add_argument("--ros-domain-id", metavar="N", type=int,
+                   help="ROS_DOMAIN_ID of the ROS 2 graph (default: transport.zenoh.ros_domain_id, else 0)")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO / mlockall")
     p.add_argument("--version", action="version", version=f"crtk-bridge {__version__}")
@@ -238,7 +250,9 @@ def main(argv: list[str] | None = None) -> int:
     from .daemon import run
 
     try:
-        return run(args.profile, sim=args.sim, socket_path=args.socket, realtime=not args.no_realtime)
+        return run(args.profile, sim=args.sim, socket_path=args.socket, realtime=not args.no_realtime,
+                   zenoh_connect=args.zenoh_connect, zenoh_listen=args.zenoh_listen,
+                   ros_domain_id=args.ros_domain_id)
     except CrtkBridgeError as exc:
         print(f"crtk-bridge: {exc}", file=sys.stderr)
         return 1

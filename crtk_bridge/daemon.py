@@ -34,6 +34,7 @@ from .errors import CrtkBridgeError
 from .profile import Profile, load_profile
 from .server.link import ControlLink
 from .server.server import Server
+from .transport.zenoh_session import ZenohConfig, check_exposure, open_session, zenoh_config
 
 log = logging.getLogger("crtk_bridge.daemon")
 
@@ -134,15 +135,41 @@ def _control_process(profile: Profile, source: str, chan: socket.socket, front: 
     sys.exit(code)
 
 
-async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Process) -> int:
+def zenoh_services(server: Server, session, config: ZenohConfig) -> list:
+    """What the front process serves on its Zenoh session (docs/zenoh.md), in start order.
+
+    Each service is built with the running server (its sessions, control rules, link to the
+    control process and events), the open ``zenoh.Session`` and the transport's configuration,
+    and has ``async start()`` and ``async close()``. Started on the event loop before the socket
+    serves (a failure ends start-up with the robot still DISABLED); closed after the control
+    process stopped (a remote client sees the robot stop first).
+    """
+    from .transport.tunnel import TunnelServer
+
+    return [TunnelServer(server, session, config)]
+
+
+async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Process,
+                 zenoh: tuple | None = None) -> int:
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
     link.attach(loop, server.on_control_lost)
+    services = []
+    if zenoh is not None:  # before the socket: nobody can have enabled the robot if one fails
+        session, config = zenoh
+        try:
+            for service in zenoh_services(server, session, config):
+                await service.start()
+                services.append(service)
+        except BaseException:
+            await _close_services(server, services)
+            raise
     await server.start()
     print(f"crtk-bridge: {server.robot} ({server.profile.backend_type}, {len(server.profile.joints)} joints) "
-          f"serving CRTK on {server.socket_path}", flush=True)
+          f"serving CRTK on {server.socket_path}"
+          + (f" and Zenoh ({_zenoh_where(zenoh[1])})" if zenoh else ""), flush=True)
     systemd.ready(f"serving {server.socket_path}")
     watchdog = systemd.watchdog_period()
     watchdog_task = loop.create_task(_watchdog(link, watchdog)) if watchdog else None
@@ -168,10 +195,26 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
         status = 1
     elif proc.exitcode not in (0, None) and status == 0:
         status = 1
+    await _close_services(server, services)
     await server.close()
     for t in (stop_wait, lost_wait):
         t.cancel()
     return status
+
+
+async def _close_services(server: Server, services: list) -> None:
+    for service in reversed(services):
+        try:
+            await service.close()
+        except Exception:
+            log.exception("%s: closing a Zenoh service failed", server.robot)
+
+
+def _zenoh_where(config: ZenohConfig) -> str:
+    parts = [f"connected to {', '.join(config.connect)}"] if config.connect else []
+    if config.listen:
+        parts.append(f"listening on {', '.join(config.listen)}")
+    return "; ".join(parts + [f"ROS domain {config.ros_domain_id}"])
 
 
 async def _watchdog(link: ControlLink, period: float) -> None:
@@ -208,9 +251,16 @@ def _simulate_buses(profile: Profile, profile_path: str, workdir: str,
     return msgspec.structs.replace(profile, backends=backends)
 
 
-def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None, realtime: bool = True) -> int:
-    """Run the daemon in the foreground until SIGTERM / SIGINT. Returns the exit status."""
+def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None, realtime: bool = True,
+        zenoh_connect: list[str] | None = None, zenoh_listen: list[str] | None = None,
+        ros_domain_id: int | None = None) -> int:
+    """Run the daemon in the foreground until SIGTERM / SIGINT. Returns the exit status.
+    ``zenoh_connect`` / ``zenoh_listen`` / ``ros_domain_id`` (the command line's) turn on and
+    configure the Zenoh transport over the profile's ``transport.zenoh`` section."""
     profile = load_profile(profile_path)
+    zconfig = zenoh_config(profile, zenoh_connect, zenoh_listen, ros_domain_id)
+    if zconfig is not None:
+        check_exposure(zconfig, profile.name)  # refused before anything starts
     source = str(profile_path)
     # validate the backend section (and that its SDK is installed) before anything starts
     create_backend(profile, source=source)
@@ -233,6 +283,7 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
             profile = _simulate_buses(profile, str(profile_path), workdir, simulators)
 
     snap = SnapshotBuffer(Layout(len(profile.joints), len(profile.namespaces)), create=True)
+    zsession = None
     front, back = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     ctx = multiprocessing.get_context("fork")  # forked before any thread or event loop exists
     proc = ctx.Process(target=_control_process, args=(profile, source, back, front, snap, realtime),
@@ -262,8 +313,14 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
         holder["server"] = server
         for msg in early:
             server.on_event(msg)
-        return asyncio.run(_serve(server, link, proc))
+        if zconfig is not None:
+            # after the fork (a Zenoh session does not survive it); the robot is still DISABLED,
+            # so an unreachable router just ends start-up (the finally below stops the loop)
+            zsession = open_session(zconfig, profile.name)
+        return asyncio.run(_serve(server, link, proc, (zsession, zconfig) if zsession is not None else None))
     finally:
+        if zsession is not None:
+            zsession.close()
         if proc.is_alive():
             proc.terminate()
             proc.join(SHUTDOWN_TIMEOUT_S)

@@ -112,6 +112,36 @@ class Server(_Strict, kw_only=True):
     socket: str | None = None  # default: $XDG_RUNTIME_DIR/crtk-bridge/<name>.sock
 
 
+class ZenohTls(_Strict, kw_only=True):
+    """Zenoh's ``transport/link/tls`` keys: PEM files (paths relative to the profile file)."""
+
+    root_ca_certificate: str | None = None  # CA that signed the peers' certificates
+    listen_certificate: str | None = None  # this daemon's certificate, for tls/ listen endpoints
+    listen_private_key: str | None = None
+    connect_certificate: str | None = None  # mutual TLS: this daemon's certificate when connecting
+    connect_private_key: str | None = None
+    enable_mtls: bool = False  # require a certificate from whoever connects (mutual TLS)
+    verify_name_on_connect: bool = True  # the router's certificate must name the host connected to
+
+
+class ZenohTransport(_Strict, kw_only=True):
+    """The Zenoh transport (transport/zenoh_session.py; docs/zenoh.md). Present = on."""
+
+    mode: Literal["peer", "client"] = "peer"
+    connect: list[str] = []  # routers or peers to join, e.g. tcp/127.0.0.1:7447
+    # loopback only unless tls + access_control; default: one loopback port the system picks
+    listen: list[str] = msgspec.field(default_factory=lambda: ["tcp/127.0.0.1:0"])
+    connect_timeout_s: float = 5.0  # how long start-up waits for each connect endpoint
+    ros_domain_id: int = 0  # ROS_DOMAIN_ID of the ROS 2 graph (the first key segment)
+    publish_rate_hz: float | None = None  # ROS topics' rate; default: the loop rate
+    tls: ZenohTls | None = None
+    access_control: dict[str, Any] | None = None  # Zenoh's access_control section, verbatim
+
+
+class Transport(_Strict, kw_only=True):
+    zenoh: ZenohTransport | None = None  # off unless present (or --zenoh-connect / --zenoh-listen)
+
+
 class Profile(_Strict, kw_only=True):
     name: str
     description: str = ""
@@ -120,6 +150,7 @@ class Profile(_Strict, kw_only=True):
     loop: Loop = Loop()
     safety: Safety = Safety()
     server: Server = Server()
+    transport: Transport = Transport()
     shutdown: Shutdown = Shutdown()
     joints: list[Joint]
     namespaces: list[Namespace]
@@ -303,6 +334,7 @@ def _check(profile: Profile) -> list[str]:
             problems.append(f"namespaces: joint {jn!r} belongs to no namespace")
     problems += _check_buses(profile)
     problems += _check_shutdown(profile)
+    problems += _check_zenoh(profile.transport.zenoh)
     return problems
 
 
@@ -324,6 +356,21 @@ def _check_buses(profile: Profile) -> list[str]:
     for name in names:
         if name not in used:
             problems.append(f"backends.{name}: no namespace lives on this bus")
+    return problems
+
+
+def _check_zenoh(z: ZenohTransport | None) -> list[str]:
+    """Numbers of transport.zenoh; its endpoints are checked where the session opens
+    (transport/zenoh_session.py: loopback unless TLS and access control)."""
+    if z is None:
+        return []
+    problems = []
+    if z.ros_domain_id < 0:
+        problems.append(f"transport.zenoh.ros_domain_id: must be >= 0, got {z.ros_domain_id}")
+    for key in ("connect_timeout_s", "publish_rate_hz"):
+        v = getattr(z, key)
+        if v is not None and not (v > 0 and math.isfinite(v)):
+            problems.append(f"transport.zenoh.{key}: must be a finite number > 0, got {v}")
     return problems
 
 
@@ -422,11 +469,30 @@ def load_profile(path: str | Path) -> Profile:
                 raise ProfileError(f"{path}: namespaces[{i}] ({ns.name}).kinematics.urdf: no file {urdf}")
             ns = msgspec.structs.replace(ns, kinematics=msgspec.structs.replace(k, urdf=str(urdf)))
         namespaces.append(ns)
-    return msgspec.structs.replace(profile, namespaces=namespaces)
+    profile = msgspec.structs.replace(profile, namespaces=namespaces)
+    tls = profile.transport.zenoh.tls if profile.transport.zenoh is not None else None
+    if tls is not None:  # PEM paths are relative to the profile file, as URDFs are
+        files = {f: str((path.parent / getattr(tls, f)).resolve()) for f in tls.__struct_fields__
+                 if isinstance(getattr(tls, f), str)}
+        zenoh = msgspec.structs.replace(profile.transport.zenoh, tls=msgspec.structs.replace(tls, **files))
+        profile = msgspec.structs.replace(profile, transport=Transport(zenoh=zenoh))
+    return profile
 
 
-def backend_config(profile: Profile, config_type: type, source: str = "<profile>") -> Any:
-    """Convert the profile's ``backend`` section into a backend's own ``Config`` struct."""
+def backend_config(profile: Profile, config_type: type, source: str = "<profile>", *, owner: str = "",
+                   required: dict[str, str] | None = None) -> Any:
+    """Convert the profile's ``backend`` section into a backend's own ``Config`` struct.
+
+    msgspec reports unknown and missing fields "at $" (no key name), so an unknown key (listing
+    ``owner``'s valid ones, nearest first) and each key of ``required`` (key -> what to give) are
+    named here first. Raises ProfileError."""
+    given = set(profile.backend) - {"type"}
+    fields = config_type.__struct_fields__
+    for key in sorted(given - set(fields)):
+        raise ProfileError(f"{source}: backend.{key}: {unknown_key_message(key, ['type', *fields], owner)}")
+    for key, what in (required or {}).items():
+        if key not in given:
+            raise ProfileError(f"{source}: backend.{key}: required, {what}")
     data = {k: v for k, v in profile.backend.items() if k != "type"}
     try:
         return msgspec.convert(data, config_type)

@@ -131,6 +131,11 @@ class EventCode(StrEnum):
     BUS_CORRUPT = "bus_corrupt"
     PORT_LOST = "port_lost"
     SERVO_ERROR = "servo_error"
+    TPDO_MISSING = "tpdo_missing"  # CANopen
+    HEARTBEAT_LOST = "heartbeat_lost"  # CANopen
+    NMT_STATE = "nmt_state"  # CANopen
+    DRIVE_FAULT = "drive_fault"  # CANopen
+    BUS_ERROR = "bus_error"  # CANopen
     TRACKING_ERROR = "tracking_error"
     INVALID_COMMAND = "invalid_command"
     BACKEND_EXCEPTION = "backend_exception"

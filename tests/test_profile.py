@@ -82,8 +82,12 @@ def _documented_structs() -> list[Any]:
     return [Profile, ServoJoint]
 
 
-#: keys that cannot coexist with the example's own (a one-bus robot): documented as commented YAML
-ALTERNATIVE_KEYS = {"backends"}
+#: keys that cannot coexist with the example's own (a one-bus robot), or whose section turns a
+#: transport on (transport.zenoh): documented as commented YAML
+ALTERNATIVE_KEYS = {"backends", "transport", "zenoh", "mode", "connect", "listen", "connect_timeout_s",
+                    "ros_domain_id", "publish_rate_hz", "tls", "access_control", "root_ca_certificate",
+                    "listen_certificate", "listen_private_key", "connect_certificate", "connect_private_key",
+                    "enable_mtls", "verify_name_on_connect"}
 
 
 def test_example_documents_every_model_key():
@@ -149,7 +153,7 @@ def load_bad(tmp_path: Path, data: Any, name: str = "bad.yaml") -> str:
 def test_unknown_top_level_key(tmp_path, base):
     base["colour"] = "red"
     msg = load_bad(tmp_path, base)
-    assert msg.endswith("bad.yaml: colour: unknown key; valid keys, nearest first: loop, description, "
+    assert msg.endswith("bad.yaml: colour: unknown key; valid keys, nearest first: loop, transport, description, "
                         "server, joints, backend, backends, shutdown, namespaces, name, safety")
 
 

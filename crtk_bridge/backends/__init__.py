@@ -13,6 +13,7 @@ from ..errors import BackendUnavailableError, ProfileError
 BACKENDS: dict[str, tuple[str, str]] = {
     "feetech": ("crtk_bridge.backends.feetech.backend", "FeetechBackend"),
     "dynamixel": ("crtk_bridge.backends.dynamixel.backend", "DynamixelBackend"),
+    "canopen402": ("crtk_bridge.backends.canopen402.backend", "Canopen402Backend"),
 }
 
 

@@ -55,7 +55,7 @@ import serial
 
 from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Fault, Lifecycle, Steps
 from ..errors import BackendError, ProfileError
-from ..profile import Profile, backend_config, unknown_key_message
+from ..profile import Profile, backend_config
 from .port_errors import open_error_reason, silent_bus_hint
 from .ports import resolve_port
 from .servo_keys import ServoJoint, servo_joints
@@ -273,16 +273,9 @@ class SerialServoBackend(Actuator):
     def __init__(self, profile: Profile, *, source: str = "<profile>"):
         super().__init__(profile, source=source)
         self.source = source
-        # msgspec reports unknown/missing fields "at $" (no key name); name the key ourselves.
-        given = set(profile.backend) - {"type"}
-        fields = self.Config.__struct_fields__
-        for key in sorted(given - set(fields)):
-            raise ProfileError(f"{source}: backend.{key}: "
-                               f"{unknown_key_message(key, ['type', *fields], f'the {self.vendor} backend')}")
-        if "port" not in given:
-            raise ProfileError(f"{source}: backend.port: required, the serial device (e.g. "
-                               f"/dev/serial/by-id/..., /dev/ttyACM0) or {{serial_number: ...}}")
-        self.config = backend_config(profile, self.Config, source)
+        self.config = backend_config(
+            profile, self.Config, source, owner=f"the {self.vendor} backend",
+            required={"port": "the serial device (e.g. /dev/serial/by-id/..., /dev/ttyACM0) or {serial_number: ...}"})
         cfg = self.config
         if cfg.baudrate not in self.SUPPORTED_BAUDS:
             raise ProfileError(f"{source}: backend.baudrate: {cfg.baudrate} is not supported; "

@@ -2,6 +2,7 @@
 
     from crtk_bridge.client import connect
     robot = connect(robot="so101")          # or connect(socket="/run/crtk-bridge/so101.sock")
+    # across the lab: connect(robot="so101", zenoh_connect="tcp/127.0.0.1:7447") (docs/zenoh.md)
     arm = robot.device("so101")             # arm.gripper is the "so101/gripper" namespace
     if arm.enable(5.0):
         p, ts = arm.measured_jp()
@@ -28,6 +29,7 @@ _EXPORTS = {
     "Event": "connection",
     "PROTOCOL_VERSION": "connection",
     "connect": "device",
+    "list_robots": "device",
     "resolve_socket": "device",
     "Robot": "device",
     "Device": "device",

@@ -22,7 +22,12 @@ command has no end and stops, so it needs --duration (docs/protocol.md, Client l
 
 Exit status: 0 on success; 1 when the daemon refuses a command (one line on stderr with the
 error code and the daemon's message), a wait times out or a state is not reached; 2 when no
-daemon answers (the line names the socket path) or the arguments are wrong; 130 on Ctrl-C.
+daemon answers (the line names the socket path, or the Zenoh endpoint with --zenoh-connect) or
+the arguments are wrong; 130 on Ctrl-C.
+
+Across machines: `crtk-ctl --zenoh-connect tcp/127.0.0.1:7447 --robot so101 state` reaches the
+daemon through a Zenoh router (docs/zenoh.md); `crtk-ctl --zenoh-connect ENDPOINT robots` lists
+the robots served there.
 """
 
 from __future__ import annotations
@@ -41,7 +46,8 @@ from crtk_bridge import __version__, vocabulary
 
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.client.device import (
-    CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, FRAMES, JS_TOPICS, Device, Robot, connect, encode_pose)
+    CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, FRAMES, JS_TOPICS, Device, Robot, connect, encode_pose,
+    list_robots)
 from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
 
 PROG = "crtk-ctl"
@@ -137,7 +143,11 @@ def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
     g.add_argument("--socket", metavar="PATH", default=d(None),
                    help="daemon socket path (default: from --robot, else the only socket)")
     g.add_argument("--robot", metavar="NAME", default=d(None),
-                   help="robot name: use its default socket path")
+                   help="robot name: use its default socket path (with --zenoh-connect: the robot "
+                        "on the Zenoh network)")
+    g.add_argument("--zenoh-connect", metavar="ENDPOINT", action="append", default=d(None),
+                   help="reach the daemon over Zenoh, through the router or peer at ENDPOINT "
+                        "(e.g. tcp/127.0.0.1:7447; repeatable) instead of the socket (docs/zenoh.md)")
     g.add_argument("--ns", metavar="NAMESPACE", default=d(None),
                    help="CRTK namespace, e.g. so101/gripper (default: the first one)")
     g.add_argument("--json", action="store_true", default=d(False),
@@ -177,6 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
     add("pause", "pause (ENABLED -> PAUSED)")
     add("resume", "resume (PAUSED -> ENABLED)")
     add("list", "print namespaces, joints and commands")
+    add("robots", "print the names of the robots reachable: those with a socket in the default "
+                  "directory, or with --zenoh-connect, those served on the Zenoh network")
     def add_frame(p):
         p.add_argument("--frame", choices=FRAMES, default="spatial",
                        help="twists and wrenches: spatial (base axes, default) or body (tip axes)")
@@ -657,7 +669,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     robot = None
     try:
         request_timeout = args.timeout if args.timeout is not None else 5.0
-        robot = connect(socket=args.socket, robot=args.robot, timeout=request_timeout)
+        if args.command == "robots":
+            names = list_robots(args.zenoh_connect, request_timeout)
+            _emit_json({"robots": names}) if args.json else print("\n".join(names))
+            return 0
+        robot = connect(socket=args.socket, robot=args.robot, timeout=request_timeout,
+                        zenoh_connect=args.zenoh_connect)
         return _run(args, robot)
     except KeyboardInterrupt:
         return 130

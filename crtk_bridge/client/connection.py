@@ -71,8 +71,37 @@ def encode_vector(values, what: str = "vector") -> list[float]:
     return out
 
 
+def _open_socket(path: str, timeout: float) -> socket.socket:
+    """Connect to the daemon's Unix socket; DaemonConnectionError naming ``path`` if none answers."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        sock.settimeout(timeout)
+        sock.connect(path)
+        sock.settimeout(None)
+    except FileNotFoundError as exc:
+        sock.close()
+        raise DaemonConnectionError(
+            f"crtk-bridge daemon not running: no socket at {path}") from exc
+    except ConnectionRefusedError as exc:
+        sock.close()
+        raise DaemonConnectionError(
+            f"crtk-bridge daemon not running: connection refused at {path} "
+            "(stale socket file?)") from exc
+    except PermissionError as exc:
+        sock.close()
+        raise DaemonConnectionError(
+            f"cannot connect to crtk-bridge at {path}: permission denied "
+            "(the socket is mode 0660: join its group)") from exc
+    except OSError as exc:
+        sock.close()
+        raise DaemonConnectionError(
+            f"cannot connect to crtk-bridge at {path}: {exc}") from exc
+    return sock
+
+
 class Connection:
-    """A session with one crtk-bridge daemon on the Unix socket ``path``.
+    """A session with one crtk-bridge daemon on the Unix socket ``path``, or over ``stream`` (an
+    open :class:`~crtk_bridge.client.zenoh_link.ZenohStream`; ``path`` then only names it).
 
     Opening connects at once and raises :class:`DaemonConnectionError` (a ``ConnectionError``)
     naming ``path`` if no daemon listens there. ``timeout`` (s) is the default reply timeout of
@@ -94,7 +123,7 @@ class Connection:
     - :attr:`on_event`: optional ``callable(Event)``, called on the reader thread.
     """
 
-    def __init__(self, path: str, timeout: float = 5.0, max_events: int = 256):
+    def __init__(self, path: str, timeout: float = 5.0, max_events: int = 256, stream: Any = None):
         self.path = str(path)
         self.timeout = float(timeout)
         self.cond = threading.Condition()
@@ -112,30 +141,9 @@ class Connection:
         self._closed_error: DaemonConnectionError | None = None
         self._closing = False
 
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        try:
-            sock.settimeout(self.timeout)
-            sock.connect(self.path)
-            sock.settimeout(None)
-        except FileNotFoundError as exc:
-            sock.close()
-            raise DaemonConnectionError(
-                f"crtk-bridge daemon not running: no socket at {self.path}") from exc
-        except ConnectionRefusedError as exc:
-            sock.close()
-            raise DaemonConnectionError(
-                f"crtk-bridge daemon not running: connection refused at {self.path} "
-                "(stale socket file?)") from exc
-        except PermissionError as exc:
-            sock.close()
-            raise DaemonConnectionError(
-                f"cannot connect to crtk-bridge at {self.path}: permission denied "
-                "(the socket is mode 0660: join its group)") from exc
-        except OSError as exc:
-            sock.close()
-            raise DaemonConnectionError(
-                f"cannot connect to crtk-bridge at {self.path}: {exc}") from exc
-        self._sock = sock
+        # the Unix socket at ``path``, or an open ``stream`` with the same methods (sendall, recv,
+        # shutdown, close): client/zenoh_link.ZenohStream, the protocol over Zenoh; ``path`` names it
+        self._sock = stream if stream is not None else _open_socket(self.path, self.timeout)
         self._reader = threading.Thread(
             target=self._read_loop, name=f"crtk-client-reader:{self.path}", daemon=True)
         self._reader.start()

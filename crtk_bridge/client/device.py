@@ -1000,6 +1000,18 @@ def _event_matches(ev: Event, kind: str | None, code: str | None, ns: str | None
     return True
 
 
+def list_robots(zenoh_connect: str | list[str] | None = None, timeout: float = 5.0) -> list[str]:
+    """The robots a client can reach, sorted: those with a socket in the default directory (see
+    :func:`~crtk_bridge.client.paths.find_sockets`), or with ``zenoh_connect``, those whose
+    daemons serve on the Zenoh network there (raises :class:`DaemonConnectionError` when the
+    endpoint does not answer)."""
+    if zenoh_connect:
+        from crtk_bridge.client.zenoh_link import list_robots as on_zenoh
+
+        return on_zenoh(zenoh_connect, timeout)
+    return sorted(os.path.basename(p)[:-len(".sock")] for p in find_sockets())
+
+
 def resolve_socket(socket: str | None = None, robot: str | None = None) -> str:
     """The socket path to use: ``socket`` if given, else the default path of ``robot`` (or its
     path under the systemd unit when only that exists), else the
@@ -1025,15 +1037,26 @@ def resolve_socket(socket: str | None = None, robot: str | None = None) -> str:
 
 
 def connect(socket: str | None = None, robot: str | None = None,
-            timeout: float = 5.0) -> Robot:
+            timeout: float = 5.0, zenoh_connect: str | list[str] | None = None) -> Robot:
     """Connect to a crtk-bridge daemon and return its :class:`Robot`.
 
     ``socket``: a socket path; else ``robot``: a robot name, at its default path; else the only
-    socket in the default directory. ``timeout`` (s): default reply timeout. Blocks for one
-    ``list`` round trip. Raises :class:`DaemonConnectionError` (a ``ConnectionError`` naming the
-    path) if no daemon answers there, :class:`CrtkBridgeError` on a protocol version mismatch.
+    socket in the default directory. ``zenoh_connect``: instead of a socket, the Zenoh router or
+    peer to join (an endpoint such as ``tcp/127.0.0.1:7447``, or several); ``robot`` chooses the
+    daemon there (default: the only one); docs/zenoh.md. ``timeout`` (s): default reply timeout.
+    Blocks for one ``list`` round trip. Raises :class:`DaemonConnectionError` (a
+    ``ConnectionError`` naming the path or endpoint) if no daemon answers there,
+    :class:`CrtkBridgeError` on a protocol version mismatch.
     """
-    conn = Connection(resolve_socket(socket, robot), timeout=timeout)
+    if zenoh_connect:
+        if socket:
+            raise CrtkBridgeError("give a socket path or a Zenoh endpoint (zenoh_connect), not both")
+        from crtk_bridge.client.zenoh_link import open_stream
+
+        stream = open_stream(zenoh_connect, robot, timeout)
+        conn = Connection(stream.name, timeout=timeout, stream=stream)
+    else:
+        conn = Connection(resolve_socket(socket, robot), timeout=timeout)
     try:
         info = conn.request("list")
         version = info.get("protocol_version")

@@ -352,6 +352,9 @@ class Actuator(abc.ABC):
     simulator: ClassVar[SimWiring | None] = None
     #: time limit (s) of each lifecycle transition; exceeding it faults the robot
     transition_timeouts_s: ClassVar[dict[Lifecycle, float]] = DEFAULT_TRANSITION_TIMEOUTS_S
+    #: True: PAUSE stops the device by itself (a CiA 402 quick stop ramp) and it holds where it
+    #: stopped, not where core's braking ramp ended; core takes the measured position on RESUME
+    stops_itself_on_pause: ClassVar[bool] = False
 
     def __init__(self, profile: Profile, *, source: str = "<profile>"):
         self.profile = profile

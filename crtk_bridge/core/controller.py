@@ -634,6 +634,9 @@ class Controller:
         return self.operating_state()
 
     def _resumed(self) -> dict:
+        if self.actuator.stops_itself_on_pause:  # the device holds where its own stop ended
+            for m in self.namespaces.values():
+                m.reset(self.feedback.position[m.idx])
         self._set_state(OperatingState.ENABLED)
         return self.operating_state()
 
@@ -804,7 +807,8 @@ class Controller:
         """Account for this cycle's read. A fault (after ``safety.bus_errors_max`` transient ones
         in a row, or at once for a non-transient one) puts the robot in FAULT, torque off. A joint
         whose measured position stays farther than ``safety.tracking_error_max`` from its position
-        command for TRACKING_CYCLES cycles does too."""
+        command for TRACKING_CYCLES cycles does too (not while the backend homes natively: the
+        drive moves by itself then, and core takes the homed position when it ends)."""
         self._cycle += 1
         active = self.state in (OperatingState.ENABLED, OperatingState.PAUSED)
         news = self.actuator.take_status()
@@ -830,7 +834,9 @@ class Controller:
         f.stamp = feedback.stamp
         if f.cartesian is not None and feedback.cartesian is not None:
             f.cartesian.copy_from(feedback.cartesian)  # the tip pose a native cartesian backend measures
-        if active and self._written:
+        run = self._running
+        native_home = run is not None and run.transition.kind is Lifecycle.HOME  # the drive moves itself
+        if active and self._written and not native_home:
             cmd = self.command
             err = np.abs(f.position - cmd.position)
             err[cmd.mode != CommandMode.POSITION] = 0.0

@@ -32,13 +32,16 @@ BACKLOG = 1024
 
 
 class Session:
-    def __init__(self, sid: int, writer: asyncio.StreamWriter):
+    """One client session: a socket connection, or a remote client over Zenoh (transport/tunnel.py
+    subclasses it; the server's control rules, streams and client-loss handling are the same)."""
+
+    def __init__(self, sid: int, writer: asyncio.StreamWriter | None, peer: str | None = None):
         self.id = sid
         self.writer = writer
         self.subs: dict[int, asyncio.Task] = {}
         self.dropped = 0
         self.closed = False
-        self.peer = _peer(writer)
+        self.peer = _peer(writer) if peer is None else peer
 
     def describe(self) -> str:
         """Who this session is, for refusals: ``session 3 (pid 1234 python3, uid 1000)``."""
@@ -56,6 +59,10 @@ class Session:
             self.dropped += 1
             return
         self.writer.write(encode(msg))
+
+    def close(self) -> None:
+        self.closed = True
+        self.writer.close()
 
 
 class Server:
@@ -78,6 +85,9 @@ class Server:
         self._server: asyncio.base_events.Server | None = None
         self.control_lost = asyncio.Event()
         self.shutting_down = False  # set before the control process is asked to stop
+        #: callables given every event the sessions get (operating_state, error, warning, status),
+        #: on the event loop: other transports (the ROS 2 graph) follow the robot through them
+        self.listeners: list = []
         #: every command and query this daemon knows (data typed by protocol.PAYLOADS, else none)
         self._known = set(self.commands) | set(TOPICS) | set(SESSION_COMMANDS) | {
             c for cs in self.cartesian.values() for c in cs.commands + cs.queries}
@@ -93,6 +103,11 @@ class Server:
             log.log(level, "%s [%s] %s", ev, d.get("code"), d.get("message"))
         for s in list(self.sessions.values()):
             s.send(msg)
+        for listener in self.listeners:
+            try:
+                listener(msg)
+            except Exception:
+                log.exception("%s: an event listener failed", self.robot)
 
     def on_control_lost(self) -> None:
         """The control process died: every client learns FAULT; the daemon exits non-zero."""
@@ -137,8 +152,7 @@ class Server:
         if self._server is not None:
             self._server.close()
             for s in list(self.sessions.values()):
-                s.closed = True
-                s.writer.close()
+                s.close()
             try:
                 await asyncio.wait_for(self._server.wait_closed(), 1.0)
             except (asyncio.TimeoutError, Exception):
@@ -150,10 +164,31 @@ class Server:
         except FileNotFoundError:
             pass
 
-    async def _session(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        s = Session(next(self._sids), writer)
+    def new_session_id(self) -> int:
+        return next(self._sids)
+
+    def attach(self, s: Session) -> None:
+        """Serve a new session: it gets the current operating_state at once (docs/protocol.md)."""
         self.sessions[s.id] = s
         s.send({"event": "operating_state", "data": self.state})
+
+    def detach(self, s: Session, client_lost: bool = True) -> None:
+        """A session ended (its socket closed, a remote client's liveliness token went away): its
+        streams stop and, if it held control, the control process hears of the client loss (the
+        robot stops safely: docs/protocol.md, Client loss). ``client_lost=False`` while the
+        daemon shuts down (the control process is stopping the robot already)."""
+        s.closed = True
+        for t in s.subs.values():
+            t.cancel()
+        self.sessions.pop(s.id, None)
+        if self.controller is s:
+            self.controller = None
+            if client_lost:
+                self.link.send_nowait("_client_lost")
+
+    async def _session(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        s = Session(self.new_session_id(), writer)
+        self.attach(s)
         try:
             while True:
                 try:
@@ -165,20 +200,16 @@ class Server:
                 except (asyncio.IncompleteReadError, ConnectionError):
                     break  # closed; a last line without its newline is not a request
                 if line.strip():  # blank lines are ignored (no reply)
-                    await self._handle(s, line)
+                    await self.handle_line(s, line)
                 if writer.transport.get_write_buffer_size() > 4 * SEND_BUFFER_LIMIT:
                     await writer.drain()  # replies pile up: the client is not reading
         finally:
-            s.closed = True
-            for t in s.subs.values():
-                t.cancel()
-            del self.sessions[s.id]
-            if self.controller is s:
-                self.controller = None
-                self.link.send_nowait("_client_lost")
+            self.detach(s)
             writer.close()
 
-    async def _handle(self, s: Session, line: bytes) -> None:
+    async def handle_line(self, s: Session, line: bytes) -> None:
+        """One request line of session ``s``; its reply (and any error) goes to ``s``. A session's
+        lines are handled one at a time, in order."""
         rid = None  # the reply's id: null until the envelope (id, cmd, ns) is valid
         try:
             req = decode_request(line)

@@ -1,12 +1,14 @@
 """Wire-level simulated devices: product code, not test code (DESIGN.md, "Simulators are product").
 
 Each simulator answers the vendor SDK's real packets on a real OS channel (a pseudo-terminal for
-serial buses), so ``--sim`` and the tests run the same backend code path as hardware.
+serial buses, TCP on loopback for a UR controller), so ``--sim`` and the tests run the same backend code path as hardware.
 
 - :mod:`crtk_bridge.sim.pty`      raw pseudo-terminal pair with an optional stable symlink
 - :mod:`crtk_bridge.sim.bus`      what both servo-bus simulators share (:class:`BusSimulator`)
 - :mod:`crtk_bridge.sim.feetech`  Feetech STS3215 servo bus (:class:`FeetechSimulator`)
 - :mod:`crtk_bridge.sim.dynamixel` Dynamixel X-series Protocol 2.0 bus (:class:`DynamixelSimulator`)
+- :mod:`crtk_bridge.sim.ur`       Universal Robots controller on a 127.x address (:class:`URSimulator`,
+  a subprocess; ``ur_wire`` RTDE codec, ``ur_robot`` arm and modes, ``ur_script`` rtde_control)
 - :mod:`crtk_bridge.sim.canopen402` CiA 402 drives on a CAN bus (:class:`CanopenSimulator`)
 - :mod:`crtk_bridge.sim.control`  JSON-lines control socket to inspect and change a running sim
 - :mod:`crtk_bridge.sim.cli`      ``crtk-sim`` console script
@@ -28,6 +30,7 @@ class SimulatorError(CrtkBridgeError):
 DEVICES: dict[str, tuple[str, str]] = {
     "feetech": ("crtk_bridge.sim.feetech", "FeetechSimulator"),
     "dynamixel": ("crtk_bridge.sim.dynamixel", "DynamixelSimulator"),
+    "ur": ("crtk_bridge.sim.ur", "URSimulator"),
     "canopen": ("crtk_bridge.sim.canopen402", "CanopenSimulator"),
 }
 

@@ -4,6 +4,8 @@
                      [--emulate-baud] [--torque-delay S] [--log-level info]
     crtk-sim dynamixel --profile profiles/koch.yaml --link /tmp/ttySIM [...same options]
     crtk-sim feetech --profile profiles/bimanual_so101.yaml --bus left --link /tmp/ttyLEFT
+    crtk-sim ur --profile profiles/ur5e.yaml --host 127.0.0.2 [--control /tmp/ur.ctl]
+                [--series e-series|cb3] [--power-on-s S] [--brake-release-s S] [--unlock-delay-s S]
 
 Day-one buses (what `crtk-bridge setup-servos` and `check --scan --all-bauds` meet on a new arm):
 
@@ -60,7 +62,58 @@ def _parser() -> argparse.ArgumentParser:
                        help="the servo with this id is of another model; repeatable")
         d.add_argument("--log-level", default="warning",
                        choices=["debug", "info", "warning", "error"], help="default: warning")
+    u = sub.add_parser("ur", help="Universal Robots controller (UR5e): RTDE 30004, dashboard 29999, "
+                                  "script 30003 on a loopback address")
+    u.add_argument("--profile", required=True, help="robot profile (YAML): six joints, their limits and home")
+    u.add_argument("--host", required=True,
+                   help="address to serve on, e.g. 127.0.0.2 (the ports are fixed; 'auto': a free 127.0.0.N)")
+    u.add_argument("--control", help="serve the JSON-lines control socket at this path")
+    u.add_argument("--series", choices=["e-series", "cb3"],
+                   help="controller generation: e-series (500 Hz) or cb3 (125 Hz); default: the "
+                        "profile's backend.series, else e-series")
+    u.add_argument("--power-on-s", type=float, default=0.3, metavar="S", help="power on -> IDLE (default 0.3)")
+    u.add_argument("--brake-release-s", type=float, default=0.5, metavar="S",
+                   help="brake release -> RUNNING (default 0.5)")
+    u.add_argument("--unlock-delay-s", type=float, default=5.0, metavar="S",
+                   help="a protective stop may be unlocked this long after it (default 5, as UR)")
+    u.add_argument("--log-level", default="warning",
+                   choices=["debug", "info", "warning", "error"], help="default: warning")
     return p
+
+
+def _serve(sim, ready_line: str) -> int:
+    """Print ``ready_line``, then wait for SIGTERM / SIGINT (signals already blocked) while
+    ``sim.running``; stop it either way."""
+    try:
+        print(ready_line, flush=True)
+        while True:
+            if signal.sigtimedwait(_SIGNALS, _HEALTH_CHECK_S) is not None:
+                return 0
+            if not sim.running:
+                print("crtk-sim: the simulator thread died (see the log above)", file=sys.stderr)
+                return 1
+    finally:
+        sim.stop()
+
+
+def _main_ur(args, profile) -> int:
+    import numpy as np
+
+    from .ur import URController, free_loopback_host, profile_options
+    from .ur_robot import Limits, Timings
+
+    try:
+        opts = profile_options(profile)
+        host = free_loopback_host() if args.host == "auto" else args.host
+        sim = URController(host, q0=opts["q0"], limits=Limits(np.array(opts["lower"]), np.array(opts["upper"])),
+                           series=args.series or opts["series"], control=args.control,
+                           timings=Timings(args.power_on_s, args.brake_release_s, args.unlock_delay_s))
+        sim.start()
+    except CrtkBridgeError as exc:
+        print(f"crtk-sim: {exc}", file=sys.stderr)
+        return 1
+    return _serve(sim, f"crtk-sim: ur controller ready: host={sim.host} rtde=30004 dashboard=29999 "
+                       f"script=30003 series={sim.series} rate={sim.rate_hz:g}Hz control={sim.control_path or '-'}")
 
 
 def _day_one(sim, args) -> None:
@@ -92,6 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     except ProfileError as exc:
         print(f"crtk-sim: {exc}", file=sys.stderr)
         return 2
+    if args.device == "ur":  # signals blocked before any thread exists, as below
+        signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+        return _main_ur(args, profile)
     if profile.backends is not None or args.bus is not None:
         if args.bus not in profile.bus_names:
             print(f"crtk-sim: {args.profile}: --bus must name one of the profile's buses "
@@ -116,18 +172,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"crtk-sim: cannot start the simulator: {exc}", file=sys.stderr)
         return 1
-    try:
-        print(f"crtk-sim: {args.device} bus ready: port={sim.port} pty={sim.pty_path} "
-              f"control={sim.control_path or '-'} ids={','.join(map(str, sim.ids))} "
-              f"baud={sim.baudrate}{' (emulated)' if sim.emulate_baud else ''}", flush=True)
-        while True:
-            if signal.sigtimedwait(_SIGNALS, _HEALTH_CHECK_S) is not None:
-                return 0
-            if not sim.running:
-                print("crtk-sim: the simulator thread died (see the log above)", file=sys.stderr)
-                return 1
-    finally:
-        sim.stop()
+    return _serve(sim, f"crtk-sim: {args.device} bus ready: port={sim.port} pty={sim.pty_path} "
+                       f"control={sim.control_path or '-'} ids={','.join(map(str, sim.ids))} "
+                       f"baud={sim.baudrate}{' (emulated)' if sim.emulate_baud else ''}")
 
 
 if __name__ == "__main__":

@@ -45,6 +45,8 @@ class Row:
     goal: Callable[[object, int], int]  # raw goal register (unit of the device)
     present: Callable[[object, int], int]  # raw position register
     error_latched: bool  # the error stays until enable resets the device (Dynamixel reboot)
+    set_present: Callable[[object, int, int], None]  # move the device's shaft (raw position) by hand
+    error_code: str = "servo_error"  # the fault code of inject_error
 
 
 def _servo_id(profile: Profile, i: int) -> int:
@@ -63,12 +65,31 @@ def _servo_row(backend: str, profile: str, latched: bool) -> Row:
         goal=lambda sim, sid: sim.servo(sid).read("Goal_Position"),
         present=lambda sim, sid: sim.servo(sid).read("Present_Position"),
         error_latched=latched,
+        set_present=lambda sim, sid, raw: sim.servo(sid).write("Present_Position", raw),
     )
+
+
+def _node_id(profile: Profile, i: int) -> int:
+    return int(profile.joints[i].backend["node_id"])
 
 
 ROWS = {
     "feetech": _servo_row("feetech", "so101.yaml", latched=False),
     "dynamixel": _servo_row("dynamixel", "koch.yaml", latched=True),
+    # CiA 402 drives (crtk_bridge.sim.canopen402, in process on a python-can virtual channel):
+    # an EMCY faults the drive, which stays in FAULT until the master's fault reset (enable)
+    "canopen402": Row(
+        backend="canopen402", profile=ROOT / "profiles" / "canopen_2axis.yaml", device=_node_id,
+        silence=lambda sim, nid: sim.set_fault(nid, "silent"),
+        inject_error=lambda sim, nid: sim.set_fault(nid, "emcy", 0x5000),
+        clear_errors=lambda sim: sim.clear_faults(),
+        torque=lambda sim, nid: sim.drive(nid).enabled,
+        goal=lambda sim, nid: sim.drive(nid).target_position,
+        present=lambda sim, nid: round(sim.drive(nid).position),
+        error_latched=True,
+        set_present=lambda sim, nid, raw: sim.drive(nid).set_position(raw),
+        error_code="drive_fault",
+    ),
 }
 #: several buses in one robot (backends/composite.py): two SO-101 arms on two simulated Feetech
 #: buses. Its device ids are BusSims keys (bus index * 1000 + servo id).
@@ -162,6 +183,9 @@ class Rig:
             self.sim = simulator_class(cls.simulator.device).from_profile(profile)
             self.sim.start()
             self.profile = cls.sim_profile(profile, self.sim.port)
+            if getattr(self.sim, "interface", None) == "virtual":  # an in-process CAN simulator
+                self.profile = msgspec.structs.replace(
+                    self.profile, backend={**self.profile.backend, "interface": "virtual", "options": {}})
             self.backend = cls(self.profile)
         self.backend.open()
         self.backend.configure()
@@ -211,6 +235,13 @@ class Rig:
 
     def events(self, kind: str) -> list[dict]:
         return [m["data"] for m in self.controller.outbox if m.get("event") == kind]
+
+    def exchange(self) -> None:
+        """One write of a hold command then the read: a backend whose read takes what answered
+        the previous write (CANopen: the TPDOs answering the write's SYNC) sees a change on the
+        bus only then; a serial backend's read is its own transaction either way."""
+        cmd = self.backend.new_command()
+        self.backend.write(cmd)
 
     def measured(self) -> np.ndarray:
         assert self.backend.read(self.fb) is None

@@ -1,0 +1,965 @@
+"""CANopen CiA 402 drives on one CAN bus: one drive (node id) per joint, CSP / CSV / CST.
+
+Built on ``canopen`` (object dictionaries, SDO client, NMT, EMCY consumer, PDO maps) over
+``python-can`` (any interface it speaks: socketcan, slcan, pcan, kvaser, socketcand, virtual...).
+What the library does not do, or does in a way a real-time loop cannot use, is done here
+(``../shared/reference/canopen-ur.md`` part A):
+
+* **The loop paces the bus.** Every cycle, in every operating state, ``write`` sets each drive's
+  RPDOs (controlword, target position, mode; target velocity and torque where the drive has
+  CSV / CST) and transmits them with ``PdoMap.transmit()``, then ONE SYNC
+  (``SyncProducer.transmit()``); the drives apply the RPDOs at that SYNC (CiA 301: SYNC-type
+  RPDOs take effect at the next SYNC) and answer with their SYNC-type TPDOs (statusword,
+  position, mode display; velocity, torque). ``read`` takes the TPDOs that answered the previous
+  SYNC. No library thread sends anything periodic (its ``start()`` threads are not locked to the
+  loop, and its setters do not send SYNC-type RPDOs at all). A TPDO that has not arrived
+  ``tpdo_timeout_ms`` after its SYNC is missing: a transient ``tpdo_missing`` fault naming the
+  node (core faults after ``safety.bus_errors_max`` in a row).
+* **Heartbeat consumer** (the library has none): each node's heartbeat is timed here; a node
+  silent beyond ``heartbeat_timeout_ms`` is a ``heartbeat_lost`` fault naming it, a node whose
+  heartbeat leaves OPERATIONAL (a reboot) a ``nmt_state`` fault.
+* **EMCY** -> device status FAULT naming the node, the code and its meaning (tables.py).
+* **The CiA 402 state machine** is walked across cycles from ``tables.WALK`` (never the library's
+  blocking ``state`` setter): each step sets the controlword the next SYNC carries and looks at
+  the statusword the SYNC after brings back. Fault reset is a rising edge of bit 7 (bit 7 low
+  for one cycle first; canopen's ``reset_from_fault`` is broken, canopen issue #261).
+* **Bus errors** (a failed send, the interface's receive error, a bus-off error frame) fault the
+  robot; the bus is reopened on a worker thread and the reads resume once it is back.
+
+Blocking SDO traffic happens only at ``open`` / ``configure`` and inside lifecycle transitions
+(``on_worker``), never in ``read`` / ``write``. Transitions run inside the loop (whose
+``write`` carries their controlwords) or outside it (``Actuator.run``: start-up, shutdown,
+tests); outside, each step exchanges one SYNC itself (:meth:`Canopen402Backend._pump`).
+
+Units (raw counts never leave this module), per joint, ``k = 2*pi / (counts_per_revolution *
+gear_ratio)`` for ``unit: rad`` (``1 / (...)`` for ``unit: m``):
+
+* position  = direction * (counts - offset) * k
+* velocity  = direction * (velocity units / velocity_factor) * k
+* effort    = direction * per mille / 1000 * rated torque (N*m) * gear_ratio  (x 2*pi for m: N)
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import can
+import canopen
+import msgspec
+import numpy as np
+from canopen.sdo.exceptions import SdoError
+
+from ...core.actuator import (
+    Actuator,
+    ActuatorInfo,
+    Capabilities,
+    CommandMode,
+    DeviceStatus,
+    Fault,
+    FaultReaction,
+    JointCommand,
+    JointFeedback,
+    Lifecycle,
+    SimWiring,
+    Steps,
+    on_worker,
+)
+from ...errors import BackendError, ProfileError
+from ...profile import Profile, backend_config, joint_keys
+from . import tables as t
+from .od import standard_402
+from .tables import Command, Goal, Mode, State402
+
+PDO_NOT_VALID = 1 << 31
+I32 = (-(2**31), 2**31 - 1)
+I16 = (-(2**15), 2**15 - 1)
+_RING = 64  # SYNC send times kept (stamps of late answers, TPDO deadlines)
+CAN_ERR_BUSOFF = 0x00000040  # SocketCAN error class in an error frame's id (linux/can/error.h)
+
+_POSITION, _VELOCITY, _EFFORT, _FREE = (int(CommandMode.POSITION), int(CommandMode.VELOCITY),
+                                        int(CommandMode.EFFORT), int(CommandMode.FREE))
+_CSP, _CSV, _CST, _HM = (int(Mode.CYCLIC_SYNC_POSITION), int(Mode.CYCLIC_SYNC_VELOCITY),
+                         int(Mode.CYCLIC_SYNC_TORQUE), int(Mode.HOMING))
+
+
+# ---------------------------------------------------------------- profile keys
+class Homing(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
+    """A joint's CiA 402 homing (mode 6), run by ``home``; absent = absolute encoder."""
+
+    method: Annotated[int, msgspec.Meta(ge=-128, le=127)]  # 0x6098, e.g. 35 / 37 = current position
+    speed_switch: Annotated[float, msgspec.Meta(gt=0)] = 0.2  # rad/s (m/s): 0x6099:1
+    speed_zero: Annotated[float, msgspec.Meta(gt=0)] = 0.05  # rad/s (m/s): 0x6099:2
+    acceleration: Annotated[float, msgspec.Meta(gt=0)] = 1.0  # rad/s^2 (m/s^2): 0x609A
+
+
+class DriveJoint(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
+    """A joint's CANopen keys (beside its generic ones in the profile)."""
+
+    node_id: Annotated[int, msgspec.Meta(ge=1, le=127)]
+    counts_per_revolution: Annotated[int, msgspec.Meta(gt=0)]  # encoder counts per motor turn
+    gear_ratio: Annotated[float, msgspec.Meta(gt=0)] = 1.0  # motor turns per joint turn (per metre: unit m)
+    direction: Literal[1, -1] = 1
+    offset: int = 0  # counts at joint zero
+    unit: Literal["rad", "m"] = "rad"
+    velocity_factor: Annotated[float, msgspec.Meta(gt=0)] = 1.0  # drive velocity units per count/s
+    rated_torque: Annotated[float, msgspec.Meta(gt=0)] | None = None  # motor N*m at 1000 per mille; None: 0x6076
+    eds: str | None = None  # the drive's EDS file (relative to the profile); None: standard 402 objects
+    homing: Homing | None = None
+
+
+class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
+    """The ``backend:`` section of a profile with ``type: canopen402``."""
+
+    interface: str = "socketcan"  # python-can interface name
+    channel: str  # python-can channel: can0, /dev/ttyACM0 (slcan), a pty (--sim)...
+    bitrate: Annotated[int, msgspec.Meta(gt=0, le=1_000_000)] = 1_000_000
+    options: dict[str, Any] = {}  # further python-can Bus arguments (host/port for socketcand...)
+    boot_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=120)] = 5.0  # per node
+    heartbeat_ms: Annotated[int, msgspec.Meta(ge=1, le=65535)] = 100  # producer time written to 0x1017
+    heartbeat_timeout_ms: Annotated[float, msgspec.Meta(gt=0, le=60000)] = 350.0  # consumer
+    tpdo_timeout_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] | None = None  # None: three loop periods
+    sdo_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=10)] = 0.3
+
+
+# ---------------------------------------------------------------- one drive
+class _Drive:
+    """One node: its canopen objects, the last TPDO values (raw) and the next RPDO values."""
+
+    def __init__(self, i: int, name: str, keys: DriveJoint, limits: Any):
+        self.i = i
+        self.name = name
+        self.keys = keys
+        self.id = keys.node_id
+        self.label = f"joint {name!r} (node {keys.node_id})"
+        k = 1.0 / (keys.counts_per_revolution * keys.gear_ratio)
+        if keys.unit == "rad":
+            k *= 2.0 * math.pi
+        self.k_pos = keys.direction * k  # SI per count (signed)
+        self.k_vel = keys.direction * k / keys.velocity_factor  # SI/s per velocity unit
+        self.k_eff: float | None = None  # N*m (N) per per mille; set at open
+        self.pos_min, self.pos_max = limits.position_min, limits.position_max
+        self.vel_max = limits.velocity_max
+        self.eff_max = limits.effort_max
+        self.node: canopen.RemoteNode | None = None
+        self.supported = 0  # 0x6502
+        self.csv = self.cst = False
+        self.tpdos: list[Any] = []
+        self.rpdo1: Any = None
+        self.rpdo2: Any = None
+        self.v: dict[int, Any] = {}  # object index -> PdoVariable (RPDO and TPDO entries)
+        # last TPDO values (raw) and the SYNC count they answered
+        self.sw = 0
+        self.state: State402 | None = None
+        self.pos = 0
+        self.vel = 0
+        self.torque = 0
+        self.mode_display = 0
+        # per TPDO: frames arrived, and the offset that makes "arrived - base == SYNCs sent" when
+        # every SYNC was answered (a TPDO answering an older SYNC late must not pass for fresh)
+        self.arrived = [0, 0]
+        self.base = [0, 0]
+        self.missed = 0  # consecutive reads with a TPDO missing
+        # next RPDO values
+        self.cw = int(Command.DISABLE_VOLTAGE)
+        self.mode = _CSP
+        self.target_pos = 0
+        self.target_vel = 0
+        self.target_torque = 0
+        self.homing = False
+        # heartbeat consumer and EMCY (written by the notifier thread)
+        self.hb_t = 0.0  # monotonic time of the last heartbeat
+        self.nmt = t.NMT_OPERATIONAL
+        self.started_t = 0.0  # monotonic time of our NMT start
+        self.rebooted = False
+        self.emcy: tuple[int, int] | None = None  # (code, error register) not yet reset
+
+    def counts(self, si: float) -> int:
+        """Counts of position ``si`` (finite), clipped to the joint's limits and to I32."""
+        si = min(max(si, self.pos_min), self.pos_max)
+        c = round(self.keys.offset + si / self.k_pos)
+        return min(max(c, I32[0]), I32[1])
+
+
+class _BusWatch(can.Listener):
+    """Sees what canopen's listener drops: the interface's receive errors and error frames."""
+
+    def __init__(self, backend: "Canopen402Backend"):
+        self.backend = backend
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.backend._error_frames += 1
+            if msg.arbitration_id & CAN_ERR_BUSOFF:
+                self.backend._bus_down = "bus-off (error frame)"
+
+    def on_error(self, exc: Exception) -> None:
+        # the notifier calls this on every failing recv; a dead interface would spin it
+        self.backend._bus_down = f"{type(exc).__name__}: {exc}"
+        time.sleep(0.05)
+
+
+# ---------------------------------------------------------------- the backend
+class Canopen402Backend(Actuator):
+    """CiA 402 drives on one CAN bus. See the module docstring.
+
+    Constructing validates the profile (ProfileError naming the key); nothing touches the bus
+    before :meth:`open`.
+    """
+
+    capabilities = Capabilities(position=True, velocity=False, effort=False, measures_velocity=True,
+                                measures_effort=False, needs_homing=False, can_free=False)
+    extra = "canopen402"
+    fault_reaction = FaultReaction.TORQUE_OFF  # the DISABLE transition: disable voltage on every drive
+    cyclic_write = True  # SYNC + RPDOs every cycle, in every state
+    stops_itself_on_pause = True  # pause is the drives' own quick stop
+    simulator = SimWiring("canopen", endpoint_key="channel")
+    #: the interface ``--sim`` uses to reach the simulated USB-CAN adapter
+    SIM_INTERFACE = "slcan"
+    #: ``tpdo_timeout_ms`` on the simulator unless the profile sets one
+    SIM_TPDO_TIMEOUT_MS = 50.0
+    transition_timeouts_s = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 3.0,
+                             Lifecycle.RESUME: 3.0, Lifecycle.FAULT_RESET: 2.0, Lifecycle.HOME: 60.0}
+    #: cycles a drive's statusword may stay missing inside a transition before it fails
+    TRANSITION_MISSED_MAX = 25
+
+    def __init__(self, profile: Profile, *, source: str = "<profile>"):
+        super().__init__(profile, source=source)
+        self.source = source
+        self.config: Config = backend_config(
+            profile, Config, source, owner="the canopen402 backend",
+            required={"channel": "the python-can channel (e.g. can0 for socketcan, /dev/ttyACM0 for slcan)"})
+        cfg = self.config
+        if cfg.heartbeat_timeout_ms <= cfg.heartbeat_ms:
+            raise ProfileError(f"{source}: backend.heartbeat_timeout_ms: {cfg.heartbeat_timeout_ms} must be "
+                               f"longer than backend.heartbeat_ms ({cfg.heartbeat_ms})")
+        keys = joint_keys(profile, DriveJoint, "canopen402", source)
+        seen: dict[int, str] = {}
+        for i, (j, k) in enumerate(zip(profile.joints, keys)):
+            if k.node_id in seen:
+                raise ProfileError(f"{source}: joints[{i}] ({j.name}).node_id: {k.node_id} is also "
+                                   f"joint {seen[k.node_id]!r}'s")
+            seen[k.node_id] = j.name
+        self.drives = [_Drive(i, j.name, k, j.limits) for i, (j, k) in enumerate(zip(profile.joints, keys))]
+        self._period_s = 1.0 / profile.loop.rate_hz
+        self._tpdo_timeout_s = (cfg.tpdo_timeout_ms / 1000.0 if cfg.tpdo_timeout_ms is not None
+                                else 3 * self._period_s)
+        self._hb_timeout_s = cfg.heartbeat_timeout_ms / 1000.0
+        self._joint_caps = [self.capabilities] * self.n
+        self._network: canopen.Network | None = None
+        self._rx_event = threading.Event()
+        self._sync_seq = 0  # SYNCs sent
+        self._sync_t = 0.0  # monotonic time of the last SYNC
+        self._sync_mono = [0.0] * _RING  # monotonic time of SYNC n at [n % _RING]
+        self._sync_wall = [0.0] * _RING  # its wall-clock time: the stamp of the samples answering it
+        self._reads = 0  # reads that took the drives' TPDOs (the loop's)
+        self._seen_reads = 0  # self._reads at a transition's previous step
+        self._bus_down: str | None = None  # why the bus failed; None: up
+        self._reopening: threading.Thread | None = None
+        self._error_frames = 0
+        self._error_frames_seen = 0
+        self._paused_by_us = False
+        self._details: dict[str, Any] = {}
+        #: statistics for bench/ (counted in read / write)
+        self.stats = {"syncs": 0, "rpdos": 0, "tpdos_missed": 0, "reads": 0}
+
+    # ------------------------------------------------------------------ sim wiring
+    @classmethod
+    def sim_profile(cls, profile: Profile, endpoint: str) -> Profile:
+        """The profile wired to the simulated USB-CAN adapter at ``endpoint`` (its channel), on
+        the adapter's interface."""
+        wired = super().sim_profile(profile, endpoint)
+        options = {**wired.backend.get("options", {}), **cls.sim_options()}
+        backend = {**wired.backend, "interface": cls.SIM_INTERFACE, "options": options}
+        # the simulated adapter and drives are Python threads in another process: on a loaded
+        # host their answers can take tens of ms (a real drive answers within a millisecond)
+        backend.setdefault("tpdo_timeout_ms", cls.SIM_TPDO_TIMEOUT_MS)
+        return msgspec.structs.replace(wired, backend=backend)
+
+    @classmethod
+    def sim_options(cls) -> dict[str, Any]:
+        """python-can arguments for the simulated adapter (no 2 s settle after opening a pty)."""
+        return {"sleep_after_open": 0} if cls.SIM_INTERFACE == "slcan" else {}
+
+    # ------------------------------------------------------------------ info
+    def info(self) -> ActuatorInfo:
+        return ActuatorInfo(list(self.joint_names), self.capabilities, dict(self._details))
+
+    def joint_capabilities(self, i: int) -> Capabilities:
+        return self._joint_caps[i]
+
+    @property
+    def native_homing(self) -> bool:
+        return any(d.keys.homing is not None for d in self.drives)
+
+    @property
+    def _where(self) -> str:
+        return f"{self.config.interface} {self.config.channel}"
+
+    # ------------------------------------------------------------------ start-up
+    def _connect(self) -> canopen.Network:
+        cfg = self.config
+        network = canopen.Network()
+        network.NOTIFIER_CYCLE = 0.05  # disconnect() waits up to this (default 1 s)
+        try:
+            network.connect(interface=cfg.interface, channel=cfg.channel, bitrate=cfg.bitrate, **cfg.options)
+        except (can.CanError, OSError, ValueError, TypeError, ImportError) as exc:
+            raise BackendError(f"{self.robot}: cannot open CAN interface {self._where} "
+                               f"(backend.interface / backend.channel): {exc}") from exc
+        network.notifier.add_listener(_BusWatch(self))
+        return network
+
+    def _open_hook(self) -> None:
+        """Open the bus, wait for every node to boot (boot-up, heartbeat or an SDO answer, within
+        ``boot_timeout_s`` each), check it is a CiA 402 drive, read its supported modes and rated
+        torque. Blocks. Raises BackendError naming the node."""
+        quiet = logging.getLogger("canopen")
+        if quiet.level == logging.NOTSET:  # its INFO lines narrate every SDO of the PDO set-up
+            quiet.setLevel(logging.WARNING)
+        network = self._connect()
+        self._network = network
+        try:
+            for d in self.drives:
+                self._add_node(d)
+            for d in self.drives:
+                self._boot(d)
+                self._identify(d)
+        except BaseException:
+            self._disconnect()
+            raise
+        self.capabilities = self._combined_caps()
+        self._details = {
+            "interface": self.config.interface, "channel": self.config.channel, "bitrate": self.config.bitrate,
+            "nodes": {d.name: d.id for d in self.drives},
+            "supported_modes": {d.name: f"0x{d.supported:08X}" for d in self.drives},
+        }
+
+    def _add_node(self, d: _Drive) -> None:
+        eds = d.keys.eds
+        if eds is not None:
+            path = Path(eds)
+            if not path.is_absolute() and Path(self.source).is_file():
+                path = Path(self.source).parent / path
+            try:
+                od = canopen.import_od(str(path), d.id)
+            except Exception as exc:  # the parser raises whatever the file trips
+                raise BackendError(f"{self.robot}: {d.label}: cannot read EDS {path} "
+                                   f"(joints[{d.i}].eds): {exc}") from exc
+        else:
+            od = standard_402()
+        node = canopen.RemoteNode(d.id, od)
+        self._network.add_node(node)
+        node.sdo.RESPONSE_TIMEOUT = self.config.sdo_timeout_s
+        d.node = node
+
+        def heartbeat(state: int, d: _Drive = d) -> None:  # notifier thread
+            d.hb_t = time.monotonic()
+            d.nmt = state
+            if state == t.NMT_BOOTUP:
+                d.rebooted = True
+            self._rx_event.set()
+
+        def emcy(err: Any, d: _Drive = d) -> None:  # notifier thread
+            d.emcy = None if err.code & 0xFF00 == 0 else (err.code, err.register)
+
+        node.nmt.add_heartbeat_callback(heartbeat)
+        node.emcy.add_callback(emcy)
+        d.tpdos = [node.tpdo[1], node.tpdo[2]]
+        for m, pdo in enumerate(d.tpdos):
+            def got(_map: Any, d: _Drive = d, m: int = m) -> None:  # notifier thread
+                d.arrived[m] += 1
+                self._rx_event.set()
+
+            pdo.add_callback(got)
+        d.rpdo1, d.rpdo2 = node.rpdo[1], node.rpdo[2]
+
+    def _boot(self, d: _Drive) -> None:
+        """Wait until node ``d`` is up: a boot-up or heartbeat seen, or an SDO answer."""
+        deadline = time.monotonic() + self.config.boot_timeout_s
+        last: Exception | None = None
+        while True:
+            if d.hb_t:
+                return
+            try:
+                d.node.sdo.upload(t.DEVICE_TYPE, 0)
+                return
+            except (SdoError, can.CanError) as exc:
+                last = exc
+            if time.monotonic() > deadline:
+                raise BackendError(
+                    f"{self.robot}: {d.label} did not boot within {self.config.boot_timeout_s:g} s "
+                    f"(backend.boot_timeout_s) on {self._where}: no boot-up, heartbeat or SDO answer"
+                    f"{f' ({last})' if last else ''}")
+            time.sleep(0.02)
+
+    def _sdo_read(self, d: _Drive, index: int, sub: int = 0) -> int:
+        try:
+            return d.node.sdo[index].raw if sub == 0 else d.node.sdo[index][sub].raw
+        except (SdoError, can.CanError, KeyError) as exc:
+            raise BackendError(f"{self.robot}: {d.label}: reading 0x{index:04X}:{sub} on {self._where} "
+                               f"failed: {exc}") from exc
+
+    def _sdo_write(self, d: _Drive, index: int, value: int, sub: int = 0) -> None:
+        try:
+            if sub == 0:
+                d.node.sdo[index].raw = value
+            else:
+                d.node.sdo[index][sub].raw = value
+        except (SdoError, can.CanError, KeyError, ValueError) as exc:
+            raise BackendError(f"{self.robot}: {d.label}: writing 0x{index:04X}:{sub} = {value} on "
+                               f"{self._where} failed: {exc}") from exc
+
+    def _identify(self, d: _Drive) -> None:
+        device_type = self._sdo_read(d, t.DEVICE_TYPE)
+        if device_type & 0xFFFF != t.DEVICE_PROFILE_402:
+            raise BackendError(f"{self.robot}: {d.label} is not a CiA 402 drive (device type 0x1000 = "
+                               f"0x{device_type:08X}, profile {device_type & 0xFFFF})")
+        d.supported = self._sdo_read(d, t.SUPPORTED_MODES)
+        if not t.supports(d.supported, Mode.CYCLIC_SYNC_POSITION):
+            raise BackendError(f"{self.robot}: {d.label} does not support cyclic synchronous position "
+                               f"(0x6502 = 0x{d.supported:08X}), which holding a joint needs")
+        d.csv = t.supports(d.supported, Mode.CYCLIC_SYNC_VELOCITY)
+        d.cst = t.supports(d.supported, Mode.CYCLIC_SYNC_TORQUE)
+        if d.keys.homing is not None and not t.supports(d.supported, Mode.HOMING):
+            raise BackendError(f"{self.robot}: {d.label} does not support homing mode (0x6502 = "
+                               f"0x{d.supported:08X}) but joints[{d.i}].homing is set")
+        rated = d.keys.rated_torque
+        if rated is None:
+            try:
+                mnm = d.node.sdo[t.RATED_TORQUE].raw
+                rated = mnm / 1000.0 if mnm else None
+            except (SdoError, can.CanError, KeyError):
+                rated = None  # no torque scale: effort neither measured nor commanded
+        if rated is not None:
+            lever = d.keys.gear_ratio * (2.0 * math.pi if d.keys.unit == "m" else 1.0)
+            d.k_eff = d.keys.direction * rated / 1000.0 * lever
+        caps = Capabilities(position=True, velocity=d.csv, effort=d.cst and d.k_eff is not None,
+                            measures_velocity=True, measures_effort=d.k_eff is not None,
+                            needs_homing=d.keys.homing is not None, can_free=d.cst)
+        self._joint_caps[d.i] = caps
+
+    def _combined_caps(self) -> Capabilities:
+        from ...core.actuator import combine_capabilities
+
+        return combine_capabilities(self._joint_caps)
+
+    def _configure_hook(self) -> None:
+        """Per node: NMT PRE-OPERATIONAL, heartbeat producer, the PDO mapping (SDO, CiA 301
+        remap procedure via ``PdoMap.save``), homing parameters; NMT OPERATIONAL; then one SYNC
+        whose TPDOs every node must answer. The drives are left in SWITCH ON DISABLED (controlword
+        disable voltage): the robot starts DISABLED. Blocks. Raises BackendError naming the node."""
+        self._require_open()
+        for d in self.drives:
+            self._configure_node(d)
+        self._prime()
+
+    def _require_open(self) -> None:
+        if self._network is None:
+            raise BackendError(f"{self.robot}: the CAN bus is not open; call open() first")
+
+    def _configure_node(self, d: _Drive) -> None:
+        node = d.node
+        node.nmt.state = "PRE-OPERATIONAL"
+        self._sdo_write(d, t.HEARTBEAT_PRODUCER, self.config.heartbeat_ms)
+        try:
+            self._map_pdos(d)
+        except (SdoError, can.CanError, KeyError, ValueError) as exc:
+            raise BackendError(f"{self.robot}: {d.label}: configuring its PDOs on {self._where} failed: "
+                               f"{exc}") from exc
+        h = d.keys.homing
+        if h is not None:
+            per_si = 1.0 / abs(d.k_pos)
+            self._sdo_write(d, t.HOMING_METHOD, h.method)
+            self._sdo_write(d, t.HOMING_SPEEDS, round(h.speed_switch * per_si * d.keys.velocity_factor), 1)
+            self._sdo_write(d, t.HOMING_SPEEDS, round(h.speed_zero * per_si * d.keys.velocity_factor), 2)
+            self._sdo_write(d, t.HOMING_ACCELERATION, round(h.acceleration * per_si * d.keys.velocity_factor))
+        # first RPDO values: hold where it is, disabled
+        d.pos = self._sdo_read(d, t.POSITION_ACTUAL)
+        d.cw, d.mode, d.target_pos, d.target_vel, d.target_torque = int(Command.DISABLE_VOLTAGE), _CSP, d.pos, 0, 0
+        d.homing = False
+        node.nmt.state = "OPERATIONAL"
+        d.started_t = d.hb_t = time.monotonic()
+        d.nmt = t.NMT_OPERATIONAL
+        d.rebooted = False
+
+    def _map_pdos(self, d: _Drive) -> None:
+        """RPDO1 = controlword + target position + mode; RPDO2 = target velocity + target torque
+        (CSV / CST drives only); TPDO1 = statusword + position + mode display; TPDO2 = velocity +
+        torque. All SYNC-type (transmission type 1: every SYNC). PDOs 3 and 4 switched off."""
+        node = d.node
+        layout = (
+            (d.rpdo1, 0x200, (t.CONTROLWORD, t.TARGET_POSITION, t.MODES_OF_OPERATION), True),
+            (node.rpdo[2], 0x300, (t.TARGET_VELOCITY, t.TARGET_TORQUE), d.csv or d.cst),
+            (d.tpdos[0], 0x180, (t.STATUSWORD, t.POSITION_ACTUAL, t.MODES_DISPLAY), True),
+            (d.tpdos[1], 0x280, (t.VELOCITY_ACTUAL, t.TORQUE_ACTUAL), True),
+        )
+        d.v = {}
+        for pdo, base, objects, used in layout:
+            pdo.clear()
+            pdo.cob_id = base + d.id
+            pdo.trans_type = 1
+            pdo.enabled = used
+            if used:
+                for index in objects:
+                    d.v[index] = pdo.add_variable(index)
+            pdo.save()
+        d.rpdo2 = node.rpdo[2] if d.csv or d.cst else None
+        for n in (2, 3):  # PDOs 3 and 4: off, so no event-driven frames share the cycle
+            for com, base in ((0x1400, 0x200), (0x1800, 0x180)):
+                if com + n in node.object_dictionary:
+                    node.sdo[com + n][1].raw = (base + 0x100 * n + d.id) | PDO_NOT_VALID
+
+    def _prime(self) -> None:
+        """One exchange right after start-up, so the first read has data: every node's TPDOs must
+        answer a SYNC within ``boot_timeout_s``."""
+        deadline = time.monotonic() + self.config.boot_timeout_s
+        while True:
+            self._send(None)
+            missing = self._wait_tpdos(time.monotonic() + min(0.1, self.config.boot_timeout_s))
+            self._resync(self._sync_seq)
+            if missing is None:
+                self._decode()
+                return
+            if time.monotonic() > deadline:
+                raise BackendError(f"{self.robot}: {missing.label} sent no TPDO answering SYNC within "
+                                   f"{self.config.boot_timeout_s:g} s of NMT start on {self._where}")
+
+    # ------------------------------------------------------------------ the cycle
+    # TPDO accounting: each drive answers every SYNC with one frame per TPDO, so "frames arrived
+    # - base" is the number of the last SYNC it answered. Counting (not tagging frames with the
+    # SYNC sent last) keeps a late answer to an older SYNC from passing for a fresh one.
+    def _answered(self, d: _Drive) -> int:
+        return min(d.arrived[0] - d.base[0], d.arrived[1] - d.base[1])
+
+    def _resync(self, upto: int) -> None:
+        """Count from SYNC ``upto`` on: a drive behind it is taken as having answered it (each
+        missed SYNC is counted once), one ahead of the SYNCs sent is brought back."""
+        seq = self._sync_seq
+        for d in self.drives:
+            for m in (0, 1):
+                answered = d.arrived[m] - d.base[m]
+                if answered < upto:
+                    d.base[m] = d.arrived[m] - upto
+                elif answered > seq:
+                    d.base[m] = d.arrived[m] - seq
+
+    def _wait_tpdos(self, deadline: float) -> _Drive | None:
+        """Wait (at most until ``deadline``, monotonic) until every node's TPDOs answered the
+        last SYNC. Returns the first drive that did not, or None."""
+        seq = self._sync_seq
+        ev = self._rx_event
+        while True:
+            ev.clear()
+            missing = next((d for d in self.drives if self._answered(d) < seq), None)
+            remaining = deadline - time.monotonic()
+            if missing is None or remaining <= 0:
+                return missing
+            ev.wait(remaining)
+
+    def _overdue(self, now: float) -> _Drive | None:
+        """The first drive that has not answered a SYNC sent more than ``tpdo_timeout_ms`` ago
+        (missing TPDOs; a late drive within the time limit is not missing), or None. Counts each
+        missed SYNC once."""
+        seq = self._sync_seq
+        due = seq
+        while due > 0 and seq - due < _RING - 1 and self._sync_mono[due % _RING] + self._tpdo_timeout_s > now:
+            due -= 1
+        missing = next((d for d in self.drives if self._answered(d) < due), None)
+        self._resync(due)
+        return missing
+
+    def _decode(self) -> None:
+        for d in self.drives:
+            v = d.v
+            d.sw = v[t.STATUSWORD].raw
+            d.pos = v[t.POSITION_ACTUAL].raw
+            d.mode_display = v[t.MODES_DISPLAY].raw
+            d.vel = v[t.VELOCITY_ACTUAL].raw
+            d.torque = v[t.TORQUE_ACTUAL].raw
+            d.state = t.decode_state(d.sw)
+
+    def _read(self, feedback: JointFeedback) -> Fault | None:
+        """Take the TPDOs that answered the last SYNC (waiting at most until ``tpdo_timeout_ms``
+        after it), convert them into ``feedback``, check heartbeats and EMCYs, report the device
+        status. Returns a transient ``tpdo_missing`` fault, a ``heartbeat_lost`` / ``nmt_state`` /
+        ``bus_error`` fault, or None. Never blocks beyond the TPDO deadline."""
+        fault = self._unusable("read")
+        if fault is not None:
+            return fault
+        self.stats["reads"] += 1
+        self._reads += 1
+        # In the loop the answers are in (the SYNC went out a period ago). A late drive is waited
+        # for until tpdo_timeout_ms after the SYNC -- unless a drive is missing already, so a silent
+        # node does not stretch every cycle; the data is then that of the last SYNC answered.
+        if not any(d.missed for d in self.drives):
+            self._wait_tpdos(self._sync_t + self._tpdo_timeout_s)
+        now = time.monotonic()
+        missing = self._overdue(now)
+        self._decode()
+        fault = None
+        if missing is not None:
+            self.stats["tpdos_missed"] += 1
+            missing.missed += 1
+            fault = Fault("tpdo_missing",
+                          f"{self.robot}: {missing.label} sent no TPDO answering a SYNC within "
+                          f"{self._tpdo_timeout_s * 1000:.3g} ms on {self._where} ({missing.missed} in a row)",
+                          joint=missing.name, transient=True)
+        for d in self.drives:
+            if d is not missing:
+                d.missed = 0
+            silent = now - d.hb_t
+            if silent > self._hb_timeout_s:
+                fault = Fault("heartbeat_lost",
+                              f"{self.robot}: {d.label}: no heartbeat for {silent:.2f} s "
+                              f"(backend.heartbeat_timeout_ms = {self.config.heartbeat_timeout_ms:g})",
+                              joint=d.name, transient=False)
+                break
+            if (d.nmt != t.NMT_OPERATIONAL or d.rebooted) and d.hb_t > d.started_t + 0.05:
+                what = "restarted (boot-up)" if d.rebooted else \
+                    f"left OPERATIONAL (heartbeat: {t.NMT_STATE_NAMES.get(d.nmt, hex(d.nmt))})"
+                fault = Fault("nmt_state", f"{self.robot}: {d.label} {what}", joint=d.name, transient=False)
+                break
+        if self._error_frames != self._error_frames_seen and fault is None:
+            self._error_frames_seen = self._error_frames
+            fault = Fault("bus_error", f"{self.robot}: error frame on {self._where} "
+                          f"({self._error_frames} so far)", transient=True)
+        pos, vel, eff = feedback.position, feedback.velocity, feedback.effort
+        for d in self.drives:
+            i = d.i
+            pos[i] = (d.pos - d.keys.offset) * d.k_pos
+            vel[i] = d.vel * d.k_vel
+            eff[i] = d.torque * d.k_eff if d.k_eff is not None else 0.0
+        oldest = min(min(self._answered(d) for d in self.drives), self._sync_seq)
+        feedback.stamp = self._sync_wall[oldest % _RING]  # when the oldest sample was taken
+        self._device_status()
+        return fault
+
+    def _device_status(self) -> None:
+        """Report what the drives say about themselves (core maps it, state.DEVICE_STATUS)."""
+        cause = None
+        paused = powered_off = False
+        for d in self.drives:
+            s = d.state
+            if d.emcy is not None or s in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
+                cause = self._drive_fault(d)
+                break
+            if self._enabled and d.cw == Command.ENABLE_OPERATION and not d.homing:
+                if s is State402.QUICK_STOP_ACTIVE and not self._paused_by_us:
+                    paused = True
+                elif s not in (State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE, None):
+                    powered_off = True
+        if cause is not None:
+            self.report_status(DeviceStatus.FAULT, cause)
+        elif self.device_status is DeviceStatus.FAULT:
+            self.report_status(DeviceStatus.FAULT_CLEARED)
+        elif powered_off:
+            self.report_status(DeviceStatus.POWERED_OFF)
+        elif paused:
+            self.report_status(DeviceStatus.PAUSED)
+        elif self.device_status is not DeviceStatus.OK:
+            self.report_status(DeviceStatus.OK)
+
+    def _drive_fault(self, d: _Drive) -> Fault:
+        state = d.state.value if d.state is not None else f"statusword 0x{d.sw:04X}"
+        if d.emcy is not None:
+            code, register = d.emcy
+            return Fault("drive_fault", f"{self.robot}: {d.label}: EMCY 0x{code:04X} {t.emcy_meaning(code)} "
+                         f"(error register 0x{register:02X}); drive state {state}",
+                         joint=d.name, register="EMCY", value=code, transient=False)
+        return Fault("drive_fault", f"{self.robot}: {d.label}: drive state {state} (statusword 0x{d.sw:04X})",
+                     joint=d.name, register="statusword", value=d.sw, transient=False)
+
+    def _write(self, command: JointCommand) -> Fault | None:
+        """Set every drive's RPDOs from ``command`` and send them, then ONE SYNC. Never blocks.
+
+        A drive that is OPERATION ENABLED (and not homing) follows its joint's mode: POSITION ->
+        CSP (target clipped to the joint's limits), VELOCITY -> CSV (clipped to velocity_max),
+        EFFORT -> CST (clipped to effort_max), FREE -> CST with zero torque, NONE -> as before.
+        Every other drive holds its measured position as target in CSP. A non-finite setpoint is
+        not sent (the drive keeps its last mode and target) and returns ``invalid_command``."""
+        return self._send(command)
+
+    def _unusable(self, what: str) -> Fault | None:
+        """Why the bus cannot be used for ``what`` (read / write) now, or None."""
+        if self._network is None:
+            return Fault("bus_error", f"{self.robot}: {what} on a closed CAN bus", transient=False)
+        if self._bus_down is not None:
+            return self._bus_fault()
+        if not self.drives[0].v:
+            return Fault("bus_error", f"{self.robot}: {what} before configure(): no PDO mapped yet", transient=False)
+        return None
+
+    def _send(self, command: JointCommand | None) -> Fault | None:
+        fault = self._unusable("write")
+        if fault is not None:
+            return fault
+        for d in self.drives:
+            enabled = self._enabled and d.state is State402.OPERATION_ENABLED and command is not None
+            if d.homing:
+                d.mode, d.target_pos, d.target_vel, d.target_torque = _HM, d.pos, 0, 0
+            elif not enabled:
+                d.mode, d.target_pos, d.target_vel, d.target_torque = _CSP, d.pos, 0, 0
+            else:
+                fault = self._follow(d, command) or fault
+                if d.mode != _CSP:
+                    d.target_pos = d.pos  # a switch back to CSP starts from here
+            v = d.v
+            v[t.CONTROLWORD].raw = d.cw
+            v[t.TARGET_POSITION].raw = d.target_pos
+            v[t.MODES_OF_OPERATION].raw = d.mode
+            if d.rpdo2 is not None:
+                v[t.TARGET_VELOCITY].raw = d.target_vel
+                v[t.TARGET_TORQUE].raw = d.target_torque
+        try:
+            for d in self.drives:
+                d.rpdo1.transmit()
+                if d.rpdo2 is not None:
+                    d.rpdo2.transmit()
+                    self.stats["rpdos"] += 1
+                self.stats["rpdos"] += 1
+            self._sync_seq += 1  # before the SYNC: a TPDO answering it is tagged with this count
+            self._sync_t = self._sync_mono[self._sync_seq % _RING] = time.monotonic()
+            self._sync_wall[self._sync_seq % _RING] = time.time()
+            self._network.sync.transmit()
+            self.stats["syncs"] += 1
+        except (can.CanError, OSError) as exc:
+            self._bus_down = f"send failed: {exc}"
+            return self._bus_fault()
+        return fault
+
+    def _follow(self, d: _Drive, command: JointCommand) -> Fault | None:
+        i = d.i
+        mode = command.mode[i]
+        if mode == _POSITION:
+            x = command.position[i]
+            if x != x:
+                return self._nan(d, "position", x)
+            d.mode, d.target_pos = _CSP, d.counts(x)
+            d.target_vel = d.target_torque = 0
+        elif mode == _VELOCITY and d.csv:
+            x = command.velocity[i]
+            if x != x:
+                return self._nan(d, "velocity", x)
+            x = min(max(x, -d.vel_max), d.vel_max) / d.k_vel
+            d.mode, d.target_vel, d.target_torque = _CSV, round(min(max(x, I32[0]), I32[1])), 0
+        elif mode == _EFFORT and d.cst and d.k_eff is not None:
+            x = command.effort[i]
+            if x != x:
+                return self._nan(d, "effort", x)
+            if d.eff_max is not None:
+                x = min(max(x, -d.eff_max), d.eff_max)
+            x /= d.k_eff
+            d.mode, d.target_torque, d.target_vel = _CST, round(min(max(x, I16[0]), I16[1])), 0
+        elif mode == _FREE and d.cst:
+            d.mode, d.target_torque, d.target_vel = _CST, 0, 0
+        return None
+
+    def _nan(self, d: _Drive, what: str, x: float) -> Fault:
+        return Fault("invalid_command", f"{self.robot}: joint {d.name!r}: {what} command {x} is not a "
+                     f"number; not sent", joint=d.name, transient=False)
+
+    # ------------------------------------------------------------------ bus errors
+    def _bus_fault(self) -> Fault:
+        if self._reopening is None or not self._reopening.is_alive():
+            self._reopening = threading.Thread(target=self._reopen, name="can-reopen", daemon=True)
+            self._reopening.start()
+        return Fault("bus_error", f"{self.robot}: CAN bus {self._where} failed ({self._bus_down}); "
+                     f"reopening it", transient=False)
+
+    def _reopen(self) -> None:
+        """Worker: close the failed bus and open it again, retrying each second until it opens
+        (or the backend closes)."""
+        while self._network is not None and self._bus_down is not None:
+            network = self._network
+            try:
+                network.disconnect()
+            except Exception:
+                pass
+            try:
+                cfg = self.config
+                network.connect(interface=cfg.interface, channel=cfg.channel, bitrate=cfg.bitrate, **cfg.options)
+                network.notifier.add_listener(_BusWatch(self))
+                for d in self.drives:  # the heartbeat clock restarts with the bus
+                    d.hb_t = time.monotonic()
+                self._bus_down = None
+                return
+            except Exception:
+                time.sleep(1.0)
+
+    # ------------------------------------------------------------------ transitions
+    def _begin_steps(self) -> None:
+        self._seen_reads = self._reads
+
+    def _pump(self) -> None:
+        """Between two steps of a transition: when no read took the TPDOs since the previous
+        step, the transition runs outside the loop (:meth:`Actuator.run`): exchange one SYNC here,
+        so the step sees the statusword its controlword produced. In the loop, its own write
+        carries the controlword and its next read brings the answer."""
+        if self._reads == self._seen_reads and self._network is not None and self._bus_down is None:
+            self._send(None)
+            self._wait_tpdos(time.monotonic() + max(self._tpdo_timeout_s, 0.05))
+            self._resync(self._sync_seq)
+            self._decode()
+        self._seen_reads = self._reads
+
+    def _walk(self, goal: Goal, drives: list[_Drive] | None = None) -> Steps:
+        """Every cycle, each drive's controlword from ``tables.WALK`` for its state and ``goal``,
+        until every drive is there. Raises BackendError naming a drive that is in FAULT (when
+        enabling), or whose statusword stays missing."""
+        drives = self.drives if drives is None else drives
+        missed = 0
+        while True:
+            pending = None
+            for d in drives:
+                if d.state is None:
+                    pending = d
+                    continue
+                step = t.WALK[(d.state, goal)]
+                if step.command is None:
+                    raise BackendError(f"{self.robot}: {d.label} is in {d.state.value} "
+                                       f"(statusword 0x{d.sw:04X}); cannot {goal.value}")
+                d.cw = int(step.command)
+                if not step.done:
+                    pending = d
+            if pending is None:
+                return
+            yield
+            self._pump()
+            missed = missed + 1 if pending.missed else 0
+            if missed > self.TRANSITION_MISSED_MAX:
+                raise BackendError(f"{self.robot}: {pending.label}: no statusword for {missed} cycles; "
+                                   f"cannot confirm {goal.value} ({pending.state.value if pending.state else '?'})")
+
+    def _reset_faults(self) -> Steps:
+        """Fault reset of every drive in FAULT: bit 7 low for a cycle, then high (the rising edge,
+        transition 15), until the drive leaves FAULT; its EMCY is acknowledged. Nodes that
+        rebooted are configured again (SDO, on a worker thread)."""
+        rebooted = [d for d in self.drives if d.rebooted]
+        if rebooted:
+            yield from on_worker(lambda: [self._configure_node(d) for d in rebooted], "canopen-reconfigure")
+        now = time.monotonic()
+        for d in self.drives:
+            if now - d.hb_t > self._hb_timeout_s:
+                raise BackendError(f"{self.robot}: {d.label}: no heartbeat for {now - d.hb_t:.2f} s; "
+                                   f"cannot enable")
+        faulted = [d for d in self.drives if d.state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE)]
+        for d in self.drives:
+            d.emcy = None
+        if not faulted:
+            return
+        for d in faulted:
+            d.cw = int(Command.DISABLE_VOLTAGE)  # bit 7 low first: the reset acts on a rising edge
+        yield
+        self._pump()
+        cycles = 0
+        while True:
+            for d in faulted:
+                d.cw = int(Command.FAULT_RESET)
+            yield
+            self._pump()
+            still = [d for d in faulted if d.state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE)]
+            for d in faulted:
+                d.emcy = None
+            if not still:
+                break
+            cycles += 1
+            if cycles > self.TRANSITION_MISSED_MAX:
+                d = still[0]
+                raise BackendError(f"{self.robot}: {d.label} stays in FAULT after a fault reset "
+                                   f"(statusword 0x{d.sw:04X}); the cause may persist")
+        for d in faulted:
+            d.cw = int(Command.DISABLE_VOLTAGE)
+
+    def _fault_reset_steps(self) -> Steps:
+        self._begin_steps()
+        yield from self._reset_faults()
+
+    def _enable_steps(self, feedback: JointFeedback) -> Steps:
+        """Fault reset where needed, then SWITCH ON DISABLED -> READY TO SWITCH ON -> SWITCHED ON
+        -> OPERATION ENABLED, one controlword per cycle, each drive holding its measured position
+        as target in CSP. On failure every drive gets disable voltage."""
+        self._require_open()
+        self._begin_steps()
+        self._paused_by_us = False
+        try:
+            yield from self._reset_faults()
+            yield from self._walk(Goal.OPERATION_ENABLED)
+        except BaseException:
+            for d in self.drives:
+                d.cw = int(Command.DISABLE_VOLTAGE)
+            raise
+
+    def _disable_steps(self) -> Steps:
+        """Disable voltage on every drive (transitions 7, 9, 10, 12) until each confirms."""
+        if self._network is None:
+            return
+        self._begin_steps()
+        self._paused_by_us = False
+        for d in self.drives:
+            d.homing = False
+        yield from self._walk(Goal.SWITCH_ON_DISABLED)
+
+    def _pause_steps(self) -> Steps:
+        """Quick stop (transition 11) until every drive is QUICK STOP ACTIVE (or stopped)."""
+        self._begin_steps()
+        self._paused_by_us = True
+        yield from self._walk(Goal.QUICK_STOP_ACTIVE)
+
+    def _resume_steps(self) -> Steps:
+        """Enable operation (transition 16) from QUICK STOP ACTIVE, holding the measured position
+        (a drive whose quick stop ended in SWITCH ON DISABLED walks the whole way)."""
+        self._begin_steps()
+        try:
+            yield from self._walk(Goal.OPERATION_ENABLED)
+        finally:
+            self._paused_by_us = False
+
+    def _home_steps(self) -> Steps:
+        """CiA 402 homing (mode 6) of every joint with ``homing``, all at once: mode 6, a rising
+        edge of controlword bit 4, then statusword bits 10 / 12 / 13 until homing is completed
+        (``is_homed`` = bit 12), an error (BackendError naming the joint) or the time limit.
+        Joints without ``homing`` (absolute encoders) hold."""
+        self._begin_steps()
+        drives = [d for d in self.drives if d.keys.homing is not None]
+        try:
+            for d in drives:
+                d.homing = True
+                d.cw = int(Command.ENABLE_OPERATION)  # bit 4 low while the mode switches
+            while any(d.mode_display != _HM for d in drives):
+                yield
+                self._pump()
+            for d in drives:
+                d.cw = int(Command.ENABLE_OPERATION) | t.CW_HOMING_START
+            yield
+            self._pump()
+            pending = list(drives)
+            while pending:
+                yield
+                self._pump()
+                for d in list(pending):
+                    meaning, finished, failed = t.HOMING_STATUS[d.sw & t.HOMING_STATUS_MASK]
+                    if failed:
+                        raise BackendError(f"{self.robot}: {d.label}: {meaning} (statusword 0x{d.sw:04X}, "
+                                           f"method {d.keys.homing.method})")
+                    if finished and d.state is State402.OPERATION_ENABLED:
+                        pending.remove(d)
+        finally:  # back to CSP in the cycle this ends: core holds the homed position from it on
+            for d in drives:
+                d.homing = False
+                d.cw = int(Command.ENABLE_OPERATION)
+
+    # ------------------------------------------------------------------ close
+    def _disconnect(self) -> None:
+        network, self._network = self._network, None
+        if network is not None:
+            try:
+                network.disconnect()
+            except Exception:
+                pass
+
+    def _close_hook(self) -> None:
+        self._disconnect()

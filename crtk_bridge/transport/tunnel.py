@@ -1,0 +1,187 @@
+"""The socket protocol carried over Zenoh, daemon side (docs/zenoh.md, "Remote clients").
+
+A remote client is a server :class:`~crtk_bridge.server.server.Session` like a socket connection:
+the same dispatcher answers its lines, so control ownership (one controller), stops from anyone,
+streams and client loss all follow. The daemon announces itself with a liveliness token
+(``crtk_bridge/<robot>/daemon``); a client declares its own token
+(``crtk_bridge/<robot>/client/<cid>``), which opens its session here (greeted with the operating
+state, as a socket connection is), sends request lines on ``.../in/<cid>`` and reads replies,
+events and frames on ``.../out/<cid>``. The client's token going away (it closed, its process
+died, its link dropped) is its socket closing: the session ends and, if it held control, the
+robot stops safely as on any client loss.
+
+Replies and events are published reliably with congestion control BLOCK (never dropped, in
+order); stream frames with DROP on the same priority, so a slow remote client loses frames and
+never slows the daemon, as on the socket. Zenoh delivers on its own threads: every sample is
+handed to the event loop (``call_soon_threadsafe``), where the server runs as for the socket.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Any
+
+from ..errors import CrtkBridgeError
+from ..server.protocol import MAX_LINE, encode, error
+from ..server.server import Server, Session
+from . import tunnel_keys as keys
+from .zenoh_session import ZenohConfig
+
+log = logging.getLogger("crtk_bridge.transport.tunnel")
+
+#: how long start-up asks the network whether another daemon already serves this robot's name
+DUPLICATE_CHECK_S = 1.0
+
+
+class TunnelSession(Session):
+    """A remote client's session: what the server sends goes to its ``out`` key."""
+
+    def __init__(self, sid: int, cid: str, replies: Any, frames: Any):
+        super().__init__(sid, None, peer=f"Zenoh client {cid[:8]}")
+        self.cid = cid
+        self._replies = replies  # zenoh.Publisher, reliable, congestion control BLOCK
+        self._frames = frames  # the same key, congestion control DROP
+        self.lines: asyncio.Queue[bytes | None] = asyncio.Queue()
+        self.task: asyncio.Task | None = None
+
+    def send(self, msg: Any) -> None:
+        if not self.closed:
+            self._put(self._replies, msg)
+
+    def send_frame(self, msg: Any) -> None:
+        if self.closed:
+            return
+        self._put(self._frames, msg)
+
+    def _put(self, publisher: Any, msg: Any) -> None:
+        try:
+            publisher.put(encode(msg))
+        except Exception as exc:  # the session is closing under us: the client is gone anyway
+            log.debug("%s: put failed: %s", self.describe(), exc)
+
+    def close(self) -> None:
+        self.closed = True
+        for publisher in (self._replies, self._frames):
+            try:
+                publisher.undeclare()
+            except Exception:
+                pass
+
+
+class TunnelServer:
+    """Serves the socket protocol on a Zenoh session for ``server``'s robot (a daemon service:
+    ``async start()``, ``async close()``; see daemon.zenoh_services)."""
+
+    def __init__(self, server: Server, session: Any, config: ZenohConfig):
+        self.server = server
+        self.session = session
+        self.config = config
+        self.robot = server.robot
+        self.clients: dict[str, TunnelSession] = {}
+        self._declared: list[Any] = []
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    async def start(self) -> None:
+        """Announce the daemon and accept clients. Raises CrtkBridgeError when another daemon
+        already serves this robot's name on the Zenoh network."""
+        import zenoh
+
+        self._loop = asyncio.get_running_loop()
+        others = await self._loop.run_in_executor(None, self._daemons_named_like_us)
+        if others:
+            raise CrtkBridgeError(f"{self.robot}: another crtk-bridge daemon already serves robot {self.robot!r} "
+                                  f"on this Zenoh network ({keys.daemon_token(self.robot)}): stop it, or give "
+                                  "this robot another name")
+        self._zenoh = zenoh
+        live = self.session.liveliness()
+        # on Zenoh's threads (indirect=False): the callbacks only hand the sample to the event loop
+        on_request = zenoh.handlers.Callback(self._on_request, indirect=False)
+        on_client = zenoh.handlers.Callback(self._on_client, indirect=False)
+        self._declared = [
+            self.session.declare_subscriber(keys.requests(self.robot, "*"), on_request),
+            live.declare_subscriber(keys.client_token(self.robot, "*"), on_client, history=True),
+            live.declare_token(keys.daemon_token(self.robot)),  # last: clients come once all is ready
+        ]
+
+    def _daemons_named_like_us(self) -> list[str]:
+        replies = self.session.liveliness().get(keys.daemon_token(self.robot), timeout=DUPLICATE_CHECK_S)
+        return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+    async def close(self) -> None:
+        for entity in reversed(self._declared):
+            try:
+                entity.undeclare()
+            except Exception:
+                pass
+        self._declared = []
+        for cid in list(self.clients):
+            self._end(cid, client_lost=False)  # the daemon is stopping: the robot stops already
+
+    # ------------------------------------------------------- Zenoh threads -> event loop
+    def _on_client(self, sample: Any) -> None:
+        cid = keys.last(str(sample.key_expr))
+        if sample.kind == self._zenoh.SampleKind.PUT:
+            self._call(self._begin, cid)
+        else:
+            self._call(self._lost, cid)
+
+    def _on_request(self, sample: Any) -> None:
+        self._call(self._lines, keys.last(str(sample.key_expr)), sample.payload.to_bytes())
+
+    def _call(self, fn, *args) -> None:
+        try:
+            self._loop.call_soon_threadsafe(fn, *args)
+        except RuntimeError:
+            pass  # the event loop is closed: the daemon is gone
+
+    # ------------------------------------------------------- on the event loop
+    def _begin(self, cid: str) -> None:
+        if cid in self.clients or not self._declared:
+            return
+        zenoh = self._zenoh
+        key = keys.replies(self.robot, cid)
+        replies = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
+                                                 reliability=zenoh.Reliability.RELIABLE)
+        frames = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP,
+                                                reliability=zenoh.Reliability.RELIABLE)
+        s = TunnelSession(self.server.new_session_id(), cid, replies, frames)
+        self.clients[cid] = s
+        self.server.attach(s)  # the greeting: the client's connect returns on it
+        s.task = asyncio.get_running_loop().create_task(self._serve(s))
+        log.info("%s: %s opened (Zenoh)", self.robot, s.describe())
+
+    def _lines(self, cid: str, payload: bytes) -> None:
+        s = self.clients.get(cid)
+        if s is None:
+            return  # no session: the client's token is not (or no longer) there
+        for line in payload.split(b"\n"):
+            if line.strip():
+                s.lines.put_nowait(line)
+
+    def _lost(self, cid: str) -> None:
+        s = self.clients.get(cid)
+        if s is not None:
+            s.lines.put_nowait(None)  # the lines it sent before leaving are still answered, in order
+
+    async def _serve(self, s: TunnelSession) -> None:
+        try:
+            while True:
+                line = await s.lines.get()
+                if line is None:
+                    break
+                if len(line) > MAX_LINE:
+                    s.send(error(None, "bad_request", f"request line longer than {MAX_LINE} bytes; discarded"))
+                    continue
+                await self.server.handle_line(s, line)
+        finally:
+            if self.clients.get(s.cid) is s:
+                self._end(s.cid, client_lost=True)
+
+    def _end(self, cid: str, client_lost: bool) -> None:
+        s = self.clients.pop(cid)
+        self.server.detach(s, client_lost=client_lost)
+        s.close()
+        if s.task is not None and s.task is not asyncio.current_task():
+            s.task.cancel()
+        log.info("%s: %s closed (Zenoh)", self.robot, s.describe())

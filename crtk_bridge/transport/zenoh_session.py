@@ -1,0 +1,197 @@
+"""The Zenoh session: its configuration, the exposure rule, and opening it (docs/zenoh.md).
+
+Used by the daemon's front process (never the control process: a Zenoh session does not survive
+fork, so it is opened after the control process exists) and by the Python client. The defaults
+are safe: multicast scouting off, listening on loopback only. An endpoint beyond this PC (a
+listen on 0.0.0.0 or a LAN address, a connect to another machine's router) is refused unless it
+is a TLS endpoint, certificates are configured and Zenoh's access control is enabled: anyone who
+can publish on the robot's keys can move it.
+
+    config = zenoh_config(profile, connect=["tcp/127.0.0.1:7447"])   # None: the transport is off
+    check_exposure(config, "so101")                                  # before anything starts
+    session = open_session(config, "so101")                          # blocks up to connect_timeout_s
+
+Imports ``zenoh`` lazily, so that the daemon without the transport never loads it.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+from typing import TYPE_CHECKING, Any, Iterable
+
+import msgspec
+
+from ..errors import CrtkBridgeError
+from ..profile import Profile, ZenohTransport
+
+if TYPE_CHECKING:
+    import zenoh
+
+#: The transport's configuration: the profile's ``transport.zenoh`` section with the command
+#: line's endpoints and domain id applied (profile.py holds the struct, so profiles validate it).
+ZenohConfig = ZenohTransport
+
+#: endpoint protocols whose links are encrypted and authenticated by transport/link/tls
+SECURE_PROTOCOLS = ("tls", "quic")
+#: endpoint protocols that never leave this machine
+LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe")
+
+
+class ZenohConfigError(CrtkBridgeError):
+    """The Zenoh transport's configuration is unsafe or invalid (names the profile key)."""
+
+
+class ZenohConnectError(CrtkBridgeError, ConnectionError):
+    """The Zenoh session could not open: a router or peer unreachable, a listen refused."""
+
+
+def zenoh_config(profile: Profile, connect: Iterable[str] | None = None, listen: Iterable[str] | None = None,
+                 ros_domain_id: int | None = None) -> ZenohConfig | None:
+    """The transport's configuration: the profile's ``transport.zenoh`` section with the command
+    line's endpoints (``--zenoh-connect`` / ``--zenoh-listen``, each replacing the profile's list
+    when given) and ``--ros-domain-id``. ``None`` when the transport is off (no section and no
+    endpoint on the command line). Pure."""
+    connect = list(connect or ())
+    listen = list(listen or ())
+    base = profile.transport.zenoh
+    if base is None:
+        if not connect and not listen:
+            return None
+        # --zenoh-connect alone: join the router, listen nowhere (nothing to expose)
+        base = ZenohConfig(listen=[]) if connect and not listen else ZenohConfig()
+    changes: dict[str, Any] = {}
+    if connect:
+        changes["connect"] = connect
+    if listen:
+        changes["listen"] = listen
+    if ros_domain_id is not None:
+        changes["ros_domain_id"] = ros_domain_id
+    return msgspec.structs.replace(base, **changes)
+
+
+def endpoint_host(endpoint: str) -> tuple[str, str]:
+    """``tcp/127.0.0.1:7447?x=y`` -> (``tcp``, ``127.0.0.1``); ``tcp/[::1]:7447`` -> (``tcp``, ``::1``).
+    The host is empty for a protocol without one (a Unix socket path). Raises ZenohConfigError when
+    the endpoint has no ``protocol/`` prefix."""
+    proto, sep, rest = endpoint.partition("/")
+    if not sep or not proto or not rest:
+        raise ZenohConfigError(f"{endpoint!r} is not a Zenoh endpoint (protocol/address, e.g. tcp/127.0.0.1:7447)")
+    if proto in LOCAL_PROTOCOLS:
+        return proto, ""
+    address = rest.split("?", 1)[0].split("#", 1)[0]
+    if address.startswith("["):
+        return proto, address[1:].partition("]")[0]
+    return proto, address.rsplit(":", 1)[0]
+
+
+def is_loopback(endpoint: str) -> bool:
+    """True when ``endpoint`` cannot reach beyond this machine: a Unix socket, ``localhost``, or a
+    loopback address (127.0.0.0/8, ::1). ``0.0.0.0`` and ``[::]`` (every interface) are not."""
+    proto, host = endpoint_host(endpoint)
+    if proto in LOCAL_PROTOCOLS:
+        return True
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name: it may resolve anywhere
+
+
+def check_exposure(config: ZenohConfig, robot: str) -> None:
+    """Refuse, in one line naming the key, an endpoint beyond this PC unless it is a TLS endpoint
+    (``tls/`` or ``quic/``), ``transport.zenoh.tls`` has the certificates it needs, and
+    ``transport.zenoh.access_control`` is enabled. Loopback endpoints are always accepted. Pure;
+    raises ZenohConfigError."""
+    for key, flag in (("listen", "--zenoh-listen"), ("connect", "--zenoh-connect")):
+        for endpoint in getattr(config, key):
+            try:
+                local = is_loopback(endpoint)
+            except ZenohConfigError as exc:
+                raise ZenohConfigError(f"{robot}: transport.zenoh.{key} ({flag}): {exc}") from None
+            if local:
+                continue
+            where = f"{robot}: transport.zenoh.{key} ({flag}) {endpoint} reaches beyond this PC"
+            hint = "see docs/zenoh.md, 'Across machines'"
+            proto, _ = endpoint_host(endpoint)
+            if proto not in SECURE_PROTOCOLS:
+                raise ZenohConfigError(f"{where}: only a tls/ endpoint may (with transport.zenoh.tls and "
+                                       f"transport.zenoh.access_control); use loopback, or {hint}")
+            tls = config.tls
+            needed = (("listen_certificate", "listen_private_key") if key == "listen"
+                      else ("root_ca_certificate",))
+            for name in needed:
+                if tls is None or not getattr(tls, name):
+                    raise ZenohConfigError(f"{where}: set transport.zenoh.tls.{name} ({hint})")
+            acl = config.access_control
+            if not acl or acl.get("enabled") is not True:
+                raise ZenohConfigError(f"{where}: set transport.zenoh.access_control (enabled: true, with "
+                                       f"rules naming who may publish on this robot's keys; {hint})")
+
+
+def session_config(config: ZenohConfig, extra: dict[str, Any] | None = None) -> "zenoh.Config":
+    """The ``zenoh.Config`` of ``config``: multicast scouting off, exactly the configured endpoints,
+    start-up failing (instead of retrying forever) when a connect endpoint does not answer within
+    ``connect_timeout_s`` or a listen endpoint cannot be bound. ``extra``: more Zenoh keys (path ->
+    JSON value), e.g. ``{"timestamping/enabled": True}``."""
+    import zenoh
+
+    keys: dict[str, Any] = {
+        "mode": config.mode,
+        "scouting/multicast/enabled": False,
+        "connect/endpoints": list(config.connect),
+        "listen/endpoints": list(config.listen) if config.mode == "peer" else [],
+        "connect/timeout_ms": int(config.connect_timeout_s * 1000),
+        "connect/exit_on_failure": True,
+        "listen/exit_on_failure": True,
+    }
+    if config.tls is not None:
+        for name in config.tls.__struct_fields__:
+            value = getattr(config.tls, name)
+            if value is not None:
+                keys[f"transport/link/tls/{name}"] = value
+    if config.access_control is not None:
+        keys["access_control"] = config.access_control
+    keys.update(extra or {})
+    conf = zenoh.Config()
+    for path, value in keys.items():
+        try:
+            conf.insert_json5(path, json.dumps(value))
+        except zenoh.ZError as exc:
+            raise ZenohConfigError(f"Zenoh configuration key {path} = {json.dumps(value)} refused: "
+                                   f"{_first_line(exc)}") from None
+    return conf
+
+
+def open_session(config: ZenohConfig, robot: str, extra: dict[str, Any] | None = None,
+                 hint: str = "--zenoh-connect / transport.zenoh.connect") -> "zenoh.Session":
+    """Open the Zenoh session ``config`` describes. Blocks until every connect endpoint answered
+    (at most ``connect_timeout_s``). ``robot`` prefixes errors (a robot name, or the client);
+    ``hint`` names where the connect endpoints were set.
+    Raises ZenohConnectError in one line naming the endpoint and what to do (start a router,
+    check the address, free the port), ZenohConfigError on a configuration Zenoh refuses."""
+    import zenoh
+
+    conf = session_config(config, extra)
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as exc:
+        text = _first_line(exc)
+        if "connect" in text.lower() and config.connect:
+            endpoints = ", ".join(config.connect)
+            port = config.connect[0].rsplit(":", 1)[-1]
+            raise ZenohConnectError(
+                f"{robot}: cannot reach the Zenoh router or peer at {endpoints} within "
+                f"{config.connect_timeout_s:g} s: start a router there (e.g. `zenohd -l tcp/127.0.0.1:{port}`) "
+                f"or check the address ({hint})") from None
+        if config.listen and ("listen" in text.lower() or "bind" in text.lower() or "address" in text.lower()):
+            raise ZenohConnectError(
+                f"{robot}: cannot listen on {', '.join(config.listen)} ({text}): is the port in use? "
+                f"(--zenoh-listen / transport.zenoh.listen)") from None
+        raise ZenohConnectError(f"{robot}: cannot open the Zenoh session: {text}") from None
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return text.split(" at /", 1)[0].rstrip(". ")  # drop the Rust source location

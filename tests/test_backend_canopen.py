@@ -1,0 +1,377 @@
+"""The CANopen CiA 402 backend (backends/canopen402) in process: its tables against canopen's own
+independent copy, and the backend driven cycle by cycle by the real controller on the simulated
+drives (crtk_bridge.sim.canopen402) over python-can's ``virtual`` interface -- and the same tests
+on socketcan ``vcan0`` when that interface exists (skipped with the reason otherwise)."""
+
+from __future__ import annotations
+
+import os
+import re
+import time
+
+import msgspec
+import numpy as np
+import pytest
+
+from crtk_bridge.backends.canopen402 import tables as t
+from crtk_bridge.backends.canopen402.backend import Canopen402Backend
+from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.state import OperatingState
+from crtk_bridge.errors import BackendError
+from crtk_bridge.profile import load_profile, parse_profile
+from crtk_bridge.sim.canopen402 import CanopenSimulator, DriveOptions
+
+from .conftest import ROOT, profile_data, wait_until
+
+PROFILE = ROOT / "profiles" / "canopen_2axis.yaml"
+S = OperatingState
+
+
+# ---------------------------------------------------------------- tables
+def test_statusword_coding_matches_canopens_independent_table():
+    from canopen.profiles.p402 import State402 as P
+
+    assert {s.value: (mask, value) for s, mask, value in t.STATUSWORD_STATES} == P.SW_MASK
+    for state, mask, value in t.STATUSWORD_STATES:
+        # each state decodes from its coding with the don't-care bits all clear or all set
+        assert t.decode_state(value) is state
+        assert t.decode_state(value | (~mask & 0xFFFF)) is state
+
+
+def test_walk_controlwords_match_canopens_transition_table():
+    from canopen.profiles.p402 import State402 as P
+
+    St, G = t.State402, t.Goal
+    next_state = {  # where each command of the walk leads (CiA 402-2 figure "State machine")
+        (St.SWITCH_ON_DISABLED, G.OPERATION_ENABLED): St.READY_TO_SWITCH_ON,
+        (St.READY_TO_SWITCH_ON, G.OPERATION_ENABLED): St.SWITCHED_ON,
+        (St.SWITCHED_ON, G.OPERATION_ENABLED): St.OPERATION_ENABLED,
+        (St.QUICK_STOP_ACTIVE, G.OPERATION_ENABLED): St.OPERATION_ENABLED,
+        (St.OPERATION_ENABLED, G.QUICK_STOP_ACTIVE): St.QUICK_STOP_ACTIVE,
+        **{(s, G.SWITCH_ON_DISABLED): St.SWITCH_ON_DISABLED
+           for s in (St.READY_TO_SWITCH_ON, St.SWITCHED_ON, St.OPERATION_ENABLED, St.QUICK_STOP_ACTIVE)},
+    }
+    for (state, goal), to in next_state.items():
+        step = t.WALK[(state, goal)]
+        assert not step.done and step.command == P.TRANSITIONTABLE[(state.value, to.value)], (state, goal)
+    assert {key for key in t.WALK} == {(s, g) for s in St for g in G}  # every cell is written down
+    # a walk from any state ends: following the table's next states reaches the goal
+    for goal, target in ((G.OPERATION_ENABLED, St.OPERATION_ENABLED), (G.SWITCH_ON_DISABLED, St.SWITCH_ON_DISABLED)):
+        state = St.SWITCH_ON_DISABLED if goal is G.OPERATION_ENABLED else St.OPERATION_ENABLED
+        for _ in range(5):
+            if t.WALK[(state, goal)].done:
+                break
+            state = next_state[(state, goal)]
+        assert state is target
+
+
+def test_emcy_meaning_names_code_and_class():
+    assert t.emcy_meaning(0x8611) == "following error (positioning controller)"
+    assert t.emcy_meaning(0x2310) == "continuous over-current (motor side) (current, device output side)"
+    assert t.emcy_meaning(0x4999) == "temperature"  # unknown code: its CiA 301 class
+    assert t.emcy_meaning(0xFF42) == "device specific"
+
+
+# ---------------------------------------------------------------- rigs
+VCAN = "vcan0"
+
+
+def _interfaces():
+    have_vcan = os.path.exists(f"/sys/class/net/{VCAN}")
+    return [pytest.param("virtual", id="virtual"),
+            pytest.param("socketcan", id=VCAN, marks=pytest.mark.skipif(
+                not have_vcan, reason=f"no socketcan {VCAN} on this host (modprobe vcan; ip link add {VCAN} type vcan)"))]
+
+
+class CanRig:
+    """The backend on simulated drives, stepped by a real Controller as core/loop.py does."""
+
+    def __init__(self, interface: str, data: dict | None = None, options: dict | None = None,
+                 node_ids: list[int] | None = None):
+        data = data if data is not None else profile_data(PROFILE)
+        profile = parse_profile(data, str(PROFILE))
+        ids = node_ids or [int(j.backend["node_id"]) for j in profile.joints]
+        channel = VCAN if interface == "socketcan" else None
+        self.sim = CanopenSimulator(ids, options or {}, interface=interface, channel=channel)
+        self.sim.start()
+        self.profile = msgspec.structs.replace(profile, backend={
+            **profile.backend, "interface": interface, "channel": self.sim.port, "options": {}})
+        self.backend = Canopen402Backend(self.profile, source=str(PROFILE))
+        self.fb = self.backend.new_feedback()
+        self.c: Controller | None = None
+
+    def start(self) -> Controller:
+        self.backend.open()
+        self.backend.configure()
+        self.c = Controller(self.profile, self.backend, time.time)
+        self.cycle()
+        return self.c
+
+    def cycle(self, n: int = 1) -> None:
+        c, b = self.c, self.backend
+        for _ in range(n):
+            t0 = time.monotonic()
+            c.on_read(self.fb, b.read(self.fb))
+            if c.step():
+                c.on_write(b.write(c.command))
+            rest = c.dt - (time.monotonic() - t0)
+            if rest > 0:
+                time.sleep(rest)
+
+    def request(self, rid: int, cmd: str, **kw) -> None:
+        self.c.handle({"id": rid, "cmd": cmd, **kw})
+
+    def reply(self, rid: int, timeout: float = 5.0, each=None) -> dict:
+        deadline = time.monotonic() + timeout
+        while True:
+            got = [m for m in self.c.outbox if m.get("id") == rid]
+            if got:
+                return got[0]
+            assert time.monotonic() < deadline, f"no reply to request {rid}"
+            self.cycle()
+            if each is not None:
+                each()
+
+    def until(self, predicate, timeout: float = 3.0, what: str = "condition") -> None:
+        wait_until(lambda: (self.cycle(), predicate())[1], timeout, interval=0, what=what)
+
+    def enable(self, rid: int = 1) -> None:
+        self.request(rid, "enable")
+        reply = self.reply(rid)
+        assert reply["ok"], reply
+        assert self.c.state is S.ENABLED
+
+    def events(self, kind: str) -> list[dict]:
+        return [m["data"] for m in self.c.outbox if m.get("event") == kind]
+
+    def drive(self, i: int):
+        return self.sim.drive(self.backend.drives[i].id)
+
+    def close(self) -> None:
+        self.backend.close()
+        self.sim.stop()
+
+
+@pytest.fixture(params=_interfaces())
+def iface(request) -> str:
+    return request.param
+
+
+@pytest.fixture
+def rig(iface):
+    r = CanRig(iface)
+    r.start()
+    yield r
+    r.close()
+
+
+# ---------------------------------------------------------------- behaviour
+def test_enable_walks_the_402_states_one_per_cycle_while_the_loop_cycles(rig):
+    c, b = rig.c, rig.backend
+    seen = [[] for _ in b.drives]
+    syncs0, syncs_sent = rig.drive(0).sync_count, b.stats["syncs"]
+    stamps = []
+
+    def look(requested=True):
+        for i in range(b.n):  # the statusword each cycle's read took from the drive's TPDO
+            name = b.drives[i].state.name
+            if not seen[i] or seen[i][-1] != name:
+                seen[i].append(name)
+        stamps.append(rig.fb.stamp)
+        if requested and not any(m.get("id") == 1 for m in c.outbox):
+            assert c.state is S.DISABLED and c.is_busy  # the state stays until the walk ends
+
+    look(requested=False)
+    rig.request(1, "enable")
+    cycles = 0
+    deadline = time.monotonic() + 5
+    while not any(m.get("id") == 1 for m in c.outbox):
+        assert time.monotonic() < deadline
+        rig.cycle()
+        cycles += 1
+        look()
+    assert [m for m in c.outbox if m.get("id") == 1][0]["ok"] and c.state is S.ENABLED
+    walk = ["SWITCH_ON_DISABLED", "READY_TO_SWITCH_ON", "SWITCHED_ON", "OPERATION_ENABLED"]
+    assert seen == [walk] * b.n  # every state on the way, in order, on every drive
+    assert cycles >= 3  # one controlword per cycle: at least three cycles
+    assert np.all(np.diff(stamps) > 0)  # a fresh sample every cycle: the loop went on
+    # ONE SYNC per cycle, sent by the loop's write (the drive may still be taking the last one)
+    assert b.stats["syncs"] - syncs_sent == cycles
+    wait_until(lambda: rig.drive(0).sync_count - syncs0 >= cycles, 1, what="the drive took every SYNC")
+    assert rig.drive(0).sync_count - syncs0 == cycles
+    for i in range(b.n):  # enabled holding where it was
+        assert abs(rig.drive(i).target_position - rig.drive(i).position) <= 2
+
+
+def test_move_jp_is_tracked_in_csp(rig):
+    c = rig.c
+    rig.enable()
+    goal = [0.5, -0.4]
+    rig.request(2, "move_jp", ns="pantilt", data={"position": goal})
+    worst = 0.0
+
+    def check():
+        nonlocal worst
+        assert rig.drive(0).mode == t.Mode.CYCLIC_SYNC_POSITION and rig.drive(1).mode == 8
+        worst = max(worst, float(np.max(np.abs(c.feedback.position - c.command.position))))
+
+    assert rig.reply(2)["ok"]
+    rig.until(lambda: (check(), not c.is_busy)[1], 5, "the move's end")
+    rig.cycle(25)
+    np.testing.assert_allclose(rig.fb.position, goal, atol=0.005)
+    assert worst < 0.1  # followed cycle by cycle, a few cycles behind at most
+    for i, d in enumerate(rig.backend.drives):  # counts on the drive = offset + goal / k
+        assert rig.drive(i).target_position == round(d.keys.offset + goal[i] / d.k_pos)
+
+
+def test_servo_jv_runs_csv_servo_jf_runs_cst_and_csp_returns_without_a_jump(rig):
+    c, b = rig.c, rig.backend
+    rig.enable()
+    rig.request(2, "servo_jv", ns="pantilt", data={"velocity": [0.5, 0.0]})
+    rig.until(lambda: abs(c.feedback.velocity[0] - 0.5) < 0.05, 3, "pan at 0.5 rad/s")
+    pan = rig.drive(0)
+    assert pan.mode == t.Mode.CYCLIC_SYNC_VELOCITY
+    assert pan.target_velocity == round(0.5 / b.drives[0].k_vel)
+    rig.request(3, "servo_jf", ns="pantilt", data={"effort": [1.0, -0.5]})
+    rig.until(lambda: rig.drive(0).mode == t.Mode.CYCLIC_SYNC_TORQUE and rig.drive(1).mode == 10, 2, "CST")
+    assert pan.target_torque == round(1.0 / b.drives[0].k_eff)  # 1 N*m = 200 per mille of 5 N*m
+    assert rig.drive(1).target_torque == round(-0.5 / b.drives[1].k_eff)
+    rig.until(lambda: abs(c.feedback.effort[0] - 1.0) < 0.05, 2, "pan measures 1 N*m")
+    rig.request(4, "hold", ns="pantilt")
+    before = [rig.drive(i).position for i in range(2)]
+    rig.until(lambda: rig.drive(0).mode == 8 and rig.drive(1).mode == 8, 2, "back in CSP")
+    for i in range(2):  # the first CSP target is where the drive was: no jump
+        drv = rig.drive(i)
+        assert abs(drv.target_position - before[i]) < 0.05 / abs(b.drives[i].k_pos), i
+    assert c.state is S.ENABLED and not rig.events("error")
+
+
+def test_emcy_faults_naming_the_code_and_enable_recovers(rig):
+    c = rig.c
+    rig.enable()
+    rig.sim.set_fault(2, "emcy", 0x2310)
+    rig.until(lambda: c.state is S.FAULT, 2, "FAULT")
+    err = rig.events("error")[-1]
+    assert err["code"] == "drive_fault" and err["joint"] == "tilt" and err["value"] == 0x2310
+    assert "node 2" in err["message"] and "EMCY 0x2310" in err["message"]
+    assert "over-current" in err["message"]
+    rig.until(lambda: not c.is_busy and not rig.drive(0).enabled, 2, "torque off on the other drive")
+    assert rig.drive(1).state.name == "FAULT"
+    rig.enable(5)  # fault reset (rising edge of bit 7) then the walk
+    assert rig.drive(1).state.name == "OPERATION_ENABLED" and rig.drive(0).state.name == "OPERATION_ENABLED"
+    assert any(e["code"] == "fault_cleared" for e in rig.events("status"))
+
+
+def test_heartbeat_loss_faults_naming_the_node(rig):
+    c = rig.c
+    rig.enable()
+    t0 = time.monotonic()
+    rig.sim.set_fault(1, "heartbeat_stop")
+    rig.until(lambda: c.state is S.FAULT, 2, "FAULT")
+    took = time.monotonic() - t0
+    err = rig.events("error")[-1]
+    assert err["code"] == "heartbeat_lost" and err["joint"] == "pan" and "node 1" in err["message"]
+    # not before heartbeat_timeout_ms (350) after the last heartbeat (at most heartbeat_ms = 100
+    # before the stop): the TPDOs kept coming meanwhile
+    assert took >= 0.35 - 0.1 - 0.01
+    assert not rig.events("warning")
+    rig.until(lambda: not c.is_busy and not rig.drive(0).enabled and not rig.drive(1).enabled, 2, "torque off")
+    rig.sim.clear_faults()
+    rig.enable(2)
+
+
+def test_pause_is_a_quick_stop_and_resume_leaves_it(rig):
+    c = rig.c
+    rig.enable()
+    rig.request(2, "servo_jv", ns="pantilt", data={"velocity": [0.8, -0.8]})
+    rig.until(lambda: abs(c.feedback.velocity[0]) > 0.5, 3, "moving")
+    rig.request(3, "pause")
+    assert rig.reply(3)["ok"] and c.state is S.PAUSED
+    for i in range(2):
+        assert rig.drive(i).state.name == "QUICK_STOP_ACTIVE"
+        assert rig.drive(i).controlword == t.Command.QUICK_STOP
+    rig.until(lambda: np.all(np.abs(c.feedback.velocity) < 0.01), 2, "stopped")
+    held = rig.fb.position.copy()
+    rig.request(4, "resume")
+    assert rig.reply(4)["ok"] and c.state is S.ENABLED
+    rig.cycle(10)
+    assert all(rig.drive(i).state.name == "OPERATION_ENABLED" for i in range(2))
+    np.testing.assert_allclose(rig.fb.position, held, atol=0.01)  # resumed holding, no jump
+    assert not rig.events("error")
+
+
+def test_capabilities_follow_0x6502_per_drive(iface):
+    r = CanRig(iface, options={2: DriveOptions(modes=(8,))})  # tilt: CSP only
+    try:
+        c = r.start()
+        b = r.backend
+        assert b.joint_capabilities(0).velocity and b.joint_capabilities(0).effort
+        tilt = b.joint_capabilities(1)
+        assert tilt.position and not tilt.velocity and not tilt.effort and not tilt.can_free
+        assert not b.capabilities.effort
+        r.request(1, "servo_jf", ns="pantilt", data={"effort": [0.1, 0.1]})
+        reply = r.c.outbox[-1]
+        assert not reply["ok"] and reply["error"]["code"] == "unsupported" and "'tilt'" in reply["error"]["message"]
+        r.enable(2)
+        # the namespace lacks velocity control: core integrates servo_jv into CSP positions
+        r.request(3, "servo_jv", ns="pantilt", data={"velocity": [0.3, 0.3]})
+        r.until(lambda: c.feedback.position[1] > 0.05, 3, "tilt moving in CSP")
+        assert r.drive(1).mode == 8 and r.drive(0).mode == 8
+    finally:
+        r.close()
+
+
+def test_a_node_that_does_not_boot_is_named(iface):
+    data = profile_data(PROFILE)
+    data["backend"]["boot_timeout_s"] = 0.3
+    r = CanRig(iface, data, node_ids=[1])  # node 2 is absent
+    try:
+        with pytest.raises(BackendError, match=r"joint 'tilt' \(node 2\) did not boot within 0.3 s"):
+            r.backend.open()
+    finally:
+        r.close()
+
+
+def test_a_bus_error_faults_and_the_bus_is_reopened(rig):
+    c, b = rig.c, rig.backend
+    rig.enable()
+    b._network.bus.shutdown()  # the adapter failed under us
+    rig.until(lambda: c.state is S.FAULT, 2, "FAULT")
+    err = rig.events("error")[-1]
+    assert err["code"] == "bus_error" and "reopening" in err["message"]
+    rig.until(lambda: b._bus_down is None, 5, "the bus reopened")
+    rig.cycle(5)
+    assert b.read(rig.fb) is None
+    rig.enable(3)
+
+
+def test_home_runs_the_drives_homing_method(iface):
+    data = profile_data(PROFILE)
+    data["joints"][0]["homing"] = {"method": 37}  # current position (CiA 402-2 8.2)
+    data["joints"][0]["offset"] = 0
+    r = CanRig(iface, data)
+    try:
+        c = r.start()
+        assert r.backend.native_homing and not c.is_homed
+        r.drive(0).set_position(20000)
+        r.cycle(3)
+        assert c.feedback.position[0] > 0.5
+        r.enable()
+        r.request(2, "home")
+        reply = r.reply(2, timeout=10)
+        assert reply["ok"], reply
+        assert c.is_homed and r.drive(0).homed
+        r.cycle(5)
+        assert abs(c.feedback.position[0]) < 0.01 and r.drive(0).mode == 8 and c.state is S.ENABLED
+    finally:
+        r.close()
+
+
+def test_example_profile_documents_every_canopen_key():
+    from crtk_bridge.backends.canopen402.backend import Config, DriveJoint, Homing
+
+    text = (ROOT / "profiles" / "example.yaml").read_text()
+    for struct in (Config, DriveJoint, Homing):
+        for key in struct.__struct_fields__:
+            assert re.search(rf"^\s*#\s+{key}:", text, re.M), f"{struct.__name__}.{key} is not in example.yaml"
+    load_profile(ROOT / "profiles" / "example.yaml")  # still a valid profile

@@ -1,0 +1,159 @@
+"""The socket protocol over Zenoh, end to end: a Zenoh router (a Python process, router mode,
+loopback, multicast off) and two daemons (SO-101 and Koch on their simulators) joined to it; the
+Python client and crtk-ctl reach both through the router with the same API as over the socket,
+under the same control rules (one controller across transports, stops from anyone, client loss)."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from crtk_bridge.client import CommandError, DaemonConnectionError, connect, list_robots
+
+from .conftest import KOCH, ROOT, SO101, DaemonProcess, wait_until
+
+ROUTER = """
+import json, sys, zenoh
+conf = zenoh.Config()
+conf.insert_json5("mode", '"router"')
+conf.insert_json5("scouting/multicast/enabled", "false")
+conf.insert_json5("listen/endpoints", json.dumps([sys.argv[1]]))
+session = zenoh.open(conf)
+print("ready", flush=True)
+sys.stdin.read()  # until the test closes our stdin
+session.close()
+"""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    """A router on a free loopback port and the two daemons joined to it: (endpoint, so101, koch)."""
+    tmp = tmp_path_factory.mktemp("zenoh")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = subprocess.Popen([sys.executable, "-c", ROUTER, endpoint], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=ROOT)
+    daemons = []
+    try:
+        assert router.stdout.readline().strip() == b"ready"
+        for name, profile in (("so101", SO101), ("koch", KOCH)):
+            daemons.append(DaemonProcess(["--profile", str(profile), "--sim", "--zenoh-connect", endpoint],
+                                         tmp / f"{name}.sock", tmp / f"{name}.log"))
+        yield endpoint, daemons[0], daemons[1]
+    finally:
+        for d in daemons:
+            d.stop()
+        router.stdin.close()
+        try:
+            router.wait(10)
+        except subprocess.TimeoutExpired:
+            router.kill()
+            router.wait()
+
+
+def test_lists_both_robots(lab):
+    endpoint, so101, koch = lab
+    assert list_robots(zenoh_connect=endpoint) == ["koch", "so101"]
+    assert "serving CRTK on" in so101.output() and f"Zenoh (connected to {endpoint}" in so101.output()
+    done = subprocess.run([sys.executable, "-m", "crtk_bridge.client.cli", "--zenoh-connect", endpoint, "--json",
+                           "robots"], cwd=ROOT, capture_output=True, text=True, timeout=30)
+    assert (done.returncode, json.loads(done.stdout)) == (0, {"robots": ["koch", "so101"]})
+
+
+def test_streams_enables_and_moves_over_zenoh(lab):
+    endpoint, so101, _ = lab
+    with connect(robot="so101", zenoh_connect=endpoint) as robot:
+        assert robot.name == "so101" and robot.namespaces == ["so101", "so101/gripper"]
+        arm = robot.device("so101")
+        with arm.subscribe("measured_js", 50.0) as stream:
+            frames = [stream.get(timeout=5.0) for _ in range(5)]
+        stamps = [f["stamp"] for f in frames]
+        assert all(b > a for a, b in zip(stamps, stamps[1:])) and len(frames[0]["position"]) == 5
+        assert arm.enable(5.0) and arm.is_enabled()
+        goal = np.array([0.1, 0.2, 0.3, 0.0, 0.0])
+        assert arm.move_jp(goal).wait(timeout=15.0)
+        p, ts = arm.measured_jp()
+        assert ts > 0 and np.max(np.abs(p - goal)) < 0.02
+        assert arm.disable(5.0)
+    # the socket sees what the Zenoh client did: one robot, one state
+    with connect(socket=str(so101.socket_path)) as local:
+        assert local.device("so101").operating_state() == "DISABLED"
+        assert np.max(np.abs(local.device("so101").measured_jp()[0] - goal)) < 0.02
+
+
+def test_one_controller_across_transports_and_stops_from_anyone(lab):
+    endpoint, _, koch = lab
+    with connect(robot="koch", zenoh_connect=endpoint) as holder, \
+            connect(robot="koch", zenoh_connect=endpoint) as other, \
+            connect(socket=str(koch.socket_path)) as local:
+        arm = holder.device("koch")
+        assert arm.enable(5.0)
+        here = arm.measured_jp()[0]
+        for robot in (other, local):  # a second Zenoh client, and a socket client: both refused
+            with pytest.raises(CommandError) as refused:
+                robot.device("koch").move_jp(here + 0.05)
+            assert refused.value.code == "read_only"
+            assert "Zenoh client" in refused.value.message  # names the holder's session
+        assert other.device("koch").disable(5.0)  # a stop is never refused
+        wait_until(arm.is_disabled, 5.0, what="the holder seeing DISABLED")
+        assert arm.enable(5.0)  # the holder kept control
+        assert local.device("koch").pause(5.0)  # stops from the socket too
+        assert arm.disable(5.0)
+
+
+def test_client_loss_over_zenoh_stops_the_robot(lab):
+    endpoint, so101, _ = lab
+    with connect(socket=str(so101.socket_path)) as watcher:
+        speed = lambda: abs(watcher.device("so101").measured_jv()[0][0])  # noqa: E731 - shoulder_pan, rad/s
+        remote = connect(robot="so101", zenoh_connect=endpoint)
+        try:
+            arm = remote.device("so101")
+            assert arm.enable(5.0)
+            count = watcher.connection.event_count
+            arm.servo_jv([0.2, 0.0, 0.0, 0.0, 0.0])
+            wait_until(lambda: speed() > 0.05, 5.0, what="the joint moving")
+            remote.connection._sock._session.close()  # gone as far as Zenoh knows: its token goes away
+            warned = wait_until(lambda: [e for e in watcher.connection.events_since(count)
+                                         if e.data.get("code") == "control_released"], 5.0,
+                                what="a control_released warning after the Zenoh client left")
+            assert warned[0].kind == "warning" and "so101" in warned[0].data["message"]
+            wait_until(lambda: speed() < 0.01, 5.0, what="the joint stopped")
+            watcher.acquire()  # control is free again
+            assert watcher.device("so101").disable(5.0)
+            with pytest.raises(DaemonConnectionError):
+                remote.list()
+        finally:
+            remote.close()
+
+
+def test_unreachable_router_from_the_client():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "crtk_bridge.client.cli", "--zenoh-connect", endpoint,
+                           "--timeout", "0.5", "state"], cwd=ROOT, capture_output=True, text=True, timeout=30)
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        f"crtk-ctl: crtk-bridge client: cannot reach the Zenoh router or peer at {endpoint} within 0.5 s: "
+        f"start a router there (e.g. `zenohd -l tcp/127.0.0.1:{endpoint.rsplit(':', 1)[1]}`) or check the "
+        "address (--zenoh-connect)"]
+    assert time.monotonic() - started < 20
+
+
+def test_no_such_robot_on_the_network(lab):
+    endpoint, _, _ = lab
+    with pytest.raises(DaemonConnectionError, match=r"no crtk-bridge daemon for robot 'ur5e' on the Zenoh "
+                                                    r"network at .* \(robots there: koch, so101\)"):
+        connect(robot="ur5e", zenoh_connect=endpoint)
+    with pytest.raises(DaemonConnectionError, match="several robots on the Zenoh network .*: koch, so101"):
+        connect(zenoh_connect=endpoint)
