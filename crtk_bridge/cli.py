@@ -79,11 +79,15 @@ def _check(argv: list[str]) -> int:
     from .backends import create_backend
     from .core.kinematics_check import check_kinematics
     from .profile import load_profile
+    from .transport.zenoh_session import check_exposure, zenoh_config
 
     try:
         profile = load_profile(args.profile)
         backend = create_backend(profile, source=args.profile)
         cartesian = check_kinematics(profile, args.profile)
+        zenoh = zenoh_config(profile)
+        if zenoh is not None:  # loopback, or TLS + access control (transport/zenoh_session.py)
+            check_exposure(zenoh, profile.name)
     except CrtkBridgeError as exc:
         print(f"crtk-bridge: {exc}", file=sys.stderr)
         return 1

@@ -154,6 +154,9 @@ class Profile(_Strict, kw_only=True):
     shutdown: Shutdown = Shutdown()
     joints: list[Joint]
     namespaces: list[Namespace]
+    # a YAML file (relative to the profile) of joint name -> calibration keys, replacing those
+    # joints' `calibration`; `crtk-ctl calibrate` writes it (docs/calibration.md)
+    calibration_file: str | None = None
 
     # --- derived helpers (no state of their own) ---
     @property
@@ -443,6 +446,57 @@ def _yaml_error_text(exc: yaml.MarkedYAMLError) -> str:
     return text
 
 
+def _load_yaml(path: Path, text: str) -> Any:
+    try:
+        return yaml.safe_load(text)
+    except yaml.MarkedYAMLError as exc:
+        raise ProfileError(f"{path}: {_yaml_error_text(exc)}") from exc
+    except yaml.YAMLError as exc:
+        raise ProfileError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from exc
+
+
+def calibration_file_path(profile_path: str | Path, name: str) -> Path:
+    """Where a profile's ``calibration_file`` is: relative to the profile file."""
+    return (Path(profile_path).parent / name).resolve()
+
+
+def _with_calibration_file(data: dict, path: Path) -> dict:
+    """``data`` with the joints' ``calibration`` replaced by the calibration file's (a copy). A
+    file not written yet (no calibration so far) changes nothing. Raises ProfileError naming the
+    file and the key."""
+    name = data["calibration_file"]
+    if not isinstance(name, str):
+        raise ProfileError(f"{path}: calibration_file: expected a file name, got {type(name).__name__}")
+    cal_path = calibration_file_path(path, name)
+    try:
+        text = cal_path.read_text()
+    except FileNotFoundError:
+        return data
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ProfileError(f"{path}: calibration_file: cannot read {cal_path}: {exc}") from exc
+    cal = _load_yaml(cal_path, text)
+    if cal is None:
+        return data
+    if not isinstance(cal, dict) or not all(isinstance(v, dict) for v in cal.values()):
+        raise ProfileError(f"{cal_path}: expected a mapping of joint name -> calibration keys "
+                           f"(offset, direction, range...)")
+    joints = data.get("joints")
+    names = [j.get("name") for j in joints if isinstance(j, dict)] if isinstance(joints, list) else []
+    unknown = sorted(set(map(str, cal)) - set(names))
+    if unknown:
+        raise ProfileError(f"{cal_path}: {unknown[0]}: no joint of that name in {path} (joints: {', '.join(map(str, names))})")
+    out = []
+    for j in joints:
+        if isinstance(j, dict) and j.get("name") in cal:
+            nested = j.get("backend")
+            if isinstance(nested, dict) and "calibration" in nested:
+                j = {**j, "backend": {**nested, "calibration": cal[j["name"]]}}
+            else:
+                j = {**j, "calibration": cal[j["name"]]}
+        out.append(j)
+    return {**data, "joints": out}
+
+
 def load_profile(path: str | Path) -> Profile:
     """Read and validate a profile file. Blocks on file I/O. Raises ProfileError."""
     path = Path(path)
@@ -452,12 +506,9 @@ def load_profile(path: str | Path) -> Profile:
         raise ProfileError(f"{path}: cannot read profile: {exc.strerror or exc}") from exc
     except UnicodeDecodeError as exc:
         raise ProfileError(f"{path}: not a text (UTF-8) file: {exc.reason} at byte {exc.start}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.MarkedYAMLError as exc:
-        raise ProfileError(f"{path}: {_yaml_error_text(exc)}") from exc
-    except yaml.YAMLError as exc:
-        raise ProfileError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from exc
+    data = _load_yaml(path, text)
+    if isinstance(data, dict) and data.get("calibration_file") is not None:
+        data = _with_calibration_file(data, path)
     profile = parse_profile(data, str(path))
     # URDF paths are relative to the profile file: resolve them now, so the daemon can chdir
     namespaces = []

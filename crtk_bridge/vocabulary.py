@@ -80,6 +80,11 @@ class SessionCommand(StrEnum):
     RELEASE = "release"
 
 
+class MaintenanceCommand(StrEnum):
+    """crtk-bridge's own robot-wide commands, not CRTK's (docs/protocol.md, Calibration)."""
+    CALIBRATE = "calibrate"
+
+
 class Topic(StrEnum):
     """Queries that can also be streamed (``subscribe``); cartesian ones in :class:`CartesianTopic`."""
     MEASURED_JS = "measured_js"

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import re
+import socket
 import time
 
 import numpy as np
@@ -165,7 +166,7 @@ def test_movej_arrives_along_a_trajectory(ready, recv):
     start = np.array(recv.getActualQ())
     goal = start + [0.4, -0.2, 0.3, 0.1, -0.1, 0.2]
     assert ready.moveJ(goal.tolist(), 1.5, 4.0, True)  # asynchronous: watch it move
-    mid = wait_until(lambda: 0.1 < abs(recv.getActualQ()[0] - start[0]) < 0.3 and recv.getActualQ(), 3,
+    mid = wait_until(lambda: 0.05 < abs(recv.getActualQ()[0] - start[0]) < 0.35 and recv.getActualQ(), 3,
                      interval=0.002, what="the arm part way")
     assert ready.getAsyncOperationProgress() >= 0  # still running
     wait_until(lambda: ready.getAsyncOperationProgress() < 0, 5, what="the async moveJ to finish")
@@ -249,6 +250,14 @@ def test_kinematics_queries_and_safety_limit_checks(ready, recv):
     assert not ready.isJointsWithinSafetyLimits(outside)
     assert ready.isPoseWithinSafetyLimits(fk)
     assert not ready.isPoseWithinSafetyLimits([2.0, 0.0, 0.5, 0.0, 3.14, 0.0])  # beyond the reach
+    # realtime queries: ur_rtde reads the result registers right after sending, so (as on a real
+    # controller) a value is one controller tick late: poll until it is there
+    model = pin.buildModelFromUrdf(str(UR5E_URDF))
+    gravity = pin.computeGeneralizedGravity(model, model.createData(), np.asarray(q))
+    assert abs(gravity[1]) > 1.0  # the shoulder holds the arm up
+    wait_until(lambda: np.allclose(ready.getJointTorques(), gravity, atol=1e-9), 2, what="gravity torques")
+    wait_until(lambda: np.allclose(pose_matrix(ready.getActualToolFlangePose()), dh_fk(q), atol=1e-6), 2,
+               what="the flange pose")
 
 
 def test_speed_slider_scales_motion(sim, ready, recv):
@@ -340,16 +349,46 @@ def test_emergency_stop_powers_off_until_released_and_powered_on(sim, ready, rec
     assert recv.getSafetyMode() == 1
 
 
-def test_link_loss_seen_by_isconnected_then_reconnect(sim, recv):
-    assert recv.isConnected()
-    sim.link_loss(0.5)
-    wait_until(lambda: not recv.isConnected(), 2, what="isConnected() False after the link loss")
-    with pytest.raises(RuntimeError):
-        rtde_receive.RTDEReceiveInterface(sim.host)  # refused while the link is down
+def test_watchdog_stops_the_program_when_inputs_stop(ready, recv):
+    assert ready.setWatchdog(4.0)  # a command-register write at least every 250 ms, or it stops
+    for _ in range(25):
+        assert ready.kickWatchdog()
+        time.sleep(0.02)
+    assert ready.isProgramRunning()  # kicked every 20 ms: still running
+    t0 = time.monotonic()
+    wait_until(lambda: not ready.isProgramRunning(), 3, what="the watchdog stopping the program")
+    assert time.monotonic() - t0 > 0.2  # not before its 250 ms
+    assert recv.getRuntimeState() == 1
+    ready.reuploadScript()
+    wait_until(ready.isProgramRunning, 5, what="the script running again, without a watchdog")
+    time.sleep(0.1)
+    assert ready.isProgramRunning()
+
+
+def test_link_loss_seen_by_isconnected_then_reconnect(sim, control, recv):
+    # (last tests of the module: the control interface is not reconnected in this process; its
+    # reconnect() after a link loss was seen to corrupt the heap of ur_rtde 1.6.5, see report)
+    assert recv.isConnected() and control.isConnected()
+    sim.link_loss(1.5)
+    with pytest.raises(ConnectionRefusedError):
+        socket.create_connection((sim.host, 30004), timeout=1).close()  # refused while down
+    socket.create_connection((sim.host, 29999), timeout=1).close()  # only RTDE was cut
+    wait_until(lambda: not recv.isConnected(), 2, what="receive isConnected() False after the link loss")
+    wait_until(lambda: not control.isConnected(), 2, what="control isConnected() False after the link loss")
     wait_until(lambda: _try(recv.reconnect), 5, interval=0.1, what="reconnect after the link is back")
     assert recv.isConnected()
     t0 = recv.getTimestamp()
     wait_until(lambda: recv.getTimestamp() > t0, 2, what="data flowing again")
+    assert recv.getRuntimeState() == 2  # the program kept running on the controller
+
+
+def test_controller_restart_drops_everything_and_comes_back_powered_off(sim, recv):
+    sim.restart(0.3)
+    wait_until(lambda: not recv.isConnected(), 2, what="the link dropped by the restart")
+    wait_until(lambda: _try(recv.reconnect), 5, interval=0.1, what="reconnect after the reboot")
+    assert recv.getRobotMode() == 3  # POWER_OFF
+    assert recv.getRuntimeState() == 1  # no program
+    assert recv.getSafetyMode() == 1
 
 
 def test_cb3_streams_at_125_hz():

@@ -39,17 +39,21 @@ def free_port() -> int:
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory):
-    """A router on a free loopback port and the two daemons joined to it: (endpoint, so101, koch)."""
+    """A router on a free loopback port and the two daemons joined to it: (endpoint, so101, koch).
+    The Koch daemon also listens on its own loopback port (``koch.listen``), for peers and clients
+    that reach it directly."""
     tmp = tmp_path_factory.mktemp("zenoh")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
+    koch_listen = f"tcp/127.0.0.1:{free_port()}"
     router = subprocess.Popen([sys.executable, "-c", ROUTER, endpoint], stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=ROOT)
     daemons = []
     try:
         assert router.stdout.readline().strip() == b"ready"
-        for name, profile in (("so101", SO101), ("koch", KOCH)):
-            daemons.append(DaemonProcess(["--profile", str(profile), "--sim", "--zenoh-connect", endpoint],
+        for name, profile, more in (("so101", SO101, []), ("koch", KOCH, ["--zenoh-listen", koch_listen])):
+            daemons.append(DaemonProcess(["--profile", str(profile), "--sim", "--zenoh-connect", endpoint, *more],
                                          tmp / f"{name}.sock", tmp / f"{name}.log"))
+        daemons[1].listen = koch_listen
         yield endpoint, daemons[0], daemons[1]
     finally:
         for d in daemons:
@@ -148,6 +152,13 @@ def test_unreachable_router_from_the_client():
         f"start a router there (e.g. `zenohd -l tcp/127.0.0.1:{endpoint.rsplit(':', 1)[1]}`) or check the "
         "address (--zenoh-connect)"]
     assert time.monotonic() - started < 20
+
+
+def test_a_client_reaches_a_daemon_listening_without_a_router(lab):
+    _, _, koch = lab
+    with connect(robot="koch", zenoh_connect=koch.listen) as robot:
+        assert robot.name == "koch" and robot.device("koch").operating_state() in ("DISABLED", "ENABLED", "PAUSED")
+        assert robot.measured_js()[3] > 0
 
 
 def test_no_such_robot_on_the_network(lab):

@@ -3,6 +3,8 @@ exposure rule (loopback, or TLS + access control), and the daemon's one-line sta
 
 from __future__ import annotations
 
+import json
+import shutil
 import socket
 import subprocess
 import sys
@@ -142,3 +144,50 @@ def test_daemon_says_the_router_is_unreachable(short_tmp):
     assert line.startswith(f"crtk-bridge: so101: cannot reach the Zenoh router or peer at tcp/127.0.0.1:{port} ")
     assert "start a router there (e.g. `zenohd -l" in line
     assert not (short_tmp / "s.sock").exists()
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory):
+    """A throw-away CA and a certificate for localhost it signed (openssl, as a lab would make them)."""
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl is not installed: cannot make test certificates")
+    d = tmp_path_factory.mktemp("certs")
+    (d / "ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
+    for cmd in ("req -x509 -newkey rsa:2048 -nodes -keyout ca.key -out ca.pem -days 1 -subj /CN=crtk-test-ca",
+                "req -newkey rsa:2048 -nodes -keyout d.key -out d.csr -subj /CN=localhost",
+                "x509 -req -in d.csr -CA ca.pem -CAkey ca.key -CAcreateserial -out d.pem -days 1 -extfile ext"):
+        subprocess.run(["openssl", *cmd.split()], cwd=d, check=True, capture_output=True)
+    return d
+
+
+def test_a_tls_endpoint_needs_the_ca(certs, tmp_path):
+    """The tls keys reach Zenoh: a daemon-side session listening on tls/ with its certificate is
+    reached by a client that trusts the CA (a Zenoh configuration file), and not without it."""
+    from crtk_bridge.client import DaemonConnectionError, list_robots
+
+    endpoint = f"tls/localhost:{free_port()}"
+    daemon = open_session(ZenohConfig(listen=[endpoint], tls=ZenohTls(
+        listen_certificate=str(certs / "d.pem"), listen_private_key=str(certs / "d.key"))), "so101")
+    try:
+        token = daemon.liveliness().declare_token("crtk_bridge/so101/daemon")
+        trust = tmp_path / "client.json5"
+        trust.write_text(json.dumps({"transport": {"link": {"tls": {"root_ca_certificate": str(certs / "ca.pem")}}}}))
+        assert list_robots(zenoh_connect=endpoint, timeout=5.0, zenoh_config=str(trust)) == ["so101"]
+        with pytest.raises(DaemonConnectionError, match="a tls/ endpoint also needs the CA"):
+            list_robots(zenoh_connect=endpoint, timeout=0.5)  # the daemon's certificate is not trusted
+        token.undeclare()
+    finally:
+        daemon.close()
+
+
+def test_check_refuses_an_exposed_profile(short_tmp):
+    data = so101_data()
+    data["transport"] = {"zenoh": {"listen": ["tcp/192.168.1.10:7447"]}}
+    path = short_tmp / "so101.yaml"
+    path.write_text(yaml.safe_dump(data))
+    done = _daemon(["check", "--profile", str(path)])
+    assert done.returncode == 1
+    assert done.stderr.strip() == (
+        "crtk-bridge: so101: transport.zenoh.listen (--zenoh-listen) tcp/192.168.1.10:7447 reaches beyond this "
+        "PC: only a tls/ endpoint may (with transport.zenoh.tls and transport.zenoh.access_control); use "
+        "loopback, or see docs/zenoh.md, 'Across machines'")

@@ -328,6 +328,24 @@ class CompositeActuator(Actuator):
         message = _robot_key_paths(str(exc).removeprefix(f"{self.robot}: "), self.profile, self.bus_names[b])
         return BackendError(f"{self.robot}: bus {self.bus_names[b]!r}: {message}")
 
+    # ---------------------------------------------------------------- calibration (each bus's joints)
+    def calibration_begin(self) -> Steps:
+        for b, p in enumerate(self.parts):
+            try:
+                yield from p.calibration_begin()
+            except BackendError as exc:
+                raise self._named(b, exc) from exc
+
+    def calibration_seen(self) -> dict[str, list[float]]:
+        return {name: seen for p in self.parts for name, seen in p.calibration_seen().items()}
+
+    def calibration_result(self, grippers) -> dict[str, dict[str, Any]]:
+        return {name: keys for p in self.parts for name, keys in p.calibration_result(grippers).items()}
+
+    def calibration_cancel(self) -> None:
+        for p in self.parts:
+            p.calibration_cancel()
+
     def _close_hook(self) -> None:
         if self._workers is not None:
             for w in self._workers:

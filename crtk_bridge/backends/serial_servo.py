@@ -56,9 +56,10 @@ import serial
 from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Fault, Lifecycle, Steps
 from ..errors import BackendError, ProfileError
 from ..profile import Profile, backend_config
+from .calibration import RangeWatch, from_lerobot, sweep_calibration
 from .port_errors import open_error_reason, silent_bus_hint
 from .ports import resolve_port
-from .servo_keys import ServoJoint, servo_joints
+from .servo_keys import Calibration, ServoJoint, servo_joints
 
 log = logging.getLogger(__name__)
 
@@ -260,6 +261,9 @@ class SerialServoBackend(Actuator):
     RESOLUTION: ClassVar[dict[str, int]] = {}
     MAX_ID: ClassVar[int] = 253
     SUPPORTED_BAUDS: ClassVar[list[int]] = []
+    #: True when LeRobot applies a calibration's drive_mode in software (Feetech); False when the
+    #: servo applies it itself (Dynamixel's Drive_Mode register) before its ticks are read
+    SOFTWARE_DRIVE_MODE: ClassVar[bool] = True
     #: bus baud rate -> Baud_Rate register code
     BAUD_CODES: ClassVar[dict[int, int]] = {}
     #: a factory-fresh servo's baud rate (setup-servos looks there first after the profile's)
@@ -289,6 +293,7 @@ class SerialServoBackend(Actuator):
         res = np.array([self.RESOLUTION[j.model] for j in joints], dtype=float)
         self._direction = np.array([j.calibration.direction for j in joints], dtype=float)
         self._offset_ticks = np.array([j.calibration.offset for j in joints], dtype=float)
+        self._resolution = res
         self._rad_per_tick = self._direction * 2.0 * math.pi / res  # signed: includes direction
         self._tick_per_rad = 1.0 / self._rad_per_tick
         self._attempts = 1 + cfg.read_retries
@@ -311,6 +316,9 @@ class SerialServoBackend(Actuator):
         self._reopened: str | None = None  # set by the reopen worker: what it found
         self._reopen_thread: threading.Thread | None = None
         self._reopen_stop = threading.Event()
+        # calibration sweep (backends/calibration.py): followed in the vendors' _read
+        self._cal: RangeWatch | None = None
+        self._cal_homing: list[int | None] = [None] * self.n
 
     # ------------------------------------------------------------------ hooks
     def _check_joint(self, i: int, key: str, j: ServoJoint, problems: list[str]) -> None:
@@ -551,6 +559,46 @@ class SerialServoBackend(Actuator):
         if self._port is None:
             raise BackendError(f"{self.robot}: {what} needs an open bus; call open() first")
 
+    # ------------------------------------------------------------------ calibration
+    def calibration_begin(self) -> Steps:
+        """Read each servo's Homing_Offset (one per cycle: the ticks are measured with it), then
+        follow every read's ticks from the middle pose, the latest read's (backends/calibration.py)."""
+        self._require_open("calibrate")
+        homing: list[int | None] = []
+        for i in range(self.n):
+            homing.append((yield from self._retrying(self._read_register, i, "Homing_Offset")))
+            yield
+        self._cal_homing = homing
+        self._cal = RangeWatch(self._raw_pos, self._resolution)
+
+    def _watch(self) -> RangeWatch:
+        if self._cal is None:
+            raise BackendError(f"{self.robot}: no calibration sweep under way (calibrate begin first)")
+        return self._cal
+
+    def calibration_seen(self) -> dict[str, list[float]]:
+        w = self._watch()
+        k = self._rad_per_tick
+        return {name: sorted([float(w.lo[i] * k[i]), float(w.hi[i] * k[i])]) + [float(w.now[i] * k[i])]
+                for i, name in enumerate(self.joint_names)}
+
+    def calibration_result(self, grippers) -> dict[str, dict[str, Any]]:
+        w = self._watch()
+        result = sweep_calibration(self.robot, self.joint_names, w, [int(d) for d in self._direction],
+                                   list(grippers), self._cal_homing)
+        self._cal = None
+        return _schema_keys(result)
+
+    def calibration_cancel(self) -> None:
+        self._cal = None
+
+    def calibration_import(self, fmt: str, data: Any, grippers) -> dict[str, dict[str, Any]]:
+        if fmt != "lerobot":
+            return super().calibration_import(fmt, data, grippers)
+        return _schema_keys(from_lerobot(self.robot, data, self.joint_names, self._ids,
+                                         [int(r) for r in self._resolution], [int(d) for d in self._direction],
+                                         list(grippers), self.SOFTWARE_DRIVE_MODE))
+
     # ------------------------------------------------------------------ hot replug
     #: s between two attempts of the reopen worker (adapter unplugged, module docstring)
     REOPEN_INTERVAL_S = 0.2
@@ -616,7 +664,7 @@ class SerialServoBackend(Actuator):
         port, _ = self._open_port()
         try:
             self._check_servos()
-            self._startup_check()  # the EEPROM may have changed while the adapter was out
+            self._startup_check()  # the EEPROM may have changed (a servo swapped, recalibrated) meanwhile
             self._after_open()
             torque = [self._read_register(i, "Torque_Enable") for i in range(self.n)]
             self._configure_hook()
@@ -932,3 +980,10 @@ class SerialServoBackend(Actuator):
         if self._port is not None:
             self._port.closePort()
         self._port = None
+
+
+def _schema_keys(calibration: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Only the keys the profile's ``calibration`` schema has (servo_keys.Calibration): what a
+    calibration measures beyond them is not written."""
+    known = set(Calibration.__struct_fields__)
+    return {name: {k: v for k, v in keys.items() if k in known} for name, keys in calibration.items()}

@@ -10,6 +10,8 @@
     crtk-ctl move_cp 0.3 0 0.2 0 0.7071 0 0.7071 --wait      crtk-ctl move_cr 0 0 0.02 --wait
     crtk-ctl servo_cv 0 0 0.02 0 0 0 --frame body --duration 1
     crtk-ctl fk 0 0.5 -0.5 0 0          crtk-ctl ik 0.3 0 0.2 0 0.7071 0 0.7071 --seed 0 0 0 0 0
+    crtk-ctl calibrate --profile my_arm.yaml           (by hand, robot DISABLED; docs/calibration.md)
+    crtk-ctl calibrate --profile my_arm.yaml --import ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm.json
 
 Cartesian poses are X Y Z (m) then the unit quaternion QX QY QZ QW, the tip frame in the base
 frame; relative commands (_cr) take DX DY DZ [QX QY QZ QW] in the base frame (no quaternion: no
@@ -44,6 +46,7 @@ import numpy as np
 
 from crtk_bridge import __version__, vocabulary
 
+from crtk_bridge.client import calibrate
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.client.device import (
     CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, FRAMES, JS_TOPICS, Device, Robot, connect, encode_pose,
@@ -148,6 +151,9 @@ def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
     g.add_argument("--zenoh-connect", metavar="ENDPOINT", action="append", default=d(None),
                    help="reach the daemon over Zenoh, through the router or peer at ENDPOINT "
                         "(e.g. tcp/127.0.0.1:7447; repeatable) instead of the socket (docs/zenoh.md)")
+    g.add_argument("--zenoh-config", metavar="FILE", default=d(None),
+                   help="with --zenoh-connect: a Zenoh configuration file (JSON5) for what the endpoint "
+                        "needs, e.g. transport/link/tls/root_ca_certificate for a tls/ router")
     g.add_argument("--ns", metavar="NAMESPACE", default=d(None),
                    help="CRTK namespace, e.g. so101/gripper (default: the first one)")
     g.add_argument("--json", action="store_true", default=d(False),
@@ -248,6 +254,17 @@ def build_parser() -> argparse.ArgumentParser:
                         + JOINT_VECTOR_HELP)
     add("hold", "stop a move (decelerating) or a stream and hold the position")
     add("free", "torque off on the namespace's joints; the robot stays ENABLED")
+    p = add("calibrate", "calibrate the joints by hand (robot DISABLED: middle pose, then sweep every "
+                         "joint, live range bars) or --import a LeRobot calibration file; writes the "
+                         "joints' calibration into --profile, keeping its comments (docs/calibration.md)")
+    p.add_argument("--profile", required=True, metavar="FILE",
+                   help="the daemon's profile, where the calibration is written (into its calibration_file "
+                        "if it names one); the daemon uses it after a restart")
+    p.add_argument("--gripper", action="append", metavar="JOINT",
+                   help="a joint with closed / open ends (repeatable; default: the joints of the "
+                        "namespaces named .../gripper)")
+    p.add_argument("--import", dest="import_path", metavar="JSON",
+                   help="convert this LeRobot calibration file of the same arm instead of sweeping")
     p = add("events", "print status/warning/error events as they arrive, until Ctrl-C or "
                       "--count events")
     p.add_argument("--count", metavar="N", type=int, default=None, help="stop after N events")
@@ -421,6 +438,9 @@ def _run(args, robot: Robot) -> int:
             raise Failure(f"{cmd}: {TARGETS[cmd]} not reached within {timeout:g} s "
                           f"(state {st.get('state')}){_last_error(robot, n_events)}")
         return 0
+
+    if cmd == "calibrate":
+        return calibrate.run(robot, args.profile, args.gripper, args.import_path, sys.stdin.fileno(), sys.stdout)
 
     if cmd == "list":
         info = robot.list()
@@ -670,11 +690,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         request_timeout = args.timeout if args.timeout is not None else 5.0
         if args.command == "robots":
-            names = list_robots(args.zenoh_connect, request_timeout)
+            names = list_robots(args.zenoh_connect, request_timeout, args.zenoh_config)
             _emit_json({"robots": names}) if args.json else print("\n".join(names))
             return 0
         robot = connect(socket=args.socket, robot=args.robot, timeout=request_timeout,
-                        zenoh_connect=args.zenoh_connect)
+                        zenoh_connect=args.zenoh_connect, zenoh_config=args.zenoh_config)
         return _run(args, robot)
     except KeyboardInterrupt:
         return 130

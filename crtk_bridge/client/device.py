@@ -943,6 +943,16 @@ class Robot:
         percentiles (s), ``overruns``, ``cycles``."""
         return self.connection.request("period_statistics")
 
+    def calibrate(self, action: str, timeout: float | None = None, **data: Any) -> Any:
+        """``calibrate`` (docs/calibration.md, docs/protocol.md): ``begin`` a sweep by hand from
+        the middle pose, ``status`` (``{"seen": {joint: [lowest, highest, now]}}``, rad from the
+        middle pose), ``end`` (``grippers=[...]``: ``{"calibration": {joint: keys}}``),
+        ``cancel``; the robot must be DISABLED. ``import`` (``format="lerobot"``, ``file={...}``,
+        ``grippers=[...]``) converts another tool's calibration file, in any state. Returns the
+        reply's data; takes control. Raises :class:`CommandError` (``invalid_state`` when not
+        DISABLED, naming the state)."""
+        return self.connection.request("calibrate", None, {"action": action, **data}, timeout=timeout)
+
     def acquire(self) -> None:
         """Take control explicitly; raises :class:`CommandError` ``read_only`` if another
         session holds it."""
@@ -1000,15 +1010,16 @@ def _event_matches(ev: Event, kind: str | None, code: str | None, ns: str | None
     return True
 
 
-def list_robots(zenoh_connect: str | list[str] | None = None, timeout: float = 5.0) -> list[str]:
+def list_robots(zenoh_connect: str | list[str] | None = None, timeout: float = 5.0,
+                zenoh_config: str | None = None) -> list[str]:
     """The robots a client can reach, sorted: those with a socket in the default directory (see
     :func:`~crtk_bridge.client.paths.find_sockets`), or with ``zenoh_connect``, those whose
     daemons serve on the Zenoh network there (raises :class:`DaemonConnectionError` when the
-    endpoint does not answer)."""
+    endpoint does not answer; ``zenoh_config`` as for :func:`connect`)."""
     if zenoh_connect:
         from crtk_bridge.client.zenoh_link import list_robots as on_zenoh
 
-        return on_zenoh(zenoh_connect, timeout)
+        return on_zenoh(zenoh_connect, timeout, zenoh_config)
     return sorted(os.path.basename(p)[:-len(".sock")] for p in find_sockets())
 
 
@@ -1037,13 +1048,15 @@ def resolve_socket(socket: str | None = None, robot: str | None = None) -> str:
 
 
 def connect(socket: str | None = None, robot: str | None = None,
-            timeout: float = 5.0, zenoh_connect: str | list[str] | None = None) -> Robot:
+            timeout: float = 5.0, zenoh_connect: str | list[str] | None = None,
+            zenoh_config: str | None = None) -> Robot:
     """Connect to a crtk-bridge daemon and return its :class:`Robot`.
 
     ``socket``: a socket path; else ``robot``: a robot name, at its default path; else the only
     socket in the default directory. ``zenoh_connect``: instead of a socket, the Zenoh router or
     peer to join (an endpoint such as ``tcp/127.0.0.1:7447``, or several); ``robot`` chooses the
-    daemon there (default: the only one); docs/zenoh.md. ``timeout`` (s): default reply timeout.
+    daemon there (default: the only one); ``zenoh_config``: a Zenoh configuration file (JSON5) for
+    what the endpoint needs, e.g. TLS certificates; docs/zenoh.md. ``timeout`` (s): default reply timeout.
     Blocks for one ``list`` round trip. Raises :class:`DaemonConnectionError` (a
     ``ConnectionError`` naming the path or endpoint) if no daemon answers there,
     :class:`CrtkBridgeError` on a protocol version mismatch.
@@ -1053,7 +1066,7 @@ def connect(socket: str | None = None, robot: str | None = None,
             raise CrtkBridgeError("give a socket path or a Zenoh endpoint (zenoh_connect), not both")
         from crtk_bridge.client.zenoh_link import open_stream
 
-        stream = open_stream(zenoh_connect, robot, timeout)
+        stream = open_stream(zenoh_connect, robot, timeout, zenoh_config)
         conn = Connection(stream.name, timeout=timeout, stream=stream)
     else:
         conn = Connection(resolve_socket(socket, robot), timeout=timeout)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import queue
 import socket
 import threading
+import time
 import uuid
 from typing import Any, Iterable
 
@@ -28,19 +29,23 @@ from crtk_bridge.transport.zenoh_session import ZenohConfig, ZenohConnectError, 
 #: who the one-line errors name, and the option that sets the endpoint
 WHO = "crtk-bridge client"
 HINT = "--zenoh-connect"
+#: how long a client waits for the robot it asked for to show up on the network before saying so
+DISCOVERY_S = 1.0
 
 
 def _endpoints(zenoh_connect: str | Iterable[str]) -> list[str]:
     return [zenoh_connect] if isinstance(zenoh_connect, str) else list(zenoh_connect)
 
 
-def open_client_session(zenoh_connect: str | Iterable[str], timeout: float) -> Any:
+def open_client_session(zenoh_connect: str | Iterable[str], timeout: float, zenoh_config: str | None = None) -> Any:
     """A Zenoh client session connected to ``zenoh_connect`` (an endpoint or several). Blocks up
-    to ``timeout`` s. Raises DaemonConnectionError in one line naming the endpoint and what to do
-    when it does not answer."""
+    to ``timeout`` s. ``zenoh_config``: a Zenoh configuration file (JSON5) for what the endpoint
+    needs beyond it, e.g. ``transport/link/tls/root_ca_certificate`` for a ``tls/`` router; the
+    mode, endpoints and multicast scouting (off) are set over it. Raises DaemonConnectionError in
+    one line naming the endpoint and what to do when it does not answer."""
     config = ZenohConfig(mode="client", connect=_endpoints(zenoh_connect), listen=[], connect_timeout_s=timeout)
     try:
-        return open_session(config, WHO, hint=HINT)
+        return open_session(config, WHO, hint=HINT, base=zenoh_config)
     except ZenohConnectError as exc:
         raise DaemonConnectionError(str(exc)) from None
 
@@ -51,10 +56,10 @@ def robots_on(session: Any, timeout: float) -> list[str]:
     return sorted({keys.robot_of(str(r.ok.key_expr)) for r in replies if r.ok is not None})
 
 
-def list_robots(zenoh_connect: str | Iterable[str], timeout: float = 5.0) -> list[str]:
+def list_robots(zenoh_connect: str | Iterable[str], timeout: float = 5.0, zenoh_config: str | None = None) -> list[str]:
     """The robots served on the Zenoh network at ``zenoh_connect``, sorted. Blocks for one
     liveliness query. Raises DaemonConnectionError when the endpoint does not answer."""
-    session = open_client_session(zenoh_connect, timeout)
+    session = open_client_session(zenoh_connect, timeout, zenoh_config)
     try:
         return robots_on(session, timeout)
     finally:
@@ -156,13 +161,20 @@ class ZenohStream:
                 pass
 
 
-def open_stream(zenoh_connect: str | Iterable[str], robot: str | None, timeout: float) -> ZenohStream:
+def open_stream(zenoh_connect: str | Iterable[str], robot: str | None, timeout: float,
+                zenoh_config: str | None = None) -> ZenohStream:
     """Join the Zenoh network at ``zenoh_connect`` and open a stream to the daemon of ``robot``
     (default: the only robot there). Raises DaemonConnectionError in one line: the endpoint does
-    not answer (start a router, check the address), no daemon there, or several and none chosen."""
-    session = open_client_session(zenoh_connect, timeout)
+    not answer (start a router, check the address), no daemon there, or several and none chosen.
+    ``zenoh_config``: see :func:`open_client_session`."""
+    session = open_client_session(zenoh_connect, timeout, zenoh_config)
     try:
         found = robots_on(session, timeout)
+        # discovery is eventually consistent: a session just opened may not see every token yet
+        settle = time.monotonic() + min(timeout, DISCOVERY_S)
+        while (robot not in found if robot else not found) and time.monotonic() < settle:
+            time.sleep(0.05)
+            found = robots_on(session, timeout)
         at = ", ".join(_endpoints(zenoh_connect))
         if robot is None:
             if len(found) != 1:

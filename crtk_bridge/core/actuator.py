@@ -213,6 +213,7 @@ class Lifecycle(str, enum.Enum):
     RESUME = "resume"
     FAULT_RESET = "fault_reset"  # before ENABLE when leaving FAULT
     HOME = "home"  # only where the backend homes natively (``native_homing``)
+    CALIBRATE = "calibrate"  # start a calibration sweep (:meth:`Actuator.calibration_begin`)
 
 
 class DeviceStatus(str, enum.Enum):
@@ -326,7 +327,7 @@ def effective_period_s(profile: Profile, actuator: "Actuator") -> float:
 #: default time limits (s) of lifecycle transitions; a backend overrides ``transition_timeouts_s``
 DEFAULT_TRANSITION_TIMEOUTS_S: dict[Lifecycle, float] = {
     Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 2.0, Lifecycle.RESUME: 2.0,
-    Lifecycle.FAULT_RESET: 5.0, Lifecycle.HOME: 60.0,
+    Lifecycle.FAULT_RESET: 5.0, Lifecycle.HOME: 60.0, Lifecycle.CALIBRATE: 5.0,
 }
 
 
@@ -472,6 +473,34 @@ class Actuator(abc.ABC):
         """The DISABLE transition run to its end. Blocks. Raises BackendError if a joint did not
         confirm torque off."""
         self.run(self.begin(Lifecycle.DISABLE))
+
+    # ---- calibration (docs/calibration.md): joints moved by hand while DISABLED ----
+    def calibration_begin(self) -> Steps:
+        """Steps (lifecycle path, one bus step per cycle) that start a calibration sweep from the
+        pose the joints are in now, the middle pose; from then on every read follows how far each
+        joint travels. Legal only while DISABLED (core checks). Raises BackendError when the
+        backend has no calibration procedure (the default)."""
+        raise BackendError(f"{self.robot}: the {self.profile.backend_type} backend has no calibration procedure")
+        yield  # pragma: no cover
+
+    def calibration_seen(self) -> dict[str, list[float]]:
+        """joint -> [lowest, highest, now] in rad from the middle pose (in the joint's direction)
+        during a sweep. Never touches the bus. Raises BackendError without a sweep."""
+        raise BackendError(f"{self.robot}: no calibration sweep under way")
+
+    def calibration_result(self, grippers: Sequence[str]) -> dict[str, dict[str, Any]]:
+        """End the sweep: joint -> the backend's own ``calibration`` keys for the profile
+        (``grippers``: joints whose closed end is where they are now). Never touches the bus.
+        Raises BackendError naming the joints that cannot be calibrated from what was seen."""
+        raise BackendError(f"{self.robot}: no calibration sweep under way")
+
+    def calibration_cancel(self) -> None:
+        """Forget a sweep under way (none: nothing to do)."""
+
+    def calibration_import(self, fmt: str, data: Any, grippers: Sequence[str]) -> dict[str, dict[str, Any]]:
+        """Another tool's calibration file ``data`` (format ``fmt``, e.g. "lerobot") converted to
+        joint -> the backend's ``calibration`` keys. Never touches the bus. Raises BackendError."""
+        raise BackendError(f"{self.robot}: the {self.profile.backend_type} backend cannot import {fmt} calibrations")
 
     # ---- device status (backend -> core) ----
     def report_status(self, status: DeviceStatus, cause: Fault | None = None) -> None:

@@ -234,6 +234,8 @@ class Controller:
         if cmd == "_client_lost":
             self._client_lost()
             return None
+        if cmd == "calibrate":
+            return self._calibrate(data)
         if cmd in NATIVE_COMMANDS and ns in self.native_cartesian:
             return self._native_cartesian_command(cmd, ns, data)
         if cmd in TWIST_COMMANDS:
@@ -268,6 +270,44 @@ class Controller:
             raise
         self._end_cartesian(ns)  # a joint command takes over from a cartesian one
         return result
+
+    def _calibrate(self, data: dict) -> Any:
+        """``calibrate`` (docs/calibration.md): ``begin`` a sweep by hand from the middle pose,
+        ``status`` (range seen per joint, rad), ``end`` (the joints' calibration keys), ``cancel``;
+        only while DISABLED: the joints move by hand with torque off. ``import`` converts another
+        tool's calibration file, in any state (nothing moves, nothing is written here)."""
+        action = data.get("action")
+        grippers = list(data.get("grippers", ()))
+        if action == "import":
+            try:
+                return {"calibration": self.actuator.calibration_import(data.get("format", "lerobot"),
+                                                                       data.get("file", {}), grippers)}
+            except BackendError as exc:
+                raise Refused("bad_request", str(exc)) from None
+        if action == "cancel":
+            self.actuator.calibration_cancel()
+            return None
+        if self.state is not OperatingState.DISABLED or self._running is not None:
+            self.actuator.calibration_cancel()  # a sweep under way ends: the joints may move now
+            what = self.state.value + (f", {self._running.transition.kind.value} under way" if self._running else "")
+            raise Refused("invalid_state", f"{self.robot}: calibrate needs the robot DISABLED (it is {what}): the "
+                                           f"joints are moved by hand with torque off; disable it first"
+                                           + ("" if action == "begin" else "; the calibration sweep was cancelled"))
+        if action == "begin":
+            self.actuator.calibration_cancel()
+
+            def failed(exc: Exception) -> Refused:
+                return Refused("unsupported", str(exc))
+
+            t = Transition(self.robot, Lifecycle.CALIBRATE, self.actuator.calibration_begin(),
+                           self.actuator.transition_timeout_s(Lifecycle.CALIBRATE))
+            return self._start(t, lambda: {"joints": list(self.profile.joint_names)}, failed)
+        try:
+            if action == "status":
+                return {"seen": self.actuator.calibration_seen()}
+            return {"calibration": self.actuator.calibration_result(grippers)}
+        except BackendError as exc:
+            raise Refused("invalid_state", str(exc)) from None
 
     def _end_cartesian(self, ns: str) -> None:
         tm = self.twist_motions.get(ns)

@@ -15,7 +15,7 @@ Nesting deeper than :data:`MAX_DEPTH` is refused before decoding (no decoder rec
 from __future__ import annotations
 
 import re
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import msgspec
 import numpy as np
@@ -23,7 +23,7 @@ import numpy as np
 from ..errors import CommandError
 from ..vocabulary import (  # noqa: F401 - the protocol's words, re-exported for the server
     JOINT_TOPICS as JOINT_QUERIES, PROTOCOL_VERSION, ROBOT_TOPICS as ROBOT_QUERIES, STOP_COMMANDS, ErrorCode,
-    SessionCommand, StateCommand, Topic,
+    MaintenanceCommand, SessionCommand, StateCommand, Topic,
 )
 
 STATE_COMMANDS = tuple(StateCommand)
@@ -105,6 +105,14 @@ class Unsubscribe(_Payload):
     sub: int
 
 
+class Calibrate(_Payload):
+    """``calibrate`` (docs/calibration.md): a sweep by hand, or an import."""
+    action: Literal["begin", "status", "end", "cancel", "import"]
+    grippers: list[str] = []  # joints with closed / open ends (end, import)
+    format: Literal["lerobot"] = "lerobot"  # import: the file's format
+    file: dict[str, Any] = {}  # import: the file's content
+
+
 #: command -> payload Struct; commands not listed take no data (:class:`NoData`)
 PAYLOADS: dict[str, type[_Payload]] = {
     "servo_jp": JointServo, "servo_jr": JointPosition,
@@ -116,6 +124,7 @@ PAYLOADS: dict[str, type[_Payload]] = {
     "servo_cv": Twist, "interpolate_cv": Twist, "servo_cf": Wrench, "interpolate_cf": Wrench,
     "forward_kinematics": Joints, "inverse_kinematics": IkRequest,
     "subscribe": Subscribe, "unsubscribe": Unsubscribe,
+    "calibrate": Calibrate,
 }
 #: joint commands whose vectors have one entry per joint of the namespace
 JOINT_VECTORS = {c: t for c, t in PAYLOADS.items() if t in (JointServo, JointPosition, JointVelocity, JointEffort)}

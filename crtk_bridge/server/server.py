@@ -20,7 +20,8 @@ from .cartesian import FRAMED, CartesianSpace
 from .link import ControlLink, ControlLost
 from .protocol import (
     JOINT_QUERIES, JOINT_VECTORS, MAX_LINE, PAYLOADS, PROTOCOL_VERSION, ROBOT_QUERIES, SESSION_COMMANDS,
-    STATE_COMMANDS, STOP_COMMANDS, TOPICS, ProtocolError, decode_payload, decode_request, encode, error, ok,
+    STATE_COMMANDS, STOP_COMMANDS, TOPICS, MaintenanceCommand, ProtocolError, decode_payload, decode_request, encode,
+    error, ok,
 )
 
 log = logging.getLogger("crtk_bridge.server")
@@ -89,7 +90,7 @@ class Server:
         #: on the event loop: other transports (the ROS 2 graph) follow the robot through them
         self.listeners: list = []
         #: every command and query this daemon knows (data typed by protocol.PAYLOADS, else none)
-        self._known = set(self.commands) | set(TOPICS) | set(SESSION_COMMANDS) | {
+        self._known = set(self.commands) | set(TOPICS) | set(SESSION_COMMANDS) | set(MaintenanceCommand) | {
             c for cs in self.cartesian.values() for c in cs.commands + cs.queries}
 
     # ---------------------------------------------------------------- events from the loop
@@ -300,6 +301,9 @@ class Server:
             if self.controller is s:
                 self.controller = None
             return None
+        if cmd == MaintenanceCommand.CALIBRATE:  # robot-wide; the control process checks the state
+            self._take_control(s, cmd)
+            return await self._forward(s, rid, cmd, None, data)
         if cmd not in self.commands:
             if _is_crtk_command(cmd) and cmd not in self._known:
                 raise ProtocolError("unsupported", f"{ns or self.robot}: {cmd} is not supported by this robot")

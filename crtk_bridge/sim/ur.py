@@ -78,7 +78,7 @@ class Registers:
         self.out_ints = [0] * 48
         self.out_doubles = [0.0] * 48
         self.digital_out = 0
-        self.input_at = 0.0  # clock of the last input package (the script's watchdog)
+        self.input_at = 0.0  # clock of the last package writing the command register (watchdog)
 
 
 #: dashboard commands with a fixed reply: command -> (reply, what it does to the arm); the
@@ -147,6 +147,7 @@ class URController:
         self._t0 = time.monotonic()
         self.robot = URRobot(q0 if q0 is not None else [0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0],
                              limits or Limits(), timings or Timings(), clock=self.clock)
+        self.robot.step_s = 1.0 / self.rate_hz
         self.reg = Registers()
         self._control = ControlServer(control, self.control) if control else None
         self.control_path = str(control) if control else None
@@ -211,6 +212,13 @@ class URController:
     def _close_listener(self, name: str) -> None:
         s = self._listeners.pop(name, None)
         if s is not None:
+            try:
+                # stop listening NOW: a bare close() leaves the socket listening until the
+                # accept thread's select() lets go of it, and connections queued meanwhile
+                # are accepted by the kernel, then reset
+                s.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
             s.close()
 
     def _drop(self, names) -> None:
@@ -374,7 +382,8 @@ class URController:
         if "standard_digital_output_mask" in values:
             mask = values["standard_digital_output_mask"]
             reg.digital_out = (reg.digital_out & ~mask) | (values.get("standard_digital_output", 0) & mask)
-        reg.input_at = self.clock()
+        if "input_int_register_0" in values or "input_int_register_24" in values:
+            reg.input_at = self.clock()  # what the script's rtde_set_watchdog watches
 
     def _output_getters(self) -> dict:
         r, reg = self.robot, self.reg

@@ -150,6 +150,10 @@ class Kinematics:
         j[0:3] -= pin.skew(r) @ j[3:6]  # v_tcp = v + w x r
         return j
 
+    def gravity_torques(self, q) -> np.ndarray:
+        """N*m holding the arm against gravity at ``q`` (the URDF's masses; no payload)."""
+        return pin.computeGeneralizedGravity(self.model, self.data, np.asarray(q, dtype=float)).copy()
+
     def ik(self, target: pin.SE3, q0, iterations: int = 100, tol: float = 1e-6) -> tuple[np.ndarray, bool]:
         """Damped-least-squares IK from ``q0``. Returns (q, converged within 0.1 mm / 1 mrad)."""
         q = np.asarray(q0, dtype=float).copy()
@@ -347,6 +351,7 @@ class URRobot:
         self.safety_mode = SafetyMode.NORMAL
         self.runtime_state = RuntimeState.STOPPED
         self.speed_fraction = 1.0  # the pendant's speed slider (target_speed_fraction)
+        self.step_s = 0.002  # the controller tick (set by the server: 2 ms e-Series, 8 ms CB3)
         self.teach_mode = False
         self.tcp_force = np.zeros(6)  # injected external wrench at the TCP (base frame)
         self.motion: Motion | None = None

@@ -56,6 +56,7 @@ class Cmd(enum.IntEnum):
     TEACH_MODE = 18
     END_TEACH_MODE = 19
     SERVOL = 24
+    GET_STEPTIME = 26
     SET_TCP = 29
     GET_INVERSE_KINEMATICS_ARGS = 30
     PROTECTIVE_STOP = 31
@@ -64,12 +65,15 @@ class Cmd(enum.IntEnum):
     SET_WATCHDOG = 35
     IS_POSE_WITHIN_SAFETY_LIMITS = 36
     IS_JOINTS_WITHIN_SAFETY_LIMITS = 37
+    GET_JOINT_TORQUES = 38
+    GET_TCP_OFFSET = 40
     GET_FORWARD_KINEMATICS_DEFAULT = 43
     GET_FORWARD_KINEMATICS_ARGS = 44
     GET_INVERSE_KINEMATICS_DEFAULT = 46
     IS_STEADY = 47
     FREEDRIVE_MODE = 52
     END_FREEDRIVE_MODE = 53
+    GET_ACTUAL_TOOL_FLANGE_POSE = 58
     STOP_SCRIPT = 255
 
 
@@ -273,6 +277,14 @@ class ControlScript:
             self._out_int(1, r.pose_within_limits(self._doubles(0)))
         elif c == Cmd.IS_STEADY:
             self._out_int(1, not np.abs(r.qd).max() > 1e-4)
+        elif c == Cmd.GET_STEPTIME:
+            self._out_doubles([r.step_s])
+        elif c == Cmd.GET_JOINT_TORQUES:  # gravity only: the arm model has no other load
+            self._out_doubles(r.kin.gravity_torques(r.q))
+        elif c == Cmd.GET_TCP_OFFSET:
+            self._out_doubles(se3_to_pose(r.kin.tcp))
+        elif c == Cmd.GET_ACTUAL_TOOL_FLANGE_POSE:
+            self._out_doubles(se3_to_pose(r.kin.fk(r.q) * r.kin.tcp.inverse()))
         elif c == Cmd.STOP_SCRIPT:
             r.stop_program("stop script command")
             return False

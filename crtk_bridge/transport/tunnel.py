@@ -11,8 +11,8 @@ died, its link dropped) is its socket closing: the session ends and, if it held 
 robot stops safely as on any client loss.
 
 Replies and events are published reliably with congestion control BLOCK (never dropped, in
-order); stream frames with DROP on the same priority, so a slow remote client loses frames and
-never slows the daemon, as on the socket. Zenoh delivers on its own threads: every sample is
+order); stream frames with DROP on a lower priority (Zenoh queues them apart), so a slow remote
+client loses frames and never slows the daemon, as on the socket. Zenoh delivers on its own threads: every sample is
 handed to the event loop (``call_soon_threadsafe``), where the server runs as for the socket.
 """
 
@@ -143,8 +143,11 @@ class TunnelServer:
         key = keys.replies(self.robot, cid)
         replies = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
                                                  reliability=zenoh.Reliability.RELIABLE)
+        # frames on a lower priority, so Zenoh queues them apart: they never fill the queue
+        # replies and events wait in (a reply is never held up by frames, a frame may lag a reply)
         frames = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP,
-                                                reliability=zenoh.Reliability.RELIABLE)
+                                                reliability=zenoh.Reliability.RELIABLE,
+                                                priority=zenoh.Priority.DATA_LOW)
         s = TunnelSession(self.server.new_session_id(), cid, replies, frames)
         self.clients[cid] = s
         self.server.attach(s)  # the greeting: the client's connect returns on it

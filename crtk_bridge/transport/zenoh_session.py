@@ -130,11 +130,13 @@ def check_exposure(config: ZenohConfig, robot: str) -> None:
                                        f"rules naming who may publish on this robot's keys; {hint})")
 
 
-def session_config(config: ZenohConfig, extra: dict[str, Any] | None = None) -> "zenoh.Config":
+def session_config(config: ZenohConfig, extra: dict[str, Any] | None = None,
+                   base: str | None = None) -> "zenoh.Config":
     """The ``zenoh.Config`` of ``config``: multicast scouting off, exactly the configured endpoints,
     start-up failing (instead of retrying forever) when a connect endpoint does not answer within
     ``connect_timeout_s`` or a listen endpoint cannot be bound. ``extra``: more Zenoh keys (path ->
-    JSON value), e.g. ``{"timestamping/enabled": True}``."""
+    JSON value), e.g. ``{"timestamping/enabled": True}``. ``base``: a Zenoh configuration file
+    (JSON5, Zenoh's own format: TLS, user-password authentication...) the keys above are set over."""
     import zenoh
 
     keys: dict[str, Any] = {
@@ -154,7 +156,10 @@ def session_config(config: ZenohConfig, extra: dict[str, Any] | None = None) -> 
     if config.access_control is not None:
         keys["access_control"] = config.access_control
     keys.update(extra or {})
-    conf = zenoh.Config()
+    try:
+        conf = zenoh.Config.from_file(base) if base else zenoh.Config()
+    except (zenoh.ZError, OSError, ValueError) as exc:
+        raise ZenohConfigError(f"cannot use the Zenoh configuration file {base}: {_first_line(exc)}") from None
     for path, value in keys.items():
         try:
             conf.insert_json5(path, json.dumps(value))
@@ -165,15 +170,15 @@ def session_config(config: ZenohConfig, extra: dict[str, Any] | None = None) -> 
 
 
 def open_session(config: ZenohConfig, robot: str, extra: dict[str, Any] | None = None,
-                 hint: str = "--zenoh-connect / transport.zenoh.connect") -> "zenoh.Session":
+                 hint: str = "--zenoh-connect / transport.zenoh.connect", base: str | None = None) -> "zenoh.Session":
     """Open the Zenoh session ``config`` describes. Blocks until every connect endpoint answered
     (at most ``connect_timeout_s``). ``robot`` prefixes errors (a robot name, or the client);
-    ``hint`` names where the connect endpoints were set.
+    ``hint`` names where the connect endpoints were set; ``base``: see :func:`session_config`.
     Raises ZenohConnectError in one line naming the endpoint and what to do (start a router,
     check the address, free the port), ZenohConfigError on a configuration Zenoh refuses."""
     import zenoh
 
-    conf = session_config(config, extra)
+    conf = session_config(config, extra, base)
     try:
         return zenoh.open(conf)
     except zenoh.ZError as exc:
@@ -181,10 +186,13 @@ def open_session(config: ZenohConfig, robot: str, extra: dict[str, Any] | None =
         if "connect" in text.lower() and config.connect:
             endpoints = ", ".join(config.connect)
             port = config.connect[0].rsplit(":", 1)[-1]
+            tls = any(endpoint_host(e)[0] in SECURE_PROTOCOLS for e in config.connect)
             raise ZenohConnectError(
                 f"{robot}: cannot reach the Zenoh router or peer at {endpoints} within "
                 f"{config.connect_timeout_s:g} s: start a router there (e.g. `zenohd -l tcp/127.0.0.1:{port}`) "
-                f"or check the address ({hint})") from None
+                f"or check the address ({hint})"
+                + ("; a tls/ endpoint also needs the CA that signed its certificate "
+                   "(transport/link/tls/root_ca_certificate)" if tls else "")) from None
         if config.listen and ("listen" in text.lower() or "bind" in text.lower() or "address" in text.lower()):
             raise ZenohConnectError(
                 f"{robot}: cannot listen on {', '.join(config.listen)} ({text}): is the port in use? "

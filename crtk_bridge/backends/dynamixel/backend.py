@@ -147,6 +147,7 @@ class DynamixelBackend(SerialServoBackend):
                                 measures_effort=False, needs_homing=False, can_free=True)
     extra = "dynamixel"
     vendor = "dynamixel"
+    SOFTWARE_DRIVE_MODE = False  # the servo's Drive_Mode register reverses it (LeRobot writes it there)
     simulator = SimWiring("dynamixel")  # crtk-sim dynamixel; --sim sets backend.port to its pty
     Config = Config
     MODEL_NUMBERS = T.MODEL_NUMBERS
@@ -412,6 +413,8 @@ class DynamixelBackend(SerialServoBackend):
             raw_pos[i] = int.from_bytes(b[6:10], "little", signed=True)
             if self._errors[i] & T.ERR_ALERT:
                 alert = True
+        if self._cal is not None:  # a calibration sweep: follow the ticks (in place)
+            self._cal.track(raw_pos)
         np.subtract(raw_pos, self._offset_ticks, out=self._tmp)
         np.multiply(self._tmp, self._rad_per_tick, out=feedback.position)
         np.multiply(raw_vel, self._rad_s_per_vel, out=feedback.velocity)

@@ -339,6 +339,8 @@ class FeetechBackend(SerialServoBackend):
             raw_cur[i] = -v if (b[_O_LOAD] | (b[_O_LOAD + 1] << 8)) & _LOAD_SIGN else v
             status_any |= b[_O_STATUS]
             i += 1
+        if self._cal is not None:  # a calibration sweep: follow the ticks (in place)
+            self._cal.track(raw_pos)
         np.subtract(raw_pos, self._offset_ticks, out=self._tmp)
         np.multiply(self._tmp, self._rad_per_tick, out=feedback.position)
         np.multiply(raw_vel, self._rad_per_tick, out=feedback.velocity)

@@ -1,0 +1,172 @@
+"""``crtk-ctl calibrate --import`` of a LeRobot calibration file (issue 12), and the calibration
+arithmetic (backends/calibration.py).
+
+The fixture is written here from LeRobot's format (docs/calibration.md): a JSON object, indent 4,
+one entry per motor name with ``id``, ``drive_mode``, ``homing_offset``, ``range_min``,
+``range_max``. LeRobot's readings are computed here from its documented conversion (joints in
+degrees: ``(present - (range_min + range_max) / 2) * 360 / (resolution - 1)``; the gripper 0..100:
+``(clamp(present) - range_min) / (range_max - range_min) * 100``), with the servos holding
+LeRobot's homing offsets in EEPROM as ``lerobot-calibrate`` leaves them. The daemon, restarted on
+the imported profile, must report the same angles within one tick."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from crtk_bridge.backends.calibration import RangeWatch, from_lerobot, sweep_calibration
+from crtk_bridge.client import connect
+from crtk_bridge.errors import BackendError
+from crtk_bridge.profile import load_profile
+from crtk_bridge.sim.control import control_request
+
+from .conftest import DaemonProcess, wait_until
+from .test_calibrate import IDS, Tool, daemon, hand_all, profile  # noqa: F401 (fixtures)
+
+TICK = 2 * math.pi / 4096
+#: a LeRobot SO-101 follower calibration (so_follower/<id>.json), written from its format
+LEROBOT = {
+    "shoulder_pan": {"id": 1, "drive_mode": 0, "homing_offset": -35, "range_min": 760, "range_max": 3320},
+    "shoulder_lift": {"id": 2, "drive_mode": 0, "homing_offset": 120, "range_min": 831, "range_max": 3290},
+    "elbow_flex": {"id": 3, "drive_mode": 0, "homing_offset": -700, "range_min": 870, "range_max": 3071},
+    "wrist_flex": {"id": 4, "drive_mode": 0, "homing_offset": 400, "range_min": 860, "range_max": 3180},
+    "wrist_roll": {"id": 5, "drive_mode": 0, "homing_offset": 12, "range_min": 0, "range_max": 4095},
+    "gripper": {"id": 6, "drive_mode": 0, "homing_offset": -1500, "range_min": 2010, "range_max": 3450},
+}
+ARM = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"]
+
+
+def lerobot_reading(name: str, present: int) -> float:
+    """What LeRobot reports for ``present``: degrees for the arm joints, 0..100 for the gripper."""
+    c = LEROBOT[name]
+    lo, hi = c["range_min"], c["range_max"]
+    if name == "gripper":
+        pct = (min(hi, max(lo, present)) - lo) / (hi - lo) * 100
+        return 100 - pct if c["drive_mode"] else pct
+    return (present - (lo + hi) / 2) * 360 / 4095
+
+
+def test_import_then_the_restarted_daemon_reads_as_lerobot_does(short_tmp, profile, daemon):
+    fixture = short_tmp / "so101_follower.json"
+    fixture.write_text(json.dumps(LEROBOT, indent=4))
+    tool = Tool(str(daemon.socket_path), "--profile", str(profile), "--import", str(fixture))
+    try:
+        assert tool.finish() == 0, tool.output()
+    finally:
+        tool.kill()
+    assert "Imported" in tool.output() and f"Wrote {profile}" in tool.output(), tool.output()
+    assert "# SIGTERM / Ctrl-C with the arm ENABLED" in profile.read_text()  # comments kept
+    cal = {j.name: j.backend["calibration"] for j in load_profile(profile).joints}
+    assert cal["elbow_flex"] == {"offset": 1970, "direction": 1, "range": [870, 3071], "homing_offset": -700}
+    daemon.stop()
+
+    again = DaemonProcess(["--profile", str(profile), "--sim"], short_tmp / "b.sock", short_tmp / "b.log")
+    try:
+        sim = again.sim_control_path()
+        for name, c in LEROBOT.items():  # the servos hold LeRobot's homing offsets, as it left them
+            assert control_request(sim, {"cmd": "write", "id": c["id"], "register": "Homing_Offset",
+                                         "value": c["homing_offset"]})["ok"]
+        robot = connect(socket=str(again.socket_path))
+        try:
+            for k, frac in enumerate((0.1, 0.5, 0.93)):
+                present = {n: int(c["range_min"] + frac * (c["range_max"] - c["range_min"])) + k
+                           for n, c in LEROBOT.items()}
+                hand_all(sim, present)
+                want_arm = np.radians([lerobot_reading(n, present[n]) for n in ARM])
+                c = LEROBOT["gripper"]
+                want_grip = lerobot_reading("gripper", present["gripper"]) / 100 * (c["range_max"] - c["range_min"]) * TICK
+
+                def same():
+                    arm = robot.device("so101").measured_jp()[0]
+                    grip = robot.device("so101/gripper").measured_jp()[0][0]
+                    return np.all(np.abs(arm - want_arm) <= TICK) and abs(grip - want_grip) <= TICK
+
+                wait_until(same, 3, what=f"LeRobot's readings at {present}")
+        finally:
+            robot.close()
+    finally:
+        again.stop()
+
+
+# ---------------------------------------------------------------- the arithmetic, directly
+
+NAMES, RES, DIRS = list(LEROBOT), [4096] * 6, [1] * 6
+
+
+def test_lerobot_conversion_maps_homing_range_and_gripper_ends():
+    cal = from_lerobot("so101", LEROBOT, NAMES, [1, 2, 3, 4, 5, 6], RES, DIRS, ["gripper"], True)
+    assert cal["elbow_flex"] == {"offset": 1970, "direction": 1, "range": [870, 3071], "homing_offset": -700}
+    assert cal["gripper"] == {"offset": 2010, "direction": 1, "range": [2010, 3450], "homing_offset": -1500}
+    flipped = {**LEROBOT, "gripper": {**LEROBOT["gripper"], "drive_mode": 1}}
+    grip = from_lerobot("so101", flipped, NAMES, [1, 2, 3, 4, 5, 6], RES, DIRS, ["gripper"], True)["gripper"]
+    assert grip["offset"] == 3450 and grip["direction"] == -1  # LeRobot's 0 end is range_max then
+    # a Dynamixel applies drive_mode itself (its Drive_Mode register): nothing to flip in software
+    grip = from_lerobot("koch", flipped, NAMES, [1, 2, 3, 4, 5, 6], RES, DIRS, ["gripper"], False)["gripper"]
+    assert grip["offset"] == 2010 and grip["direction"] == 1
+
+
+def test_lerobot_file_of_another_arm_is_refused_naming_motor_and_field():
+    bad = {**LEROBOT, "elbow_flex": {**LEROBOT["elbow_flex"], "id": 9}, "extra_motor": LEROBOT["gripper"]}
+    del bad["wrist_roll"]
+    with pytest.raises(BackendError) as err:
+        from_lerobot("so101", bad, NAMES, [1, 2, 3, 4, 5, 6], RES, DIRS, ["gripper"], True, "arm.json")
+    text = str(err.value)
+    assert text.startswith("so101: arm.json: ")
+    assert "elbow_flex.id: 9, but the profile's joint 'elbow_flex' is servo id 3" in text
+    assert "wrist_roll: missing" in text and "motor extra_motor: no joint of that name" in text
+
+
+def watch_over(ticks: list[list[int]]) -> RangeWatch:
+    w = RangeWatch(np.array(ticks[0], dtype=float), np.array([4096.0] * len(ticks[0])))
+    for t in ticks[1:]:
+        w.track(np.array(t, dtype=float))
+    return w
+
+
+def test_sweep_unwraps_refuses_a_travel_across_the_encoder_wrap_and_a_joint_that_did_not_move():
+    # joint 0 sweeps 2048 -> 100 -> 3900 -> 2048 in steps (fine); joint 1 crosses 4095 -> 0
+    path0 = list(range(2048, 99, -50)) + list(range(100, 3901, 50)) + [2048]
+    path1 = [(3900 + 50 * min(k, 8)) % 4096 for k in range(len(path0))]  # 3900 .. 4300 = 204
+    still = [2000] * len(path0)
+    w = watch_over([list(t) for t in zip(path0, path1, still)])
+    with pytest.raises(BackendError) as err:
+        sweep_calibration("arm", ["a", "b", "c"], w, [1, 1, 1], [], [0, 0, 0])
+    text = str(err.value)
+    assert "joint 'b' travels across its servo's encoder wrap point" in text
+    assert "joint 'c' did not move" in text and "'a'" not in text
+    w = watch_over([list(t) for t in zip(path0, path0, path0)])
+    cal = sweep_calibration("arm", ["a", "b", "c"], w, [1, -1, 1], ["c"], [5, None, 0])
+    assert cal["a"] == {"offset": 2000, "direction": 1, "range": [100, 3900], "homing_offset": 5}
+    assert cal["b"] == {"offset": 2000, "direction": -1, "range": [100, 3900]}  # direction kept
+    # a gripper left nearer its high end when it was closed: zero there, opening lowers the ticks
+    closing = [[t] for t in [*range(2048, 99, -100), *range(100, 3901, 100), 3880]]
+    assert sweep_calibration("arm", ["c"], watch_over(closing), [1], ["c"], [None]) == \
+        {"c": {"offset": 3900, "direction": -1, "range": [100, 3900]}}
+
+
+# ---------------------------------------------------------------- where the calibration is written
+
+def test_calibration_file_is_written_and_included_and_the_profile_left_alone(short_tmp, profile):
+    from crtk_bridge.errors import ProfileError
+    from crtk_bridge.profile_write import write_calibration
+
+    text = profile.read_text().replace("name: so101\n", "name: so101\ncalibration_file: arm.calibration.yaml\n", 1)
+    profile.write_text(text)
+    assert load_profile(profile).joints[0].backend["calibration"]["offset"] == 2048  # no file yet: the profile's
+    written = write_calibration(profile, {"shoulder_pan": {"offset": 2001, "direction": -1, "range": [700, 3300]}})
+    assert written == short_tmp / "arm.calibration.yaml" and profile.read_text() == text
+    assert "crtk-ctl calibrate" in written.read_text()  # a header says what the file is
+    joints = {j.name: j.backend["calibration"] for j in load_profile(profile).joints}
+    assert joints["shoulder_pan"] == {"offset": 2001, "direction": -1, "range": [700, 3300]}
+    assert joints["elbow_flex"]["offset"] == 2048  # not in the file: the profile's own
+    write_calibration(profile, {"gripper": {"offset": 1900, "direction": 1, "range": [1900, 3300]}})
+    joints = {j.name: j.backend["calibration"] for j in load_profile(profile).joints}
+    assert joints["shoulder_pan"]["offset"] == 2001 and joints["gripper"]["offset"] == 1900  # both kept
+    written.write_text(written.read_text() + "no_such_joint: {offset: 1}\n")
+    with pytest.raises(ProfileError, match="arm.calibration.yaml: no_such_joint: no joint of that name"):
+        load_profile(profile)
+    with pytest.raises(ProfileError, match="no joint 'nope'"):
+        write_calibration(profile, {"nope": {"offset": 1}})
