@@ -6,7 +6,8 @@ Two simulated drives (profiles/canopen_2axis.yaml, crtk_bridge.sim.canopen402) o
 frame (the virtual bus stamps a frame when it is sent). Reports:
 
 * SYNC period jitter, |period - nominal| p50 / p99, of the backend driven by the real controller
-  with core/loop.py's schedule (ENABLED, holding; SYNC sent by the loop's ``write``), beside a
+  with core/loop.py's schedule (ENABLED, holding; the SYNC sent at the tick by the backend's
+  ``wait_cycle``, then read -> step -> write), beside a
   bare ``bus.send_periodic`` of the same SYNC frame at the same rate on the same interface
   (python-can's own periodic thread). Alternated, ``--rounds`` times each; ratio = backend / bare.
 * CAN frames per cycle in steady state, beside the minimum: 1 SYNC + RPDOs + TPDOs (heartbeats
@@ -83,21 +84,20 @@ def rig(rate: float):
 
 
 def run_loop(c, backend, fb, period: float, seconds: float) -> None:
-    """core/loop.py's schedule: sleep to the next tick, read -> step -> write."""
+    """core/loop.py's schedule: the backend paces the cycle (wait_cycle: its SYNC at the tick),
+    then read -> step -> write."""
     clock = time.perf_counter
     next_t = clock() + period
     end = clock() + seconds
     while clock() < end:
         delay = next_t - clock()
-        if delay > 0:
-            time.sleep(delay)
+        backend.wait_cycle(max(delay, 0.0) + period)
+        t0 = clock()
         c.on_read(fb, backend.read(fb))
         c.outbox.clear()
         if c.step():
             c.on_write(backend.write(c.command))
-        next_t += period
-        if clock() > next_t:
-            next_t += (int((clock() - next_t) / period) + 1) * period
+        next_t = t0 + period
 
 
 def enable(c, backend, fb, period: float) -> None:

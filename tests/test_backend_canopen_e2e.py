@@ -165,3 +165,21 @@ def test_pause_is_a_quick_stop_and_resume_leaves_it(rig):
     for x in drives(sim).values():  # left QUICK STOP ACTIVE holding where it stopped: no jump
         assert x["state"] == "OPERATION_ENABLED" and x["mode"] == 8
         assert abs(x["target_position"] - x["position"]) < 0.01 * 16384 * 10 / (2 * np.pi)
+
+
+def test_adapter_bus_off_faults_and_enable_recovers_once_it_passes_again(rig, daemon):
+    arm, sim = rig
+    raw = RawSession(str(daemon.socket_path))
+    try:
+        assert arm.enable(5.0)
+        control_request(sim, {"cmd": "bus_off", "on": True})  # the simulated adapter passes nothing
+        err = _error(raw, "tpdo_missing")
+        assert err["joint"] in ("pan", "tilt") and "node" in err["message"]
+        wait_until(lambda: arm.is_fault(), 3, what="FAULT")
+        assert arm.measured_js()[3] == 0.0  # no valid sample while the bus is off
+        control_request(sim, {"cmd": "bus_off", "on": False})
+        wait_until(lambda: arm.measured_js()[3] > 0 and not arm.is_busy(), 5,
+                   what="valid samples again, the fault's torque off settled")
+        assert arm.enable(5.0) and arm.is_enabled()
+    finally:
+        raw.close()

@@ -15,7 +15,7 @@ import can
 import canopen
 import msgspec
 import pytest
-from canopen.sdo import SdoAbortedError
+from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from crtk_bridge.profile import Joint, JointLimits, load_profile
 from crtk_bridge.sim import SimulatorError, simulator_class
@@ -111,6 +111,13 @@ def drive(bus):
     del net[1]
 
 
+def _emcy(node, code: int):
+    """The EMCY ``code`` the client has received (now or within 1 s). Polls the client's log:
+    ``emcy.wait`` misses one that arrived before it was called."""
+    return wait_until(lambda: next((e for e in node.emcy.log if e.code == code), None), 1,
+                      what=f"EMCY 0x{code:04X}")
+
+
 def _move(node, counts: int) -> None:
     node.rpdo[1][0x607A].raw = counts
     node.rpdo[1].update()
@@ -131,8 +138,8 @@ def test_base_node_402_enables_follows_csp_and_recovers_from_a_fault(bus, drive)
     assert sim.drive(2).snapshot()["position"] == 0  # the other drive did not move
 
     sim.set_fault(1, "emcy", 0x2310)  # over-current
-    emcy = node.emcy.wait(0x2310, 1)
-    assert emcy is not None and emcy.register & 0x03 == 0x03  # generic + current bits
+    emcy = _emcy(node, 0x2310)
+    assert emcy.register & 0x03 == 0x03  # generic + current bits
     wait_until(lambda: node.state == "FAULT", 1, what="FAULT")
     assert node.sdo[0x603F].raw == 0x2310
     # the reset the reference recommends: CW 0, then SWITCH ON DISABLED (0x80: a rising edge)
@@ -173,7 +180,7 @@ def test_following_error_faults_with_emcy_8611(bus, drive):
     node.sdo[0x6065].raw = 2000  # following error window, counts
     sim.set_fault(1, "jam")  # the shaft is blocked
     _move(node, node.tpdo_values[0x6064] + 10_000)
-    assert node.emcy.wait(EMCY_FOLLOWING_ERROR, 1) is not None
+    _emcy(node, EMCY_FOLLOWING_ERROR)
     wait_until(lambda: node.state == "FAULT", 1, what="FAULT")
     assert node.statusword & 0x2000  # CSP bit 13: following error
     assert node.sdo[0x603F].raw == EMCY_FOLLOWING_ERROR
@@ -283,7 +290,7 @@ def test_sdo_aborts_and_hostile_frames(bus, drive):
             (0x201, b"\x0f", False),  # RPDO1 one byte short of its mapping
         ]:
             raw.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=extended))
-        assert node.emcy.wait(EMCY_PDO_LENGTH, 1) is not None
+        _emcy(node, EMCY_PDO_LENGTH)
         after = sim.drive(1).snapshot()
         assert after["nmt"] == "OPERATIONAL" and after["state"] == before["state"] == "SWITCHED_ON"
         assert node.sdo[0x1018][4].raw == 1  # still answering
@@ -333,6 +340,13 @@ def test_boot_up_message_and_a_second_drive_on_the_bus(bus):
         assert node2.sdo[0x1000].raw == 0x00020192  # a CiA 402 servo drive
         node2.sdo[0x1017].raw = 10
         assert node2.nmt.wait_for_heartbeat(1) == "PRE-OPERATIONAL"
+        node2.nmt.state = "STOPPED"  # CiA 301: no SDO in STOPPED, heartbeats go on
+        assert node2.nmt.wait_for_heartbeat(1) == "STOPPED"
+        node2.sdo.RESPONSE_TIMEOUT, node2.sdo.MAX_RETRIES = 0.05, 1  # one try (0 retries forever)
+        with pytest.raises(SdoCommunicationError):
+            node2.sdo[0x1000].raw
+        node2.nmt.state = "PRE-OPERATIONAL"
+        assert node2.sdo[0x1000].raw == 0x00020192
     finally:
         node2.sdo[0x1017].raw = 0
         del net[2]
@@ -346,8 +360,22 @@ def test_the_simulator_is_registered_and_reads_the_profile():
                                       backend={"type": "canopen402", "bitrate": 500_000})
     assert simulator_class("canopen") is CanopenSimulator
     sim = CanopenSimulator.from_profile(profile)
-    assert sim.ids == [3, 4] and sim.bitrate == 500_000 and sim.interface == "virtual"
+    assert sim.ids == [3, 4] and sim.bitrate == 500_000 and sim.interface == "slcan"
     assert sim.drive(3).options.max_velocity == pytest.approx(1.5 * 2 * 4096 / (2 * math.pi))
     bad = msgspec.structs.replace(profile, joints=[Joint(name="j", limits=limits, backend={"node_id": 200})])
     with pytest.raises(SimulatorError, match=r"joints\[0\] \(j\)\.node_id"):
         CanopenSimulator.from_profile(bad)
+
+
+def test_a_drive_answers_to_the_serial_simulators_register_names():
+    """What the conformance suite's rows call on every simulator (sim.servo(id).read / write)."""
+    sim = CanopenSimulator([5], interface="virtual")  # not started: state only
+    drive = sim.servo(5)
+    drive.write("Present_Position", 1500)  # by hand
+    drive.write("Goal_Position", 1400)
+    assert drive.read("Present_Position") == 1500 and drive.read("Goal_Position") == 1400
+    assert drive.read("Torque_Enable") == 0 and drive.read("statusword") & 0x4F == 0x00
+    with pytest.raises(SimulatorError, match="Statusword.*read-only"):
+        drive.write("Statusword", 0)
+    with pytest.raises(SimulatorError, match="unknown register 'Baud_Rate'"):
+        drive.read("Baud_Rate")

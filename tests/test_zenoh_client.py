@@ -168,3 +168,45 @@ def test_no_such_robot_on_the_network(lab):
         connect(robot="ur5e", zenoh_connect=endpoint)
     with pytest.raises(DaemonConnectionError, match="several robots on the Zenoh network .*: koch, so101"):
         connect(zenoh_connect=endpoint)
+
+
+def test_a_plain_zenoh_client_and_a_flood_of_requests(lab):
+    """The documented key layout, spoken with eclipse-zenoh alone (no project client): the token
+    opens a session greeted with operating_state; a flood beyond the pending-request bound is
+    refused line by line with each request's id, and a stop in it is still served."""
+    import uuid
+
+    import zenoh
+
+    from crtk_bridge.transport.tunnel import MAX_PENDING
+
+    endpoint, _, _ = lab
+    conf = zenoh.Config()
+    for key, value in (("mode", '"client"'), ("scouting/multicast/enabled", "false"),
+                       ("connect/endpoints", json.dumps([endpoint]))):
+        conf.insert_json5(key, value)
+    session = zenoh.open(conf)
+    cid = uuid.uuid4().hex
+    got: list[dict] = []
+    sub = session.declare_subscriber(
+        f"crtk_bridge/so101/out/{cid}",
+        zenoh.handlers.Callback(lambda s: got.extend(json.loads(x) for x in s.payload.to_bytes().splitlines()),
+                                indirect=False))
+    token = session.liveliness().declare_token(f"crtk_bridge/so101/client/{cid}")
+    try:
+        wait_until(lambda: got, 5.0, what="the greeting")
+        assert got[0]["event"] == "operating_state" and got[0]["data"]["state"] in ("DISABLED", "ENABLED", "PAUSED")
+        n = MAX_PENDING + 100
+        flood = b"".join(b'{"id": %d, "cmd": "operating_state"}\n' % i for i in range(n))
+        session.put(f"crtk_bridge/so101/in/{cid}", flood + b'{"id": -1, "cmd": "hold", "ns": "so101"}\n')
+        replies = lambda: {m["id"]: m for m in list(got) if "id" in m}  # noqa: E731
+        wait_until(lambda: -1 in replies() and len(replies()) == n + 1, 30.0, what="every reply")
+        discarded = [m for m in replies().values() if not m["ok"] and "request discarded" in m["error"]["message"]]
+        assert len(discarded) == n - MAX_PENDING  # each refused with its own id, none silently dropped
+        assert {m["id"] for m in discarded} == set(range(MAX_PENDING, n))
+        stop = replies()[-1]
+        assert "request discarded" not in json.dumps(stop)  # a stop is never refused for the flood
+    finally:
+        token.undeclare()
+        sub.undeclare()
+        session.close()

@@ -191,3 +191,26 @@ def test_check_refuses_an_exposed_profile(short_tmp):
         "crtk-bridge: so101: transport.zenoh.listen (--zenoh-listen) tcp/192.168.1.10:7447 reaches beyond this "
         "PC: only a tls/ endpoint may (with transport.zenoh.tls and transport.zenoh.access_control); use "
         "loopback, or see docs/zenoh.md, 'Across machines'")
+
+
+@pytest.mark.parametrize("allowed", [False, True], ids=["deny-all", "liveliness-allowed"])
+def test_access_control_reaches_zenoh(allowed):
+    """transport.zenoh.access_control is Zenoh's own section: with default_permission deny and no
+    rule, a client cannot even see the daemon's token; with a rule allowing liveliness on
+    crtk_bridge/** for the loopback interface, it can."""
+    from crtk_bridge.client import list_robots
+
+    rules = [{"id": "see daemons", "permission": "allow", "flows": ["ingress", "egress"],
+              "messages": ["liveliness_token", "liveliness_query", "declare_liveliness_subscriber", "reply"],
+              "key_exprs": ["crtk_bridge/**"]}] if allowed else []
+    acl = {"enabled": True, "default_permission": "deny", "rules": rules,
+           "subjects": [{"id": "this pc", "interfaces": ["lo"]}],
+           "policies": [{"rules": ["see daemons"], "subjects": ["this pc"]}] if allowed else []}
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    daemon = open_session(ZenohConfig(listen=[endpoint], access_control=acl), "so101")
+    try:
+        token = daemon.liveliness().declare_token("crtk_bridge/so101/daemon")
+        assert list_robots(zenoh_connect=endpoint, timeout=1.0) == (["so101"] if allowed else [])
+        token.undeclare()
+    finally:
+        daemon.close()

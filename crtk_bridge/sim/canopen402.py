@@ -7,7 +7,7 @@ dictionary, but has no PDO behaviour and no device profile (canopen issue #558; 
 - the object dictionary built in code (:func:`make_object_dictionary`): CiA 301 communication
   objects (0x1000, 0x1001, 0x1005, 0x1014, 0x1017, 0x1018, RPDO 0x1400-0x1403 / 0x1600-0x1603,
   TPDO 0x1800-0x1803 / 0x1A00-0x1A03) and the CiA 402 objects the bridge uses (0x603F, 0x6040,
-  0x6041, 0x605A, 0x6060, 0x6061, 0x6064, 0x6065, 0x6066, 0x606C, 0x6071, 0x6072, 0x6077,
+  0x6041, 0x605A, 0x6060, 0x6061, 0x6064, 0x6065, 0x6066, 0x606C, 0x6071, 0x6072, 0x6076, 0x6077,
   0x607A, 0x607C, 0x6085, 0x6098, 0x6099, 0x609A, 0x60C2, 0x60F4, 0x60FF, 0x6502); every
   variable has a default, so every SDO read answers;
 - PDOs as CiA 301 says: the configuration the master writes over SDO is re-read when the node
@@ -187,6 +187,7 @@ class DriveOptions:
     limit_switch: int = 20_000  #: homing 17/18: the switch is this far from power-on (counts)
     homing_speed: int = 100_000  #: 0x6099:1 default (counts/s)
     modes: tuple[int, ...] = (6, 8, 9, 10)  #: supported modes of operation (0x6502)
+    rated_torque_mnm: int = 1000  #: 0x6076 motor rated torque (mN*m): what 1000 per mille is
     vendor_id: int = 0x00C2B51D  #: 0x1018:1 (not a registered vendor: a simulator)
     product_code: int = 0x402
 
@@ -236,6 +237,7 @@ def make_object_dictionary(node_id: int, opts: DriveOptions = DriveOptions()) ->
     add(_var("Velocity actual value", 0x606C, 0, I32, "ro", 0, pdo=True))
     add(_var("Target torque", 0x6071, 0, I16, "rw", 0, pdo=True))
     add(_var("Max torque", 0x6072, 0, U16, "rw", 3000))
+    add(_var("Motor rated torque", 0x6076, 0, U32, "rw", opts.rated_torque_mnm))
     add(_var("Torque actual value", 0x6077, 0, I16, "ro", 0, pdo=True))
     add(_var("Target position", 0x607A, 0, I32, "rw", 0, pdo=True))
     add(_var("Home offset", 0x607C, 0, I32, "rw", 0))
@@ -351,6 +353,7 @@ class Drive402:
         self._rpdos = [_Pdo(0x1400 + n) for n in range(4)]
         self._tpdos = [_Pdo(0x1800 + n) for n in range(4)]
         self._pdo_dirty = True
+        self._params: dict[tuple[int, int], int] = {}
         self._sync_cob = 0x80
         self.rx_frames = 0  # frames this drive received while not muted (bench / tests)
         self.sync_count = 0
@@ -396,7 +399,8 @@ class Drive402:
                     self._on_sync()
                 return
             if can_id == 0x600 + self.node_id:
-                if len(data) == 8:  # an SDO request is always 8 bytes; others are ignored
+                # an SDO request is always 8 bytes; others are ignored. No SDO in STOPPED (CiA 301)
+                if len(data) == 8 and self.local.nmt._state != NMT_STOPPED:
                     dispatch(can_id, data, 0.0)
                 return
             if self.local.nmt._state != NMT_OPERATIONAL:
@@ -413,6 +417,7 @@ class Drive402:
             keep = range(0x1000, 0x2000) if cs == 0x82 else range(0x1000, 0x10000)
             for index in [i for i in self.local.data_store if i in keep]:
                 del self.local.data_store[index]
+            self._params.clear()
             if cs == 0x81:
                 self._reset_application()
             self.boot()
@@ -504,6 +509,16 @@ class Drive402:
                 pdo.syncs, pdo.pending, pdo.last = 0, None, None
 
     # ------------------------------------------------------------------ object access
+    def _param(self, index: int, sub: int = 0) -> int:
+        """A configuration object's value, cached: the internal control reads several of them
+        every millisecond. Writes (callback below) and NMT resets drop the cached value."""
+        key = (index, sub)
+        value = self._params.get(key)
+        if value is None:
+            value = self._params[key] = self.local._find_object(index, sub).decode_raw(
+                self.local.get_data(index, sub))
+        return value
+
     def _on_read(self, index: int, subindex: int, od) -> int | None:
         if index == 0x6041:
             self._advance(self.clock())
@@ -535,6 +550,7 @@ class Drive402:
 
     def _on_write(self, index: int, subindex: int, od, data: bytes) -> None:
         value = od.decode_raw(data) if od.data_type in odm.NUMBER_TYPES else data
+        self._params.pop((index, subindex), None)  # stored by LocalNode right after this callback
         if 0x1400 <= index <= 0x1403 or 0x1800 <= index <= 0x1803:
             self._check_comm_write(index, subindex, value)
         elif 0x1600 <= index <= 0x1603 or 0x1A00 <= index <= 0x1A03:
@@ -655,7 +671,7 @@ class Drive402:
             self.homing_status = SW_BIT12 | SW_TARGET_REACHED if self.homed else 0
 
     def _start_homing(self) -> None:
-        method = int.from_bytes(self.local.get_data(0x6098, 0), "little", signed=True)
+        method = self._param(0x6098, 0)
         self.homing_status = 0
         if method in HOMING_CURRENT_POSITION:
             self._home_here()
@@ -666,7 +682,7 @@ class Drive402:
             self.homed = False
 
     def _home_here(self) -> None:
-        offset = int.from_bytes(self.local.get_data(0x607C, 0), "little", signed=True)
+        offset = self._param(0x607C, 0)
         shift = offset - self.position
         self.position += shift
         self._switch_origin += shift  # the limit switch stays where it is on the machine
@@ -710,14 +726,14 @@ class Drive402:
         state = self.state
         if state in (State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE) or (
                 state is State.OPERATION_ENABLED and self.controlword & CW_HALT):
-            decel = int.from_bytes(self.local.get_data(0x6085, 0), "little") * dt
+            decel = self._param(0x6085, 0) * dt
             self.velocity = 0.0 if abs(self.velocity) <= decel else self.velocity - math.copysign(decel, self.velocity)
             self.torque = 0.0 if self.velocity == 0 else -math.copysign(1000.0, self.velocity)
             if self.velocity == 0.0:
                 if state is State.FAULT_REACTION_ACTIVE:
                     self.state = State.FAULT  # 14
                 elif state is State.QUICK_STOP_ACTIVE:
-                    qs = int.from_bytes(self.local.get_data(0x605A, 0), "little", signed=True)
+                    qs = self._param(0x605A, 0)
                     if qs in (1, 2, 3, 4):
                         self.state = State.SWITCH_ON_DISABLED  # 12 after the ramp
         elif state is not State.OPERATION_ENABLED:
@@ -732,12 +748,12 @@ class Drive402:
             self.velocity += err * (1.0 - math.exp(-dt / o.tau_s))
             self.torque = max(-1000.0, min(1000.0, 1000.0 * err / o.max_velocity))
         elif self.mode == Mode.CST:
-            limit = int.from_bytes(self.local.get_data(0x6072, 0), "little")
+            limit = self._param(0x6072, 0)
             self.torque = float(max(-limit, min(limit, self.target_torque)))
             target = max(-o.max_velocity, min(o.max_velocity, self.torque * o.torque_velocity))
             self.velocity += (target - self.velocity) * (1.0 - math.exp(-dt / o.tau_s))
         elif self.mode == Mode.HOMING and self.homing[0] == "search":
-            speed = int.from_bytes(self.local.get_data(0x6099, 1), "little")
+            speed = self._param(0x6099, 1)
             direction = self.homing[1]
             self.velocity = direction * speed
             switch = self._switch_origin + direction * o.limit_switch
@@ -755,13 +771,13 @@ class Drive402:
         if self.state is not State.OPERATION_ENABLED or self.mode != Mode.CSP:
             self._ferr_since = None
             return
-        window = int.from_bytes(self.local.get_data(0x6065, 0), "little")
+        window = self._param(0x6065, 0)
         if window == 0xFFFFFFFF or abs(self.target_position - self.position) <= window:
             self._ferr_since = None
             return
         if self._ferr_since is None:
             self._ferr_since = t
-        timeout = int.from_bytes(self.local.get_data(0x6066, 0), "little") / 1000.0
+        timeout = self._param(0x6066, 0) / 1000.0
         if t - self._ferr_since >= timeout:
             self.trip_following_error()
 
@@ -820,7 +836,7 @@ class Drive402:
     def _restart_heartbeat(self) -> None:
         if self.network.muted or self.heartbeat_stopped or self.network.bus is None:
             return
-        period = int.from_bytes(self.local.get_data(0x1017, 0), "little")
+        period = self._param(0x1017, 0)
         self.local.nmt.start_heartbeat(period)
 
     def set_position(self, counts: int) -> None:
@@ -853,6 +869,42 @@ class Drive402:
                 "heartbeat_stopped": self.heartbeat_stopped, "jammed": self.jammed,
             }
 
+    # the register names the serial simulators' servos answer to, so a suite written against
+    # ``sim.servo(id).read("Present_Position")`` reaches a drive the same way (counts)
+    _REGISTERS = {"present_position": "position", "goal_position": "target_position",
+                  "position_actual": "position", "target_position": "target_position",
+                  "target_velocity": "target_velocity", "target_torque": "target_torque",
+                  "torque_enable": "enabled", "controlword": "controlword",
+                  "statusword": "statusword", "mode": "mode", "error_code": "error_code"}
+
+    def read(self, register: str) -> int:
+        """A value by name (``Present_Position``, ``Goal_Position``, ``Torque_Enable``,
+        ``Controlword``, ``Statusword``, ...), in the drive's units. Raises SimulatorError."""
+        name = self._register(register)
+        with self.lock:
+            self._advance(self.clock())
+            value = self.statusword() if name == "statusword" else getattr(self, name)
+            return int(round(value)) if name != "enabled" else int(value)
+
+    def write(self, register: str, value: int) -> None:
+        """Set a value from outside the bus: ``Present_Position`` moves the shaft by hand, a
+        target is as if the master had written it. Raises SimulatorError for the others."""
+        name = self._register(register)
+        if name == "position":
+            self.set_position(value)
+        elif name in ("target_position", "target_velocity", "target_torque"):
+            with self.lock:
+                setattr(self, name, int(value))
+        else:
+            raise SimulatorError(f"node {self.node_id}: {register!r} is read-only here")
+
+    def _register(self, register: str) -> str:
+        try:
+            return self._REGISTERS[str(register).lower()]
+        except KeyError:
+            raise SimulatorError(f"node {self.node_id}: unknown register {register!r}; valid: "
+                                 f"{', '.join(sorted(self._REGISTERS))}") from None
+
     @property
     def enabled(self) -> bool:
         """The power stage is on (torque applied): OPERATION ENABLED or stopping under power."""
@@ -882,9 +934,14 @@ class FaultKind(str, enum.Enum):
 class CanopenSimulator:
     """Simulated CiA 402 drives (one per node id) on one CAN bus, in the serial simulators' shape.
 
-    ``interface`` / ``channel``: where the drives live. ``"virtual"`` (default) uses a private
-    python-can virtual channel (in-process clients connect to :attr:`port` with
-    ``interface="virtual"``); ``"socketcan"`` joins a kernel CAN interface such as ``vcan0``.
+    ``interface``: how a master reaches the drives, and :attr:`port` is its ``channel``:
+
+    - ``"slcan"``: a simulated USB-CAN adapter on a pty (:mod:`crtk_bridge.sim.slcan`; ``link``:
+      a stable symlink to it), the drives on a private virtual channel behind it. Any process
+      can open it with python-can's ``slcan`` interface: what ``crtk-sim canopen`` and ``--sim`` use.
+    - ``"virtual"``: a private python-can virtual channel (in-process clients only).
+    - ``"socketcan"``: the kernel CAN interface ``channel`` (e.g. ``vcan0``).
+
     ``control``: serve the JSON-lines control socket (:mod:`crtk_bridge.sim.control`) there.
     Nothing is opened before :meth:`start`; :meth:`stop` is idempotent.
     """
@@ -893,16 +950,26 @@ class CanopenSimulator:
 
     def __init__(self, node_ids: list[int], options: dict[int, DriveOptions] | None = None, *,
                  interface: str = "virtual", channel: str | None = None, bitrate: int = 1_000_000,
-                 control: str | os.PathLike | None = None, clock: Callable[[], float] = time.monotonic):
+                 control: str | os.PathLike | None = None, link: str | os.PathLike | None = None,
+                 clock: Callable[[], float] = time.monotonic):
         if not node_ids:
             raise SimulatorError("a CANopen simulator needs at least one node id")
         if len(set(node_ids)) != len(node_ids):
             raise SimulatorError(f"node ids {node_ids} are not unique")
-        if interface != "virtual" and not channel:
-            raise SimulatorError(f"interface {interface!r} needs a channel (e.g. vcan0)")
+        if interface not in ("slcan", "virtual", "socketcan"):
+            raise SimulatorError(f"interface {interface!r}: the simulator offers slcan, virtual, socketcan")
+        if interface == "socketcan" and not channel:
+            raise SimulatorError("interface 'socketcan' needs a channel (e.g. vcan0)")
         self.interface = interface
-        self.channel = channel or _private_channel()
         self.bitrate = int(bitrate)
+        self.adapter = None
+        if interface == "slcan":
+            from .slcan import SlcanAdapter
+
+            self._bus = ("virtual", _private_channel())
+            self.adapter = SlcanAdapter(*self._bus, self.bitrate, link=link)
+        else:
+            self._bus = (interface, channel or _private_channel())
         options = options or {}
         self.drives: dict[int, Drive402] = {
             n: Drive402(n, options.get(n, DriveOptions()), clock=clock) for n in node_ids}
@@ -917,11 +984,13 @@ class CanopenSimulator:
         self._stop = threading.Event()
 
     @classmethod
-    def from_profile(cls, profile: Profile, *, interface: str | None = None, channel: str | None = None,
-                     control: str | os.PathLike | None = None, **_ignored) -> CanopenSimulator:
+    def from_profile(cls, profile: Profile, link: str | os.PathLike | None = None,
+                     control: str | os.PathLike | None = None, *, interface: str = "slcan",
+                     channel: str | None = None, **_ignored) -> CanopenSimulator:
         """One drive per joint with a ``node_id`` (backend-owned joint key). The bus's
-        ``bitrate`` comes from the profile's backend section; ``interface`` / ``channel`` default
-        to a private virtual channel (the profile's are the master's, not the simulator's)."""
+        ``bitrate`` comes from the profile's backend section; ``interface`` defaults to the
+        SLCAN adapter (the profile's ``interface`` / ``channel`` are the master's, written by
+        the backend's ``sim_profile`` from :attr:`port`)."""
         node_ids, options = [], {}
         for i, j in enumerate(profile.joints):
             nid = j.backend.get("node_id")
@@ -937,14 +1006,26 @@ class CanopenSimulator:
         bitrate = (profile.backend or {}).get("bitrate", 1_000_000)
         if not isinstance(bitrate, int) or isinstance(bitrate, bool):
             raise SimulatorError(f"profile {profile.name!r}: backend.bitrate must be an integer")
-        return cls(node_ids, options, interface=interface or "virtual", channel=channel,
-                   bitrate=bitrate, control=control)
+        return cls(node_ids, options, interface=interface, channel=channel, bitrate=bitrate,
+                   control=control, link=link)
 
     # ------------------------------------------------------------------ lifecycle
     @property
     def port(self) -> str:
-        """The endpoint a master opens as its ``channel`` (with :attr:`interface`)."""
-        return self.channel
+        """The endpoint a master opens as its ``channel`` (with :attr:`interface`): the adapter's
+        pty (or link) for slcan, else the CAN channel."""
+        return self.adapter.port if self.adapter is not None else self._bus[1]
+
+    channel = port
+
+    @property
+    def pty_path(self) -> str | None:
+        return self.adapter.pty_path if self.adapter is not None else None
+
+    @property
+    def rx_bytes(self) -> int:
+        """Bytes the master has sent to the adapter (slcan; 0 otherwise)."""
+        return self.adapter.rx_bytes if self.adapter is not None else 0
 
     @property
     def ids(self) -> list[int]:
@@ -952,7 +1033,8 @@ class CanopenSimulator:
 
     @property
     def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
+        alive = self._thread is not None and self._thread.is_alive()
+        return alive and (self.adapter is None or self.adapter.running)
 
     def start(self) -> None:
         """Connect every drive (each boots: boot-up message, PRE-OPERATIONAL) and start the
@@ -961,25 +1043,26 @@ class CanopenSimulator:
             return
         started = []
         try:
+            if self.adapter is not None:
+                self.adapter.start()  # first: the drives' boot-up messages reach an open adapter
             for drive in self.drives.values():
-                drive.connect(self.interface, self.channel, **self._bus_kwargs())
+                drive.connect(*self._bus)
                 started.append(drive)
             if self._control is not None:
                 self._control.start()
         except Exception as exc:
             for drive in started:
                 drive.disconnect()
+            if self.adapter is not None:
+                self.adapter.stop()
             if isinstance(exc, SimulatorError):
                 raise
-            raise SimulatorError(f"CANopen simulator: cannot open {self.interface} channel "
-                                 f"{self.channel!r}: {exc}") from exc
+            raise SimulatorError(f"CANopen simulator: cannot open {self._bus[0]} channel "
+                                 f"{self._bus[1]!r}: {exc}") from exc
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="sim-canopen", daemon=True)
         self._thread.start()
-        log.info("canopen simulator: node(s) %s on %s %s", self.ids, self.interface, self.channel)
-
-    def _bus_kwargs(self) -> dict:
-        return {}
+        log.info("canopen simulator: node(s) %s on %s %s", self.ids, self.interface, self.port)
 
     def stop(self) -> None:
         if self._thread is None:
@@ -991,6 +1074,8 @@ class CanopenSimulator:
             self._control.stop()
         for drive in self.drives.values():
             drive.disconnect()
+        if self.adapter is not None:
+            self.adapter.stop()
 
     def __enter__(self):
         self.start()
@@ -1014,6 +1099,9 @@ class CanopenSimulator:
             return self.drives[node_id]
         except KeyError:
             raise SimulatorError(f"no simulated drive with node id {node_id} (ids: {self.ids})") from None
+
+    #: the serial simulators' name, so conformance rows reach a drive as they reach a servo
+    servo = drive
 
     def set_fault(self, node_id: int, kind: str | FaultKind, code: int = 0) -> None:
         """Inject a fault into one drive (see :class:`FaultKind`); ``code``: the EMCY code of
@@ -1048,8 +1136,12 @@ class CanopenSimulator:
             self.set_bus_off(False)
 
     def set_bus_off(self, on: bool) -> None:
-        """The bus is unusable (bus-off, cable cut): nothing passes either way."""
+        """The master's side of the bus is unusable (adapter bus-off, cable cut): nothing passes
+        either way; the drives run on (with slcan the adapter's status flags say so)."""
         self.bus_off = bool(on)
+        if self.adapter is not None:
+            self.adapter.bus_off = self.bus_off
+            return
         for drive in self.drives.values():
             drive.set_muted(on)
 
@@ -1078,7 +1170,7 @@ class CanopenSimulator:
         try:
             if cmd == "dump":
                 return {"ok": True, "drives": {str(n): d.snapshot() for n, d in sorted(self.drives.items())},
-                        "bus_off": self.bus_off, "interface": self.interface, "channel": self.channel,
+                        "bus_off": self.bus_off, "interface": self.interface, "channel": self.port,
                         "bitrate": self.bitrate}
             if cmd == "fault":
                 code = request.get("code", 0)

@@ -4,6 +4,8 @@
                      [--emulate-baud] [--torque-delay S] [--log-level info]
     crtk-sim dynamixel --profile profiles/koch.yaml --link /tmp/ttySIM [...same options]
     crtk-sim feetech --profile profiles/bimanual_so101.yaml --bus left --link /tmp/ttyLEFT
+    crtk-sim canopen --profile profiles/canopen_2axis.yaml --link /tmp/ttyCAN [--control C]
+                     [--interface slcan|socketcan --channel vcan0] [--enable-delay S]
     crtk-sim ur --profile profiles/ur5e.yaml --host 127.0.0.2 [--control /tmp/ur.ctl]
                 [--series e-series|cb3] [--power-on-s S] [--brake-release-s S] [--unlock-delay-s S]
 
@@ -62,6 +64,18 @@ def _parser() -> argparse.ArgumentParser:
                        help="the servo with this id is of another model; repeatable")
         d.add_argument("--log-level", default="warning",
                        choices=["debug", "info", "warning", "error"], help="default: warning")
+    d = sub.add_parser("canopen", help="CiA 402 drives behind a simulated SLCAN USB-CAN adapter (pty)")
+    d.add_argument("--profile", required=True, help="robot profile (YAML); one drive per joint node_id")
+    d.add_argument("--link", help="create this symlink to the adapter's pty (default: print the pty path)")
+    d.add_argument("--control", help="serve the JSON-lines control socket at this path")
+    d.add_argument("--interface", default="slcan", choices=["slcan", "socketcan"],
+                   help="slcan (default): a simulated USB-CAN adapter on a pty; socketcan: join --channel")
+    d.add_argument("--channel", help="with --interface socketcan: the kernel CAN interface (e.g. vcan0)")
+    d.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
+    d.add_argument("--enable-delay", type=float, default=0.0, metavar="S",
+                   help="enable operation takes S seconds (a brake releasing; default 0)")
+    d.add_argument("--log-level", default="warning",
+                   choices=["debug", "info", "warning", "error"], help="default: warning")
     u = sub.add_parser("ur", help="Universal Robots controller (UR5e): RTDE 30004, dashboard 29999, "
                                   "script 30003 on a loopback address")
     u.add_argument("--profile", required=True, help="robot profile (YAML): six joints, their limits and home")
@@ -161,10 +175,18 @@ def main(argv: list[str] | None = None) -> int:
     # sigtimedwait() below receives them: a clean, race-free shutdown path.
     signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
     try:
-        sim = Simulator.from_profile(
-            profile, link=args.link, control=args.control, emulate_baud=args.emulate_baud)
-        sim.set_torque_delay(args.torque_delay)
-        _day_one(sim, args)
+        if args.device == "canopen":
+            if args.interface == "socketcan" and not args.channel:
+                print("crtk-sim: --interface socketcan needs --channel (e.g. vcan0)", file=sys.stderr)
+                return 2
+            sim = Simulator.from_profile(profile, link=args.link, control=args.control,
+                                         interface=args.interface, channel=args.channel)
+            sim.set_torque_delay(args.enable_delay)
+        else:
+            sim = Simulator.from_profile(
+                profile, link=args.link, control=args.control, emulate_baud=args.emulate_baud)
+            sim.set_torque_delay(args.torque_delay)
+            _day_one(sim, args)
         sim.start()
     except CrtkBridgeError as exc:
         print(f"crtk-sim: {exc}", file=sys.stderr)
@@ -172,6 +194,10 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"crtk-sim: cannot start the simulator: {exc}", file=sys.stderr)
         return 1
+    if args.device == "canopen":
+        return _serve(sim, f"crtk-sim: canopen bus ready: interface={sim.interface} channel={sim.port} "
+                           f"pty={sim.pty_path or '-'} control={sim.control_path or '-'} "
+                           f"nodes={','.join(map(str, sim.ids))} bitrate={sim.bitrate}")
     return _serve(sim, f"crtk-sim: {args.device} bus ready: port={sim.port} pty={sim.pty_path} "
                        f"control={sim.control_path or '-'} ids={','.join(map(str, sim.ids))} "
                        f"baud={sim.baudrate}{' (emulated)' if sim.emulate_baud else ''}")

@@ -604,6 +604,10 @@ class URController:
                 return {"ok": True}
             if cmd == "release":
                 kind = request.get("kind", "safeguard")
+                if kind in ("protective", "fault", "violation"):
+                    how = "unlock protective stop" if kind == "protective" else "restart safety"
+                    return {"ok": False, "error": f"a {kind} stop is not released by a button: the dashboard's "
+                                                  f"'{how}' clears it"}
                 if not r.release_stop(kind):
                     return {"ok": False, "error": f"no {kind} stop to release (safety mode {r.safety_mode.name})"}
                 return {"ok": True}

@@ -23,7 +23,7 @@ import logging
 from typing import Any
 
 from ..errors import CrtkBridgeError
-from ..server.protocol import MAX_LINE, encode, error
+from ..server.protocol import MAX_LINE, STOP_COMMANDS, ProtocolError, decode_request, encode, error
 from ..server.server import Server, Session
 from . import tunnel_keys as keys
 from .zenoh_session import ZenohConfig
@@ -32,6 +32,9 @@ log = logging.getLogger("crtk_bridge.transport.tunnel")
 
 #: how long start-up asks the network whether another daemon already serves this robot's name
 DUPLICATE_CHECK_S = 1.0
+#: request lines a remote session may have waiting; beyond, new ones are refused (stops never
+#: are): Zenoh has no back-pressure towards a client the way a socket's buffer has
+MAX_PENDING = 4096
 
 
 class TunnelSession(Session):
@@ -159,8 +162,15 @@ class TunnelServer:
         if s is None:
             return  # no session: the client's token is not (or no longer) there
         for line in payload.split(b"\n"):
-            if line.strip():
-                s.lines.put_nowait(line)
+            if not line.strip():
+                continue
+            if s.lines.qsize() >= MAX_PENDING and not _is_stop(line):
+                s.send(error(_request_id(line), "bad_request",
+                             f"{self.robot}: request discarded: {MAX_PENDING} requests of this session are "
+                             f"waiting (sent faster than they are served); {', '.join(STOP_COMMANDS)} are "
+                             "always accepted"))
+                continue
+            s.lines.put_nowait(line)
 
     def _lost(self, cid: str) -> None:
         s = self.clients.get(cid)
@@ -188,3 +198,20 @@ class TunnelServer:
         if s.task is not None and s.task is not asyncio.current_task():
             s.task.cancel()
         log.info("%s: %s closed (Zenoh)", self.robot, s.describe())
+
+
+def _envelope(line: bytes):
+    try:
+        return decode_request(line) if len(line) <= MAX_LINE else None
+    except ProtocolError:
+        return None
+
+
+def _is_stop(line: bytes) -> bool:
+    req = _envelope(line)
+    return req is not None and req.cmd in STOP_COMMANDS
+
+
+def _request_id(line: bytes):
+    req = _envelope(line)
+    return None if req is None else req.id

@@ -5,16 +5,20 @@ Built on ``canopen`` (object dictionaries, SDO client, NMT, EMCY consumer, PDO m
 What the library does not do, or does in a way a real-time loop cannot use, is done here
 (``../shared/reference/canopen-ur.md`` part A):
 
-* **The loop paces the bus.** Every cycle, in every operating state, ``write`` sets each drive's
-  RPDOs (controlword, target position, mode; target velocity and torque where the drive has
-  CSV / CST) and transmits them with ``PdoMap.transmit()``, then ONE SYNC
-  (``SyncProducer.transmit()``); the drives apply the RPDOs at that SYNC (CiA 301: SYNC-type
-  RPDOs take effect at the next SYNC) and answer with their SYNC-type TPDOs (statusword,
-  position, mode display; velocity, torque). ``read`` takes the TPDOs that answered the previous
-  SYNC. No library thread sends anything periodic (its ``start()`` threads are not locked to the
-  loop, and its setters do not send SYNC-type RPDOs at all). A TPDO that has not arrived
-  ``tpdo_timeout_ms`` after its SYNC is missing: a transient ``tpdo_missing`` fault naming the
-  node (core faults after ``safety.bus_errors_max`` in a row).
+* **The loop paces the bus.** The backend paces the cycle (``paces_cycle``): the loop's sleep is
+  :meth:`Canopen402Backend.wait_cycle`, which sends ONE SYNC (``SyncProducer.transmit()``) at the
+  tick of an absolute schedule, the first thing of the cycle, so the SYNC period jitters by the
+  wake-up alone. At that SYNC the drives apply the RPDOs the previous cycle's ``write`` sent
+  (CiA 301: SYNC-type RPDOs take effect at the next SYNC) and answer with their SYNC-type TPDOs
+  (statusword, position, mode display; velocity, torque). ``read`` takes the TPDOs that answered
+  the previous SYNC (in already: no waiting in the cycle); ``write`` sets each drive's RPDOs
+  (controlword, target position, mode; target velocity and torque where the drive has CSV / CST)
+  and transmits them with ``PdoMap.transmit()``. Every cycle, in every operating state. No library
+  thread sends anything periodic (its ``start()`` threads are not locked to the loop, and its
+  setters do not send SYNC-type RPDOs at all). Outside the loop (start-up, tests) a ``read`` sends
+  its own SYNC and waits for its answers. TPDOs are counted, not tagged: a TPDO that has not
+  arrived ``tpdo_timeout_ms`` after its SYNC is missing, a transient ``tpdo_missing`` fault naming
+  the node (core faults after ``safety.bus_errors_max`` in a row); a late one is not.
 * **Heartbeat consumer** (the library has none): each node's heartbeat is timed here; a node
   silent beyond ``heartbeat_timeout_ms`` is a ``heartbeat_lost`` fault naming it, a node whose
   heartbeat leaves OPERATIONAL (a reboot) a ``nmt_state`` fault.
@@ -215,7 +219,8 @@ class Canopen402Backend(Actuator):
                                 measures_effort=False, needs_homing=False, can_free=False)
     extra = "canopen402"
     fault_reaction = FaultReaction.TORQUE_OFF  # the DISABLE transition: disable voltage on every drive
-    cyclic_write = True  # SYNC + RPDOs every cycle, in every state
+    cyclic_write = True  # RPDOs every cycle, in every state
+    paces_cycle = True  # the loop's tick sends the SYNC (wait_cycle)
     stops_itself_on_pause = True  # pause is the drives' own quick stop
     simulator = SimWiring("canopen", endpoint_key="channel")
     #: the interface ``--sim`` uses to reach the simulated USB-CAN adapter
@@ -244,6 +249,14 @@ class Canopen402Backend(Actuator):
                 raise ProfileError(f"{source}: joints[{i}] ({j.name}).node_id: {k.node_id} is also "
                                    f"joint {seen[k.node_id]!r}'s")
             seen[k.node_id] = j.name
+            h = k.homing
+            for key in ("speed_switch", "speed_zero"):  # the drive homes at these: bounded too
+                if h is not None and getattr(h, key) > j.limits.velocity_max:
+                    raise ProfileError(f"{source}: joints[{i}] ({j.name}).homing.{key}: {getattr(h, key)} is "
+                                       f"above limits.velocity_max ({j.limits.velocity_max})")
+            if h is not None and h.acceleration > j.limits.acceleration_max:
+                raise ProfileError(f"{source}: joints[{i}] ({j.name}).homing.acceleration: {h.acceleration} is "
+                                   f"above limits.acceleration_max ({j.limits.acceleration_max})")
         self.drives = [_Drive(i, j.name, k, j.limits) for i, (j, k) in enumerate(zip(profile.joints, keys))]
         self._period_s = 1.0 / profile.loop.rate_hz
         self._tpdo_timeout_s = (cfg.tpdo_timeout_ms / 1000.0 if cfg.tpdo_timeout_ms is not None
@@ -254,6 +267,8 @@ class Canopen402Backend(Actuator):
         self._rx_event = threading.Event()
         self._sync_seq = 0  # SYNCs sent
         self._sync_t = 0.0  # monotonic time of the last SYNC
+        self._sync_fresh = False  # a SYNC went out (wait_cycle) that no read has taken yet
+        self._tick: float | None = None  # perf_counter time of the next SYNC (wait_cycle)
         self._sync_mono = [0.0] * _RING  # monotonic time of SYNC n at [n % _RING]
         self._sync_wall = [0.0] * _RING  # its wall-clock time: the stamp of the samples answering it
         self._reads = 0  # reads that took the drives' TPDOs (the loop's)
@@ -519,6 +534,8 @@ class Canopen402Backend(Actuator):
         deadline = time.monotonic() + self.config.boot_timeout_s
         while True:
             self._send(None)
+            self._sync_out()
+            self._sync_fresh = False
             missing = self._wait_tpdos(time.monotonic() + min(0.1, self.config.boot_timeout_s))
             self._resync(self._sync_seq)
             if missing is None:
@@ -547,14 +564,16 @@ class Canopen402Backend(Actuator):
                 elif answered > seq:
                     d.base[m] = d.arrived[m] - seq
 
-    def _wait_tpdos(self, deadline: float) -> _Drive | None:
-        """Wait (at most until ``deadline``, monotonic) until every node's TPDOs answered the
-        last SYNC. Returns the first drive that did not, or None."""
-        seq = self._sync_seq
+    def _wait_tpdos(self, deadline: float, drives: list[_Drive] | None = None,
+                    seq: int | None = None) -> _Drive | None:
+        """Wait (at most until ``deadline``, monotonic) until every node's (of ``drives``) TPDOs
+        answered SYNC ``seq`` (default: the last). Returns the first drive that did not, or None."""
+        seq = self._sync_seq if seq is None else seq
         ev = self._rx_event
+        drives = self.drives if drives is None else drives
         while True:
             ev.clear()
-            missing = next((d for d in self.drives if self._answered(d) < seq), None)
+            missing = next((d for d in drives if self._answered(d) < seq), None)
             remaining = deadline - time.monotonic()
             if missing is None or remaining <= 0:
                 return missing
@@ -583,20 +602,28 @@ class Canopen402Backend(Actuator):
             d.state = t.decode_state(d.sw)
 
     def _read(self, feedback: JointFeedback) -> Fault | None:
-        """Take the TPDOs that answered the last SYNC (waiting at most until ``tpdo_timeout_ms``
-        after it), convert them into ``feedback``, check heartbeats and EMCYs, report the device
-        status. Returns a transient ``tpdo_missing`` fault, a ``heartbeat_lost`` / ``nmt_state`` /
-        ``bus_error`` fault, or None. Never blocks beyond the TPDO deadline."""
+        """Take the TPDOs that answered the previous SYNC (paced by the loop; outside it, this
+        read's own SYNC), waiting for a late drive at most until ``tpdo_timeout_ms`` after that
+        SYNC; convert them into ``feedback`` (stamp: the SYNC the oldest sample answered), check
+        heartbeats and EMCYs, report the device status. Returns a transient ``tpdo_missing``
+        fault, a ``heartbeat_lost`` / ``nmt_state`` / ``bus_error`` fault, or None."""
         fault = self._unusable("read")
         if fault is not None:
             return fault
         self.stats["reads"] += 1
         self._reads += 1
-        # In the loop the answers are in (the SYNC went out a period ago). A late drive is waited
-        # for until tpdo_timeout_ms after the SYNC -- unless a drive is missing already, so a silent
-        # node does not stretch every cycle; the data is then that of the last SYNC answered.
-        if not any(d.missed for d in self.drives):
-            self._wait_tpdos(self._sync_t + self._tpdo_timeout_s)
+        if self._sync_fresh:  # paced by the loop: take the answers to the previous SYNC (in already)
+            want = self._sync_seq - 1
+        else:  # outside the loop (start-up, tests): this read's own SYNC and its answers
+            self._sync_out()
+            want = self._sync_seq
+        self._sync_fresh = False
+        # A late drive is waited for until tpdo_timeout_ms after that SYNC; one that missed the
+        # previous read is not, so a silent node does not stretch every cycle: its data is then
+        # that of the last SYNC it answered, and it is missing once that is overdue.
+        if want > 0:
+            self._wait_tpdos(self._sync_mono[want % _RING] + self._tpdo_timeout_s,
+                             [d for d in self.drives if not d.missed], want)
         now = time.monotonic()
         missing = self._overdue(now)
         self._decode()
@@ -674,7 +701,8 @@ class Canopen402Backend(Actuator):
                      joint=d.name, register="statusword", value=d.sw, transient=False)
 
     def _write(self, command: JointCommand) -> Fault | None:
-        """Set every drive's RPDOs from ``command`` and send them, then ONE SYNC. Never blocks.
+        """Set every drive's RPDOs from ``command`` and send them (applied at the next SYNC).
+        Never blocks.
 
         A drive that is OPERATION ENABLED (and not homing) follows its joint's mode: POSITION ->
         CSP (target clipped to the joint's limits), VELOCITY -> CSV (clipped to velocity_max),
@@ -721,15 +749,44 @@ class Canopen402Backend(Actuator):
                     d.rpdo2.transmit()
                     self.stats["rpdos"] += 1
                 self.stats["rpdos"] += 1
-            self._sync_seq += 1  # before the SYNC: a TPDO answering it is tagged with this count
-            self._sync_t = self._sync_mono[self._sync_seq % _RING] = time.monotonic()
-            self._sync_wall[self._sync_seq % _RING] = time.time()
-            self._network.sync.transmit()
-            self.stats["syncs"] += 1
         except (can.CanError, OSError) as exc:
             self._bus_down = f"send failed: {exc}"
             return self._bus_fault()
         return fault
+
+    def _sync_out(self) -> None:
+        """Transmit one SYNC: the drives apply the RPDOs received since the previous one and
+        answer with their TPDOs. Never blocks (a failed send marks the bus down for read)."""
+        if self._network is None or self._bus_down is not None:
+            return
+        try:
+            self._sync_seq += 1  # first: the answers to this SYNC count against it
+            self._sync_t = self._sync_mono[self._sync_seq % _RING] = time.monotonic()
+            self._sync_wall[self._sync_seq % _RING] = time.time()
+            self._network.sync.transmit()
+            self.stats["syncs"] += 1
+            self._sync_fresh = True
+        except (can.CanError, OSError) as exc:
+            self._bus_down = f"send failed: {exc}"
+
+    # ------------------------------------------------------------------ pacing
+    def cycle_period_s(self) -> float:
+        return self._period_s
+
+    def wait_cycle(self, timeout_s: float) -> bool:
+        """The loop's sleep: until the next tick of this backend's SYNC schedule (absolute, so the
+        SYNC period does not drift with the cycle's work), then the SYNC at once -- the first
+        thing of the cycle, so its jitter is the wake-up's alone. Restarts the schedule when the
+        loop fell a period behind. Always True."""
+        now = time.perf_counter()
+        tick = self._tick
+        if tick is None or now - tick > self._period_s:
+            tick = now + max(timeout_s - self._period_s, 0.0)
+        if tick > now:
+            time.sleep(tick - now)
+        self._tick = tick + self._period_s
+        self._sync_out()
+        return True
 
     def _follow(self, d: _Drive, command: JointCommand) -> Fault | None:
         i = d.i
@@ -801,6 +858,8 @@ class Canopen402Backend(Actuator):
         carries the controlword and its next read brings the answer."""
         if self._reads == self._seen_reads and self._network is not None and self._bus_down is None:
             self._send(None)
+            self._sync_out()
+            self._sync_fresh = False
             self._wait_tpdos(time.monotonic() + max(self._tpdo_timeout_s, 0.05))
             self._resync(self._sync_seq)
             self._decode()
@@ -841,11 +900,18 @@ class Canopen402Backend(Actuator):
         rebooted = [d for d in self.drives if d.rebooted]
         if rebooted:
             yield from on_worker(lambda: [self._configure_node(d) for d in rebooted], "canopen-reconfigure")
-        now = time.monotonic()
-        for d in self.drives:
-            if now - d.hb_t > self._hb_timeout_s:
-                raise BackendError(f"{self.robot}: {d.label}: no heartbeat for {now - d.hb_t:.2f} s; "
+        # a node whose heartbeat was lost gets a moment to be heard again (it may just be back)
+        deadline = time.monotonic() + 2 * self._hb_timeout_s
+        while True:
+            now = time.monotonic()
+            silent = next((d for d in self.drives if now - d.hb_t > self._hb_timeout_s), None)
+            if silent is None:
+                break
+            if now > deadline:
+                raise BackendError(f"{self.robot}: {silent.label}: no heartbeat for {now - silent.hb_t:.2f} s; "
                                    f"cannot enable")
+            yield
+            self._pump()
         faulted = [d for d in self.drives if d.state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE)]
         for d in self.drives:
             d.emcy = None
