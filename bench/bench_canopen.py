@@ -113,6 +113,7 @@ def main(argv=None) -> int:
     ap.add_argument("--rate", type=float, default=250.0)
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--sweep-from", type=float, default=125.0, help="first rate of the doubling sweep")
     args = ap.parse_args(argv)
     period = 1.0 / args.rate
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
@@ -167,7 +168,7 @@ def main(argv=None) -> int:
 
     print(f"\nhighest loop rate with no missed TPDO ({args.seconds:g} s each):")
     best = None
-    rate = args.rate
+    rate = args.sweep_from
     while rate <= 8000:
         sim, backend, c, fb, _ = rig(rate)
         try:

@@ -55,22 +55,58 @@ def _die_with_parent() -> None:
         pass  # not Linux: the daemon's normal shutdown still stops the simulator
 
 
-class SimulatorProcess:
-    """``crtk-sim <device>`` as a child process, serving its endpoint at ``link`` (a pty link)."""
+def free_loopback_host(ports: tuple[int, ...], first: int = 2) -> str:
+    """A loopback address 127.0.0.N (N from ``first``, then on) where every TCP port of ``ports``
+    can be bound now: simulators with fixed ports (a UR controller's) run side by side on
+    different addresses. Raises CrtkBridgeError when none is free."""
+    start = first + os.getpid() % 200  # spread concurrent callers over the range
+    for k in range(253):
+        host = f"127.0.0.{2 + (start + k) % 253}"
+        try:
+            for port in ports:
+                with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+                    probe.bind((host, port))
+        except OSError:
+            continue
+        return host
+    raise CrtkBridgeError(f"--sim: no loopback address 127.0.0.2-254 has TCP ports {ports} free")
 
-    def __init__(self, profile_path: str, device: str, workdir: str, bus: str | None = None):
+
+def _accepts(host: str, port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.settimeout(0.5)
+        return probe.connect_ex((host, port)) == 0
+
+
+class SimulatorProcess:
+    """``crtk-sim <device>`` as a child process, serving its endpoint at ``link``: a pty link, or
+    for a simulator with fixed TCP ports (``host_ports``) a free loopback address."""
+
+    def __init__(self, profile_path: str, device: str, workdir: str, bus: str | None = None,
+                 host_ports: tuple[int, ...] = ()):
         tag = f"-{bus}" if bus else ""  # several buses: one simulator each
-        self.link = os.path.join(workdir, f"tty{tag}")
         self.control = os.path.join(workdir, f"sim{tag}.sock")
+        if host_ports:
+            self.link = free_loopback_host(host_ports)
+            where = ["--host", self.link]
+        else:
+            self.link = os.path.join(workdir, f"tty{tag}")
+            where = ["--link", self.link]
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "crtk_bridge.sim.cli", device, "--profile", profile_path,
-             "--link", self.link, "--control", self.control, *(["--bus", bus] if bus else [])],
+             *where, "--control", self.control, *(["--bus", bus] if bus else [])],
             stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
             start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
             preexec_fn=_die_with_parent,  # ...but a daemon killed outright must not leave it running
         )
+
+        def started() -> bool:
+            if not os.path.exists(self.control):
+                return False
+            return _accepts(self.link, host_ports[0]) if host_ports else os.path.exists(self.link)
+
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
-        while not (os.path.exists(self.link) and os.path.exists(self.control)):
+        while not started():
             if self.proc.poll() is not None:
                 raise CrtkBridgeError(f"--sim: the simulator exited with status {self.proc.returncode}")
             if time.monotonic() > deadline:
@@ -243,7 +279,7 @@ def _simulate_buses(profile: Profile, profile_path: str, workdir: str,
     backends = {}
     for bus, section in profile.backends.items():
         wiring = _sim_wiring(str(section["type"]), profile_path)
-        simulator = SimulatorProcess(profile_path, wiring.device, workdir, bus=bus)
+        simulator = SimulatorProcess(profile_path, wiring.device, workdir, bus=bus, host_ports=wiring.host_ports)
         simulators.append(simulator)
         backends[bus] = {**section, wiring.endpoint_key: simulator.link}
         print(f"crtk-bridge: simulated {section['type']} bus {bus!r} on {simulator.link} "
@@ -273,8 +309,8 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
     if sim:
         workdir = tempfile.mkdtemp(prefix=f"crtk-bridge-{profile.name}-sim-")
         if profile.backends is None:
-            simulator = SimulatorProcess(str(profile_path), _sim_wiring(profile.backend_type, source).device,
-                                         workdir)
+            wiring = _sim_wiring(profile.backend_type, source)
+            simulator = SimulatorProcess(str(profile_path), wiring.device, workdir, host_ports=wiring.host_ports)
             simulators.append(simulator)
             profile = backend_class(profile.backend_type, source).sim_profile(profile, simulator.link)
             print(f"crtk-bridge: simulated {profile.backend_type} bus on {simulator.link} "

@@ -168,6 +168,18 @@ class EventCode(StrEnum):
     SHUTDOWN_TORQUE_OFF = "shutdown_torque_off"
     SHUTDOWN_PARK_TIMEOUT = "shutdown_park_timeout"
     SHUTDOWN_PARK_ABORTED = "shutdown_park_aborted"
+    # Universal Robots (backends/ur/tables.py): what the controller reports, as FAULT causes
+    LINK_LOST = "link_lost"
+    CONTROLLER_DISCONNECTED = "controller_disconnected"
+    PROTECTIVE_STOP = "protective_stop"
+    EMERGENCY_STOP = "emergency_stop"
+    SAFETY_FAULT = "safety_fault"
+    SAFETY_RECOVERY = "safety_recovery"
+    SAFETY_UNDEFINED = "safety_undefined"
+    SCRIPT_STOPPED = "script_stopped"
+    MOVE_TIMEOUT = "move_timeout"
+    COMMAND_REFUSED = "command_refused"
+    COMMAND_FAILED = "command_failed"
 
 
 #: accepted from any session, whoever holds control: a stop is never refused (as on the dVRK)

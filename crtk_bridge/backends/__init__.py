@@ -14,6 +14,7 @@ BACKENDS: dict[str, tuple[str, str]] = {
     "feetech": ("crtk_bridge.backends.feetech.backend", "FeetechBackend"),
     "dynamixel": ("crtk_bridge.backends.dynamixel.backend", "DynamixelBackend"),
     "canopen402": ("crtk_bridge.backends.canopen402.backend", "Canopen402Backend"),
+    "ur": ("crtk_bridge.backends.ur.backend", "UrBackend"),
 }
 
 

@@ -87,6 +87,7 @@ class Capabilities:
     can_free: bool = True  # torque can be switched off with the robot powered (`free`)
     native_rate_hz: float | None = None  # rate the hardware paces (CANopen SYNC, RTDE); None = any
     native_cartesian: bool = False  # follows cartesian setpoints and measures the tip pose itself
+    measures_wrench: bool = False  # native cartesian: also measures the tip wrench (CartesianFeedback.wrench)
 
 
 def combine_capabilities(caps: Sequence[Capabilities]) -> Capabilities:
@@ -101,6 +102,7 @@ def combine_capabilities(caps: Sequence[Capabilities]) -> Capabilities:
         measures_effort=all(c.measures_effort for c in caps), needs_homing=any(c.needs_homing for c in caps),
         can_free=all(c.can_free for c in caps), native_rate_hz=rates[0] if rates else None,
         native_cartesian=all(c.native_cartesian for c in caps),
+        measures_wrench=all(c.measures_wrench for c in caps),
     )
 
 
@@ -150,12 +152,17 @@ class CartesianFeedback:
     orientation: np.ndarray  # (k, 4) quaternion [x, y, z, w]
     done_seq: np.ndarray  # (k,) int64
     stamp: float = 0.0  # time of measurement; 0 = no valid pose
+    #: (k, 6) force N + torque N*m at the tip, base frame axes, when ``measures_wrench`` (UR
+    #: ``actual_TCP_force``); else zeros
+    wrench: np.ndarray | None = None
 
     def copy_from(self, other: "CartesianFeedback") -> None:
         self.position[:] = other.position
         self.orientation[:] = other.orientation
         self.done_seq[:] = other.done_seq
         self.stamp = other.stamp
+        if self.wrench is not None and other.wrench is not None:
+            self.wrench[:] = other.wrench
 
 
 @dataclass
@@ -213,6 +220,7 @@ class Lifecycle(str, enum.Enum):
     RESUME = "resume"
     FAULT_RESET = "fault_reset"  # before ENABLE when leaving FAULT
     HOME = "home"  # only where the backend homes natively (``native_homing``)
+    GOAL_CHECK = "goal_check"  # a move goal asked of the device's own limits (:meth:`Actuator.goal_check_steps`)
     CALIBRATE = "calibrate"  # start a calibration sweep (:meth:`Actuator.calibration_begin`)
 
 
@@ -245,6 +253,10 @@ class SimWiring:
 
     device: str
     endpoint_key: str = "port"
+    #: a simulator that serves fixed TCP ports (a UR controller's) instead of a pty: ``--sim``
+    #: picks a loopback address 127.0.0.x where these ports are free, passes it as ``--host`` and
+    #: waits until the first one accepts; that address is the endpoint. Empty: a pty link.
+    host_ports: tuple[int, ...] = ()
 
 
 Steps = Iterator[None]
@@ -328,6 +340,7 @@ def effective_period_s(profile: Profile, actuator: "Actuator") -> float:
 DEFAULT_TRANSITION_TIMEOUTS_S: dict[Lifecycle, float] = {
     Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 2.0, Lifecycle.RESUME: 2.0,
     Lifecycle.FAULT_RESET: 5.0, Lifecycle.HOME: 60.0, Lifecycle.CALIBRATE: 5.0,
+    Lifecycle.GOAL_CHECK: 2.0,
 }
 
 
@@ -353,9 +366,13 @@ class Actuator(abc.ABC):
     simulator: ClassVar[SimWiring | None] = None
     #: time limit (s) of each lifecycle transition; exceeding it faults the robot
     transition_timeouts_s: ClassVar[dict[Lifecycle, float]] = DEFAULT_TRANSITION_TIMEOUTS_S
-    #: True: PAUSE stops the device by itself (a CiA 402 quick stop ramp) and it holds where it
-    #: stopped, not where core's braking ramp ended; core takes the measured position on RESUME
+    #: True: PAUSE stops the device by itself (a CiA 402 quick stop ramp; a UR safeguard stop stops
+    #: the arm with its own ramp) and it holds where it stopped, not where core's braking ramp
+    #: ended; core takes the measured position on RESUME
     stops_itself_on_pause: ClassVar[bool] = False
+    #: the device's speed scaling (0..1) set by its operator (a UR's speed slider), reported to
+    #: clients in ``operating_state``; NaN: the device has none
+    speed_fraction: float = float("nan")
 
     def __init__(self, profile: Profile, *, source: str = "<profile>"):
         self.profile = profile
@@ -573,11 +590,20 @@ class Actuator(abc.ABC):
             return []
         return [ns.name for ns in self.profile.namespaces if ns.kinematics is not None]
 
+    def goal_check_steps(self, ns: str, cmd: str, goal: np.ndarray) -> Steps | None:
+        """Steps that ask the device whether a move goal is within ITS OWN limits (a UR's safety
+        limits) before core starts the move; core runs them as a GOAL_CHECK transition (the cycle
+        goes on) and starts the move once they end. ``goal``: the namespace's joint positions
+        (``move_jp``) or the pose ``[x, y, z, qx, qy, qz, qw]`` (``move_cp`` on a native cartesian
+        namespace). They raise :class:`~crtk_bridge.errors.CommandError` (``out_of_limits``, the
+        message naming the joint or pose) to refuse the move. None (the default): no such check."""
+        return None
+
     def new_feedback(self) -> JointFeedback:
         z = np.zeros(self.n)
         k = len(self.cartesian_namespaces())
         cart = CartesianFeedback(np.zeros((k, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (k, 1)),
-                                 np.zeros(k, dtype=np.int64)) if k else None
+                                 np.zeros(k, dtype=np.int64), 0.0, np.zeros((k, 6))) if k else None
         return JointFeedback(z.copy(), z.copy(), z.copy(), 0.0, cart)
 
     def new_command(self) -> JointCommand:

@@ -55,7 +55,7 @@ from .actuator import (
 )
 from .motion import Mode, NamespaceMotion
 from .state import DEVICE_STATUS, OperatingState, StateCommand, transition
-from .native_cartesian import NATIVE_COMMANDS, build_native_cartesian
+from .native_cartesian import NATIVE_COMMANDS, build_native_cartesian, parse_pose
 from .twist import TWIST_COMMANDS, build_twist_motions, parse_twist
 
 STATE_COMMANDS = tuple(c.value for c in StateCommand)
@@ -156,6 +156,7 @@ class Controller:
         self._running: _Running | None = None  # the lifecycle transition in progress
         self._cycle = 0  # counts on_read calls: one transition step per cycle
         self._rid: Any = None  # id of the request being handled
+        self._speed_fraction = float("nan")  # the device's speed slider as last reported (NaN: none)
 
     # ------------------------------------------------------------------ queries
     @property
@@ -164,13 +165,16 @@ class Controller:
             or any(nc.busy for nc in self.native_cartesian.values())
 
     def operating_state(self) -> dict[str, Any]:
-        return {
+        out = {
             "state": self.state.value,
             "is_homed": self.is_homed,
             "is_busy": self.is_busy,
             "busy_seq": self.busy_seq,
             "stamp": self.state_stamp,
         }
+        if self._speed_fraction == self._speed_fraction:  # not NaN: the device has a speed slider
+            out["target_speed_fraction"] = self._speed_fraction
+        return out
 
     @staticmethod
     def _allows(c: Capabilities, need: str) -> bool:
@@ -323,8 +327,32 @@ class Controller:
     def _native_cartesian_command(self, cmd: str, ns: str, data: dict) -> Any:
         """A cartesian command for a backend that does cartesian control itself: no IK, no
         mapping; the backend receives the pose or twist (core/native_cartesian.py)."""
-        nc = self.native_cartesian[ns]
         self._check_can_move(ns, cmd)
+        if cmd == "move_cp":
+            try:
+                p, q = parse_pose(ns, cmd, data)
+            except ValueError as exc:
+                raise Refused("bad_request", str(exc)) from None
+            check = self.actuator.goal_check_steps(ns, cmd, np.concatenate([p, q]))
+            if check is not None:  # the device's own limits first; the move starts when they agree
+                return self._start(self._goal_check(check), lambda: self._native_accept(cmd, ns, data),
+                                   self._goal_refused)
+        return self._native_accept(cmd, ns, data)
+
+    def _goal_check(self, steps: Steps) -> Transition:
+        return Transition(self.robot, Lifecycle.GOAL_CHECK, steps,
+                          self.actuator.transition_timeout_s(Lifecycle.GOAL_CHECK))
+
+    def _goal_refused(self, exc: Exception) -> Refused:
+        """A GOAL_CHECK that refused the goal (or could not ask): the move is refused, the robot
+        holds where it is (no FAULT: nothing moved)."""
+        if isinstance(exc, CommandError):
+            return Refused(exc.code, exc.message)
+        return Refused("out_of_limits", f"{self.robot}: move refused: the device could not check the goal "
+                       f"against its own limits: {exc}")
+
+    def _native_accept(self, cmd: str, ns: str, data: dict) -> Any:
+        nc = self.native_cartesian[ns]
         m = nc.motion
         was_busy = self.is_busy
         was_free = m.mode is Mode.FREE
@@ -427,8 +455,8 @@ class Controller:
         run = self._running
         if not (self.homing or run is not None or not self.is_homed or self.state is OperatingState.PAUSED):
             return False  # the ordinary hold
-        if run is not None and run.transition.kind is Lifecycle.HOME:
-            self._abort_running("home aborted by hold")
+        if run is not None and run.transition.kind in (Lifecycle.HOME, Lifecycle.GOAL_CHECK):
+            self._abort_running(f"{run.transition.kind.value} aborted by hold")
         self._stop_all()
         self._end_cartesian(ns)
         return True
@@ -494,6 +522,12 @@ class Controller:
                 f"{m.name}: move refused: goal {fmt_number(goal[j])} rad for joint {m.joint_names[j]!r} is outside "
                 f"its limits [{fmt_number(m.pos_min[j])}, {fmt_number(m.pos_max[j])}]",
             )
+        check = self.actuator.goal_check_steps(m.name, "move_jp", goal)
+        if check is not None:  # the device's own limits first; the move starts when they agree
+            return self._start(self._goal_check(check), lambda: self._start_move(m, goal), self._goal_refused)
+        return self._start_move(m, goal)
+
+    def _start_move(self, m: NamespaceMotion, goal: np.ndarray) -> dict:
         if m.mode is Mode.FREE:
             m.reset(self.feedback.position[m.idx])
         m.start_move(goal, self.clock())
@@ -862,6 +896,11 @@ class Controller:
         if news is not None:
             self._device_status(*news)
         self._consecutive_bus_errors = 0
+        speed = self.actuator.speed_fraction
+        if speed == speed and abs(speed - self._speed_fraction) >= 0.005 or (speed == speed) != (
+                self._speed_fraction == self._speed_fraction):
+            self._speed_fraction = speed  # the operator moved the slider: clients hear of it
+            self._push_state()
         if self._torque_unconfirmed and self.state is OperatingState.FAULT:
             now = self.clock()
             if now - self._last_torque_retry >= 1.0:  # acknowledged writes: at most once a second

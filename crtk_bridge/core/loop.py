@@ -188,6 +188,8 @@ class ControlLoop:
             v["ns_cart_stamp"][k] = fc.stamp if c._consecutive_bus_errors < self._bus_errors_max else 0.0
             v["ns_cart_p"][3 * k:3 * k + 3] = fc.position[row]
             v["ns_cart_q"][4 * k:4 * k + 4] = fc.orientation[row]
+            if fc.wrench is not None:
+                v["ns_cart_f"][6 * k:6 * k + 6] = fc.wrench[row]
         self.snap.end()
 
     # ---------------------------------------------------------------- the loop

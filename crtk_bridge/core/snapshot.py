@@ -6,7 +6,7 @@ sequence was odd or changed meanwhile. Nothing is allocated on the writer's side
 
 Layout (float64 unless said): ``seq`` (int64) | measured stamp, p[n], v[n], f[n] |
 setpoint p[n], v[n], f[n] | goal p[n], v[n], f[n] | per namespace: setpoint stamp, has_p,
-has_v, has_f, goal stamp, goal has_p, has_v, has_f | per namespace: native cartesian stamp, p[3], q[4] | cycle count, overrun count, lateness ring [RING], compute ring [RING].
+has_v, has_f, goal stamp, goal has_p, has_v, has_f | per namespace: native cartesian stamp, p[3], q[4], wrench[6] | cycle count, overrun count, lateness ring [RING], compute ring [RING].
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ class Layout:
             ("ns_setpoint_stamp", k), ("ns_has_p", k), ("ns_has_v", k), ("ns_has_f", k), ("ns_goal_stamp", k),
             ("ns_goal_has_p", k), ("ns_goal_has_v", k), ("ns_goal_has_f", k),
             # the tip pose a native cartesian backend measures (its stamp 0 elsewhere)
-            ("ns_cart_stamp", k), ("ns_cart_p", 3 * k), ("ns_cart_q", 4 * k),
+            ("ns_cart_stamp", k), ("ns_cart_p", 3 * k), ("ns_cart_q", 4 * k), ("ns_cart_f", 6 * k),
             ("cycles", 1), ("overruns", 1), ("ring_index", 1), ("lateness", RING), ("compute", RING),
         ]
         self.slices: dict[str, slice] = {}

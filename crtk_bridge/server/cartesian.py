@@ -61,10 +61,11 @@ FRAMED = ("measured_cv", "measured_cf", "setpoint_cv", "setpoint_cf", "goal_cv")
 
 class CartesianSpace:
     def __init__(self, profile: Profile, ns: str, config: KinematicsConfig, joint_commands: list[str],
-                 measures_effort: bool, native: bool = False):
+                 measures_effort: bool, native: bool = False, measures_wrench: bool = False):
         self.ns = ns
         self.cfg = config
         self.native = native  # the backend takes cartesian setpoints and measures the tip pose
+        self.native_wrench = native and measures_wrench  # ...and the tip wrench (UR actual_TCP_force)
         spec = profile.namespace(ns)
         idx = [profile.joint_index(j) for j in spec.joints]
         lower = [profile.joints[i].limits.position_min for i in idx]
@@ -79,7 +80,7 @@ class CartesianSpace:
         self.commands = [c for c, j in JOINT_EQUIVALENT.items() if j in joint_commands]
         self.queries = ["measured_cp", "measured_cv", "setpoint_cp", "setpoint_cv", "goal_cp", "goal_cv",
                         "forward_kinematics", "inverse_kinematics"]
-        if measures_effort:
+        if measures_effort or self.native_wrench:
             self.queries.append("measured_cf")
         if "servo_jf" in joint_commands:
             self.queries.append("setpoint_cf")
@@ -121,6 +122,12 @@ class CartesianSpace:
             ok = st["measured_stamp"] and st["measures_velocity"]
             v = self.kin.twist(st["measured_p"], st["measured_v"], frame) if ok else None
             return self._six("twist", st["measured_stamp"], v, frame)
+        if cmd == "measured_cf" and self.native_wrench:  # measured by the backend at the tip, base axes
+            w = st["native_f"] if st["native_stamp"] > 0 else None
+            if w is not None and frame == "body":
+                rot = matrix_from_quaternion(st["native_q"]).T
+                w = np.concatenate([rot @ w[:3], rot @ w[3:]])
+            return self._six("wrench", st["native_stamp"], w, frame)
         if cmd == "measured_cf":
             ok = st["measured_stamp"] and st["measures_effort"]
             w = self.kin.wrench_from_efforts(st["measured_p"], st["measured_f"], frame) if ok else None

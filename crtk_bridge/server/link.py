@@ -53,6 +53,7 @@ class ControlLink:
         #: per namespace (from the control process's _ready): what its joints measure, its motion commands
         self.ns_measures_velocity = {ns: True for ns in self.ns_index}
         self.ns_measures_effort = {ns: False for ns in self.ns_index}
+        self.ns_measures_wrench = {ns: False for ns in self.ns_index}  # native cartesian: the tip wrench
         self.ns_commands: dict[str, list[str]] = {ns: [] for ns in self.ns_index}
         #: namespaces whose backend does cartesian control and measures the tip pose itself
         self.native_cartesian: set[str] = set()
@@ -78,6 +79,7 @@ class ControlLink:
                     for ns, c in msg["data"]["namespace_capabilities"].items():
                         self.ns_measures_velocity[ns] = c["measures_velocity"]
                         self.ns_measures_effort[ns] = c["measures_effort"]
+                        self.ns_measures_wrench[ns] = bool(c.get("measures_wrench", False))
                     self.ns_commands.update(msg["data"]["namespace_commands"])
                     self.native_cartesian = set(msg["data"].get("native_cartesian", ()))
                     return msg["data"]
@@ -261,6 +263,7 @@ class ControlLink:
             "native_stamp": float(buf[s["ns_cart_stamp"]][k]),
             "native_p": buf[s["ns_cart_p"]][3 * k:3 * k + 3].copy(),
             "native_q": buf[s["ns_cart_q"]][4 * k:4 * k + 4].copy(),
+            "native_f": buf[s["ns_cart_f"]][6 * k:6 * k + 6].copy(),
         }
 
     def period_statistics(self) -> dict:

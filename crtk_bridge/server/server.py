@@ -74,7 +74,8 @@ class Server:
         self.commands = commands  # motion and state commands the control process supports
         self.cartesian: dict[str, CartesianSpace] = {
             ns.name: CartesianSpace(self.profile, ns.name, ns.kinematics, link.ns_commands[ns.name],
-                                    link.ns_measures_effort[ns.name], native=ns.name in link.native_cartesian)
+                                    link.ns_measures_effort[ns.name], native=ns.name in link.native_cartesian,
+                                    measures_wrench=link.ns_measures_wrench[ns.name])
             for ns in self.profile.namespaces if ns.kinematics is not None
         }
         self.socket_path = socket_path

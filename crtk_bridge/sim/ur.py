@@ -49,7 +49,7 @@ import numpy as np
 from ..profile import Profile
 from . import SimulatorError
 from .control import ControlServer, control_request
-from .ur_robot import STOPS, Hand, Limits, N, RobotMode, RuntimeState, Timings, URRobot
+from .ur_robot import STOPS, Hand, Limits, N, RobotMode, RuntimeState, Servo, Timings, URRobot
 from .ur_script import ControlScript, program_name
 from .ur_wire import (HEADER, IN_USE, INPUTS, NOT_FOUND, OUTPUTS, Msg, Recipe, frame, input_register,
                       split_names)
@@ -668,6 +668,8 @@ class URController:
             "robot_mode": r.robot_mode.name, "safety_mode": r.safety_mode.name,
             "runtime_state": r.runtime_state.name, "program": r.program, "teach_mode": r.teach_mode,
             "q": r.q.tolist(), "qd": r.qd.tolist(), "tcp_pose": r.tcp_pose(),
+            # the joint target the controller follows: servoj's, else where the arm is held
+            "target_q": (r.motion.target if isinstance(r.motion, Servo) else r.target_q).tolist(),
             "speed_fraction": r.speed_fraction, "stop_cause": r.stop_cause, "last_error": r.last_error,
             "motion": type(r.motion).__name__ if r.motion is not None else None,
             "rtde_clients": len(self._rtde), "ticks": self.ticks, "rate_hz": self.rate_hz,

@@ -31,7 +31,6 @@ tick from the previous joints; ``stopj`` decelerates. Joint speeds are capped at
 
 from __future__ import annotations
 
-import enum
 import logging
 import math
 from dataclasses import dataclass, field
@@ -41,6 +40,8 @@ import numpy as np
 import pinocchio as pin
 import ruckig
 
+from ..backends.ur.tables import RobotMode, RuntimeState, SafetyMode  # noqa: F401 - re-exported
+
 log = logging.getLogger(__name__)
 
 #: the arm model this controller simulates (written from UR's published DH parameters)
@@ -49,40 +50,6 @@ TIP_FRAME = "tool0"
 N = 6
 JOINT_SPEED_MAX = math.pi  # rad/s, every UR5e joint (180 deg/s)
 REACH_M = 0.85  # UR5e reach from the shoulder axis
-
-
-class RobotMode(enum.IntEnum):
-    NO_CONTROLLER = -1
-    DISCONNECTED = 0
-    CONFIRM_SAFETY = 1
-    BOOTING = 2
-    POWER_OFF = 3
-    POWER_ON = 4
-    IDLE = 5
-    BACKDRIVE = 6
-    RUNNING = 7
-    UPDATING_FIRMWARE = 8
-
-
-class SafetyMode(enum.IntEnum):
-    NORMAL = 1
-    REDUCED = 2
-    PROTECTIVE_STOP = 3
-    RECOVERY = 4
-    SAFEGUARD_STOP = 5
-    SYSTEM_EMERGENCY_STOP = 6
-    ROBOT_EMERGENCY_STOP = 7
-    VIOLATION = 8
-    FAULT = 9
-
-
-class RuntimeState(enum.IntEnum):
-    STOPPING = 0
-    STOPPED = 1
-    PLAYING = 2
-    PAUSING = 3
-    PAUSED = 4
-    RESUMING = 5
 
 
 #: safety mode -> safety_status_bits (bit 0 normal, 1 reduced, 2 protective, 3 recovery,

@@ -27,6 +27,8 @@ from crtk_bridge.core.controller import Controller
 from crtk_bridge.profile import Profile, load_profile
 from crtk_bridge.sim import simulator_class
 
+from ..conftest import wait_until
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -47,6 +49,17 @@ class Row:
     error_latched: bool  # the error stays until enable resets the device (Dynamixel reboot)
     set_present: Callable[[object, int, int], None]  # move the device's shaft (raw position) by hand
     error_code: str = "servo_error"  # the fault code of inject_error
+    #: whether the FAULT that inject_error causes names the joint
+    error_names_joint: bool = True
+    #: a device per joint that can be silenced alone, with raw goal / present registers that a
+    #: test may set and a byte count of what reached the bus (serial servo buses). A UR arm is
+    #: one device: its equivalents are in tests/test_backend_ur.py (named in each skip)
+    per_joint_registers: bool = True
+    #: how to make the simulator (default: the device's ``from_profile(profile)``)
+    make_sim: Callable[[Profile], object] | None = None
+    #: wait until the simulator has taken every command sent so far (a servo bus answers in
+    #: order: a read is that; RTDE inputs are taken at the controller's next tick)
+    settle: Callable[[object], None] | None = None
 
 
 def _servo_id(profile: Profile, i: int) -> int:
@@ -73,6 +86,42 @@ def _node_id(profile: Profile, i: int) -> int:
     return int(profile.joints[i].backend["node_id"])
 
 
+class URSimAdapter:
+    """The simulated UR controller (sim/ur.py) behind the calls the suite makes of a simulator.
+    A "device" is a joint index. Quick power-on and brake release; a protective stop may be
+    unlocked 0.3 s after it (UR: 5 s)."""
+
+    def __init__(self, profile: Profile):
+        self.sim = simulator_class("ur").from_profile(profile, power_on_s=0.1, brake_release_s=0.1,
+                                                      unlock_delay_s=0.3)
+
+    @property
+    def port(self) -> str:
+        return self.sim.port
+
+    def start(self) -> None:
+        self.sim.start()
+
+    def stop(self) -> None:
+        self.sim.stop()
+
+    def state(self) -> dict:
+        return self.sim.state()
+
+    def set_torque_delay(self, seconds: float) -> None:
+        self.sim.control({"cmd": "timings", "power_on_s": max(seconds, 0.1)})  # a slow power on
+
+    def set_unplugged(self, unplugged: bool) -> None:
+        if unplugged:  # every connection dropped, new ones refused for a while
+            self.sim.link_loss(0.5, ports=("rtde", "dashboard", "script"))
+
+    def settle(self) -> None:
+        """Ten controller ticks (20 ms): RTDE inputs sent before now have been applied (the
+        simulator takes them on its own thread; two ticks were not always enough under load)."""
+        t0 = self.state()["ticks"]
+        wait_until(lambda: self.state()["ticks"] >= t0 + 10, 2, interval=0.001, what="ten controller ticks")
+
+
 ROWS = {
     "feetech": _servo_row("feetech", "so101.yaml", latched=False),
     "dynamixel": _servo_row("dynamixel", "koch.yaml", latched=True),
@@ -89,6 +138,20 @@ ROWS = {
         error_latched=True,
         set_present=lambda sim, nid, raw: sim.drive(nid).set_position(raw),
         error_code="drive_fault",
+    ),
+    # one UR5e on the simulated controller: torque = powered with brakes released; goal = the
+    # servo target the controller follows, present = the joint's position (urad)
+    "ur": Row(
+        backend="ur", profile=ROOT / "profiles" / "ur5e.yaml", device=lambda profile, i: i,
+        silence=lambda sim, i: sim.set_unplugged(True),
+        inject_error=lambda sim, i: sim.sim.inject_stop("protective", cause="conformance test"),
+        clear_errors=lambda sim: None,  # a protective stop stays until enable unlocks it
+        torque=lambda sim, i: sim.state()["robot_mode"] == "RUNNING",
+        goal=lambda sim, i: round(1e6 * sim.state()["target_q"][i]),
+        present=lambda sim, i: round(1e6 * sim.state()["q"][i]),
+        error_latched=True, error_code="protective_stop", error_names_joint=False,
+        per_joint_registers=False, make_sim=URSimAdapter, settle=URSimAdapter.settle,
+        set_present=lambda sim, i, raw: pytest.skip("a UR arm cannot be displaced by hand here"),
     ),
 }
 #: several buses in one robot (backends/composite.py): two SO-101 arms on two simulated Feetech
@@ -180,7 +243,8 @@ class Rig:
             self.backend: Actuator = create_backend(self.profile)
         else:
             cls = backend_class(row.backend)
-            self.sim = simulator_class(cls.simulator.device).from_profile(profile)
+            self.sim = (row.make_sim(profile) if row.make_sim is not None
+                        else simulator_class(cls.simulator.device).from_profile(profile))
             self.sim.start()
             self.profile = cls.sim_profile(profile, self.sim.port)
             if getattr(self.sim, "interface", None) == "virtual":  # an in-process CAN simulator
@@ -244,6 +308,9 @@ class Rig:
         self.backend.write(cmd)
 
     def measured(self) -> np.ndarray:
+        """The measured position, once the simulator has taken every command sent before."""
+        if self.row.settle is not None:
+            self.row.settle(self.sim)
         assert self.backend.read(self.fb) is None
         return self.fb.position.copy()
 

@@ -52,7 +52,7 @@ def test_read_and_write_never_raise(rig):
     assert b.write(cmd) is None or isinstance(b.write(cmd), Fault)
     sim.set_unplugged(True)
     rig.exchange()
-    assert isinstance(b.read(rig.fb), Fault)
+    wait_until(lambda: isinstance(b.read(rig.fb), Fault), 2, interval=0.001, what="a Fault from the read")
     cmd.mode[:] = int(CommandMode.POSITION)
     cmd.position[:] = rig.fb.position
     result = b.write(cmd)
@@ -93,6 +93,9 @@ def test_nan_never_reaches_the_bus(rig):
 
 def test_nothing_goes_on_the_bus_while_disabled(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
+    if not row.per_joint_registers:
+        pytest.skip("no byte count on this simulator; test_backend_ur.py: enable from power off holds "
+                    "where the arm was")
     if b.cyclic_write:
         pytest.skip("this backend writes every cycle in every state by design (cyclic_write)")
     goals = [row.goal(sim, i) for i in rig.ids]
@@ -115,6 +118,9 @@ def test_nothing_goes_on_the_bus_while_disabled(rig):
 
 def test_enable_holds_the_measured_position(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
+    if not row.per_joint_registers:
+        pytest.skip("the arm cannot be displaced by a register write; test_backend_ur.py::"
+                    "test_enable_from_power_off_keeps_the_loop_cycling checks enable holds where it is")
     for k, sid in enumerate(rig.ids):  # somewhere other than where the goals were left
         row.set_present(sim, sid, row.present(sim, sid) + 150 + 40 * k)
     before = rig.measured()
@@ -131,6 +137,9 @@ def test_enable_holds_the_measured_position(rig):
 
 def test_a_silent_device_faults_naming_the_joint(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
+    if not row.per_joint_registers:
+        pytest.skip("one device for every joint; test_backend_ur.py::"
+                    "test_link_loss_faults_in_the_cycle_that_sees_it_then_reconnects")
     c = rig.enabled_controller()
     k = min(2, b.n - 1)
     row.silence(sim, rig.ids[k])
@@ -150,8 +159,11 @@ def test_device_status_maps_onto_the_crtk_state(rig):
     wait_until(lambda: (rig.cycle(), c.state is OperatingState.FAULT)[1], 2, interval=0, what="FAULT")
     assert b.device_status is DeviceStatus.FAULT
     err = rig.events("error")[-1]
-    assert err["code"] == row.error_code and err["joint"] == b.joint_names[k]
-    # the backend's fault reaction: torque off (a transition: a CiA 402 drive takes it at a SYNC)
+    assert err["code"] == row.error_code
+    if row.error_names_joint:
+        assert err["joint"] == b.joint_names[k]
+    # the backend's fault reaction: torque off (a transition: a CiA 402 drive takes it at a
+    # SYNC, a UR powers off over a few cycles)
     wait_until(lambda: (rig.cycle(), not any(row.torque(sim, i) for i in rig.ids))[1], 2, interval=0,
                what="torque off")
     row.clear_errors(sim)

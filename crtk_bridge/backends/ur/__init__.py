@@ -1,0 +1,1 @@
+"""Universal Robots arms over RTDE (ur_rtde); see backend.py."""

@@ -1,0 +1,312 @@
+"""The UR backend (backends/ur) on the simulated UR controller (sim/ur.py), through ur_rtde
+unmodified: the controller (core/controller.py) driven cycle by cycle as core/loop.py does, paced by
+the controller's RTDE packets (``wait_cycle``), checked on what the simulated controller reports.
+
+One simulator and one backend serve the whole module (ur_rtde's ``disconnect`` sleeps 0.5 s);
+each test starts from a fresh controller, the arm DISABLED and powered off with no stop active.
+"""
+
+from __future__ import annotations
+
+import time
+
+import msgspec
+import numpy as np
+import pytest
+
+from crtk_bridge.backends.ur.backend import UrBackend
+from crtk_bridge.core.actuator import Lifecycle
+from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.state import OperatingState
+from crtk_bridge.profile import load_profile
+from crtk_bridge.sim import simulator_class
+
+from .conftest import ROOT
+
+UR5E = ROOT / "profiles" / "ur5e.yaml"
+NS = "ur5e"
+#: a comfortable pose away from the stretched-out singularity at all zeros (rad)
+READY = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0])
+#: the daemon's own limit of wrist_3 widened past the controller's (+-2 pi), so that only the
+#: controller's safety limits can refuse a goal there
+WRIST_3_DAEMON_LIMIT = 6.9
+
+
+class URRig:
+    """The simulated controller, the backend on it, and a controller stepped like the loop."""
+
+    def __init__(self):
+        profile = load_profile(UR5E)
+        # quick power-on / brake release, and a protective stop unlockable after 0.3 s (UR: 5 s)
+        self.sim = simulator_class("ur").from_profile(profile, power_on_s=0.1, brake_release_s=0.1,
+                                                      unlock_delay_s=0.3)
+        self.sim.start()
+        joints = list(profile.joints)
+        lim = msgspec.structs.replace(joints[5].limits, position_min=-WRIST_3_DAEMON_LIMIT,
+                                      position_max=WRIST_3_DAEMON_LIMIT)
+        joints[5] = msgspec.structs.replace(joints[5], limits=lim)
+        self.profile = UrBackend.sim_profile(msgspec.structs.replace(profile, joints=joints), self.sim.port)
+        self.backend = UrBackend(self.profile)
+        self.backend.open()
+        self.backend.configure()
+        self.fb = self.backend.new_feedback()
+        self.c: Controller | None = None
+        self.rid = 0
+        self.cycles = 0
+
+    # ---- the loop, as core/loop.py runs it ----
+    def cycle(self, n: int = 1) -> None:
+        b, c = self.backend, self.c
+        for _ in range(n):
+            b.wait_cycle(2 * b.dt)
+            c.on_read(self.fb, b.read(self.fb))
+            if c.step():
+                c.on_write(b.write(c.command))
+            self.cycles += 1
+
+    def until(self, predicate, timeout: float = 5.0, what: str = "condition"):
+        deadline = time.monotonic() + timeout
+        while True:
+            value = predicate()
+            if value:
+                return value
+            assert time.monotonic() < deadline, f"timed out after {timeout} s waiting for {what}"
+            self.cycle()
+
+    def send(self, cmd: str, ns: str | None = None, **data) -> int:
+        self.rid += 1
+        self.c.handle({"id": self.rid, "cmd": cmd, "ns": ns, "data": data})
+        return self.rid
+
+    def reply(self, rid: int, timeout: float = 5.0) -> dict:
+        found = self.until(lambda: [m for m in self.c.outbox if m.get("id") == rid], timeout, f"reply {rid}")
+        return found[0]
+
+    def do(self, cmd: str, ns: str | None = None, timeout: float = 5.0, **data) -> dict:
+        return self.reply(self.send(cmd, ns, **data), timeout)
+
+    def events(self, kind: str) -> list[dict]:
+        return [m["data"] for m in self.c.outbox if m.get("event") == kind]
+
+    def states(self) -> list[dict]:
+        return [m["data"] for m in self.c.outbox if m.get("event") == "operating_state"]
+
+    # ---- set-up ----
+    def fresh(self) -> Controller:
+        """A new controller; the arm DISABLED, powered off, no stop, no lost link."""
+        b = self.backend
+        st = self.sim.state()
+        if st["safety_mode"] == "SAFEGUARD_STOP":
+            self.sim.release("safeguard")
+        deadline = time.monotonic() + 5
+        while not b._refresh():  # a link lost by the previous test comes back by itself
+            b._maybe_reconnect()
+            assert time.monotonic() < deadline, "the RTDE link did not come back"
+            time.sleep(0.05)
+        if b.safety_mode != 1:
+            b.run(b.begin(Lifecycle.FAULT_RESET))
+        b.disable()
+        self.c = Controller(self.profile, b, time.time, b.dt)
+        self.cycle()
+        return self.c
+
+    def enabled(self, pose: np.ndarray | None = None) -> Controller:
+        c = self.fresh()
+        assert self.do("enable", timeout=10)["ok"]
+        if pose is not None:
+            self.move_to(pose)
+        return c
+
+    def move_to(self, goal: np.ndarray) -> None:
+        r = self.do("move_jp", NS, position=list(goal))
+        assert r["ok"], r
+        self.until(lambda: not self.c.is_busy, 10, "move_jp done")
+
+    def sim_q(self) -> np.ndarray:
+        return np.array(self.sim.state()["q"])
+
+    def close(self) -> None:
+        try:
+            self.backend.close()
+        finally:
+            self.sim.stop()
+
+
+@pytest.fixture(scope="module")
+def ur():
+    rig = URRig()
+    yield rig
+    rig.close()
+
+
+def test_enable_from_power_off_keeps_the_loop_cycling(ur):
+    c = ur.fresh()
+    assert ur.sim.state()["robot_mode"] == "POWER_OFF" and c.state is OperatingState.DISABLED
+    q0 = ur.sim_q()
+    rid = ur.send("enable")
+    stamps, t0 = [], time.monotonic()
+    while not [m for m in c.outbox if m.get("id") == rid]:
+        assert c.state is OperatingState.DISABLED and c.is_busy  # the state stays until it ends
+        ur.cycle()
+        stamps.append(ur.fb.stamp)
+        assert time.monotonic() - t0 < 10, "enable did not end"
+    took = time.monotonic() - t0
+    assert ur.reply(rid)["ok"] and c.state is OperatingState.ENABLED and not c.is_busy, ur.reply(rid)
+    st = ur.sim.state()
+    assert st["robot_mode"] == "RUNNING" and st["runtime_state"] == "PLAYING" and st["program"]
+    # power on + brake release took >= 0.2 s on the simulator, and the cycle went on reading:
+    # the measured stamps advanced all along (a blocking enable would freeze them)
+    assert took >= 0.2 and len(stamps) > 0.25 * took / ur.backend.dt
+    gaps = np.diff(stamps)
+    assert np.all(gaps >= 0) and gaps.max() < 0.1, gaps.max()
+    np.testing.assert_allclose(ur.sim_q(), q0, atol=1e-3)  # enabled where it was: no motion
+    np.testing.assert_allclose(c.command.position, q0, atol=1e-3)
+
+
+def test_servo_jp_and_move_jp_track(ur):
+    c = ur.enabled()
+    q0 = ur.fb.position.copy()
+    # servo_jp: a ramp on two joints, one command per cycle (0.2 rad over 0.4 s)
+    steps = int(0.4 / ur.backend.dt)
+    for k in range(1, steps + 1):
+        target = q0 + np.array([0.2, -0.2, 0, 0, 0, 0]) * k / steps
+        ur.send("servo_jp", NS, position=list(target))
+        ur.cycle()
+    assert not [m for m in c.outbox if m.get("ok") is False]
+    ur.until(lambda: np.allclose(ur.sim_q(), target, atol=2e-3), 2, "the arm at the servo_jp target")
+    # move_jp: the daemon's jerk-limited trajectory, streamed with servoJ, ends on the goal
+    goal = READY.copy()
+    r = ur.do("move_jp", NS, position=list(goal))
+    assert r["ok"] and c.is_busy
+    ur.until(lambda: not c.is_busy, 10, "move_jp done")
+    ur.until(lambda: np.allclose(ur.sim_q(), goal, atol=2e-3), 2, "the arm at the move_jp goal")
+    np.testing.assert_allclose(ur.fb.position, ur.sim_q(), atol=5e-3)  # measured_js is the arm's
+
+
+def test_servo_cp_and_move_cp_track(ur):
+    c = ur.enabled(READY)
+    cart = ur.fb.cartesian
+    p0, q0 = cart.position[0].copy(), cart.orientation[0].copy()
+    tcp = np.array(ur.sim.state()["tcp_pose"])
+    np.testing.assert_allclose(p0, tcp[:3], atol=1e-4)  # measured_cp is actual_TCP_pose
+    # servo_cp: 4 cm up over 0.4 s, one pose per cycle
+    steps = int(0.4 / ur.backend.dt)
+    for k in range(1, steps + 1):
+        p = p0 + np.array([0.0, 0.0, 0.04]) * k / steps
+        r = ur.send("servo_cp", NS, position=list(p), orientation=list(q0))
+        ur.cycle()
+    assert not [m for m in c.outbox if m.get("ok") is False], [m for m in c.outbox if m.get("ok") is False]
+    ur.until(lambda: np.allclose(ur.sim.state()["tcp_pose"][:3], p, atol=1e-3), 2, "the TCP at the servo_cp pose")
+    # move_cp: the backend's straight-line trajectory, is_busy until the TCP is there
+    goal = p + np.array([0.05, -0.03, -0.04])
+    r = ur.do("move_cp", NS, position=list(goal), orientation=list(q0))
+    assert r["ok"], r
+    assert c.is_busy
+    ur.until(lambda: not c.is_busy, 10, "move_cp done")
+    tcp = np.array(ur.sim.state()["tcp_pose"])
+    assert np.linalg.norm(tcp[:3] - goal) < 2e-3 and np.linalg.norm(tcp[3:] - ur.sim.state()["tcp_pose"][3:]) < 1e-6
+    assert c.state is OperatingState.ENABLED
+
+
+def test_goals_outside_the_controllers_safety_limits_are_refused(ur):
+    c = ur.enabled(READY)
+    q = ur.fb.position.copy()
+    q[5] = 6.5  # inside the daemon's limit (6.9), outside the controller's (2 pi)
+    r = ur.do("move_jp", NS, position=list(q))
+    assert not r["ok"] and r["error"]["code"] == "out_of_limits", r
+    assert "'wrist_3_joint'" in r["error"]["message"] and "safety limits" in r["error"]["message"]
+    p = ur.fb.cartesian.position[0]
+    r = ur.do("move_cp", NS, position=[2.0, 0.0, 0.3], orientation=list(ur.fb.cartesian.orientation[0]))
+    assert not r["ok"] and r["error"]["code"] == "out_of_limits", r
+    assert "pose [2.0000" in r["error"]["message"]
+    assert not c.is_busy and c.state is OperatingState.ENABLED
+    np.testing.assert_allclose(ur.fb.cartesian.position[0], p, atol=1e-3)  # nothing moved
+    # a goal inside both limits goes
+    assert ur.do("move_jp", NS, position=list(READY + 0.05))["ok"]
+    ur.until(lambda: not c.is_busy, 10, "move_jp done")
+
+
+def test_protective_stop_faults_naming_the_cause_then_enable_recovers(ur):
+    c = ur.enabled(READY)
+    ur.sim.inject_stop("protective", cause="a test collision")
+    ur.until(lambda: c.state is OperatingState.FAULT, 2, "FAULT")
+    err = ur.events("error")[-1]
+    assert err["code"] == "protective_stop" and "protective stop" in err["message"], err
+    ur.until(lambda: not c.is_busy, 5, "the fault reaction's end")
+    assert ur.sim.state()["robot_mode"] == "POWER_OFF"  # the fault reaction: stopped, powered off
+    r = ur.do("enable", timeout=15)
+    assert r["ok"], r
+    st = ur.sim.state()
+    assert c.state is OperatingState.ENABLED and st["safety_mode"] == "NORMAL" and st["runtime_state"] == "PLAYING"
+    assert ur.do("move_jp", NS, position=list(READY + 0.1))["ok"]  # and it moves again
+    ur.until(lambda: not c.is_busy, 10, "move_jp done")
+    ur.until(lambda: np.allclose(ur.sim_q(), READY + 0.1, atol=2e-3), 2, "the arm at the goal")
+
+
+def test_safeguard_stop_pauses_and_resume_starts_from_the_measured_pose(ur):
+    c = ur.enabled(READY)
+    goal = READY + np.array([0.6, 0, 0, 0, 0, 0])
+    assert ur.do("move_jp", NS, position=list(goal))["ok"]
+    ur.until(lambda: abs(ur.fb.position[0] - READY[0]) > 0.15, 5, "the move under way")
+    ur.sim.inject_stop("safeguard")
+    ur.until(lambda: c.state is OperatingState.PAUSED, 2, "PAUSED")
+    assert ur.events("warning")[-1]["code"] == "device_paused"
+    r = ur.do("move_jp", NS, position=list(goal))
+    assert not r["ok"] and r["error"]["code"] == "invalid_state"
+    stopped = ur.sim_q()
+    ur.sim.release("safeguard")
+    ur.cycle(int(0.2 / ur.backend.dt))  # released, not resumed: the arm stays where it stopped
+    np.testing.assert_allclose(ur.sim_q(), stopped, atol=2e-3)
+    assert ur.do("resume")["ok"] and c.state is OperatingState.ENABLED
+    np.testing.assert_allclose(c.namespaces[NS].setpoint_p, ur.fb.position, atol=1e-9)  # re-seeded
+    ur.cycle(int(0.2 / ur.backend.dt))
+    np.testing.assert_allclose(ur.sim_q(), stopped, atol=2e-3)  # no rush to where it was going
+
+
+def test_link_loss_faults_in_the_cycle_that_sees_it_then_reconnects(ur):
+    c = ur.enabled(READY)
+    ur.sim.link_loss(0.5, ports=("rtde",))
+    seen = None
+    for _ in range(int(2.0 / ur.backend.dt)):
+        ur.cycle()
+        if not ur.backend._link:
+            seen = ur.cycles
+            break
+    assert seen is not None, "the backend never saw the link go down"
+    assert c.state is OperatingState.FAULT  # in that same cycle
+    assert ur.events("error")[-1]["code"] == "link_lost", ur.events("error")[-1]
+    ur.until(lambda: any(e["code"] == "fault_cleared" for e in ur.events("status")), 5, "the link back")
+    assert c.state is OperatingState.FAULT  # never enabled by itself
+    # the fault reaction (stop, power off) could not be confirmed without the link: it is, now
+    ur.until(lambda: not c.is_busy and ur.sim.state()["robot_mode"] == "POWER_OFF", 5, "the arm powered off")
+    ur.until(lambda: not c.is_busy and not c._torque_unconfirmed, 5, "the fault reaction confirmed")
+    r = ur.do("enable", timeout=15)
+    assert r["ok"], r
+    assert ur.do("move_jp", NS, position=list(READY - 0.1))["ok"]
+    ur.until(lambda: not c.is_busy, 10, "move_jp done")
+    ur.until(lambda: np.allclose(ur.sim_q(), READY - 0.1, atol=2e-3), 2, "the arm at the goal")
+
+
+def test_free_is_teach_mode(ur):
+    c = ur.enabled(READY)
+    assert ur.do("free", NS)["ok"]
+    ur.until(lambda: ur.sim.state()["teach_mode"], 2, "teach mode")
+    pushed = READY + np.array([0.2, 0.1, 0, 0, 0, 0])
+    ur.sim.control({"cmd": "hand", "q": list(pushed), "speed": 1.0})
+    ur.until(lambda: np.allclose(ur.fb.position, pushed, atol=2e-3), 3, "measured_js following the hand")
+    assert ur.do("hold", NS)["ok"]
+    ur.until(lambda: not ur.sim.state()["teach_mode"], 2, "teach mode ended")
+    ur.cycle(int(0.2 / ur.backend.dt))
+    np.testing.assert_allclose(ur.sim_q(), pushed, atol=2e-3)  # holds where the hand left it
+
+
+def test_speed_slider_and_tcp_wrench_are_reported(ur):
+    c = ur.fresh()
+    ur.sim.set_speed_slider(0.4)
+    ur.until(lambda: any(s.get("target_speed_fraction") == pytest.approx(0.4) for s in ur.states()), 2,
+             "an operating_state carrying the slider")
+    assert c.operating_state()["target_speed_fraction"] == pytest.approx(0.4)
+    ur.sim.set_speed_slider(1.0)
+    ur.sim.control({"cmd": "wrench", "force": [1.0, -2.0, 3.0, 0.1, 0.2, -0.3]})
+    ur.until(lambda: np.allclose(ur.fb.cartesian.wrench[0], [1.0, -2.0, 3.0, 0.1, 0.2, -0.3]), 2, "the wrench")
+    ur.sim.control({"cmd": "wrench", "force": [0.0] * 6})
