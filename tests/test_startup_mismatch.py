@@ -132,3 +132,31 @@ def test_a_reopened_bus_is_checked_again():
             assert "joint 'wrist_flex' (id 4): Homing_Offset is -7, expected 0" in backend._enable_refusal
         finally:
             backend.close()
+
+
+def test_a_late_reply_of_another_length_is_never_decoded_as_the_eeprom():
+    """The SDKs take any status of the right id as the reply: a late 1-byte status (value 0, from a
+    read that timed out before) taken for a 2-byte Homing_Offset read decodes as -512. The EEPROM is
+    read in one block whose reply must have the block's length; a shorter one is read again."""
+    from crtk_bridge.backends.feetech.backend import FeetechBackend
+
+    data = so101_data()
+    with FeetechSimulator.from_profile(parse_profile(data)) as sim:
+        data["backend"]["port"] = sim.port
+        backend = FeetechBackend(parse_profile(data))
+        backend.open()
+        try:
+            real = backend._ph.readTxRx
+            calls = []
+
+            def late_status_first(port, sid, address, length):
+                calls.append(length)
+                if len(calls) == 1:
+                    return [0x00, 0xFA], 0, 0  # a 1-byte status's value and checksum
+                return real(port, sid, address, length)
+
+            backend._ph.readTxRx = late_status_first
+            assert backend.eeprom_diffs(1) == []
+            assert len(calls) == 2 and calls[0] == calls[1] == 27  # Return_Delay_Time (7) .. Operating_Mode (33)
+        finally:
+            backend.close()

@@ -250,13 +250,15 @@ class DynamixelBackend(SerialServoBackend):
     def _limits_apply(self, i: int) -> bool:
         return self._pos_mode[i] is OperatingMode.POSITION  # the extended modes ignore them
 
-    def _vendor_eeprom_diffs(self, i: int, key: str) -> list[EepromDiff]:
+    EEPROM_REGISTERS = (*SerialServoBackend.EEPROM_REGISTERS, "Drive_Mode")
+
+    def _vendor_eeprom_diffs(self, i: int, key: str, regs: dict[str, int]) -> list[EepromDiff]:
         """Drive_Mode bit 0 (reverse: the servo flips its own direction; the profile's
         calibration.direction says it instead). Not Operating_Mode: the backend switches it at
         run time with each joint's command mode, so the EEPROM holds whatever the last run left."""
         name, sid = self.joint_names[i], self._ids[i]
         out = []
-        drive = self._read_register(i, "Drive_Mode")
+        drive = regs["Drive_Mode"]
         if drive & 1:
             out.append(EepromDiff(name, sid, "Drive_Mode", drive, f"bit 0 clear ({drive & ~1})",
                                   f"{key}.calibration.direction", True,

@@ -208,17 +208,19 @@ class FeetechBackend(SerialServoBackend):
                 found[sid] = number
         return found, garbled
 
-    def _vendor_eeprom_diffs(self, i: int, key: str) -> list[EepromDiff]:
+    EEPROM_REGISTERS = (*SerialServoBackend.EEPROM_REGISTERS, "Operating_Mode", "Phase")
+
+    def _vendor_eeprom_diffs(self, i: int, key: str, regs: dict[str, int]) -> list[EepromDiff]:
         """Operating_Mode (the backend drives position mode 0 and writes it at start-up); Phase
         bit 4 (multi-turn angle feedback: positions leave 0..4095; LeRobot clears it too)."""
         name, sid = self.joint_names[i], self._ids[i]
         out = []
-        mode = self._read_register(i, "Operating_Mode")
+        mode = regs["Operating_Mode"]
         if mode != 0:
             out.append(EepromDiff(name, sid, "Operating_Mode", mode, "0 (position)", f"{key}.model", False,
                                   "not position mode", "the daemon sets it at start-up until the next "
                                   "power cycle"))
-        phase = self._read_register(i, "Phase")
+        phase = regs["Phase"]
         if phase & 0x10:
             out.append(EepromDiff(name, sid, "Phase", phase, f"bit 4 clear ({phase & ~0x10})", f"{key}.model",
                                   True, "bit 4 (multi-turn angle feedback) makes positions leave 0..4095",
