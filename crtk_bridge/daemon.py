@@ -180,9 +180,11 @@ def zenoh_services(server: Server, session, config: ZenohConfig) -> list:
     serves (a failure ends start-up with the robot still DISABLED); closed after the control
     process stopped (a remote client sees the robot stop first).
     """
+    from .transport.ros.graph import RosGraph
     from .transport.tunnel import TunnelServer
 
-    return [TunnelServer(server, session, config)]
+    return [TunnelServer(server, session, config),
+            RosGraph(session, server, domain_id=config.ros_domain_id, rate_hz=config.publish_rate_hz)]
 
 
 async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Process,

@@ -338,6 +338,27 @@ def test_safeguard_stop_pauses_and_resumes(sim, ready, recv):
     assert ready.isProgramRunning()
 
 
+def test_safeguard_release_resumes_the_interrupted_servo_stream(sim, ready, recv):
+    # what UR users report as "a fast jump on resume": the program continues the servoj it was
+    # in, toward the last target streamed before the stop
+    q = np.array(recv.getActualQ())
+    target = q + [0.4, 0, 0, 0, 0, 0]
+    sim.set_speed_slider(0.1)  # a slow chase (0.31 rad/s), so the stop surely lands part way
+    try:
+        assert ready.servoJ(target.tolist(), 0.5, 0.5, 0.002, 0.1, 300)
+        sim.inject_stop("safeguard")
+        wait_until(lambda: recv.getRuntimeState() == 4, 2, what="paused by the safeguard stop")
+        held = recv.getActualQ()[0]
+        assert held < target[0] - 0.1  # stopped part way
+        with pytest.raises(AssertionError):
+            wait_until(lambda: recv.getActualQ()[0] != held, 0.3, what="no motion while paused")
+        sim.release("safeguard")
+        wait_until(lambda: abs(recv.getActualQ()[0] - target[0]) < 1e-3, 4, what="the old target reached on resume")
+        assert ready.servoStop(10.0)
+    finally:
+        sim.set_speed_slider(1.0)
+
+
 def test_emergency_stop_powers_off_until_released_and_powered_on(sim, ready, recv, dash, powered):
     sim.inject_stop("robot_estop")
     wait_until(recv.isEmergencyStopped, 2, what="isEmergencyStopped")
@@ -435,6 +456,13 @@ def test_cb3_streams_at_125_hz():
     finally:
         sim.stop()
     assert not sim.running
+
+
+def test_an_address_in_use_is_refused_naming_it(sim):
+    other = simulator_class("ur").from_profile(ur_profile(), host=sim.host)
+    with pytest.raises(SimulatorError, match=rf"cannot bind {re.escape(sim.host)}:\d+"):
+        other.start(timeout_s=10)
+    assert not other.running
 
 
 def test_a_profile_without_six_joints_is_refused():

@@ -147,6 +147,9 @@ def session_config(config: ZenohConfig, extra: dict[str, Any] | None = None,
         "connect/timeout_ms": int(config.connect_timeout_s * 1000),
         "connect/exit_on_failure": True,
         "listen/exit_on_failure": True,
+        # HLC timestamps on samples, as rmw_zenoh's default session has them: zenoh.ext's
+        # AdvancedPublishers (the ROS graph's, transport/ros) need them for their sequencing
+        "timestamping/enabled": True,
     }
     if config.tls is not None:
         for name in config.tls.__struct_fields__:
