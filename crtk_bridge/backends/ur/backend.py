@@ -363,7 +363,7 @@ class UrBackend(Actuator):
         if self._ctl is not None and self._ctl_link_lost and not busy:
             # its own thread reconnects once the controller answers again: let it, then
             # disconnect it properly, else it lingers on, reconnecting to this host forever
-            deadline = time.monotonic() + 6.0
+            deadline = time.monotonic() + 1.0
             while not self._ctl.isConnected() and time.monotonic() < deadline:
                 time.sleep(0.05)
             self._ctl_link_lost = not self._ctl.isConnected()
@@ -566,15 +566,19 @@ class UrBackend(Actuator):
         if cart is not None and cart.mode[0] != _NONE:
             return self._write_cartesian(cart)
         mode = command.mode
+        # a blocking call started as the link dies waits for its answer for minutes (ur_rtde),
+        # spinning: teach-mode switches start only on a link whose packet came this cycle
+        fresh = time.perf_counter() - self._arrived < 2.0 * self.dt
         if np.all(mode == _FREE):
-            if not self._teach:
+            if not self._teach and fresh:
                 self._start_job(self._ctl.teachMode, "teach mode", self._set_teach, True)
             return None
         if np.any(mode == _FREE):
             return Fault("invalid_command", f"{self.robot}: free applies to the whole UR arm (teach mode), "
                          "not to some joints", transient=False)
         if self._teach:
-            self._start_job(self._ctl.endTeachMode, "end of teach mode", self._set_teach, False)
+            if fresh:
+                self._start_job(self._ctl.endTeachMode, "end of teach mode", self._set_teach, False)
             return None
         ok = True
         if np.any(mode == _VELOCITY):
