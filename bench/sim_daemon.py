@@ -12,10 +12,10 @@ import yaml
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def start(rate_hz: float, tmp: Path, startup_s: float = 30.0) -> tuple[subprocess.Popen, Path]:
+def start(rate_hz: float, tmp: Path, startup_s: float = 30.0, args: list[str] = ()) -> tuple[subprocess.Popen, Path]:
     """Write profiles/so101.yaml at ``rate_hz`` into ``tmp``, start the daemon on the simulator
-    and wait (up to ``startup_s``) for its socket. Returns (process, socket path); the caller
-    stops it (SIGTERM). Raises RuntimeError if it does not start."""
+    (with more command-line ``args``) and wait (up to ``startup_s``) for its socket. Returns
+    (process, socket path); the caller stops it (SIGTERM). Raises RuntimeError if it does not start."""
     data = yaml.safe_load((ROOT / "profiles" / "so101.yaml").read_text())
     data["loop"]["rate_hz"] = rate_hz
     for ns in data["namespaces"]:
@@ -25,7 +25,7 @@ def start(rate_hz: float, tmp: Path, startup_s: float = 30.0) -> tuple[subproces
     prof.write_text(yaml.safe_dump(data))
     sock = tmp / "so101.sock"
     daemon = subprocess.Popen([sys.executable, "-m", "crtk_bridge.cli", "--profile", str(prof), "--sim",
-                               "--socket", str(sock), "--log-level", "ERROR"], stdout=subprocess.DEVNULL, cwd=ROOT)
+                               "--socket", str(sock), "--log-level", "ERROR", *args], stdout=subprocess.DEVNULL, cwd=ROOT)
     deadline = time.monotonic() + startup_s
     while not sock.exists():
         if daemon.poll() is not None or time.monotonic() > deadline:

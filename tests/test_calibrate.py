@@ -17,7 +17,7 @@ from crtk_bridge.client import CommandError, connect
 from crtk_bridge.profile import load_profile
 from crtk_bridge.sim.control import control_request
 
-from .conftest import ROOT, SO101, SO101_URDF, DaemonProcess, wait_until
+from .conftest import KOCH, ROOT, SO101, SO101_URDF, DaemonProcess, wait_until
 
 TICKS = 4096
 #: the simulated arm's travel per joint (Present_Position ticks), swept by hand
@@ -28,12 +28,28 @@ HAND_SPEED = 5000.0  # ticks/s
 TOLERANCE = 3  # ticks
 
 
+#: a comment line of each robot's profile, to show the written profile kept its comments
+COMMENT = {SO101: "# SIGTERM / Ctrl-C with the arm ENABLED", KOCH: "# Re-measure calibration (offset, direction"}
+SOURCE: dict = {}  # copied profile -> the profile it is a copy of
+BOTH = pytest.mark.parametrize("profile", [SO101, KOCH], ids=["so101-feetech", "koch-dynamixel"], indirect=True)
+
+
 @pytest.fixture
-def profile(short_tmp):
-    """profiles/so101.yaml copied with its comments, the URDF path made absolute."""
+def profile(request, short_tmp):
+    """A robot's profile (profiles/so101.yaml unless parametrized) copied with its comments, its
+    URDF path made absolute."""
+    src = getattr(request, "param", SO101)
     path = short_tmp / "arm.yaml"
-    path.write_text(SO101.read_text().replace("urdf: urdf/so101.urdf", f"urdf: {SO101_URDF}"))
+    path.write_text(SO101.read_text().replace("urdf: urdf/so101.urdf", f"urdf: {SO101_URDF}") if src == SO101
+                    else src.read_text())
+    SOURCE[path] = src
     return path
+
+
+def arm_ns(profile) -> tuple[str, str]:
+    """(arm namespace, gripper namespace) of the copied profile."""
+    p = load_profile(profile)
+    return p.namespaces[0].name, p.namespaces[1].name
 
 
 @pytest.fixture
@@ -98,6 +114,7 @@ def hand_all(sim: str, targets: dict[str, int]) -> None:
     wait_until(there, 5, what=f"joints moved by hand to {targets}")
 
 
+@BOTH
 def test_scripted_sweep_writes_offsets_and_ranges_and_the_restarted_daemon_uses_them(short_tmp, profile, daemon):
     sim = daemon.sim_control_path()
     tool = Tool(str(daemon.socket_path), "--profile", str(profile))
@@ -120,7 +137,7 @@ def test_scripted_sweep_writes_offsets_and_ranges_and_the_restarted_daemon_uses_
     assert f"Wrote {profile}" in out, out
 
     text = profile.read_text()
-    assert "# SIGTERM / Ctrl-C with the arm ENABLED" in text  # comments kept
+    assert COMMENT[SOURCE[profile]] in text  # comments kept
     cal = {j.name: j.backend["calibration"] for j in load_profile(profile).joints}
     for name, (lo, hi) in SWEEP.items():
         c = cal[name]
@@ -143,10 +160,11 @@ def test_scripted_sweep_writes_offsets_and_ranges_and_the_restarted_daemon_uses_
             def angle(ns: str, k: int) -> float:
                 return robot.device(ns).measured_jp()[0][k]
 
+            arm, grip = arm_ns(profile)
             want = (3000 - cal["shoulder_pan"]["offset"]) * 2 * math.pi / TICKS
-            wait_until(lambda: abs(angle("so101", 0) - want) < 1.5 * 2 * math.pi / TICKS, 3, what="shoulder_pan angle")
+            wait_until(lambda: abs(angle(arm, 0) - want) < 1.5 * 2 * math.pi / TICKS, 3, what="shoulder_pan angle")
             want = (2500 - cal["gripper"]["offset"]) * 2 * math.pi / TICKS
-            wait_until(lambda: abs(angle("so101/gripper", 0) - want) < 1.5 * 2 * math.pi / TICKS, 3, what="gripper")
+            wait_until(lambda: abs(angle(grip, 0) - want) < 1.5 * 2 * math.pi / TICKS, 3, what="gripper")
         finally:
             robot.close()
     finally:

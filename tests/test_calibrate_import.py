@@ -24,7 +24,7 @@ from crtk_bridge.profile import load_profile
 from crtk_bridge.sim.control import control_request
 
 from .conftest import DaemonProcess, wait_until
-from .test_calibrate import IDS, Tool, daemon, hand_all, profile  # noqa: F401 (fixtures)
+from .test_calibrate import BOTH, COMMENT, SOURCE, Tool, arm_ns, daemon, hand_all, profile  # noqa: F401 (fixtures)
 
 TICK = 2 * math.pi / 4096
 #: a LeRobot SO-101 follower calibration (so_follower/<id>.json), written from its format
@@ -49,6 +49,7 @@ def lerobot_reading(name: str, present: int) -> float:
     return (present - (lo + hi) / 2) * 360 / 4095
 
 
+@BOTH
 def test_import_then_the_restarted_daemon_reads_as_lerobot_does(short_tmp, profile, daemon):
     fixture = short_tmp / "so101_follower.json"
     fixture.write_text(json.dumps(LEROBOT, indent=4))
@@ -58,7 +59,7 @@ def test_import_then_the_restarted_daemon_reads_as_lerobot_does(short_tmp, profi
     finally:
         tool.kill()
     assert "Imported" in tool.output() and f"Wrote {profile}" in tool.output(), tool.output()
-    assert "# SIGTERM / Ctrl-C with the arm ENABLED" in profile.read_text()  # comments kept
+    assert COMMENT[SOURCE[profile]] in profile.read_text()  # comments kept
     cal = {j.name: j.backend["calibration"] for j in load_profile(profile).joints}
     assert cal["elbow_flex"] == {"offset": 1970, "direction": 1, "range": [870, 3071], "homing_offset": -700}
     daemon.stop()
@@ -80,8 +81,8 @@ def test_import_then_the_restarted_daemon_reads_as_lerobot_does(short_tmp, profi
                 want_grip = lerobot_reading("gripper", present["gripper"]) / 100 * (c["range_max"] - c["range_min"]) * TICK
 
                 def same():
-                    arm = robot.device("so101").measured_jp()[0]
-                    grip = robot.device("so101/gripper").measured_jp()[0][0]
+                    arm = robot.device(arm_ns(profile)[0]).measured_jp()[0]
+                    grip = robot.device(arm_ns(profile)[1]).measured_jp()[0][0]
                     return np.all(np.abs(arm - want_arm) <= TICK) and abs(grip - want_grip) <= TICK
 
                 wait_until(same, 3, what=f"LeRobot's readings at {present}")

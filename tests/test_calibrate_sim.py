@@ -63,3 +63,15 @@ def test_usb_replug_gives_a_new_pty_behind_the_same_link(short_tmp):
         assert sim.plugged and os.readlink(link) == sim.pty_path != old
     finally:
         sim.stop()
+
+
+def test_range_bar_shows_the_range_seen_the_middle_pose_and_where_the_joint_is():
+    import math
+
+    from crtk_bridge.client.calibrate import bar, bar_lines
+
+    b = bar(-math.pi / 2, math.pi / 4, math.pi / 4, width=9)  # one turn over 9 cells, middle at 4
+    assert b == "[..==|#...]"  # seen -90..+45 deg (cells 2..5), the joint at +45
+    assert bar(0.0, 0.0, 0.0, width=9) == "[....#....]"  # not moved: the joint sits at the middle
+    (line,) = bar_lines({"elbow_flex": [-math.pi / 2, math.pi / 4, 0.0]})
+    assert line.startswith("  elbow_flex [") and line.endswith(" -90.0 ..   +45.0 deg")

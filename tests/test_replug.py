@@ -64,5 +64,15 @@ def test_unplug_mid_motion_faults_naming_the_port_and_replug_reenables(sim_daemo
         assert all(v == 1 for v in torque.values()), torque
         arm.move_jp(r.goals["small"]).wait(timeout=10.0)
         assert np.allclose(arm.measured_jp()[0], r.goals["small"], atol=0.05)
+
+        # unplugged while DISABLED: a warning naming the port, the state stays, the bus comes back
+        assert arm.disable(5.0)
+        mark = robot.connection.event_count
+        sim_req(sim, cmd="usb_unplug")
+        ev = robot.wait_for_event("device_fault", 3.0, kind="warning", since=mark)
+        assert ev is not None and f"serial port {port} is gone" in ev.data["message"], robot.connection.events_since(mark)
+        sim_req(sim, cmd="usb_plug")
+        assert robot.wait_for_event("fault_cleared", 5.0, kind="status", since=mark) is not None
+        assert arm.is_disabled()
     finally:
         robot.close()

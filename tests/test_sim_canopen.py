@@ -236,23 +236,24 @@ def test_homing_on_the_current_position_and_on_a_limit_switch(bus, drive):
 def test_pdos_follow_the_nmt_state_and_the_mapping(bus, drive):
     sim, net = bus
     node = drive
+    tpdos = []
+    node.tpdo[1].add_callback(tpdos.append)
     node.state = "SWITCHED ON"
     node.nmt.state = "PRE-OPERATIONAL"
-    count = sim.drive(1).sync_count
-    wait_until(lambda: sim.drive(1).sync_count > count + 2, 1, what="SYNCs")
-    assert node.tpdo[1].wait_for_reception(3 * SYNC_S) is None  # no TPDO outside OPERATIONAL
+    count, n = sim.drive(1).sync_count, len(tpdos)
     node.rpdo[1]["Controlword"].raw = 0x0F  # no RPDO applied either
-    wait_until(lambda: sim.drive(1).sync_count > count + 6, 1, what="SYNCs")
+    wait_until(lambda: sim.drive(1).sync_count > count + 10, 2, what="SYNCs")
+    assert len(tpdos) - n <= 1  # no TPDO outside OPERATIONAL (one may have been in flight)
     assert sim.drive(1).state.name == "SWITCHED_ON"
     # remap in PRE-OPERATIONAL: TPDO1 every 2nd SYNC; takes effect on start
     node.tpdo[1].trans_type = 2
     node.tpdo[1].save()
     node.nmt.state = "OPERATIONAL"
     node.tpdo[1].wait_for_reception(1)
-    stamps = [node.tpdo[1].wait_for_reception(1) for _ in range(5)]
-    assert None not in stamps
-    gaps = [b - a for a, b in zip(stamps, stamps[1:])]
-    assert sorted(gaps)[len(gaps) // 2] > 1.5 * SYNC_S  # median: every second SYNC
+    count, n = sim.drive(1).sync_count, len(tpdos)
+    wait_until(lambda: sim.drive(1).sync_count >= count + 20, 2, what="20 SYNCs")
+    syncs, sent = sim.drive(1).sync_count - count, len(tpdos) - n
+    assert abs(2 * sent - syncs) <= 4, (syncs, sent)  # one TPDO every second SYNC (+-2 in flight)
     wait_until(lambda: sim.drive(1).state.name == "OPERATION_ENABLED", 1, what="the RPDO applied")
 
 
@@ -299,32 +300,61 @@ def test_sdo_aborts_and_hostile_frames(bus, drive):
 
 
 def test_heartbeat_silence_and_bus_off(bus, drive):
+    """Each injected fault silences what it should. Counted over a window: at most one frame
+    already in flight may still arrive (a loaded host delays it), against about 20 in the same
+    window when the node is healthy."""
     sim, _ = bus
     node = drive
-    beats = []
+    beats, tpdos = [], []
     node.nmt.add_heartbeat_callback(beats.append)
+    node.tpdo[1].add_callback(tpdos.append)
     node.sdo[0x1017].raw = 10  # ms
     wait_until(lambda: len(beats) >= 3, 1, what="heartbeats")
     assert beats[-1] == 5  # OPERATIONAL
 
+    def window() -> tuple[int, int]:
+        b, t = len(beats), len(tpdos)
+        time.sleep(0.2)
+        return len(beats) - b, len(tpdos) - t
+
     sim.set_fault(1, "heartbeat_stop")
-    time.sleep(0.02)  # let a beat already queued arrive
-    n = len(beats)
-    node.tpdo[1].wait_for_reception(0.2)
-    assert node.tpdo[1].wait_for_reception(0.2) is not None  # the rest works
-    assert len(beats) == n
+    new_beats, new_tpdos = window()
+    assert new_beats <= 1 and new_tpdos >= 5  # the heartbeat stopped, the rest works
     sim.clear_faults(1)
+    n = len(beats)
     wait_until(lambda: len(beats) > n + 2, 1, what="heartbeats again")
 
     for inject in (lambda: sim.set_fault(1, "silent"), lambda: sim.set_bus_off(True)):
         inject()
-        time.sleep(0.02)
-        n = len(beats)
-        assert node.tpdo[1].wait_for_reception(5 * SYNC_S) is None
-        assert len(beats) == n
+        new_beats, new_tpdos = window()
+        assert new_beats <= 1 and new_tpdos <= 1
         sim.clear_faults()
-        assert node.tpdo[1].wait_for_reception(1) is not None
-        wait_until(lambda: len(beats) > n, 1, what="heartbeats after the fault is cleared")
+        n, t = len(beats), len(tpdos)
+        wait_until(lambda: len(beats) > n and len(tpdos) > t, 1, what="heartbeats and TPDOs again")
+
+
+def test_a_drive_whose_master_falls_silent_stops(bus, drive):
+    """Heartbeat consumer (0x1016) on the master's heartbeat; 0x6007 picks the reaction."""
+    sim, net = bus
+    node = drive
+    node.sdo[0x1016][1].raw = (0x7F << 16) | 40  # watch node 127 (the master here), 40 ms
+    for option, state in ((3, "QUICK STOP ACTIVE"), (1, "FAULT")):
+        node.sdo[0x6007].raw = option
+        node.rpdo[1].start(SYNC_S)
+        node.state = "OPERATION ENABLED"
+        beat = net.send_periodic(0x77F, [5], 0.01)  # the master's heartbeat
+        try:
+            time.sleep(0.1)
+            assert node.state == "OPERATION ENABLED"  # watched and alive
+        finally:
+            beat.stop()  # the master dies: no heartbeat, no RPDO
+            node.rpdo[1].stop()
+        emcy = _emcy(node, 0x8130)
+        assert emcy.data[:1] == b"\x7f"  # names the node it lost
+        wait_until(lambda: node.check_statusword() and node.state == state, 1, what=state)
+        node.emcy.log.clear()
+
+    node.sdo[0x1016][1].raw = 0
 
 
 def test_boot_up_message_and_a_second_drive_on_the_bus(bus):

@@ -320,8 +320,11 @@ def test_motion_beyond_a_joint_limit_is_a_protective_stop(sim, ready, recv, dash
     assert "joint 2" in sim.state()["stop_cause"]
     dash.unlockProtectiveStop()
     # the input register still says speedJ: a re-uploaded script would play it again (as the
-    # controller's would); any command while the program is stopped makes ur_rtde clear it
+    # controller's would); any command while the program is stopped makes ur_rtde clear it, over
+    # RTDE, while the script goes over port 30003: wait for the clear before uploading
+    assert sim.state()["command"] == 9
     assert not ready.speedStop(5.0)
+    wait_until(lambda: sim.state()["command"] == 0, 2, what="the command register cleared")
     ready.reuploadScript()
     wait_until(ready.isProgramRunning, 5, what="the script running again")
     assert ready.moveJ(q.tolist(), 3.0, 10.0)
@@ -336,6 +339,27 @@ def test_safeguard_stop_pauses_and_resumes(sim, ready, recv):
     sim.release("safeguard")
     wait_until(lambda: recv.getSafetyMode() == 1 and recv.getRuntimeState() == 2, 2, what="resumed")
     assert ready.isProgramRunning()
+
+
+def test_safeguard_release_resumes_the_interrupted_servo_stream(sim, ready, recv):
+    # what UR users report as "a fast jump on resume": the program continues the servoj it was
+    # in, toward the last target streamed before the stop
+    q = np.array(recv.getActualQ())
+    target = q + [0.4, 0, 0, 0, 0, 0]
+    sim.set_speed_slider(0.1)  # a slow chase (0.31 rad/s), so the stop surely lands part way
+    try:
+        assert ready.servoJ(target.tolist(), 0.5, 0.5, 0.002, 0.1, 300)
+        sim.inject_stop("safeguard")
+        wait_until(lambda: recv.getRuntimeState() == 4, 2, what="paused by the safeguard stop")
+        held = recv.getActualQ()[0]
+        assert held < target[0] - 0.1  # stopped part way
+        with pytest.raises(AssertionError):
+            wait_until(lambda: recv.getActualQ()[0] != held, 0.3, what="no motion while paused")
+        sim.release("safeguard")
+        wait_until(lambda: abs(recv.getActualQ()[0] - target[0]) < 1e-3, 4, what="the old target reached on resume")
+        assert ready.servoStop(10.0)
+    finally:
+        sim.set_speed_slider(1.0)
 
 
 def test_emergency_stop_powers_off_until_released_and_powered_on(sim, ready, recv, dash, powered):
@@ -435,6 +459,13 @@ def test_cb3_streams_at_125_hz():
     finally:
         sim.stop()
     assert not sim.running
+
+
+def test_an_address_in_use_is_refused_naming_it(sim):
+    other = simulator_class("ur").from_profile(ur_profile(), host=sim.host)
+    with pytest.raises(SimulatorError, match=rf"cannot bind {re.escape(sim.host)}:\d+"):
+        other.start(timeout_s=10)
+    assert not other.running
 
 
 def test_a_profile_without_six_joints_is_refused():

@@ -368,12 +368,7 @@ class Server:
             else:
                 data = self.link.period_statistics()
             s.send_frame({"topic": topic, "ns": ns, "sub": sub, "data": data})
-            next_t += period
-            delay = next_t - loop.time()
-            if delay < 0:  # fell behind: skip frames rather than burst
-                next_t = loop.time()
-                delay = 0
-            await asyncio.sleep(delay)
+            next_t = await sleep_until_next(next_t, period)
 
     def describe(self) -> dict:
         namespaces = []
@@ -395,6 +390,19 @@ class Server:
             namespaces.append(entry)
         return {"robot": self.robot, "protocol_version": PROTOCOL_VERSION, "daemon_version": __version__,
                 "backend": self.profile.backend_type, "rate_hz": 1.0 / self.link.period_s, "namespaces": namespaces}
+
+
+async def sleep_until_next(next_t: float, period: float) -> float:
+    """Sleep until ``next_t + period`` (the running loop's clock) and return that time; a stream
+    that fell behind skips ticks rather than bursting (the next tick is one period from now)."""
+    loop = asyncio.get_running_loop()
+    next_t += period
+    delay = next_t - loop.time()
+    if delay < 0:
+        next_t = loop.time()
+        delay = 0
+    await asyncio.sleep(delay)
+    return next_t
 
 
 _SENT = object()  # the reply was already delivered, in order with the loop's events

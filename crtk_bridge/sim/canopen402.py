@@ -5,8 +5,8 @@ dictionary, but has no PDO behaviour and no device profile (canopen issue #558; 
 ../shared/reference/canopen-ur.md part A). :class:`Drive402` adds, for one node id:
 
 - the object dictionary built in code (:func:`make_object_dictionary`): CiA 301 communication
-  objects (0x1000, 0x1001, 0x1005, 0x1014, 0x1017, 0x1018, RPDO 0x1400-0x1403 / 0x1600-0x1603,
-  TPDO 0x1800-0x1803 / 0x1A00-0x1A03) and the CiA 402 objects the bridge uses (0x603F, 0x6040,
+  objects (0x1000, 0x1001, 0x1005, 0x1014, 0x1016, 0x1017, 0x1018, RPDO 0x1400-0x1403 / 0x1600-0x1603,
+  TPDO 0x1800-0x1803 / 0x1A00-0x1A03) and the CiA 402 objects the bridge uses (0x6007, 0x603F, 0x6040,
   0x6041, 0x605A, 0x6060, 0x6061, 0x6064, 0x6065, 0x6066, 0x606C, 0x6071, 0x6072, 0x6076, 0x6077,
   0x607A, 0x607C, 0x6085, 0x6098, 0x6099, 0x609A, 0x60C2, 0x60F4, 0x60FF, 0x6502); every
   variable has a default, so every SDO read answers;
@@ -29,7 +29,10 @@ dictionary, but has no PDO behaviour and no device profile (canopen issue #558; 
   positive limit switch at 0x6099:1, taking time), statusword bits 10 / 12 / 13 as CiA 402 says;
 - following error: in CSP, |0x607A - 0x6064| above 0x6065 for longer than 0x6066 ms faults
   the drive with EMCY 0x8611 and statusword bit 13;
-- boot-up message, heartbeat producer (0x1017), EMCY producer (0x1001 / 0x603F kept in step).
+- boot-up message, heartbeat producer (0x1017), EMCY producer (0x1001 / 0x603F kept in step),
+  heartbeat consumer (0x1016: a monitored master gone silent -> EMCY 0x8130 and the reaction
+  0x6007 names: fault by default, disable voltage or quick stop), so a drive left by a dead
+  master stops as a real one does.
 
 :class:`CanopenSimulator` is several drives on one bus in the shape of the serial simulators
 (``from_profile``, ``start``, ``stop``, ``port``, fault injection, a control socket). Each drive
@@ -76,6 +79,7 @@ ABORT_VALUE_RANGE = 0x06090030
 EMCY_PDO_LENGTH = 0x8210  # PDO not processed due to length error
 EMCY_PDO_TOO_LONG = 0x8220  # PDO length exceeded
 EMCY_FOLLOWING_ERROR = 0x8611
+EMCY_HEARTBEAT = 0x8130  # life guard / heartbeat error
 EMCY_RESET = 0x0000
 #: error register 0x1001 bits by EMCY code class (CiA 301 table "Error register")
 _ERROR_REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}
@@ -202,6 +206,8 @@ def make_object_dictionary(node_id: int, opts: DriveOptions = DriveOptions()) ->
     add(_var("COB-ID SYNC", 0x1005, 0, U32, "rw", 0x80))
     add(_var("Manufacturer device name", 0x1008, 0, odm.VISIBLE_STRING, "const", "crtk-bridge sim402"))
     add(_var("COB-ID EMCY", 0x1014, 0, U32, "ro", 0x80 + node_id))
+    _record(od, odm.ODRecord, "Consumer heartbeat time", 0x1016, [
+        (sub, f"Consumer heartbeat time {sub}", U32, "rw", 0) for sub in range(1, 5)])
     add(_var("Producer heartbeat time", 0x1017, 0, U16, "rw", opts.heartbeat_ms))
     _record(od, odm.ODRecord, "Identity object", 0x1018, [
         (1, "Vendor-ID", U32, "ro", opts.vendor_id), (2, "Product code", U32, "ro", opts.product_code),
@@ -225,6 +231,7 @@ def make_object_dictionary(node_id: int, opts: DriveOptions = DriveOptions()) ->
                 arr.add_member(_var(f"Mapped object {sub}", base + n, sub, U32, "rw",
                                     first if (n == 0 and sub == 1) else 0))
             add(arr)
+    add(_var("Abort connection option code", 0x6007, 0, I16, "rw", 1))
     add(_var("Error code", 0x603F, 0, U16, "ro", 0, pdo=True))
     add(_var("Controlword", 0x6040, 0, U16, "rw", 0, pdo=True))
     add(_var("Statusword", 0x6041, 0, U16, "ro", 0, pdo=True))
@@ -354,6 +361,7 @@ class Drive402:
         self._tpdos = [_Pdo(0x1800 + n) for n in range(4)]
         self._pdo_dirty = True
         self._params: dict[tuple[int, int], int] = {}
+        self._heartbeats: dict[int, float] = {}  # node id -> when its last heartbeat came
         self._sync_cob = 0x80
         self.rx_frames = 0  # frames this drive received while not muted (bench / tests)
         self.sync_count = 0
@@ -397,6 +405,9 @@ class Drive402:
             if can_id == self._sync_cob:
                 if len(data) <= 1:
                     self._on_sync()
+                return
+            if 0x701 <= can_id <= 0x77F and len(data) == 1:
+                self._heartbeats[can_id - 0x700] = self.clock()  # another node's heartbeat
                 return
             if can_id == 0x600 + self.node_id:
                 # an SDO request is always 8 bytes; others are ignored. No SDO in STOPPED (CiA 301)
@@ -795,7 +806,10 @@ class Drive402:
             self._advance(now)
             if self._pdo_dirty:
                 self._load_pdos()
-            if self.local.nmt._state != NMT_OPERATIONAL or self.network.muted:
+            if self.network.muted:
+                return
+            self._consume_heartbeats(now)
+            if self.local.nmt._state != NMT_OPERATIONAL:
                 return
             for pdo in self._tpdos:
                 if not pdo.valid or pdo.trans < 254 or not pdo.entries:
@@ -805,6 +819,25 @@ class Drive402:
                 data = self._sample(pdo)
                 if data != pdo.last or (pdo.event_s > 0 and now - pdo.sent_at >= pdo.event_s):
                     self._send_pdo(pdo, data, now)
+
+    def _consume_heartbeats(self, now: float) -> None:
+        """Heartbeat consumer (0x1016, CiA 301): a monitored node (the master) silent past its
+        time -> EMCY 0x8130 and the reaction 0x6007 says (CiA 402 "abort connection option
+        code": 0 none, 1 fault, 2 disable voltage, 3 quick stop). Monitoring of a node starts
+        at its first heartbeat and, after a timeout, again at the next one."""
+        for sub in range(1, 5):
+            entry = self._param(0x1016, sub)
+            node, limit_s = (entry >> 16) & 0x7F, (entry & 0xFFFF) / 1000.0
+            seen = self._heartbeats.get(node)
+            if not node or not limit_s or seen is None or now - seen <= limit_s:
+                continue
+            del self._heartbeats[node]
+            option = self._param(0x6007, 0)
+            self._emcy(EMCY_HEARTBEAT, fault=option == 1, data=bytes([node]))
+            if option == 2:
+                self._set_state(State.SWITCH_ON_DISABLED)
+            elif option == 3 and self.state is State.OPERATION_ENABLED:
+                self._set_state(State.QUICK_STOP_ACTIVE)
 
     # ------------------------------------------------------------------ inspection / injection
     def send_emcy(self, code: int, fault: bool = True, data: bytes = b"") -> None:

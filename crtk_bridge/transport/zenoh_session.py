@@ -58,8 +58,9 @@ def zenoh_config(profile: Profile, connect: Iterable[str] | None = None, listen:
     if base is None:
         if not connect and not listen:
             return None
-        # --zenoh-connect alone: join the router, listen nowhere (nothing to expose)
-        base = ZenohConfig(listen=[]) if connect and not listen else ZenohConfig()
+        # --zenoh-connect alone still listens on loopback: Zenoh peers joined to one router (ROS 2
+        # nodes with rmw_zenoh) reach each other directly, through the locators it gossips
+        base = ZenohConfig()
     changes: dict[str, Any] = {}
     if connect:
         changes["connect"] = connect
@@ -147,6 +148,9 @@ def session_config(config: ZenohConfig, extra: dict[str, Any] | None = None,
         "connect/timeout_ms": int(config.connect_timeout_s * 1000),
         "connect/exit_on_failure": True,
         "listen/exit_on_failure": True,
+        # HLC timestamps on samples, as rmw_zenoh's default session has them: zenoh.ext's
+        # AdvancedPublishers (the ROS graph's, transport/ros) need them for their sequencing
+        "timestamping/enabled": True,
     }
     if config.tls is not None:
         for name in config.tls.__struct_fields__:

@@ -406,6 +406,8 @@ LOAD_FAULTS = ("bus_timeout", "bus_corrupt", "torque_off_unconfirmed")
 
 def settle(w: Wire, sim: str) -> None:
     """ENABLED, homed, nothing running, both namespaces holding, Goal_Position registers still."""
+    if w.call("operating_state")["data"]["state"] == "PAUSED":  # an earlier example sent pause
+        assert code(w.call("resume")) == "ok", w.events[-3:]
     if code(w.call("enable")) != "ok":  # FAULT -> ENABLED retries; a late reply can fail it once
         assert code(w.call("enable")) == "ok", w.events[-3:]
     if not w.call("operating_state")["data"]["is_homed"]:  # an earlier example sent unhome
