@@ -31,6 +31,13 @@ from crtk_bridge.sim import simulator_class
 ROOT = Path(__file__).resolve().parents[2]
 
 
+def wait_until(*args, **kwargs):
+    """tests/conftest.py's (imported on call: that module imports this one's ROWS)."""
+    from ..conftest import wait_until as wait
+
+    return wait(*args, **kwargs)
+
+
 @dataclass(frozen=True)
 class Row:
     """How the suite drives one backend's simulator. ``device(profile, i)`` is the simulator's id
@@ -133,8 +140,6 @@ class URSimAdapter:
         """Ten controller ticks (20 ms): RTDE inputs sent before now have been applied (the
         simulator takes them on its own thread; two ticks were not always enough under load)."""
         t0 = self.state()["ticks"]
-        from ..conftest import wait_until  # here: tests/conftest.py imports this module's ROWS
-
         wait_until(lambda: self.state()["ticks"] >= t0 + 10, 2, interval=0.001, what="ten controller ticks")
 
 
