@@ -30,8 +30,8 @@ def test_off_unless_an_endpoint_or_the_section():
     assert zenoh_config(profile) is None
     assert zenoh_config(profile, ros_domain_id=3) is None  # a domain alone does not turn it on
     joined = zenoh_config(profile, connect=["tcp/127.0.0.1:7447"], ros_domain_id=3)
-    # joining a router alone listens nowhere: nothing is exposed that was not asked for
-    assert (joined.connect, joined.listen, joined.ros_domain_id) == (["tcp/127.0.0.1:7447"], [], 3)
+    # joining a router still listens on loopback (peers on this PC connect directly), nothing more
+    assert (joined.connect, joined.listen, joined.ros_domain_id) == (["tcp/127.0.0.1:7447"], ["tcp/127.0.0.1:0"], 3)
     listening = zenoh_config(profile, listen=["tcp/127.0.0.1:7448"])
     assert (listening.connect, listening.listen, listening.ros_domain_id) == ([], ["tcp/127.0.0.1:7448"], 0)
 

@@ -208,6 +208,28 @@ def test_measured_js_in_rmw_zenoh_format(ros_daemon, ros):
     assert len({t.split("/")[4] for t in live if t.startswith(prefix)}) == len([t for t in live if t.startswith(prefix)])
 
 
+def test_joint_states_and_tf_come_from_the_same_snapshot_as_the_namespaces(ros):
+    """/joint_states: every joint of the robot; /tf: the arm's base -> tip transform, equal to
+    measured_cp (both from one sample)."""
+    js = Topic(ros, "0/joint_states/**", "sensor_msgs/msg/JointState")
+    tf = Topic(ros, "0/tf/**", "tf2_msgs/msg/TFMessage")
+    cp = Topic(ros, "0/so101/measured_cp/**", "geometry_msgs/msg/PoseStamped")
+    try:
+        msg = js.wait(lambda m: True, what="/joint_states")
+        assert list(msg.name) == ARM + ["gripper"] and len(msg.position) == 6
+        pose = cp.wait(lambda m: m.header.stamp.sec > 0, what="a valid measured_cp")
+        t = tf.wait(lambda m: any(x.header.stamp == pose.header.stamp for x in m.transforms),
+                    what="/tf of the same sample as measured_cp")
+        (x,) = [x for x in t.transforms if x.header.stamp == pose.header.stamp]
+        assert (x.header.frame_id, x.child_frame_id) == ("base_link", "gripper_frame_link")
+        assert pose.header.frame_id == "base_link"
+        assert np.allclose([x.transform.translation.x, x.transform.translation.y, x.transform.translation.z],
+                           [pose.pose.position.x, pose.pose.position.y, pose.pose.position.z])
+    finally:
+        for topic in (js, tf, cp):
+            topic.close()
+
+
 def test_late_joiner_gets_latched_operating_state_and_robot_description(ros_daemon):
     late = zenoh_session(ros_daemon.endpoint)  # joins after the daemon published both once
     try:
@@ -303,14 +325,14 @@ def test_hostile_payloads_are_refused_without_harm(ros_daemon, ros, errors, stat
             (js_key, joint_state([0.0, float("nan"), 0.0, 0.0, 0.0]), "non-finite value nan at data.position[1]"),
             (js_key, joint_state([0.0] * 4), "Expected `array` of 5 numbers"),  # wrong length
             (js_key, joint_state([0.0] * 5, name=["a", "b", "c", "d", "e"]), "joint names"),
-            (move_key, joint_state([3.0, 0.0, 0.0, 0.0, 0.0]), "shoulder_pan"),  # beyond position_max
+            (move_key, joint_state([3.0, 0.0, 0.0, 0.0, 0.0]), "joint 'shoulder_pan' is outside its limits"),
             (cmd_key, state_command("explode"), "unknown command 'explode'"),
             (cmd_key, b"\x00\x01\x00\x00\xff\xff\xff\x7f", "not a CDR crtk_msgs/msg/StringStamped"),
         ]
         for k, payload, expected in cases:
             n = len(errors.messages())
             ros.put(k, payload)
-            wait_until(lambda: any(expected in m.string for m in errors.messages()[n:]), 5,
+            wait_until(lambda: any(expected in m.string for m in errors.messages()[n:]), 10,
                        what=f"refusal {expected!r} on /so101/error (got {[m.string for m in errors.messages()[n:]]})")
         # nothing moved, nothing faulted, and the graph still serves commands
         assert states.messages()[-1].state == "ENABLED"

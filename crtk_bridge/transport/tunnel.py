@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 from typing import Any
 
 from ..errors import CrtkBridgeError
@@ -90,13 +91,12 @@ class TunnelServer:
         already serves this robot's name on the Zenoh network."""
         import zenoh
 
+        self._zenoh = zenoh
         self._loop = asyncio.get_running_loop()
-        others = await self._loop.run_in_executor(None, self._daemons_named_like_us)
-        if others:
+        if await self._loop.run_in_executor(None, self._another_daemon_named_like_us):
             raise CrtkBridgeError(f"{self.robot}: another crtk-bridge daemon already serves robot {self.robot!r} "
                                   f"on this Zenoh network ({keys.daemon_token(self.robot)}): stop it, or give "
                                   "this robot another name")
-        self._zenoh = zenoh
         live = self.session.liveliness()
         # on Zenoh's threads (indirect=False): the callbacks only hand the sample to the event loop
         on_request = zenoh.handlers.Callback(self._on_request, indirect=False)
@@ -107,9 +107,22 @@ class TunnelServer:
             live.declare_token(keys.daemon_token(self.robot)),  # last: clients come once all is ready
         ]
 
-    def _daemons_named_like_us(self) -> list[str]:
-        replies = self.session.liveliness().get(keys.daemon_token(self.robot), timeout=DUPLICATE_CHECK_S)
-        return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+    def _another_daemon_named_like_us(self) -> bool:
+        """Watch this robot's daemon token for DUPLICATE_CHECK_S (blocks): Zenoh peers joined to
+        one router open their direct links after the session opened, so a one-shot query made
+        at once could miss a daemon that is there."""
+        found = threading.Event()
+
+        def seen(sample: Any) -> None:
+            if sample.kind == self._zenoh.SampleKind.PUT:
+                found.set()
+
+        watch = self.session.liveliness().declare_subscriber(
+            keys.daemon_token(self.robot), self._zenoh.handlers.Callback(seen, indirect=False), history=True)
+        try:
+            return found.wait(DUPLICATE_CHECK_S)
+        finally:
+            watch.undeclare()
 
     async def close(self) -> None:
         for entity in reversed(self._declared):

@@ -58,8 +58,9 @@ def zenoh_config(profile: Profile, connect: Iterable[str] | None = None, listen:
     if base is None:
         if not connect and not listen:
             return None
-        # --zenoh-connect alone: join the router, listen nowhere (nothing to expose)
-        base = ZenohConfig(listen=[]) if connect and not listen else ZenohConfig()
+        # --zenoh-connect alone still listens on loopback: Zenoh peers joined to one router (ROS 2
+        # nodes with rmw_zenoh) reach each other directly, through the locators it gossips
+        base = ZenohConfig()
     changes: dict[str, Any] = {}
     if connect:
         changes["connect"] = connect
