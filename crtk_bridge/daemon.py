@@ -34,6 +34,7 @@ from .errors import CrtkBridgeError
 from .profile import Profile, load_profile
 from .server.link import ControlLink
 from .server.server import Server
+from .sim.loopback import free_loopback_host
 from .transport.zenoh_session import ZenohConfig, check_exposure, open_session, zenoh_config
 
 log = logging.getLogger("crtk_bridge.daemon")
@@ -53,23 +54,6 @@ def _die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
     except (OSError, AttributeError):
         pass  # not Linux: the daemon's normal shutdown still stops the simulator
-
-
-def free_loopback_host(ports: tuple[int, ...], first: int = 2) -> str:
-    """A loopback address 127.0.0.N (N from ``first``, then on) where every TCP port of ``ports``
-    can be bound now: simulators with fixed ports (a UR controller's) run side by side on
-    different addresses. Raises CrtkBridgeError when none is free."""
-    start = first + os.getpid() % 200  # spread concurrent callers over the range
-    for k in range(253):
-        host = f"127.0.0.{2 + (start + k) % 253}"
-        try:
-            for port in ports:
-                with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-                    probe.bind((host, port))
-        except OSError:
-            continue
-        return host
-    raise CrtkBridgeError(f"--sim: no loopback address 127.0.0.2-254 has TCP ports {ports} free")
 
 
 def _accepts(host: str, port: int) -> bool:

@@ -320,8 +320,11 @@ def test_motion_beyond_a_joint_limit_is_a_protective_stop(sim, ready, recv, dash
     assert "joint 2" in sim.state()["stop_cause"]
     dash.unlockProtectiveStop()
     # the input register still says speedJ: a re-uploaded script would play it again (as the
-    # controller's would); any command while the program is stopped makes ur_rtde clear it
+    # controller's would); any command while the program is stopped makes ur_rtde clear it, over
+    # RTDE, while the script goes over port 30003: wait for the clear before uploading
+    assert sim.state()["command"] == 9
     assert not ready.speedStop(5.0)
+    wait_until(lambda: sim.state()["command"] == 0, 2, what="the command register cleared")
     ready.reuploadScript()
     wait_until(ready.isProgramRunning, 5, what="the script running again")
     assert ready.moveJ(q.tolist(), 3.0, 10.0)

@@ -123,12 +123,13 @@ def _serve(sim, ready_line: str) -> int:
 def _main_ur(args, profile) -> int:
     import numpy as np
 
-    from .ur import URController, free_loopback_host, profile_options
+    from .loopback import free_loopback_host
+    from .ur import PORTS, URController, profile_options
     from .ur_robot import Limits, Timings
 
     try:
         opts = profile_options(profile)
-        host = free_loopback_host() if args.host == "auto" else args.host
+        host = free_loopback_host(PORTS.values()) if args.host == "auto" else args.host
         sim = URController(host, q0=opts["q0"], limits=Limits(np.array(opts["lower"]), np.array(opts["upper"])),
                            series=args.series or opts["series"], control=args.control,
                            timings=Timings(args.power_on_s, args.brake_release_s, args.unlock_delay_s))

@@ -31,7 +31,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import random
 import select
 import shutil
 import signal
@@ -49,6 +48,7 @@ import numpy as np
 from ..profile import Profile
 from . import SimulatorError
 from .control import ControlServer, control_request
+from .loopback import free_loopback_host
 from .ur_robot import STOPS, Hand, Limits, N, RobotMode, RuntimeState, Servo, Timings, URRobot
 from .ur_script import ControlScript, program_name
 from .ur_wire import (HEADER, IN_USE, INPUTS, NOT_FOUND, OUTPUTS, Msg, Recipe, frame, input_register,
@@ -673,7 +673,7 @@ class URController:
             "speed_fraction": r.speed_fraction, "stop_cause": r.stop_cause, "last_error": r.last_error,
             "motion": type(r.motion).__name__ if r.motion is not None else None,
             "rtde_clients": len(self._rtde), "ticks": self.ticks, "rate_hz": self.rate_hz,
-            "out_int_0": self.reg.out_ints[0],
+            "out_int_0": self.reg.out_ints[0], "command": self.reg.ints[0],
         }
 
 
@@ -695,39 +695,15 @@ def _program_end(text: str, start: int) -> int:
 
 def _die_with_parent() -> None:
     """In the child before exec: SIGTERM it when the process that started it dies, however it
-    dies (a test run killed by a timeout must not leave a controller holding the address)."""
+    dies (a test run killed by a timeout must not leave a controller holding the address).
+    Linux sends it when the THREAD that spawned the child ends: call start() from a thread that
+    lives as long as the simulator (the main thread)."""
     try:
         import ctypes
 
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass  # not Linux: stop() still ends it
-
-
-def ports_free(host: str) -> bool:
-    """True if the three controller ports can be bound on ``host`` right now."""
-    for port in PORTS.values():
-        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind((host, port))
-        except OSError:
-            return False
-        finally:
-            s.close()
-    return True
-
-
-def free_loopback_host() -> str:
-    """A 127.0.0.N (N in 2..254) whose controller ports are free, tried in random order (other
-    simulators, tests and helpers run beside this one). Raises SimulatorError if none."""
-    candidates = list(range(2, 255))
-    random.shuffle(candidates)
-    for n in candidates:
-        host = f"127.0.0.{n}"
-        if ports_free(host):
-            return host
-    raise SimulatorError("ur: no 127.0.0.N address with ports 29999, 30003 and 30004 free")
 
 
 def profile_options(profile: Profile) -> dict:
@@ -792,7 +768,8 @@ class URSimulator:
 
     def start(self, timeout_s: float = START_TIMEOUT_S) -> None:
         """Spawn the controller and return once its three ports accept (raises SimulatorError
-        with the child's last log lines otherwise; the child is then ended)."""
+        with the child's last log lines otherwise; the child is then ended). Blocks up to
+        ``timeout_s``. Call it from a long-lived thread (see :func:`_die_with_parent`)."""
         if self.running:
             return
         if self._tmpdir is None:
@@ -802,7 +779,7 @@ class URSimulator:
         self.log_path = os.path.join(self._tmpdir, "ur.log")
         for attempt in range(3 if self._auto_host else 1):
             if self._auto_host:
-                self.host = free_loopback_host()
+                self.host = free_loopback_host(PORTS.values())
             try:
                 self._spawn(timeout_s)
                 return
