@@ -5,6 +5,17 @@ SDK, OS) are re-raised as one of these, chained with ``raise ... from exc``.
 """
 
 import math
+import re
+
+#: what would break a message's one line or act on a terminal: C0 and C1 controls, DEL, and the
+#: Unicode line and paragraph separators
+_CONTROL = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+
+
+def one_line(text: str) -> str:
+    """``text`` with its control characters escaped as Python writes them (``\\n``, ``\\x1b``,
+    ``\\u2028``): an error message stays one line whatever strings a client sent."""
+    return _CONTROL.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), text)
 
 
 class CrtkBridgeError(Exception):
@@ -27,6 +38,7 @@ class CommandError(CrtkBridgeError):
     """The daemon refused a command. ``code`` is one of the protocol's error codes."""
 
     def __init__(self, code: str, message: str):
+        message = one_line(message)  # it may quote a client's strings (a field name, a command)
         super().__init__(message)
         self.code = code
         self.message = message

@@ -310,3 +310,22 @@ def test_speed_slider_and_tcp_wrench_are_reported(ur):
     ur.sim.control({"cmd": "wrench", "force": [1.0, -2.0, 3.0, 0.1, 0.2, -0.3]})
     ur.until(lambda: np.allclose(ur.fb.cartesian.wrench[0], [1.0, -2.0, 3.0, 0.1, 0.2, -0.3]), 2, "the wrench")
     ur.sim.control({"cmd": "wrench", "force": [0.0] * 6})
+
+
+def test_a_stalled_loop_stops_the_arm(ur):
+    """The control script's RTDE watchdog (backend.watchdog_hz, 10 Hz): a control process that
+    stops cycling (dead, stalled) must not leave a speedJ running; the script stops, the arm
+    with it, and the next cycle reports it (script_stopped -> FAULT)."""
+    c = ur.enabled(READY)
+    ur.cycle(int(0.3 / ur.backend.dt))  # held by the cycle past the watchdog's 0.1 s: it is fed
+    assert ur.sim.state()["runtime_state"] == "PLAYING"
+    ur.send("servo_jv", NS, velocity=[0.3, 0, 0, 0, 0, 0])
+    ur.until(lambda: abs(ur.sim.state()["qd"][0]) > 0.2, 2, "the arm turning under speedJ")
+    t0 = time.monotonic()  # the loop stops cycling here
+    while ur.sim.state()["runtime_state"] == "PLAYING":
+        assert time.monotonic() - t0 < 1.0, "the script ran on without the daemon's inputs"
+        time.sleep(0.01)
+    st = ur.sim.state()
+    assert st["qd"] == [0.0] * 6 and "watchdog" in st["last_error"]
+    ur.cycle()
+    assert c.state is OperatingState.FAULT and ur.events("error")[-1]["code"] == "script_stopped"

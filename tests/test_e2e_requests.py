@@ -49,3 +49,32 @@ def test_oversized_and_unencodable_requests_are_refused_not_faults(sim_daemon):
         assert not [e for e in robot.connection.events if e.kind == "error"]
     finally:
         robot.close()
+
+
+def test_error_messages_are_one_line_whatever_strings_the_client_sends(sim_daemon):
+    """A field name, command, namespace or topic with control characters is named in the error
+    escaped (``\\n``, ``\\x1b``): every error message stays one line, no terminal escape passes."""
+    arm = sim_daemon.robot.arm
+    s, f = _raw(str(sim_daemon.socket_path))
+    try:
+        cases = [
+            ({"cmd": "servo_jp", "ns": arm, "data": {"\n": None}}, "\\n"),  # field names quoted as is
+            ({"cmd": "servo_jp", "ns": arm, "data": {"a\r\x1b[2Jb": None}}, "a\\r\\x1b[2Jb"),
+            ({"cmd": "servo_jp", "ns": arm, "data": {"\u2028\x85\x7f": None}}, "\\u2028\\x85\\x7f"),
+            ({"cmd": "subscribe", "ns": arm, "data": {"topic": "measured_js", "\x07\t": 1}}, "\\x07\\t"),
+            ({"cmd": "calibrate", "data": {"action": "import", "grippers": ["x\ny"], "file": {"x\ny": {}}}},
+             "x\\ny"),  # refused by the control process
+            ({"cmd": "bad\ncmd"}, "bad\\ncmd"),
+            ({"cmd": "measured_js", "ns": "x\ny"}, "x\\ny"),
+            ({"cmd": "subscribe", "ns": arm, "data": {"topic": "measured_js\x00"}}, "measured_js\\x00"),
+        ]
+        for rid, (req, named) in enumerate(cases, 1):
+            s.sendall(json.dumps(dict(req, id=rid)).encode() + b"\n")
+            r = _reply(f, rid)
+            assert not r["ok"], (req, r)
+            message = r["error"]["message"]
+            assert not r["ok"] and r["error"]["code"] in ("bad_request", "unknown_command", "unknown_namespace")
+            assert not any(ord(c) < 0x20 or 0x7F <= ord(c) <= 0x9F or c in "\u2028\u2029" for c in message), message
+            assert named in message, message
+    finally:
+        s.close()

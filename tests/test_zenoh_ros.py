@@ -249,6 +249,11 @@ def test_commands_from_a_plain_zenoh_publisher_follow_the_control_rules(ros_daem
     setpoints = Topic(ros, "0/so101/setpoint_js/**", "sensor_msgs/msg/JointState")
     measured = Topic(ros, "0/so101/measured_js/**", "sensor_msgs/msg/JointState")
     socket_client = Connection(str(ros_daemon.socket_path))
+    # the publishers' liveliness tokens, as a ROS node declares them (the graph holds control
+    # only while a remote command publisher is live)
+    publishers = [publisher_token(ros, "so101/servo_jp", JOINT_STATE_DDS, JOINT_STATE_HASH, 1),
+                  publisher_token(ros, "so101/state_command", "crtk_msgs::msg::dds_::StringStamped_",
+                                  _hash("crtk_msgs/msg/StringStamped"), 2)]
     try:
         from crtk_bridge.transport.ros.types import STRING_STAMPED, type_hash
         cmd_key = cmd_key.replace("*", type_hash(STRING_STAMPED))
@@ -272,37 +277,71 @@ def test_commands_from_a_plain_zenoh_publisher_follow_the_control_rules(ros_daem
         ros.put(cmd_key, state_command("resume"))
         states.wait(lambda m: m.state == "ENABLED", what="ENABLED after resume over Zenoh")
     finally:
+        for token in publishers:
+            token.undeclare()
         setpoints.close()
         measured.close()
         socket_client.close()
 
 
 def test_control_is_released_when_the_last_ros_commander_leaves(ros_daemon, ros, errors, states):
-    """A ROS node's publisher token coming and going is its connect / disconnect."""
+    """A ROS node's publisher token coming and going is its connect / disconnect. Zenoh sends
+    declarations ahead of data, so a publisher's last samples may be handled after its token went:
+    control is released then too; and a plain put (no token) leaves control free."""
+    state_key = key("so101/state_command", "crtk_msgs::msg::dds_::StringStamped_", _hash("crtk_msgs/msg/StringStamped"))
+    js_key = key("so101/servo_jp", JOINT_STATE_DDS, JOINT_STATE_HASH)
+    move_key = key("so101/move_jp", JOINT_STATE_DDS, JOINT_STATE_HASH)
+    setpoints = Topic(ros, "0/so101/setpoint_js/**", "sensor_msgs/msg/JointState")
+    goals = Topic(ros, "0/so101/goal_js/**", "sensor_msgs/msg/JointState")
+    measured = Topic(ros, "0/so101/measured_js/**", "sensor_msgs/msg/JointState")
     probe = Connection(str(ros_daemon.socket_path))
     try:
-        ros.put(key("so101/state_command", "crtk_msgs::msg::dds_::StringStamped_",
-                    _hash("crtk_msgs/msg/StringStamped")), state_command("enable"))
-        states.wait(lambda m: m.state == "ENABLED", what="ENABLED")
-        token = ros.liveliness().declare_token(
-            f"@ros2_lv/0/{ros.info.zid()}/0/1/MP/%/%/test_node/%so101%servo_jp/{JOINT_STATE_DDS}/"
-            f"{JOINT_STATE_HASH}/::,10:,:,:,,")
-        ros.put(key("so101/servo_jp", JOINT_STATE_DDS, JOINT_STATE_HASH), joint_state([0.0] * 5))
-        wait_until(lambda: _request(probe, {"cmd": "acquire"})["error"]["code"] == "read_only", 5,
-                   what="the ROS graph holding control")
+        def state() -> tuple[str, bool]:
+            st = probe.request("operating_state", timeout=10.0)
+            return st["state"], st["is_busy"]
+
+        ros.put(state_key, state_command("disable"))
+        wait_until(lambda: state() == ("DISABLED", False), 10, what="DISABLED")
+        ros.put(state_key, state_command("enable"))
+        wait_until(lambda: state() == ("ENABLED", False), 10, what="ENABLED")
+        wait_until(lambda: _request(probe, {"cmd": "acquire"})["ok"], 5, what="control free after an enable with no token")
+        assert _request(probe, {"cmd": "release"})["ok"]
+        start = np.array(measured.wait(lambda m: True).position)
+        # the token still there: the graph holds control until it goes
+        token = publisher_token(ros, "so101/servo_jp", JOINT_STATE_DDS, JOINT_STATE_HASH, 10)
+        ros.put(js_key, joint_state(start))
+        setpoints.wait(lambda m: len(m.position) == 5 and np.allclose(m.position, start, atol=1e-6),
+                       what="setpoint_js at the servo_jp target")
+        assert _request(probe, {"cmd": "acquire"})["error"]["code"] == "read_only"
         token.undeclare()
         wait_until(lambda: _request(probe, {"cmd": "acquire"})["ok"], 5,
                    what="control released when the ROS publisher left")
+        assert _request(probe, {"cmd": "release"})["ok"]
+        # the token goes right after the sample: the sample is handled after the token went
+        for i in range(1, 4):
+            target = start + np.array([0.01 * i, 0.0, 0.0, 0.0, 0.0])
+            token = publisher_token(ros, "so101/move_jp", JOINT_STATE_DDS, JOINT_STATE_HASH, 10 + i)
+            ros.put(move_key, joint_state(target))
+            token.undeclare()
+            goals.wait(lambda m: len(m.position) == 5 and np.allclose(m.position, target, atol=1e-6),
+                       what=f"goal_js at the move_jp target ({i})")
+            wait_until(lambda: _request(probe, {"cmd": "acquire"})["ok"], 5,
+                       what=f"control released when the ROS publisher left right after its sample ({i})")
+            assert _request(probe, {"cmd": "release"})["ok"]
+        assert _request(probe, {"cmd": "acquire"})["ok"]
         # the socket holds control now: a ROS motion command is refused on /so101/error, a stop is not
         n = len(errors.messages())
-        ros.put(key("so101/servo_jp", JOINT_STATE_DDS, JOINT_STATE_HASH), joint_state([0.0] * 5))
+        ros.put(js_key, joint_state(start))
         wait_until(lambda: any("holds control" in m.string for m in errors.messages()[n:]), 5,
                    what="read_only refusal on /so101/error")
-        ros.put(key("so101/state_command", "crtk_msgs::msg::dds_::StringStamped_",
-                    _hash("crtk_msgs/msg/StringStamped")), state_command("disable"))
-        states.wait(lambda m: m.state == "DISABLED", what="DISABLED from a ROS stop while the socket holds control")
+        ros.put(state_key, state_command("disable"))
+        wait_until(lambda: state() == ("DISABLED", False), 10,
+                   what="DISABLED from a ROS stop while the socket holds control")
         assert _request(probe, {"cmd": "release"})["ok"]
     finally:
+        setpoints.close()
+        goals.close()
+        measured.close()
         probe.close()
 
 
@@ -312,8 +351,9 @@ def test_hostile_payloads_are_refused_without_harm(ros_daemon, ros, errors, stat
     move_key = key("so101/move_jp", JOINT_STATE_DDS, JOINT_STATE_HASH)
     setpoints = Topic(ros, "0/so101/setpoint_js/**", "sensor_msgs/msg/JointState")
     try:
+        n = len(states.messages())  # DISABLED now (the test before ends so): wait for a fresh ENABLED
         ros.put(cmd_key, state_command("enable"))
-        states.wait(lambda m: m.state == "ENABLED", what="ENABLED")
+        wait_until(lambda: any(m.state == "ENABLED" for m in states.messages()[n:]), 10, what="ENABLED")
         # enabled, no motion command accepted yet: setpoint_js is invalid (stamp 0, empty)
         setpoints.wait(lambda m: m.header.stamp.sec == 0 and not len(m.position), what="no setpoint after enable")
         good = joint_state([0.0] * 5)
@@ -340,10 +380,19 @@ def test_hostile_payloads_are_refused_without_harm(ros_daemon, ros, errors, stat
         n = len(setpoints.messages())
         wait_until(lambda: len(setpoints.messages()) > n, 5, what="a fresh setpoint_js")
         assert not len(setpoints.messages()[-1].position)  # no command was accepted
+        n = len(states.messages())
         ros.put(cmd_key, state_command("disable"))
-        states.wait(lambda m: m.state == "DISABLED", what="DISABLED after the hostile payloads")
+        wait_until(lambda: any(m.state == "DISABLED" for m in states.messages()[n:]), 10,
+                   what="DISABLED after the hostile payloads")
     finally:
         setpoints.close()
+
+
+def publisher_token(session: zenoh.Session, topic: str, dds: str, h: str, eid: int) -> zenoh.LivelinessToken:
+    """The liveliness token rmw_zenoh declares for a publisher of ``topic`` (a ROS node's)."""
+    return session.liveliness().declare_token(
+        f"@ros2_lv/0/{session.info.zid()}/0/{eid}/MP/%/%/test_node/%{topic.replace('/', '%')}/{dds}/{h}/"
+        "::,10:,:,:,,")
 
 
 def _hash(ros_type: str) -> str:

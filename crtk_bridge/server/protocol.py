@@ -20,7 +20,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 import numpy as np
 
-from ..errors import CommandError
+from ..errors import CommandError, one_line
 from ..vocabulary import (  # noqa: F401 - the protocol's words, re-exported for the server
     JOINT_TOPICS as JOINT_QUERIES, PROTOCOL_VERSION, ROBOT_TOPICS as ROBOT_QUERIES, STOP_COMMANDS, ErrorCode,
     MaintenanceCommand, SessionCommand, StateCommand, Topic,
@@ -197,4 +197,5 @@ def ok(rid: Any, data: Any = None) -> dict:
 
 
 def error(rid: Any, code: str, message: str) -> dict:
-    return {"id": rid, "ok": False, "error": {"code": code, "message": message}}
+    """An error reply; its message one line (control characters a client sent escaped)."""
+    return {"id": rid, "ok": False, "error": {"code": code, "message": one_line(message)}}

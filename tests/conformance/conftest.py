@@ -111,8 +111,17 @@ class URSimAdapter:
     def set_torque_delay(self, seconds: float) -> None:
         self.sim.control({"cmd": "timings", "power_on_s": max(seconds, 0.1)})  # a slow power on
 
+    backend = None  # set by the Rig: the UR backend on this simulator
+
     def set_unplugged(self, unplugged: bool) -> None:
         if unplugged:  # every connection dropped, new ones refused for a while
+            # not in the middle of a blocking control call (a teach-mode switch): ur_rtde's call
+            # would then wait for its answer for minutes, spinning (tests/test_backend_ur.py
+            # drops the link under a running arm)
+            b = self.backend
+            if b is not None:
+                wait_until(lambda: b._ctl_thread is None or not b._ctl_thread.is_alive(), 2,
+                           what="no control call in flight")
             self.sim.link_loss(0.5, ports=("rtde", "dashboard", "script"))
 
     def settle(self) -> None:
@@ -251,6 +260,8 @@ class Rig:
                 self.profile = msgspec.structs.replace(
                     self.profile, backend={**self.profile.backend, "interface": "virtual", "options": {}})
             self.backend = cls(self.profile)
+            if isinstance(self.sim, URSimAdapter):
+                self.sim.backend = self.backend
         self.backend.open()
         self.backend.configure()
         self.fb = self.backend.new_feedback()

@@ -55,6 +55,10 @@ the robot keeps following its last target):
   ``play`` if it was paused); core re-seeds every setpoint from the measured pose
   (``stops_itself_on_pause``), so the arm does not rush to where it was going when it stopped.
 
+The script's RTDE watchdog (``backend.watchdog_hz``, ur_rtde ``setWatchdog``) is set at every
+enable and fed by the cycle (its commands, else ``kickWatchdog``): a control process that stops
+cycling stops the script and the arm within 1 / watchdog_hz s.
+
 State: :mod:`.state` maps link, robot mode, safety mode and runtime state onto a device status
 (protective stop and e-stops -> FAULT naming the cause, safeguard stop -> PAUSED, link loss ->
 FAULT in the cycle that sees it). Every command is gated on the link being up, the safety mode
@@ -154,6 +158,10 @@ class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     reconnect_interval_s: Annotated[float, msgspec.Meta(gt=0)] = 0.5  # RTDE link retries after a loss
     # no RTDE packet for this long is a lost link (ur_rtde's isConnected() alone misses a silent one)
     link_timeout_s: Annotated[float, msgspec.Meta(gt=0)] = 0.1
+    # the control script's RTDE watchdog (ur_rtde setWatchdog): no input from the daemon for
+    # 1 / watchdog_hz s stops the script, and the arm (a dead or stalled control process must not
+    # leave a speedJ running); 0: off
+    watchdog_hz: Annotated[float, msgspec.Meta(ge=0)] = 10.0
 
 
 def _pose6(position: np.ndarray, quat_xyzw: np.ndarray) -> list[float]:
@@ -317,6 +325,7 @@ class UrBackend(Actuator):
         self._move_fault: Fault | None = None
         #: the device paused itself (safeguard stop): hold the pose it stopped at until resume
         self._paused_hold = False
+        self._last_sent = 0.0  # perf_counter of the last RTDE input to the script (its watchdog)
 
     # ------------------------------------------------------------------ start-up path
     @property
@@ -366,7 +375,7 @@ class UrBackend(Actuator):
         if self._ctl is not None and self._ctl_link_lost and not busy:
             # its own thread reconnects once the controller answers again: let it, then
             # disconnect it properly, else it lingers on, reconnecting to this host forever
-            deadline = time.monotonic() + 6.0
+            deadline = time.monotonic() + 1.0
             while not self._ctl.isConnected() and time.monotonic() < deadline:
                 time.sleep(0.05)
             self._ctl_link_lost = not self._ctl.isConnected()
@@ -485,6 +494,8 @@ class UrBackend(Actuator):
         feedback.position[:] = q
         feedback.velocity[:] = qd
         feedback.stamp = self.now()
+        if self._enabled:
+            self._feed_watchdog()
         if state.status is DeviceStatus.PAUSED and not self._paused_hold and self._enabled:
             self._paused_hold = True  # where the arm stopped: the target until resume (see _write)
             self._target[:] = feedback.position
@@ -499,6 +510,22 @@ class UrBackend(Actuator):
         self._tcp_p[:] = pose[:3]
         self._tcp_r = pin.exp3(self._tcp_rotvec)
         return None
+
+    def _feed_watchdog(self) -> None:
+        """The script's watchdog wants an RTDE input at least every 1 / watchdog_hz s: the cycle's
+        commands are that; when none went out for 20 ms (teach mode, a paused program, a
+        transition), a kick. So it stops the arm only when the control process stops cycling."""
+        now = time.perf_counter()
+        if now - self._last_sent < 0.02 or self._ctl is None or not self._ctl.isConnected():
+            return
+        t = self._ctl_thread
+        if t is not None and t.is_alive():
+            return  # a blocking call's own inputs feed it
+        try:
+            self._ctl.kickWatchdog()
+        except RuntimeError:
+            return  # the link is going: the state table reports it
+        self._last_sent = now
 
     def _link_lost(self) -> Fault:
         self._ctl_link_lost = self._ctl is not None  # see _close_hook
@@ -532,6 +559,7 @@ class UrBackend(Actuator):
                 except RuntimeError:
                     return None  # the link went down: the state table reports it
                 self._last_kind = "servoj"
+                self._last_sent = time.perf_counter()
             return None
         if not self._movable():
             return None  # gated: servoJ would "succeed" with the link down; the state table says why
@@ -550,15 +578,19 @@ class UrBackend(Actuator):
         if cart is not None and cart.mode[0] != _NONE:
             return self._write_cartesian(cart)
         mode = command.mode
+        # a blocking call started as the link dies waits for its answer for minutes (ur_rtde),
+        # spinning: teach-mode switches start only on a link whose packet came this cycle
+        fresh = time.perf_counter() - self._arrived < 2.0 * self.dt
         if np.all(mode == _FREE):
-            if not self._teach:
+            if not self._teach and fresh:
                 self._start_job(self._ctl.teachMode, "teach mode", self._set_teach, True)
             return None
         if np.any(mode == _FREE):
             return Fault("invalid_command", f"{self.robot}: free applies to the whole UR arm (teach mode), "
                          "not to some joints", transient=False)
         if self._teach:
-            self._start_job(self._ctl.endTeachMode, "end of teach mode", self._set_teach, False)
+            if fresh:
+                self._start_job(self._ctl.endTeachMode, "end of teach mode", self._set_teach, False)
             return None
         ok = True
         if np.any(mode == _VELOCITY):
@@ -583,11 +615,13 @@ class UrBackend(Actuator):
             cfg = self.config
             ok = self._ctl.servoJ(q.tolist(), 0.0, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain)
             self._last_kind = "servoj"
+            self._last_sent = time.perf_counter()
             if fault is not None:
                 return fault
         if not ok:
             return Fault("command_refused", f"{self.robot}: the UR control script refused {self._last_kind}",
                          transient=True)
+        self._last_sent = time.perf_counter()
         return None
 
     def _write_cartesian(self, cart) -> Fault | None:
@@ -624,6 +658,7 @@ class UrBackend(Actuator):
                 pose = _pose6(cart.position[0], cart.orientation[0])
             ok = self._ctl.servoL(pose, 0.0, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain)
             self._last_kind = "servol"
+        self._last_sent = time.perf_counter()
         if not ok:
             return Fault("command_refused", f"{self.robot}: the UR control script refused {self._last_kind}",
                          transient=True)
@@ -767,6 +802,9 @@ class UrBackend(Actuator):
         # ur_rtde refuses commands until ITS connection saw the program run (a packet later, maybe)
         yield from self._until(lambda: self.runtime_state == RuntimeState.PLAYING and self._ctl.isProgramRunning(),
                                "the control script to run")
+        if self.config.watchdog_hz > 0:  # from now on the cycle feeds it (_write, _feed_watchdog)
+            self._last_sent = time.perf_counter()
+            yield from self._job(lambda: self._ctl.setWatchdog(self.config.watchdog_hz), "setWatchdog")
         self._hold_here()
 
     def _start_script(self) -> None:

@@ -23,7 +23,11 @@ each sample becomes a protocol request, typed and bounded by the same code (``Se
 under the same control rules: the ROS session takes control like any session and is refused
 (``read_only``) while another holds it; ``disable``, ``pause`` and ``hold`` are accepted whoever
 holds control. It gives control up when the last ROS publisher of a command topic leaves the
-graph (its liveliness token goes), as a socket session does when it disconnects. A refusal is
+graph (its liveliness token goes), as a socket session does when it disconnects, and holds it only
+while such a publisher is live: Zenoh sends declarations ahead of data, so a publisher's last
+samples may arrive after its token went (and a plain Zenoh put has no token at all); a command
+handled while no remote command publisher is known is followed by a liveliness query of the graph,
+and control is released when it finds none. A refusal is
 published on the namespace's ``error`` topic. ``state_command`` is subscribed VOLATILE on
 purpose: crtk_python_client latches it, and a daemon (re)starting must never replay an old
 ``enable`` (the robot never enables itself).
@@ -139,6 +143,7 @@ class RosGraph:
         self._command_topics: set[str] = set()  # mangled names of our command topics
         self._remote_commanders: set[str] = set()  # liveliness tokens of remote command publishers
         self._liveliness = None
+        self._checking = False  # a liveliness query for remote command publishers is under way
         self._endpoint = endpoint
         self.published = 0  # ticks done (for tests and the bench)
 
@@ -340,6 +345,7 @@ class RosGraph:
 
     def _done(self, slot: tuple[str, str]) -> None:
         self._in_flight[slot] -= 1
+        self._check_commanders()
 
     def _request(self, ns: str, cmd: str, ros_type: str, payload: bytes) -> tuple[str, dict | None]:
         """The protocol request (cmd, data) of a sample. Raises Refused."""
@@ -399,14 +405,45 @@ class RosGraph:
     def _on_token(self, sample: zenoh.Sample) -> None:
         """Zenoh thread: a liveliness token came or went."""
         key = str(sample.key_expr)
-        parts = key.split("/")
-        if len(parts) < 13 or parts[5] != "MP" or parts[2] == self.node.zid or parts[9] not in self._command_topics:
+        if not self._is_commander(key):
             return
         gone = sample.kind == zenoh.SampleKind.DELETE
         try:
             self._loop.call_soon_threadsafe(self._commander, key, gone)
         except RuntimeError:
             pass
+
+    def _is_commander(self, key: str) -> bool:
+        """Whether a liveliness token is a remote publisher of one of our command topics."""
+        parts = key.split("/")
+        return (len(parts) >= 13 and parts[5] == "MP" and parts[2] != self.node.zid
+                and parts[9] in self._command_topics)
+
+    def _check_commanders(self) -> None:
+        """After a command: holding control with no remote command publisher known (its token
+        went before its last sample arrived, or it never had one), ask the graph; release when
+        none is live. A token arriving meanwhile keeps control (its going releases it)."""
+        if self._remote_commanders or self._checking or self.session is None or self.session.closed \
+                or self.server.controller is not self.session:
+            return
+        self._checking = True
+        self._loop.create_task(self._recheck())
+
+    async def _recheck(self) -> None:
+        try:
+            live = await self._loop.run_in_executor(None, self._live_commanders)
+        finally:
+            self._checking = False
+        if not live and not self._remote_commanders:
+            self._release()
+
+    def _live_commanders(self) -> bool:
+        """Worker thread: whether the graph holds a remote command publisher's token now."""
+        try:
+            replies = self.zenoh.liveliness().get(f"@ros2_lv/{self.domain_id}/**", timeout=1.0)
+            return any(r.ok is not None and self._is_commander(str(r.ok.key_expr)) for r in replies)
+        except zenoh.ZError:  # the session is closing: the daemon stops, control goes with it
+            return True
 
     def _commander(self, key: str, gone: bool) -> None:
         if not gone:
