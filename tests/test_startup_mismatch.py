@@ -6,6 +6,8 @@ servo configured elsewhere, e.g. by LeRobot's calibration)."""
 
 from __future__ import annotations
 
+import contextlib
+
 import pytest
 import yaml
 
@@ -95,3 +97,66 @@ def test_dynamixel_homing_offset_and_reverse_drive_mode_refuse_enable(short_tmp)
         assert sim.servo(first["id"]).read("Homing_Offset") == -300
         assert sim.servo(last["id"]).read("Drive_Mode") == 1
         assert all(sim.servo(i).read("Torque_Enable") == 0 for i in sim.ids)
+
+
+def test_homing_offset_key_is_checked_against_each_vendor_register_range():
+    from crtk_bridge.backends import create_backend
+    from crtk_bridge.errors import ProfileError
+
+    data = so101_data()
+    data["joints"][1]["calibration"]["homing_offset"] = 2048  # sign-magnitude, bit 11: at most 2047
+    with pytest.raises(ProfileError, match=r"joints\[1\] \(shoulder_lift\)\.calibration\.homing_offset: 2048 is "
+                                           r"outside -2047\.\.2047"):
+        create_backend(parse_profile(data))
+    koch = profile_data(KOCH)  # extended position modes: the range check still applies
+    koch["joints"][0].setdefault("calibration", {})["homing_offset"] = -1_044_480
+    with pytest.raises(ProfileError, match=r"homing_offset: -1044480 is outside -1044479\.\.1044479"):
+        create_backend(parse_profile(koch))
+    koch["joints"][0]["calibration"]["homing_offset"] = -1_044_479
+    create_backend(parse_profile(koch))
+
+
+@contextlib.contextmanager
+def open_so101():
+    """(simulator, open FeetechBackend) of profiles/so101.yaml, in this process."""
+    from crtk_bridge.backends.feetech.backend import FeetechBackend
+
+    data = so101_data()
+    with FeetechSimulator.from_profile(parse_profile(data)) as sim:
+        data["backend"]["port"] = sim.port
+        backend = FeetechBackend(parse_profile(data))
+        backend.open()
+        try:
+            yield sim, backend
+        finally:
+            backend.close()
+
+
+def test_a_reopened_bus_is_checked_again():
+    """After a USB replug the bus is opened again by the backend's worker: the EEPROM is read
+    again (someone may have recalibrated the servos elsewhere meanwhile)."""
+    with open_so101() as (sim, backend):
+        assert backend._enable_refusal is None
+        sim.servo(4).write("Homing_Offset", -7)
+        backend._port.closePort()  # the adapter went away
+        backend._reopen_once()
+        assert "joint 'wrist_flex' (id 4): Homing_Offset is -7, expected 0" in backend._enable_refusal
+
+
+def test_a_late_reply_of_another_length_is_never_decoded_as_the_eeprom():
+    """The SDKs take any status of the right id as the reply: a late 1-byte status (value 0, from a
+    read that timed out before) taken for a 2-byte Homing_Offset read decodes as -512. The EEPROM is
+    read in one block whose reply must have the block's length; a shorter one is read again."""
+    with open_so101() as (sim, backend):
+        real = backend._ph.readTxRx
+        calls = []
+
+        def late_status_first(port, sid, address, length):
+            calls.append(length)
+            if len(calls) == 1:
+                return [0x00, 0xFA], 0, 0  # a 1-byte status's value and checksum
+            return real(port, sid, address, length)
+
+        backend._ph.readTxRx = late_status_first
+        assert backend.eeprom_diffs(1) == []
+        assert len(calls) == 2 and calls[0] == calls[1] == 27  # Return_Delay_Time (7) .. Operating_Mode (33)

@@ -330,6 +330,9 @@ class SerialServoBackend(Actuator):
             problems.append(f"{key}.calibration.range: {list(r)} is outside 0..{res - 1}")
         if not 0 <= j.calibration.offset <= res - 1:
             problems.append(f"{key}.calibration.offset: {j.calibration.offset} is outside 0..{res - 1}")
+        self._check_homing_offset(key, j, problems)
+
+    def _check_homing_offset(self, key: str, j: ServoJoint, problems: list[str]) -> None:
         h = self.HOMING_OFFSET_MAX
         if not -h <= j.calibration.homing_offset <= h:
             problems.append(f"{key}.calibration.homing_offset: {j.calibration.homing_offset} is outside "
@@ -365,9 +368,9 @@ class SerialServoBackend(Actuator):
         Blocks for the vendor's listening window. The port is open."""
         raise NotImplementedError
 
-    def _vendor_eeprom_diffs(self, i: int, key: str) -> list[EepromDiff]:
-        """The vendor's own EEPROM expectations of joint ``i`` (operating mode, direction bits).
-        Blocks; raises BackendError."""
+    def _vendor_eeprom_diffs(self, i: int, key: str, regs: dict[str, int]) -> list[EepromDiff]:
+        """The vendor's own EEPROM expectations of joint ``i`` (operating mode, direction bits),
+        from ``regs`` (:meth:`_read_eeprom`)."""
         return []
 
     def _unlock_eeprom(self, i: int, sid: int) -> None:
@@ -488,7 +491,8 @@ class SerialServoBackend(Actuator):
         key = f"joints[{self.profile.joint_names.index(name)}] ({name})"
         never = "the daemon never rewrites EEPROM"
         out = []
-        h = self._read_register(i, "Homing_Offset")
+        regs = self._read_eeprom(i)
+        h = regs["Homing_Offset"]
         if h != j.calibration.homing_offset:
             out.append(EepromDiff(
                 name, sid, "Homing_Offset", h, str(j.calibration.homing_offset),
@@ -501,8 +505,7 @@ class SerialServoBackend(Actuator):
             res = self.RESOLUTION[j.model]
             lo, hi = j.calibration.range or (0, res - 1)
             where = f"{key}.calibration.range" if j.calibration.range else f"{key}.model ({j.model}: 0..{res - 1})"
-            low = self._read_register(i, "Min_Position_Limit")
-            high = self._read_register(i, "Max_Position_Limit")
+            low, high = regs["Min_Position_Limit"], regs["Max_Position_Limit"]
             if not self._no_limits(low, high):
                 remedy = (f"widen the servo's limits (e.g. with the vendor's tool) or narrow "
                           f"{key}.calibration.range ({never})")
@@ -512,14 +515,52 @@ class SerialServoBackend(Actuator):
                 if high < hi:
                     out.append(EepromDiff(name, sid, "Max_Position_Limit", high, f">= {hi}", where, True,
                                           f"the servo refuses positions above {high} ticks", remedy))
-        rd = self._read_register(i, "Return_Delay_Time")
+        rd = regs["Return_Delay_Time"]
         if rd != self.config.return_delay:
             out.append(EepromDiff(
                 name, sid, "Return_Delay_Time", rd, str(self.config.return_delay), "backend.return_delay",
                 False, f"each reply waits {rd * 2} us",
                 "the daemon sets it at start-up until the next power cycle; crtk-bridge setup-servos "
                 "stores it"))
-        return out + self._vendor_eeprom_diffs(i, key)
+        return out + self._vendor_eeprom_diffs(i, key, regs)
+
+    #: the registers :meth:`eeprom_diffs` reads (the vendor adds its own)
+    EEPROM_REGISTERS: ClassVar[tuple[str, ...]] = ("Homing_Offset", "Min_Position_Limit",
+                                                   "Max_Position_Limit", "Return_Delay_Time")
+
+    def _read_eeprom(self, i: int) -> dict[str, int]:
+        """:attr:`EEPROM_REGISTERS` of joint ``i``'s servo, decoded, from ONE read of the block
+        spanning them. The reply must carry exactly the block's length: the SDKs take any status
+        of the right id as the reply, so a late one (a smaller read that timed out before, on a
+        loaded host) would otherwise be decoded as these registers. Blocks. Raises BackendError."""
+        regs = {name: self._register(i, name) for name in self.EEPROM_REGISTERS}
+        start = min(a for a, _ in regs.values())
+        length = max(a + n for a, n in regs.values()) - start
+        data, result = [], self.RX_CORRUPT
+        for _ in range(self.LIFECYCLE_ATTEMPTS):
+            data, result, _ = self._txrx(self._ph.readTxRx, self._ids[i], start, length)
+            if result == COMM_SUCCESS and len(data or ()) == length:
+                break
+            result = result if result != COMM_SUCCESS else self.RX_CORRUPT
+        else:
+            raise BackendError(f"{self.robot}: {self._label[i]}: reading its EEPROM settings "
+                               f"({', '.join(regs)}) on {self._where} failed: {self._result_text(result)}")
+        return {name: self._decode(i, name, int.from_bytes(bytes(data[a - start:a - start + n]), "little"))
+                for name, (a, n) in regs.items()}
+
+    #: how long a joint's EEPROM is read again when a read fails (a loaded host, a servo still
+    #: starting) before the failure counts
+    EEPROM_PATIENCE_S = 2.0
+
+    def _patient_eeprom_diffs(self, i: int) -> list[EepromDiff]:
+        """:meth:`eeprom_diffs`, tried again on a failed read for up to EEPROM_PATIENCE_S."""
+        deadline = time.monotonic() + self.EEPROM_PATIENCE_S
+        while True:
+            try:
+                return self.eeprom_diffs(i)
+            except BackendError:
+                if time.monotonic() > deadline:
+                    raise
 
     @staticmethod
     def _no_limits(low: int, high: int) -> bool:
@@ -529,7 +570,7 @@ class SerialServoBackend(Actuator):
     def _startup_check(self) -> None:
         """At open: EEPROM settings that would make positions wrong (:meth:`eeprom_diffs`) make
         ENABLE refuse, naming robot, joint, register and the remedy. Blocks. Raises BackendError."""
-        wrong = [d for i in range(self.n) for d in self.eeprom_diffs(i) if d.wrong_positions]
+        wrong = [d for i in range(self.n) for d in self._patient_eeprom_diffs(i) if d.wrong_positions]
         self._enable_refusal = None
         if wrong:
             self._enable_refusal = (f"{self.robot}: enable refused, the servos' EEPROM disagrees "
@@ -647,7 +688,7 @@ class SerialServoBackend(Actuator):
         port, _ = self._open_port()
         try:
             self._check_servos()
-            self._startup_check()  # a servo swapped meanwhile is checked as at start-up
+            self._startup_check()  # the EEPROM may have changed (a servo swapped, recalibrated) meanwhile
             self._after_open()
             torque = [self._read_register(i, "Torque_Enable") for i in range(self.n)]
             self._configure_hook()
@@ -746,7 +787,7 @@ class SerialServoBackend(Actuator):
             i = self._ids.index(sid) if sid in self._ids else None
             if i is not None and number == self.MODEL_NUMBERS[self.joint_keys[i].model]:
                 try:
-                    eeprom = tuple(self.eeprom_diffs(i))
+                    eeprom = tuple(self._patient_eeprom_diffs(i))
                 except BackendError as exc:
                     error = str(exc).removeprefix(f"{self.robot}: ")
             out.append(ScannedServo(sid, number, model, firmware, torque, eeprom, error))

@@ -225,6 +225,8 @@ class DynamixelBackend(SerialServoBackend):
             problems.append(f"{where}: {mode.name.lower()} mode is not available on {key}, a {j.model}")
         if mode is OperatingMode.POSITION:
             super()._check_joint(i, key, j, problems)
+        else:  # multi-turn: ticks beyond one turn are fine
+            self._check_homing_offset(key, j, problems)
 
     def _make_port(self, margin_ms: float) -> FastPortHandler:
         return FastPortHandler(self._port_path, margin_ms=margin_ms)
@@ -248,13 +250,15 @@ class DynamixelBackend(SerialServoBackend):
     def _limits_apply(self, i: int) -> bool:
         return self._pos_mode[i] is OperatingMode.POSITION  # the extended modes ignore them
 
-    def _vendor_eeprom_diffs(self, i: int, key: str) -> list[EepromDiff]:
+    EEPROM_REGISTERS = (*SerialServoBackend.EEPROM_REGISTERS, "Drive_Mode")
+
+    def _vendor_eeprom_diffs(self, i: int, key: str, regs: dict[str, int]) -> list[EepromDiff]:
         """Drive_Mode bit 0 (reverse: the servo flips its own direction; the profile's
         calibration.direction says it instead). Not Operating_Mode: the backend switches it at
         run time with each joint's command mode, so the EEPROM holds whatever the last run left."""
         name, sid = self.joint_names[i], self._ids[i]
         out = []
-        drive = self._read_register(i, "Drive_Mode")
+        drive = regs["Drive_Mode"]
         if drive & 1:
             out.append(EepromDiff(name, sid, "Drive_Mode", drive, f"bit 0 clear ({drive & ~1})",
                                   f"{key}.calibration.direction", True,

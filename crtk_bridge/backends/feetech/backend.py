@@ -179,15 +179,17 @@ class FeetechBackend(SerialServoBackend):
 
     def _broadcast_ping(self) -> tuple[dict[int, int], bool]:
         """A PING to the broadcast id (the pip SDK has no broadcast ping), every status read for
-        the wire time of MAX_ID + 1 of them (the servos answer at once, as LeRobot's broadcast ping
-        assumes), then each one's Model_Number read. A corrupt status counts as garbled."""
+        the wire time of MAX_ID + 2 of them plus 50 ms (the servos answer at once, as LeRobot's
+        broadcast ping assumes), then each one's Model_Number read. A corrupt status counts as
+        garbled."""
         ph, port = self._ph, self._port
         port.is_using = False
         result = ph.txPacket(port, [0, 0, tables.BROADCAST_ID, 2, tables.INST_PING, 0])
         if result != COMM_SUCCESS:
             port.is_using = False
             return {}, False
-        port.setPacketTimeoutMillis(port.tx_time_per_byte * 6 * (self.MAX_ID + 2) + port.margin_ms)
+        # listen as LeRobot does (50 ms beyond the wire time): a command-line scan, not the cycle
+        port.setPacketTimeoutMillis(port.tx_time_per_byte * 6 * (self.MAX_ID + 2) + max(port.margin_ms, 50.0))
         ids, garbled = [], False
         while True:
             packet, result = ph.rxPacket(port)
@@ -208,17 +210,19 @@ class FeetechBackend(SerialServoBackend):
                 found[sid] = number
         return found, garbled
 
-    def _vendor_eeprom_diffs(self, i: int, key: str) -> list[EepromDiff]:
+    EEPROM_REGISTERS = (*SerialServoBackend.EEPROM_REGISTERS, "Operating_Mode", "Phase")
+
+    def _vendor_eeprom_diffs(self, i: int, key: str, regs: dict[str, int]) -> list[EepromDiff]:
         """Operating_Mode (the backend drives position mode 0 and writes it at start-up); Phase
         bit 4 (multi-turn angle feedback: positions leave 0..4095; LeRobot clears it too)."""
         name, sid = self.joint_names[i], self._ids[i]
         out = []
-        mode = self._read_register(i, "Operating_Mode")
+        mode = regs["Operating_Mode"]
         if mode != 0:
             out.append(EepromDiff(name, sid, "Operating_Mode", mode, "0 (position)", f"{key}.model", False,
                                   "not position mode", "the daemon sets it at start-up until the next "
                                   "power cycle"))
-        phase = self._read_register(i, "Phase")
+        phase = regs["Phase"]
         if phase & 0x10:
             out.append(EepromDiff(name, sid, "Phase", phase, f"bit 4 clear ({phase & ~0x10})", f"{key}.model",
                                   True, "bit 4 (multi-turn angle feedback) makes positions leave 0..4095",
