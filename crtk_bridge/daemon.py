@@ -78,7 +78,7 @@ class SimulatorProcess:
             where = ["--link", self.link]
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "crtk_bridge.sim.cli", device, "--profile", profile_path,
-             *where, "--control", self.control, *(["--bus", bus] if bus else [])],
+             *where, "--control", self.control, *(["--bus", bus] if bus else []), "--parent-pid", str(os.getpid())],
             stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
             start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
             preexec_fn=_die_with_parent,  # ...but a daemon killed outright must not leave it running

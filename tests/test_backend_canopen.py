@@ -436,3 +436,22 @@ def test_profile_errors_name_the_key():
     data["backend"]["heartbeat_timeout_ms"] = 50
     with pytest.raises(ProfileError, match=r"backend.heartbeat_timeout_ms: 50(.0)? must be longer than backend.heartbeat_ms"):
         Canopen402Backend(parse_profile(data))
+
+
+def test_cst_without_effort_max_is_capped_at_the_rated_torque(iface):
+    """A joint without limits.effort_max (optional) never gets more than its rated torque (1000 per
+    mille of 0x6071), not the I16 range (about 33 times rated)."""
+    data = profile_data(PROFILE)
+    del data["joints"][0]["limits"]["effort_max"]
+    r = CanRig(iface, data)
+    try:
+        r.start()
+        r.enable()
+        r.request(2, "servo_jf", ns="pantilt", data={"effort": [100.0, 0.0]})
+        r.until(lambda: r.drive(0).mode == t.Mode.CYCLIC_SYNC_TORQUE, 2, "pan in CST")
+        r.until(lambda: r.drive(0).target_torque != 0, 2, "pan torque target written")
+        assert r.drive(0).target_torque == 1000
+        r.request(3, "servo_jf", ns="pantilt", data={"effort": [-100.0, 0.0]})
+        r.until(lambda: r.drive(0).target_torque == -1000, 2, "pan torque target -rated")
+    finally:
+        r.close()

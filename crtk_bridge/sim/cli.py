@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 
@@ -34,6 +35,9 @@ from . import simulator_class
 
 _SIGNALS = {signal.SIGTERM, signal.SIGINT}
 _HEALTH_CHECK_S = 0.5
+#: --parent-pid: the simulator stops once it is no longer this process's child (its spawner died,
+#: however: SIGKILL, or before PR_SET_PDEATHSIG took effect, or a spawner that never set it)
+_parent_pid: int | None = None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -92,6 +96,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="a protective stop may be unlocked this long after it (default 5, as UR)")
     u.add_argument("--log-level", default="warning",
                    choices=["debug", "info", "warning", "error"], help="default: warning")
+    for d in sub.choices.values():
+        d.add_argument("--parent-pid", type=int, metavar="PID",
+                       help="stop when the process PID (the spawner, our parent) is gone")
     return p
 
 
@@ -106,6 +113,9 @@ def _serve(sim, ready_line: str) -> int:
             if not sim.running:
                 print("crtk-sim: the simulator thread died (see the log above)", file=sys.stderr)
                 return 1
+            if _parent_pid is not None and os.getppid() != _parent_pid:
+                print(f"crtk-sim: the process that started it (pid {_parent_pid}) is gone; stopping", file=sys.stderr)
+                return 0
     finally:
         sim.stop()
 
@@ -153,7 +163,9 @@ def _day_one(sim, args) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    global _parent_pid
     args = _parser().parse_args(argv)
+    _parent_pid = args.parent_pid
     logging.basicConfig(level=args.log_level.upper(), format="crtk-sim: %(levelname)s %(message)s")
     try:
         profile = load_profile(args.profile)

@@ -795,7 +795,8 @@ class URSimulator:
         argv = [sys.executable, "-m", "crtk_bridge.sim.cli", "ur", "--profile", self.profile_path,
                 "--host", self.host, "--control", self.control_path, "--log-level", "info",
                 "--power-on-s", str(t.power_on_s), "--brake-release-s", str(t.brake_release_s),
-                "--unlock-delay-s", str(t.unlock_delay_s), *(["--series", self.series] if self.series else [])]
+                "--unlock-delay-s", str(t.unlock_delay_s), *(["--series", self.series] if self.series else []),
+                "--parent-pid", str(os.getpid())]  # it also stops once this process is gone
         with open(self.log_path, "ab") as logf:
             self.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=logf, stderr=logf, env=env,
                                          start_new_session=True, preexec_fn=_die_with_parent)

@@ -81,6 +81,8 @@ from .tables import Command, Goal, Mode, State402
 
 PDO_NOT_VALID = 1 << 31
 I32 = (-(2**31), 2**31 - 1)
+#: target torque (0x6071) of a joint without limits.effort_max: at most the rated torque
+RATED_PER_MILLE = 1000
 I16 = (-(2**15), 2**15 - 1)
 _RING = 64  # SYNC send times kept (stamps of late answers, TPDO deadlines)
 CAN_ERR_BUSOFF = 0x00000040  # SocketCAN error class in an error frame's id (linux/can/error.h)
@@ -812,7 +814,9 @@ class Canopen402Backend(Actuator):
             if d.eff_max is not None:
                 x = min(max(x, -d.eff_max), d.eff_max)
             x /= d.k_eff
-            d.mode, d.target_torque, d.target_vel = _CST, round(min(max(x, I16[0]), I16[1])), 0
+            # no limits.effort_max: never above the rated torque (1000 per mille), not the I16 range
+            cap = I16[1] if d.eff_max is not None else RATED_PER_MILLE
+            d.mode, d.target_torque, d.target_vel = _CST, round(min(max(x, -cap), cap)), 0
         elif mode == _FREE and d.cst:
             d.mode, d.target_torque, d.target_vel = _CST, 0, 0
         return None

@@ -46,7 +46,8 @@ the robot keeps following its last target):
   uploaded (``RTDEControlInterface``, or ``reuploadScript``) -> runtime state PLAYING; the arm
   is then held where it is. Each wait is on the robot mode / runtime state read from RTDE.
 * DISABLE = stop the motion and the script, power off (dashboard), until robot mode POWER_OFF.
-  It is also the fault reaction: the arm stops and its brakes engage.
+  It is also the fault reaction: the arm stops and its brakes engage. ``configure`` does the
+  same to an arm found powered at start (the robot starts DISABLED).
 * FAULT_RESET (enable from FAULT): reconnect a lost link; unlock a protective stop (retried:
   e-Series refuses within 5 s of the stop), restart safety after a violation or safety fault;
   an e-stop or recovery mode is refused with what to do by hand.
@@ -348,6 +349,17 @@ class UrBackend(Actuator):
                                f"{cfg.host}:29999: {exc}") from exc
         self._dash = dash
         self._refresh()
+
+    def _configure_hook(self) -> None:
+        """The robot starts DISABLED: an arm found powered (by the pendant, or left so by a daemon
+        that died ENABLED) is stopped and powered off, as ``disable`` does (the serial backends
+        switch torque off here). Blocks. Raises BackendError when it cannot confirm it."""
+        deadline = time.monotonic() + self.config.link_timeout_s + 1.0
+        while not self._refresh() and time.monotonic() < deadline:
+            time.sleep(self.dt)  # the first packet of a fresh link
+        if self._link and self.robot_mode in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.BACKDRIVE,
+                                              RobotMode.RUNNING):
+            self.disable()
 
     def _close_hook(self) -> None:
         # ur_rtde's interfaces throw C++ exceptions out of disconnect() and out of their
