@@ -17,11 +17,16 @@ from __future__ import annotations
 import argparse
 import logging
 import socket
+import sys
 import threading
 import time
+from pathlib import Path
 
 import can
 import canopen
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # run from a clone without installing, as the other benches
 
 from crtk_bridge.sim.canopen402 import CanopenSimulator, make_object_dictionary
 
