@@ -43,6 +43,13 @@ def so101_data() -> dict:
     return profile_data(SO101)
 
 
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now (for a test's Zenoh endpoints)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def wait_until(predicate, timeout=10.0, interval=0.01, what="condition"):
     """Poll ``predicate`` until it is truthy; fail the test naming ``what`` after ``timeout`` s."""
     deadline = time.monotonic() + timeout

@@ -6,7 +6,6 @@ under the same control rules (one controller across transports, stops from anyon
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 import time
@@ -16,7 +15,7 @@ import pytest
 
 from crtk_bridge.client import CommandError, DaemonConnectionError, connect, list_robots
 
-from .conftest import KOCH, ROOT, SO101, DaemonProcess, wait_until
+from .conftest import KOCH, ROOT, SO101, DaemonProcess, free_port, wait_until
 
 ROUTER = """
 import json, sys, zenoh
@@ -29,12 +28,6 @@ print("ready", flush=True)
 sys.stdin.read()  # until the test closes our stdin
 session.close()
 """
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

@@ -12,17 +12,11 @@ import sys
 import pytest
 import yaml
 
-from .conftest import ROOT, SO101, so101_data
+from .conftest import ROOT, SO101, free_port, so101_data
 from crtk_bridge.profile import ZenohTls, load_profile
 from crtk_bridge.transport.zenoh_session import (
     ZenohConfig, ZenohConfigError, ZenohConnectError, check_exposure, is_loopback, open_session,
     session_config, zenoh_config)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_off_unless_an_endpoint_or_the_section():

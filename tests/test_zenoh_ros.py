@@ -9,7 +9,6 @@ serves every test; sessions have multicast scouting off and explicit endpoints.
 from __future__ import annotations
 
 import json
-import socket
 import struct
 import threading
 import time
@@ -22,7 +21,7 @@ from rosbags.typesys import Stores, get_typestore, get_types_from_msg
 
 from crtk_bridge.client.connection import Connection
 from crtk_bridge.errors import CommandError
-from tests.conftest import ROOT, DaemonProcess, wait_until
+from tests.conftest import ROOT, DaemonProcess, free_port, wait_until
 
 # The published RIHS01 hashes these tests hold the graph to:
 # - std_msgs/msg/String: the topic key expression example of ros2/rmw_zenoh docs/design.md
@@ -49,12 +48,6 @@ Time = STORE.types["builtin_interfaces/msg/Time"]
 JointStateMsg = STORE.types["sensor_msgs/msg/JointState"]
 StringStampedMsg = STORE.types["crtk_msgs/msg/StringStamped"]
 StringMsg = STORE.types["std_msgs/msg/String"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def zenoh_session(connect: str) -> zenoh.Session:
