@@ -243,6 +243,22 @@ def test_protective_stop_faults_naming_the_cause_then_enable_recovers(ur):
     ur.until(lambda: np.allclose(ur.sim_q(), READY + 0.1, atol=2e-3), 2, "the arm at the goal")
 
 
+def test_enable_after_disable_from_a_protective_stop_unlocks_it(ur):
+    c = ur.enabled(READY)
+    ur.sim.inject_stop("protective", cause="a test collision")
+    ur.until(lambda: c.state is OperatingState.FAULT, 2, "FAULT")
+    ur.until(lambda: not c.is_busy, 5, "the fault reaction's end")
+    assert ur.do("disable", timeout=10)["ok"] and c.state is OperatingState.DISABLED  # FAULT -> DISABLED
+    assert ur.sim.state()["safety_mode"] == "PROTECTIVE_STOP"  # the stop outlives the FAULT...
+    r = ur.do("enable", timeout=15)  # ...and enable from DISABLED unlocks it, as from FAULT
+    assert r["ok"], r
+    st = ur.sim.state()
+    assert c.state is OperatingState.ENABLED and st["safety_mode"] == "NORMAL" and st["runtime_state"] == "PLAYING"
+    assert ur.do("move_jp", NS, position=list(READY + 0.1))["ok"]
+    ur.until(lambda: not c.is_busy, 10, "move_jp done")
+    ur.until(lambda: np.allclose(ur.sim_q(), READY + 0.1, atol=2e-3), 2, "the arm at the goal")
+
+
 def test_safeguard_stop_pauses_and_resume_starts_from_the_measured_pose(ur):
     c = ur.enabled(READY)
     goal = READY + np.array([0.6, 0, 0, 0, 0, 0])
