@@ -209,11 +209,13 @@ def robot_capabilities(profile, has_gripper: bool) -> frozenset:
     - ``servo_bus``: the simulator is a serial servo bus (servo registers and the ``servos`` dump);
     - ``fault:<kind>``: a fault kind its simulator injects into one device (``silent``, ...);
     - ``park``: ``shutdown.action: park``;
-    - ``kinematics``: a namespace with a URDF (cartesian commands).
+    - ``kinematics``: a namespace with a URDF (cartesian commands);
+    - ``calibration``: its backend imports another tool's calibration file (``calibrate import``).
     """
     import importlib
 
     from crtk_bridge.backends import backend_class
+    from crtk_bridge.core.actuator import Actuator
     from crtk_bridge.sim import simulator_class
     from crtk_bridge.sim.bus import BusSimulator
 
@@ -227,6 +229,8 @@ def robot_capabilities(profile, has_gripper: bool) -> frozenset:
         caps.add("park")
     if any(ns.kinematics is not None for ns in profile.namespaces):
         caps.add("kinematics")
+    if backend_class(profile.backend_type).calibration_import is not Actuator.calibration_import:
+        caps.add("calibration")
     return frozenset(caps)
 
 
@@ -404,6 +408,13 @@ class DaemonProcess:
         self._log.flush()
         return self.log_path.read_text(errors="replace")
 
+    def print_tail(self, lines: int = 30) -> None:
+        """The end of the daemon's output on stdout (pytest shows it when the test failed)."""
+        try:
+            print(f"--- {self.log_path.name} (last {lines} lines) ---\n" + "\n".join(self.output().splitlines()[-lines:]))
+        except (OSError, ValueError):
+            pass
+
     def sim_control_path(self) -> str:
         for line in self.output().splitlines():
             if "simulator control socket" in line:
@@ -549,10 +560,13 @@ def sim_daemon(request, short_tmp, sim_robot):
     """``crtk-bridge --profile <robot profile> --sim`` on its own socket; ``.robot`` is the SimRobot.
     A test marked ``reuse_daemon`` shares its module's daemon for that robot (:class:`SharedDaemons`)."""
     if request.node.get_closest_marker("reuse_daemon") is not None:
-        yield request.getfixturevalue("shared_daemons").get(sim_robot)
+        d = request.getfixturevalue("shared_daemons").get(sim_robot)
+        yield d
+        d.print_tail()
         return
     d = start_sim_daemon(sim_robot, short_tmp)
     yield d
+    d.print_tail()
     d.stop()
 
 

@@ -345,3 +345,13 @@ def test_a_stalled_loop_stops_the_arm(ur):
     assert st["qd"] == [0.0] * 6 and "watchdog" in st["last_error"]
     ur.cycle()
     assert c.state is OperatingState.FAULT and ur.events("error")[-1]["code"] == "script_stopped"
+
+
+def test_the_simulated_controller_gets_a_silent_link_limit_that_a_loaded_host_does_not_trip():
+    profile = load_profile(UR5E)
+    wired = UrBackend.sim_profile(profile, "127.0.0.9")
+    assert wired.backend["host"] == "127.0.0.9"
+    assert wired.backend["link_timeout_s"] == UrBackend.SIM_LINK_TIMEOUT_S == 0.5  # the default 0.1, raised
+    longer = msgspec.structs.replace(profile, backend={**profile.backend, "link_timeout_s": 2.0})
+    assert UrBackend.sim_profile(longer, "127.0.0.9").backend["link_timeout_s"] == 2.0  # a longer one kept
+    assert UrBackend(wired).config.link_timeout_s == 0.5  # a valid profile key
