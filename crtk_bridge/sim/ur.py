@@ -24,7 +24,9 @@ Two pieces:
   ``{"cmd": "restart", "duration_s": S}`` a controller reboot: every connection dropped, ports
   closed for S s, then powered off with no program; ``{"cmd": "speed_slider", "fraction": F}``;
   ``{"cmd": "hand", "q": [...], "speed": rad/s}`` pushes the arm in teach mode;
-  ``{"cmd": "wrench", "force": [6]}`` the TCP force/torque; ``{"cmd": "timings", ...}``.
+  ``{"cmd": "wrench", "force": [6]}`` the TCP force/torque; ``{"cmd": "stall_script", "on": B}``
+  the program takes no command while the arm goes on (its watchdog still runs);
+  ``{"cmd": "timings", ...}``.
 """
 
 from __future__ import annotations
@@ -658,13 +660,16 @@ class URController:
                     return {"ok": False, "error": "wrench: force must be a list of 6 numbers (N, N*m)"}
                 r.tcp_force = np.asarray(f, dtype=float)
                 return {"ok": True}
+            if cmd == "stall_script":
+                r.script_stalled = bool(request.get("on", True))
+                return {"ok": True}
             if cmd == "timings":
                 for k in ("power_on_s", "brake_release_s", "unlock_delay_s"):
                     if k in request:
                         setattr(r.timings, k, float(request[k]))
                 return {"ok": True}
         return {"ok": False, "error": f"unknown command {cmd!r}; valid: state, stop, release, link_loss, "
-                                      "restart, speed_slider, hand, wrench, timings"}
+                                      "restart, speed_slider, hand, wrench, stall_script, timings"}
 
     def _refuse(self, ports: list[str], duration_s: float) -> None:
         """Drop the connections of ``ports`` and refuse new ones for ``duration_s`` (lock held)."""
