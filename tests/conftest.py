@@ -79,11 +79,11 @@ GOAL_MARGIN = 0.1  # rad inside the position limits
 DEFAULT_REQUIRES = ("servo_bus",)
 
 
-def _counts_per_rad(joint, row) -> float:
+def _counts_per_rad(joint, row=None) -> float:
     """Device position units per joint radian, signed by the joint's direction: the row's
     ``units_per_rad`` (a UR: urad), else the backend keys ``counts_per_revolution`` x
     ``gear_ratio`` when the joint has them, else a 4096-tick servo (both serial profiles' servos)."""
-    if row.units_per_rad is not None:
+    if row is not None and row.units_per_rad is not None:
         return row.units_per_rad
     keys = joint.backend
     cpr = keys.get("counts_per_revolution", 4096) * keys.get("gear_ratio", 1)
