@@ -5,12 +5,22 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import zenoh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from rosbags.typesys import Stores, get_typestore
 
 from crtk_bridge.transport.ros import types as T
+from crtk_bridge.transport.ros.periodic import Encoders
 from crtk_bridge.transport.ros.rmw import Node
 from tests.conftest import free_port, wait_until
+
+# an independent type store (not the project's): the reference serializer
+STORE = get_typestore(Stores.ROS2_KILTED)
+R = STORE.types
+ENCODERS = Encoders()  # one for every example: its templates are reused as on the wire
 
 
 def _session(listen: list[str] = (), connect: list[str] = ()) -> zenoh.Session:
@@ -49,3 +59,72 @@ def test_a_topic_is_wanted_only_while_somebody_subscribes(pair):
         other.undeclare()
     finally:
         node.close()
+
+
+def _time(stamp: float):
+    ns = int(round(stamp * 1e9)) if stamp > 0 else 0
+    return R["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
+
+
+def _header(stamp: float, frame: str):
+    return R["std_msgs/msg/Header"](stamp=_time(stamp), frame_id=frame)
+
+
+def _ref(msg, ros_type: str) -> bytes:
+    return bytes(STORE.serialize_cdr(msg, ros_type))
+
+
+finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+stamps = st.one_of(st.just(0.0), st.floats(1e9, 2.1e9))  # int32 seconds (to 2038)
+
+
+@settings(max_examples=60, deadline=None)
+@given(stamp=stamps, values=st.lists(finite, min_size=15, max_size=15),
+       present=st.tuples(st.booleans(), st.booleans(), st.booleans()), n=st.integers(1, 5))
+def test_joint_state_template_encodes_as_rosbags(stamp, values, present, n):
+    """The periodic JointState (a CDR template whose numbers are rewritten in place) is byte for
+    byte the reference serializer's, for every layout: vectors present or empty, any length."""
+    names = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"][:n]
+    vec = [np.array(values[5 * i:5 * i + n], dtype=np.float64) if present[i] else np.empty(0) for i in range(3)]
+    js = {"stamp": stamp, "frame_id": "so101", "name": names, "position": vec[0].tolist(),
+          "velocity": vec[1].tolist(), "effort": vec[2].tolist()}
+    ref = R["sensor_msgs/msg/JointState"](header=_header(stamp, "so101"), name=names, position=vec[0],
+                                          velocity=vec[1], effort=vec[2])
+    assert ENCODERS.joint_state(js) == _ref(ref, "sensor_msgs/msg/JointState")
+
+
+@settings(max_examples=40, deadline=None)
+@given(stamp=stamps, v=st.lists(finite, min_size=14, max_size=14), valid=st.booleans())
+def test_cartesian_and_tf_templates_encode_as_rosbags(stamp, v, valid):
+    """PoseStamped (an invalid pose: the identity, stamp 0), TwistStamped, WrenchStamped and a
+    two-transform TFMessage, byte for byte the reference serializer's."""
+    G = "geometry_msgs/msg/"
+    pos, q = (v[0:3], v[3:7]) if valid else ([0.0] * 3, [0.0, 0.0, 0.0, 1.0])
+    pose = {"stamp": stamp if valid else 0.0, "frame_id": "base_link", "child_frame_id": "tip",
+            "position": v[0:3] if valid else [], "orientation": v[3:7] if valid else []}
+    ref_pose = R[G + "Pose"](position=R[G + "Point"](x=pos[0], y=pos[1], z=pos[2]),
+                             orientation=R[G + "Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+    assert ENCODERS.cartesian(T.POSE_STAMPED, pose) == _ref(
+        R[G + "PoseStamped"](header=_header(pose["stamp"], "base_link"), pose=ref_pose), G + "PoseStamped")
+
+    def v3(x):
+        return R[G + "Vector3"](x=x[0], y=x[1], z=x[2])
+    six = (v[7:10], v[10:13]) if valid else ([0.0] * 3, [0.0] * 3)
+    twist = {"stamp": pose["stamp"], "frame_id": "tip", "linear": v[7:10] if valid else [],
+             "angular": v[10:13] if valid else []}
+    assert ENCODERS.cartesian(T.TWIST_STAMPED, twist) == _ref(R[G + "TwistStamped"](
+        header=_header(pose["stamp"], "tip"), twist=R[G + "Twist"](linear=v3(six[0]), angular=v3(six[1]))),
+        G + "TwistStamped")
+    wrench = {"stamp": pose["stamp"], "frame_id": "base_link", "force": twist["linear"], "torque": twist["angular"]}
+    assert ENCODERS.cartesian(T.WRENCH_STAMPED, wrench) == _ref(R[G + "WrenchStamped"](
+        header=_header(pose["stamp"], "base_link"), wrench=R[G + "Wrench"](force=v3(six[0]), torque=v3(six[1]))),
+        G + "WrenchStamped")
+
+    other = dict(pose, stamp=stamp, frame_id="world", child_frame_id="base_link", position=v[0:3],
+                 orientation=v[3:7])
+    transforms = [R[G + "TransformStamped"](
+        header=_header(p["stamp"], p["frame_id"]), child_frame_id=p["child_frame_id"],
+        transform=R[G + "Transform"](translation=v3(a), rotation=R[G + "Quaternion"](x=b[0], y=b[1], z=b[2], w=b[3])))
+        for p, (a, b) in ((pose, (pos, q)), (other, (v[0:3], v[3:7])))]
+    assert ENCODERS.tf([pose, other]) == _ref(R["tf2_msgs/msg/TFMessage"](transforms=transforms),
+                                              "tf2_msgs/msg/TFMessage")
