@@ -1,10 +1,13 @@
-"""The ROS graph's publishing path in-process (transport/ros): who is subscribed, and the CDR the
-graph puts on the wire. No daemon: Zenoh sessions on loopback endpoints, multicast off."""
+"""The front's Zenoh publishing paths in-process: the ROS graph's (transport/ros: who is
+subscribed, the CDR it puts on the wire) and a remote client's (transport/tunnel: a stalled link
+never holds the event loop). No daemon: Zenoh sessions on loopback endpoints, multicast off."""
 
 from __future__ import annotations
 
 import json
+import threading
 
+import msgspec
 import numpy as np
 import pytest
 import zenoh
@@ -15,6 +18,7 @@ from rosbags.typesys import Stores, get_typestore
 from crtk_bridge.transport.ros import types as T
 from crtk_bridge.transport.ros.periodic import Encoders
 from crtk_bridge.transport.ros.rmw import Node
+from crtk_bridge.transport.tunnel import FRAME_BACKLOG, TunnelSession
 from tests.conftest import free_port, wait_until
 
 # an independent type store (not the project's): the reference serializer
@@ -128,3 +132,53 @@ def test_cartesian_and_tf_templates_encode_as_rosbags(stamp, v, valid):
         for p, (a, b) in ((pose, (pos, q)), (other, (v[0:3], v[3:7])))]
     assert ENCODERS.tf([pose, other]) == _ref(R["tf2_msgs/msg/TFMessage"](transforms=transforms),
                                               "tf2_msgs/msg/TFMessage")
+
+
+class StalledPublisher:
+    """A Zenoh publisher whose link is stalled: ``put`` waits (as congestion control BLOCK does)
+    until ``release`` is set."""
+
+    def __init__(self, log: list, kind: str, release: threading.Event):
+        self.log, self.kind, self.release = log, kind, release
+        self.waiting = threading.Event()
+        self.undeclared = False
+
+    def put(self, data: bytes) -> None:
+        self.waiting.set()
+        assert self.release.wait(10), "never released"
+        self.log.append((self.kind, msgspec.json.decode(data)))
+
+    def undeclare(self) -> None:
+        self.undeclared = True
+
+
+def test_a_stalled_remote_link_never_holds_the_event_loop():
+    """A remote client's replies wait for room on its link on the session's own thread: sending
+    returns at once while the put is stuck; once the link moves, replies and events arrive all
+    and in order, frames beyond the backlog were dropped (never queued without bound), and the
+    publishers are undeclared after the last message went out."""
+    release = threading.Event()
+    log: list = []
+    replies, frames = StalledPublisher(log, "reply", release), StalledPublisher(log, "frame", release)
+    s = TunnelSession(1, "0123456789abcdef", replies, frames)
+    try:
+        s.send({"id": 1, "ok": True})
+        assert replies.waiting.wait(5)  # the sender thread is stuck in the put
+        for i in range(FRAME_BACKLOG + 50):  # all of this returns while the link is stalled
+            s.send_frame({"sub": 1, "data": i})
+        s.send({"event": "operating_state", "data": {"state": "ENABLED"}})
+        s.send({"id": 2, "ok": True})
+        assert not release.is_set() and log == []
+        assert s.dropped > 0
+        s.close()
+        release.set()
+        wait_until(lambda: replies.undeclared and frames.undeclared, 5, what="publishers undeclared after the last put")
+    finally:
+        release.set()
+    kinds = [k for k, _ in log]
+    assert [m for k, m in log if k == "reply"] == [{"id": 1, "ok": True},
+                                                   {"event": "operating_state", "data": {"state": "ENABLED"}},
+                                                   {"id": 2, "ok": True}]
+    sent_frames = [m["data"] for k, m in log if k == "frame"]
+    assert sent_frames == list(range(len(sent_frames))) and len(sent_frames) + s.dropped == FRAME_BACKLOG + 50
+    assert kinds[0] == "reply" and kinds[-2:] == ["reply", "reply"]  # the order the server sent
