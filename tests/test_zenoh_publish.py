@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from rosbags.typesys import Stores, get_typestore
 
+from crtk_bridge.core.snapshot import Layout, SnapshotBuffer
 from crtk_bridge.transport.ros import types as T
 from crtk_bridge.transport.ros.periodic import Encoders
 from crtk_bridge.transport.ros.rmw import Node
@@ -182,3 +183,21 @@ def test_a_stalled_remote_link_never_holds_the_event_loop():
     sent_frames = [m["data"] for k, m in log if k == "frame"]
     assert sent_frames == list(range(len(sent_frames))) and len(sent_frames) + s.dropped == FRAME_BACKLOG + 50
     assert kinds[0] == "reply" and kinds[-2:] == ["reply", "reply"]  # the order the server sent
+
+
+def test_the_publishing_thread_copies_the_state_without_the_statistics_rings():
+    """SnapshotBuffer.read(upto=): the periodic topics' one read per tick copies the joint state
+    and counters (a few hundred bytes), not the 16 KiB of lateness and compute rings."""
+    snap = SnapshotBuffer(Layout(6, 2), create=True)
+    try:
+        snap.begin()
+        snap.data[:] = np.arange(snap.data.size)
+        snap.end()
+        upto = snap.layout.slices["lateness"].start
+        out = np.full_like(snap.data, -1.0)
+        got, seq = snap.read(out, upto=upto)
+        assert got is out and seq == 2
+        assert np.array_equal(out[:upto], np.arange(upto)) and np.all(out[upto:] == -1.0)
+        assert snap.layout.slices["cycles"].stop <= upto
+    finally:
+        snap.close(unlink=True)

@@ -127,8 +127,10 @@ class PeriodicTopics:
         self.period_s = 1.0 / rate_hz
         self.robot = robot
         self.encoders = Encoders()
-        self._buf = np.empty_like(link.snap.data)  # this thread's copy of the snapshot
-        self._cycles = link.snap.layout.slices["cycles"].start
+        self._buf = np.zeros_like(link.snap.data)  # this thread's copy of the snapshot
+        slices = link.snap.layout.slices
+        self._cycles = slices["cycles"].start
+        self._state_size = slices["lateness"].start  # the state and counters, not the statistics rings
         self._last_cycle = -1.0
         self._periodic = [p for (ns, topic), p in pubs.items()
                           if topic in JOINT_TOPICS or topic in CARTESIAN_TOPICS or topic in ("joint_states", "tf")]
@@ -170,7 +172,7 @@ class PeriodicTopics:
         False when nobody subscribes or the loop published no new cycle since the last tick."""
         if not any(p.wanted for p in self._periodic):
             return False
-        buf, _ = self.link.snap.read(self._buf)
+        buf, _ = self.link.snap.read(self._buf, upto=self._state_size)
         if buf[self._cycles] == self._last_cycle:
             return False
         self._last_cycle = buf[self._cycles]
