@@ -10,8 +10,8 @@ frame (the virtual bus stamps a frame when it is sent). Reports:
   ``wait_cycle``, then read -> step -> write), beside a
   bare ``bus.send_periodic`` of the same SYNC frame at the same rate on the same interface
   (python-can's own periodic thread). Alternated, ``--rounds`` times each; ratio = backend / bare.
-* CAN frames per cycle in steady state, beside the minimum: 1 SYNC + RPDOs + TPDOs (heartbeats
-  counted apart: they are not cycle traffic).
+* CAN frames per cycle in steady state, beside the minimum: 1 SYNC + RPDOs + TPDOs (heartbeats,
+  the drives' and the master's own, counted apart: they are not cycle traffic).
 * The highest loop rate (of a doubling sweep) with no missed TPDO over ``--seconds``.
 
 Figures only; nothing is asserted. Usage:
@@ -124,6 +124,9 @@ def main(argv=None) -> int:
     tap = Tap()
     notifier = can.Notifier(tap_bus, [tap], timeout=0.05)
     sync_msg = can.Message(arbitration_id=SYNC, data=b"", is_extended_id=False)
+    master_cob = 0x700 + backend.config.master_node_id
+    # the bare master produces its heartbeat too (the drives watch it: 0x1016), on its own thread
+    master_hb = can.Message(arbitration_id=master_cob, data=b"\x05", is_extended_id=False)
     try:
         enable(c, backend, fb, period)
         loop_j, bare_j, loop_frames = [], [], []
@@ -136,8 +139,10 @@ def main(argv=None) -> int:
             # the bare baseline: python-can's periodic SYNC (the drives answer it too; the
             # backend's loop is idle meanwhile, as a free-running master would be)
             task = sender.send_periodic(sync_msg, period)
+            hb_task = sender.send_periodic(master_hb, backend.config.master_heartbeat_ms / 1000.0)
             time.sleep(args.seconds)
             task.stop()
+            hb_task.stop()
             bare_j.append(jitter(tap.take(), period))
         lj, bj = np.concatenate(loop_j) * 1e3, np.concatenate(bare_j) * 1e3
         print(f"\nSYNC period jitter at {args.rate:g} Hz (|period - {period * 1e3:g} ms|), alternating "
@@ -151,14 +156,15 @@ def main(argv=None) -> int:
 
         frames = [f for fs in loop_frames for f in fs]
         syncs = sum(1 for _, cid in frames if cid == SYNC)
-        heartbeats = sum(1 for _, cid in frames if 0x700 <= cid < 0x780)
-        cycle = len(frames) - heartbeats
+        heartbeats = sum(1 for _, cid in frames if 0x700 <= cid < 0x780 and cid != master_cob)
+        master = sum(1 for _, cid in frames if cid == master_cob)
+        cycle = len(frames) - heartbeats - master
         rpdos = sum(2 if d.rpdo2 is not None else 1 for d in backend.drives)
         tpdos = 2 * backend.n
         minimum = 1 + rpdos + tpdos
         print(f"\nCAN frames per cycle (ENABLED, holding): {cycle / syncs:.2f}  "
               f"minimum {minimum} (1 SYNC + {rpdos} RPDOs + {tpdos} TPDOs)   "
-              f"+ heartbeats {heartbeats / syncs:.3f} per cycle")
+              f"+ heartbeats: the drives' {heartbeats / syncs:.3f}, the master's {master / syncs:.3f} per cycle")
     finally:
         notifier.stop()
         tap_bus.shutdown()

@@ -455,3 +455,57 @@ def test_cst_without_effort_max_is_capped_at_the_rated_torque(iface):
         r.until(lambda: r.drive(0).target_torque == -1000, 2, "pan torque target -rated")
     finally:
         r.close()
+
+
+# ---------------------------------------------------------------- the master's heartbeat (0x1016)
+def test_each_drive_watches_the_masters_heartbeat_and_stops_when_the_loop_does(iface):
+    """configure writes each drive's heartbeat consumer (0x1016:1) and abort connection option
+    (0x6007) from the profile; the loop's SYNC carries the master's heartbeat, so an enabled
+    drive stays enabled while the loop cycles past the consumer time, and leaves OPERATION
+    ENABLED by itself (EMCY 0x8130, fault reaction) once the loop stops without disabling."""
+    assert Canopen402Backend(load_profile(PROFILE))._consumer_ms == 300  # default: 3 x 100 ms
+    data = profile_data(PROFILE)
+    data["backend"].update(master_node_id=100, master_heartbeat_ms=50, master_heartbeat_timeout_ms=200)
+    r = CanRig(iface, data)
+    try:
+        c = r.start()
+        for d in r.backend.drives:  # read back over SDO, as any tool would
+            assert d.node.sdo[0x1016][1].raw == (100 << 16) | 200
+            assert d.node.sdo[0x6007].raw == 1  # fault (the default)
+        r.enable()
+        sent = r.backend.stats["heartbeats"]
+        t0 = time.monotonic()
+        r.until(lambda: time.monotonic() - t0 > 0.4, 2, "twice the consumer time of cycling")
+        assert r.backend.stats["heartbeats"] - sent >= 4  # one per 50 ms, riding the SYNC
+        assert c.state is S.ENABLED and all(r.drive(i).state.name == "OPERATION_ENABLED" for i in range(2))
+        stopped = time.monotonic()  # the loop stops here, drives enabled (a killed control process)
+        wait_until(lambda: all(r.drive(i).state.name != "OPERATION_ENABLED" for i in range(2)), 0.2 + 1.0,
+                   interval=0.002, what="the drives leaving OPERATION ENABLED without the master")
+        took = time.monotonic() - stopped
+        assert took >= 0.2 - 0.05 - 0.02  # not before the consumer time after the last heartbeat
+        for i in range(2):
+            assert r.drive(i).error_code == 0x8130  # heartbeat lost (CiA 301), the fault reaction
+            assert r.drive(i).state.name in ("FAULT_REACTION_ACTIVE", "FAULT")
+    finally:
+        r.close()
+
+
+def test_a_clean_close_stops_the_drives_watching_the_master(rig):
+    rig.cycle(3)
+    assert all(rig.drive(i)._param(0x1016, 1) == (127 << 16) | 300 for i in range(2))
+    rig.backend.close()  # disabled, so no EMCY 0x8130 FAULT is left behind for the next start
+    assert all(rig.drive(i)._param(0x1016, 1) == 0 for i in range(2))
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("master_heartbeat_ms", 0, r"backend.master_heartbeat_ms: 0 would switch the master's heartbeat off"),
+    ("master_node_id", 2, r"backend.master_node_id: 2 is also joints\[1\] \(tilt\).node_id"),
+    ("master_heartbeat_timeout_ms", 103, r"backend.master_heartbeat_timeout_ms: 103 must be longer than "
+                                         r"backend.master_heartbeat_ms \(100\) plus one loop period \(4 ms\)"),
+    ("abort_connection_option", "none", r"backend.abort_connection_option"),
+])
+def test_master_heartbeat_keys_are_checked(key, value, message):
+    data = profile_data(PROFILE)
+    data["backend"][key] = value
+    with pytest.raises(ProfileError, match=message):
+        Canopen402Backend(parse_profile(data))

@@ -183,3 +183,47 @@ def test_adapter_bus_off_faults_and_enable_recovers_once_it_passes_again(rig, da
         assert arm.enable(5.0) and arm.is_enabled()
     finally:
         raw.close()
+
+
+def test_drives_stop_by_themselves_when_the_control_process_is_killed(short_tmp):
+    """kill -9 of the control process while ENABLED: nothing disables the drives, yet they leave
+    OPERATION ENABLED within their heartbeat consumer time (0x1016, written by the backend), with
+    EMCY 0x8130. The simulator runs here, not under the daemon, so it outlives it."""
+    import os
+    import signal
+
+    import yaml
+
+    from crtk_bridge.profile import load_profile
+    from crtk_bridge.sim.canopen402 import CanopenSimulator
+
+    from .conftest import profile_data
+    from .test_e2e_processes import _control_pid
+
+    sim = CanopenSimulator.from_profile(load_profile(PROFILE), link=short_tmp / "can")
+    sim.start()
+    try:
+        data = profile_data(PROFILE)
+        data["backend"].update(interface="slcan", channel=sim.port, options={"sleep_after_open": 0},
+                               tpdo_timeout_ms=50)
+        profile = short_tmp / "p.yaml"
+        profile.write_text(yaml.safe_dump(data))
+        daemon = DaemonProcess(["--profile", str(profile)], short_tmp / "d.sock", short_tmp / "d.log")
+        try:
+            robot = connect(socket=str(daemon.socket_path))
+            try:
+                assert robot.device(NS).enable(5.0)
+                assert {d.state.name for d in sim.drives.values()} == {"OPERATION_ENABLED"}
+                os.kill(_control_pid(daemon.proc.pid), signal.SIGKILL)
+                killed = time.monotonic()
+                wait_until(lambda: all(d.state.name != "OPERATION_ENABLED" for d in sim.drives.values()),
+                           0.3 + 2.0, interval=0.005, what="the drives leaving OPERATION ENABLED")
+                took = time.monotonic() - killed
+            finally:
+                robot.close()
+            # heartbeat lost (consumer time 300 ms: 3 x master_heartbeat_ms); 0.27-0.28 s measured
+            assert all(d.error_code == 0x8130 for d in sim.drives.values()), took
+        finally:
+            daemon.stop()
+    finally:
+        sim.stop()

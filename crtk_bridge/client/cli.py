@@ -12,6 +12,7 @@
     crtk-ctl fk 0 0.5 -0.5 0 0          crtk-ctl ik 0.3 0 0.2 0 0.7071 0 0.7071 --seed 0 0 0 0 0
     crtk-ctl calibrate --profile my_arm.yaml           (by hand, robot DISABLED; docs/calibration.md)
     crtk-ctl calibrate --profile my_arm.yaml --import ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm.json
+    crtk-ctl teleop --leader so101_leader --follower so101   (follower ENABLED first; docs/teleop.md)
 
 Cartesian poses are X Y Z (m) then the unit quaternion QX QY QZ QW, the tip frame in the base
 frame; relative commands (_cr) take DX DY DZ [QX QY QZ QW] in the base frame (no quaternion: no
@@ -46,7 +47,7 @@ import numpy as np
 
 from crtk_bridge import __version__, vocabulary
 
-from crtk_bridge.client import calibrate
+from crtk_bridge.client import calibrate, teleop
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.client.device import (
     CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, FRAMES, JS_TOPICS, Device, Robot, connect, encode_pose,
@@ -265,6 +266,24 @@ def build_parser() -> argparse.ArgumentParser:
                         "namespaces named .../gripper)")
     p.add_argument("--import", dest="import_path", metavar="JSON",
                    help="convert this LeRobot calibration file of the same arm instead of sweeping")
+    p = add("teleop", "joint-space teleoperation: the follower robot follows the leader robot's "
+                      "measured positions (interpolate_jp), once the operator aligned them; the "
+                      "follower must be ENABLED; Ctrl-C ends it, the follower holding (docs/teleop.md)")
+    p.add_argument("--leader", required=True, metavar="ROBOT|SOCKET",
+                   help="the leader: a robot name (its default socket, or on the Zenoh network with "
+                        "--zenoh-connect) or a socket path")
+    p.add_argument("--follower", required=True, metavar="ROBOT|SOCKET", help="the follower, as --leader")
+    p.add_argument("--pair", action="append", metavar="LEADER_NS=FOLLOWER_NS",
+                   help="which namespace follows which (repeatable; default: by position)")
+    p.add_argument("--rate", metavar="HZ", type=_positive_float, default=50.0,
+                   help="interpolate_jp samples per second (default 50)")
+    p.add_argument("--tolerance", metavar="RAD", type=_positive_float, default=0.1,
+                   help="alignment: every leader joint this close to the follower's (default 0.1 rad)")
+    p.add_argument("--align", choices=("wait", "move"), default="wait",
+                   help="wait: the operator brings the leader to the follower (default); move: the "
+                        "follower moves to the leader first (move_jp)")
+    p.add_argument("--duration", metavar="S", type=_positive_float, default=None,
+                   help="end after S seconds (default: until Ctrl-C)")
     p = add("events", "print status/warning/error events as they arrive, until Ctrl-C or "
                       "--count events")
     p.add_argument("--count", metavar="N", type=int, default=None, help="stop after N events")
@@ -648,6 +667,38 @@ def _events(robot: Robot, args) -> int:
             return 0
 
 
+def _teleop(args, timeout: float) -> int:
+    """``crtk-ctl teleop``: one line per state change (``--json``: one object) until Ctrl-C,
+    ``--duration`` or an error; the follower holds when it ends."""
+
+    def open_robot(what: str) -> Robot:
+        if args.zenoh_connect:
+            return connect(robot=what, timeout=timeout, zenoh_connect=args.zenoh_connect,
+                           zenoh_config=args.zenoh_config)
+        if "/" in what or what.endswith(".sock"):
+            return connect(socket=what, timeout=timeout)
+        return connect(robot=what, timeout=timeout)
+
+    def show(state: str, message: str) -> None:
+        if args.json:
+            _emit_json({"teleop": state, "message": message})
+        else:
+            print(f"teleop {state}: {_one_line(message)}", flush=True)
+
+    leader = open_robot(args.leader)
+    try:
+        follower = open_robot(args.follower)
+        try:
+            t = teleop.Teleop(leader, follower, pairs=args.pair, rate_hz=args.rate,
+                              tolerance=args.tolerance, align=args.align, on_state=show)
+            t.run(args.duration)
+        finally:
+            follower.close()
+    finally:
+        leader.close()
+    return 0
+
+
 def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
@@ -693,6 +744,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             names = list_robots(args.zenoh_connect, request_timeout, args.zenoh_config)
             _emit_json({"robots": names}) if args.json else print("\n".join(names))
             return 0
+        if args.command == "teleop":
+            return _teleop(args, request_timeout)
         robot = connect(socket=args.socket, robot=args.robot, timeout=request_timeout,
                         zenoh_connect=args.zenoh_connect, zenoh_config=args.zenoh_config)
         return _run(args, robot)

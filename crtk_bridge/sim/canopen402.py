@@ -834,9 +834,11 @@ class Drive402:
             del self._heartbeats[node]
             option = self._param(0x6007, 0)
             self._emcy(EMCY_HEARTBEAT, fault=option == 1, data=bytes([node]))
-            if option == 2:
+            if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE, State.NOT_READY_TO_SWITCH_ON):
+                continue  # a fault stays until the master resets it: neither command leaves it
+            if option == 2:  # the disable voltage command (transitions 7, 9, 10, 12)
                 self._set_state(State.SWITCH_ON_DISABLED)
-            elif option == 3 and self.state is State.OPERATION_ENABLED:
+            elif option == 3 and self.state is State.OPERATION_ENABLED:  # quick stop (11)
                 self._set_state(State.QUICK_STOP_ACTIVE)
 
     # ------------------------------------------------------------------ inspection / injection

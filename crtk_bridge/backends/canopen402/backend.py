@@ -22,6 +22,15 @@ What the library does not do, or does in a way a real-time loop cannot use, is d
 * **Heartbeat consumer** (the library has none): each node's heartbeat is timed here; a node
   silent beyond ``heartbeat_timeout_ms`` is a ``heartbeat_lost`` fault naming it, a node whose
   heartbeat leaves OPERATIONAL (a reboot) a ``nmt_state`` fault.
+* **The master's own heartbeat**, the other way: ``configure`` writes each drive's heartbeat
+  consumer (0x1016:1 = ``master_node_id`` << 16 | ``master_heartbeat_timeout_ms``) and its abort
+  connection option (0x6007, ``abort_connection_option``), and the loop's SYNC sends the master's
+  heartbeat (COB 0x700 + ``master_node_id``, every ``master_heartbeat_ms``) from the cycle's own
+  ``wait_cycle`` on -- no library thread, nothing that outlives the loop. A drive starts watching
+  at the first heartbeat (CiA 301), so the start-up before the loop runs cannot trip it; once the
+  loop is gone (the control process killed, the loop stalled) the drive stops by itself within
+  the consumer time (EMCY 0x8130 and the 0x6007 reaction). A clean ``close`` clears 0x1016:1 of
+  the drives it left disabled, so a normal shutdown does not leave them in FAULT.
 * **EMCY** -> device status FAULT naming the node, the code and its meaning (tables.py).
 * **The CiA 402 state machine** is walked across cycles from ``tables.WALK`` (never the library's
   blocking ``state`` setter): each step sets the controlword the next SYNC carries and looks at
@@ -130,6 +139,12 @@ class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     heartbeat_timeout_ms: Annotated[float, msgspec.Meta(gt=0, le=60000)] = 350.0  # consumer
     tpdo_timeout_ms: Annotated[float, msgspec.Meta(gt=0, le=1000)] | None = None  # None: three loop periods
     sdo_timeout_s: Annotated[float, msgspec.Meta(gt=0, le=10)] = 0.3
+    # the master's (this backend's) heartbeat, which each drive watches (0x1016) so it stops by
+    # itself when the control process dies; it cannot be switched off (0 is refused)
+    master_node_id: Annotated[int, msgspec.Meta(ge=1, le=127)] = 127  # heartbeat COB 0x700 + id
+    master_heartbeat_ms: Annotated[int, msgspec.Meta(ge=0, le=65535)] = 100  # producer period
+    master_heartbeat_timeout_ms: Annotated[int, msgspec.Meta(ge=1, le=65535)] | None = None  # None: 3 x period
+    abort_connection_option: Literal["fault", "disable_voltage", "quick_stop"] | None = "fault"  # 0x6007
 
 
 # ---------------------------------------------------------------- one drive
@@ -246,6 +261,7 @@ class Canopen402Backend(Actuator):
             raise ProfileError(f"{source}: backend.heartbeat_timeout_ms: {cfg.heartbeat_timeout_ms} must be "
                                f"longer than backend.heartbeat_ms ({cfg.heartbeat_ms})")
         keys = joint_keys(profile, DriveJoint, "canopen402", source)
+        self._consumer_ms = self._check_master_heartbeat(cfg, profile, keys, source)
         seen: dict[int, str] = {}
         for i, (j, k) in enumerate(zip(profile.joints, keys)):
             if k.node_id in seen:
@@ -265,6 +281,11 @@ class Canopen402Backend(Actuator):
         self._tpdo_timeout_s = (cfg.tpdo_timeout_ms / 1000.0 if cfg.tpdo_timeout_ms is not None
                                 else 3 * self._period_s)
         self._hb_timeout_s = cfg.heartbeat_timeout_ms / 1000.0
+        # the master's heartbeat: sent by _sync_out once the loop's wait_cycle has run
+        self._master_hb_cob = t.HEARTBEAT_COB_BASE + cfg.master_node_id
+        self._master_hb_data = bytes([t.NMT_OPERATIONAL])
+        self._master_hb_period_s = cfg.master_heartbeat_ms / 1000.0
+        self._master_hb_due: float | None = None  # monotonic time the next one is due; None: not yet
         self._joint_caps = [self.capabilities] * self.n
         self._network: canopen.Network | None = None
         self._rx_event = threading.Event()
@@ -283,7 +304,32 @@ class Canopen402Backend(Actuator):
         self._paused_by_us = False
         self._details: dict[str, Any] = {}
         #: statistics for bench/ (counted in read / write)
-        self.stats = {"syncs": 0, "rpdos": 0, "tpdos_missed": 0, "reads": 0}
+        self.stats = {"syncs": 0, "rpdos": 0, "tpdos_missed": 0, "reads": 0, "heartbeats": 0}
+
+    @staticmethod
+    def _check_master_heartbeat(cfg: Config, profile: Profile, keys: list[DriveJoint], source: str) -> int:
+        """The drives' consumer time (ms) for the master's heartbeat, after checking its keys.
+        Raises ProfileError naming the key."""
+        if cfg.master_heartbeat_ms == 0:
+            raise ProfileError(
+                f"{source}: backend.master_heartbeat_ms: 0 would switch the master's heartbeat off, and "
+                f"a drive would then stay enabled when the control process dies; not offered (give a "
+                f"period in ms, default 100)")
+        for i, (j, k) in enumerate(zip(profile.joints, keys)):
+            if k.node_id == cfg.master_node_id:
+                raise ProfileError(f"{source}: backend.master_node_id: {cfg.master_node_id} is also joints[{i}] "
+                                   f"({j.name}).node_id; the master needs a node id of its own")
+        consumer = cfg.master_heartbeat_timeout_ms
+        if consumer is None:
+            consumer = min(3 * cfg.master_heartbeat_ms, 65535)
+        # the heartbeat goes with the cycle's SYNC: at most a loop period late
+        period_ms = 1000.0 / profile.loop.rate_hz
+        if consumer <= cfg.master_heartbeat_ms + period_ms:
+            raise ProfileError(
+                f"{source}: backend.master_heartbeat_timeout_ms: {consumer} must be longer than "
+                f"backend.master_heartbeat_ms ({cfg.master_heartbeat_ms}) plus one loop period "
+                f"({period_ms:.3g} ms), or a drive would fault on a heartbeat that is merely on time")
+        return consumer
 
     # ------------------------------------------------------------------ sim wiring
     @classmethod
@@ -421,7 +467,9 @@ class Canopen402Backend(Actuator):
             raise BackendError(f"{self.robot}: {d.label}: reading 0x{index:04X}:{sub} on {self._where} "
                                f"failed: {exc}") from exc
 
-    def _sdo_write(self, d: _Drive, index: int, value: int, sub: int = 0) -> None:
+    def _sdo_write(self, d: _Drive, index: int, value: int, sub: int = 0, key: str = "") -> None:
+        """Write one object over SDO; ``key``: the profile key the value comes from (named in
+        the error). Blocks. Raises BackendError naming the node and the object."""
         try:
             if sub == 0:
                 d.node.sdo[index].raw = value
@@ -429,7 +477,7 @@ class Canopen402Backend(Actuator):
                 d.node.sdo[index][sub].raw = value
         except (SdoError, can.CanError, KeyError, ValueError) as exc:
             raise BackendError(f"{self.robot}: {d.label}: writing 0x{index:04X}:{sub} = {value} on "
-                               f"{self._where} failed: {exc}") from exc
+                               f"{self._where} failed{f' ({key})' if key else ''}: {exc}") from exc
 
     def _identify(self, d: _Drive) -> None:
         device_type = self._sdo_read(d, t.DEVICE_TYPE)
@@ -483,6 +531,7 @@ class Canopen402Backend(Actuator):
         node = d.node
         node.nmt.state = "PRE-OPERATIONAL"
         self._sdo_write(d, t.HEARTBEAT_PRODUCER, self.config.heartbeat_ms)
+        self._watch_master(d)
         try:
             self._map_pdos(d)
         except (SdoError, can.CanError, KeyError, ValueError) as exc:
@@ -503,6 +552,42 @@ class Canopen402Backend(Actuator):
         d.started_t = d.hb_t = time.monotonic()
         d.nmt = t.NMT_OPERATIONAL
         d.rebooted = False
+
+    def _watch_master(self, d: _Drive) -> None:
+        """The drive watches the master's heartbeat (0x1016:1) and reacts to its loss as
+        ``abort_connection_option`` says (0x6007); both read back, since a drive may clamp or
+        ignore a value. Blocks (SDO). Raises BackendError naming the node, object and key."""
+        cfg = self.config
+        entry = t.heartbeat_consumer_entry(cfg.master_node_id, self._consumer_ms)
+        key = "backend.master_node_id / master_heartbeat_timeout_ms: the drive's heartbeat consumer"
+        self._sdo_write(d, t.HEARTBEAT_CONSUMER, entry, 1, key)
+        checks = [(t.HEARTBEAT_CONSUMER, 1, entry, key)]
+        if cfg.abort_connection_option is not None:
+            option = t.ABORT_CONNECTION_OPTIONS[cfg.abort_connection_option]
+            key = f"backend.abort_connection_option: {cfg.abort_connection_option}"
+            self._sdo_write(d, t.ABORT_CONNECTION_OPTION, option, 0, key)
+            checks.append((t.ABORT_CONNECTION_OPTION, 0, option, key))
+        for index, sub, want, key in checks:
+            got = self._sdo_read(d, index, sub)
+            if got != want:
+                raise BackendError(f"{self.robot}: {d.label}: 0x{index:04X}:{sub} reads back 0x{got:X} after "
+                                   f"writing 0x{want:X} ({key}); the drive would not stop by itself when "
+                                   f"the master is gone")
+
+    def _unwatch_master(self) -> None:
+        """Clean close: drives left disabled stop watching the master's heartbeat (0x1016:1 = 0),
+        so a daemon that shut down properly leaves no EMCY 0x8130 FAULT behind; a drive still
+        enabled (or unknown) keeps watching and stops itself. Best effort, blocks (SDO)."""
+        if self._network is None or self._bus_down is not None:
+            return
+        for d in self.drives:
+            if d.node is None or not d.v or d.state in (None, State402.OPERATION_ENABLED,
+                                                        State402.QUICK_STOP_ACTIVE):
+                continue
+            try:
+                d.node.sdo[t.HEARTBEAT_CONSUMER][1].raw = 0
+            except (SdoError, can.CanError, KeyError, ValueError):
+                pass
 
     def _map_pdos(self, d: _Drive) -> None:
         """RPDO1 = controlword + target position + mode; RPDO2 = target velocity + target torque
@@ -770,6 +855,12 @@ class Canopen402Backend(Actuator):
             self._network.sync.transmit()
             self.stats["syncs"] += 1
             self._sync_fresh = True
+            due = self._master_hb_due
+            if due is not None and self._sync_t >= due:  # the master's heartbeat rides the SYNC
+                self._network.send_message(self._master_hb_cob, self._master_hb_data)
+                self.stats["heartbeats"] += 1
+                due += self._master_hb_period_s  # on its own grid, unless a stall put it behind
+                self._master_hb_due = due if due > self._sync_t else self._sync_t + self._master_hb_period_s
         except (can.CanError, OSError) as exc:
             self._bus_down = f"send failed: {exc}"
 
@@ -780,8 +871,11 @@ class Canopen402Backend(Actuator):
     def wait_cycle(self, timeout_s: float) -> bool:
         """The loop's sleep: until the next tick of this backend's SYNC schedule (absolute, so the
         SYNC period does not drift with the cycle's work), then the SYNC at once -- the first
-        thing of the cycle, so its jitter is the wake-up's alone. Restarts the schedule when the
-        loop fell a period behind. Always True."""
+        thing of the cycle, so its jitter is the wake-up's alone (and the master's heartbeat with
+        it when due: the first call starts it). Restarts the schedule when the loop fell a period
+        behind. Always True."""
+        if self._master_hb_due is None:
+            self._master_hb_due = 0.0
         now = time.perf_counter()
         tick = self._tick
         if tick is None or now - tick > self._period_s:
@@ -1034,4 +1128,6 @@ class Canopen402Backend(Actuator):
                 pass
 
     def _close_hook(self) -> None:
+        self._unwatch_master()
+        self._master_hb_due = None
         self._disconnect()

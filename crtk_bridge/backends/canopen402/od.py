@@ -58,6 +58,7 @@ def standard_402() -> od.ObjectDictionary:
         ("Position actual value", t.POSITION_ACTUAL, od.INTEGER32, _RO),
         ("Velocity actual value", t.VELOCITY_ACTUAL, od.INTEGER32, _RO),
         ("Following error window", t.FOLLOWING_ERROR_WINDOW, od.UNSIGNED32),
+        ("Abort connection option code", t.ABORT_CONNECTION_OPTION, od.INTEGER16),
         ("Target torque", t.TARGET_TORQUE, od.INTEGER16),
         ("Motor rated torque", t.RATED_TORQUE, od.UNSIGNED32),
         ("Torque actual value", t.TORQUE_ACTUAL, od.INTEGER16, _RO),
@@ -74,6 +75,10 @@ def standard_402() -> od.ObjectDictionary:
     for sub, name in enumerate(("Vendor-ID", "Product code", "Revision number", "Serial number"), 1):
         identity.add_member(_var(name, t.IDENTITY, od.UNSIGNED32, _RO, sub))
     d.add_object(identity)
+    consumer = ODRecord("Consumer heartbeat time", t.HEARTBEAT_CONSUMER)
+    consumer.add_member(_var("Highest sub-index supported", t.HEARTBEAT_CONSUMER, od.UNSIGNED8, _RO, 0, 1))
+    consumer.add_member(_var("Consumer heartbeat time 1", t.HEARTBEAT_CONSUMER, od.UNSIGNED32, _RW, 1))
+    d.add_object(consumer)
     speeds = ODArray("Homing speeds", t.HOMING_SPEEDS)
     speeds.add_member(_var("Number of entries", t.HOMING_SPEEDS, od.UNSIGNED8, _RO, 0, 2))
     speeds.add_member(_var("Speed during search for switch", t.HOMING_SPEEDS, od.UNSIGNED32, _RW, 1))

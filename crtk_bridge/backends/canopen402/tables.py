@@ -20,7 +20,9 @@ from typing import NamedTuple
 # ---------------------------------------------------------------- objects (CiA 301 / CiA 402)
 DEVICE_TYPE = 0x1000  # U32; low 16 bits = device profile number (402)
 ERROR_REGISTER = 0x1001
+HEARTBEAT_CONSUMER = 0x1016  # sub 1..n U32: monitored node id << 16 | consumer time in ms (CiA 301 7.5.2.33)
 HEARTBEAT_PRODUCER = 0x1017  # U16 ms
+HEARTBEAT_COB_BASE = 0x700  # a node's heartbeat (NMT error control) COB-ID: 0x700 + node id
 IDENTITY = 0x1018
 CONTROLWORD = 0x6040  # U16
 STATUSWORD = 0x6041  # U16
@@ -40,6 +42,7 @@ HOMING_ACCELERATION = 0x609A  # U32
 HOME_OFFSET = 0x607C  # I32 counts
 ERROR_CODE = 0x603F  # U16
 FOLLOWING_ERROR_WINDOW = 0x6065  # U32 counts
+ABORT_CONNECTION_OPTION = 0x6007  # I16: the drive's reaction to a lost connection (heartbeat), below
 
 DEVICE_PROFILE_402 = 402
 
@@ -47,6 +50,16 @@ DEVICE_PROFILE_402 = 402
 NMT_STATE_NAMES = {0x00: "BOOT-UP", 0x04: "STOPPED", 0x05: "OPERATIONAL", 0x7F: "PRE-OPERATIONAL"}
 NMT_OPERATIONAL = 0x05
 NMT_BOOTUP = 0x00
+
+#: 0x6007 "abort connection option code" (CiA 402-2 6.4.1): what a drive does when it loses the
+#: master (its heartbeat consumer times out; it also sends EMCY 0x8130). 0 "no action" is not
+#: offered: a drive left by a dead control process must stop.
+ABORT_CONNECTION_OPTIONS = {"fault": 1, "disable_voltage": 2, "quick_stop": 3}
+
+
+def heartbeat_consumer_entry(node_id: int, time_ms: int) -> int:
+    """A 0x1016 entry: watch node ``node_id``'s heartbeat, ``time_ms`` at most between two."""
+    return (node_id & 0x7F) << 16 | (time_ms & 0xFFFF)
 
 
 # ---------------------------------------------------------------- the state machine (CiA 402-2 6.2)

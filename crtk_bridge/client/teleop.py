@@ -1,0 +1,248 @@
+"""Leader -> follower teleoperation in joint space, as a client of two daemons (``crtk-ctl teleop``).
+
+A leader arm (e.g. the SO-101 leader, torque off, moved by hand) is read with ``measured_js``; its
+positions are streamed to the follower with ``interpolate_jp`` (the follower's daemon interpolates
+the stream with its own velocity bounds, clips to its joint limits and refuses a step beyond
+``safety.servo_step_max``). The states are dVRK's teleoperation component's:
+
+``SETTING_ARMS_STATE``
+    both daemons answer; the follower is ENABLED (teleop never enables a robot: it refuses with
+    the command that does); namespaces are paired (by position, or as given) with equal joint
+    counts; control of the follower is taken (``acquire``).
+``ALIGNING``
+    nothing is sent to the follower until, on every paired joint, the leader's measured position
+    is within ``tolerance`` (rad) of the follower's: the operator brings the leader to the
+    follower. With ``align="move"`` the follower is moved to the leader instead, once, by a
+    ``move_jp`` (a motion the operator asked for; bounded by the follower's limits).
+``ENABLED``
+    following: one ``interpolate_jp`` per namespace per tick at ``rate_hz``.
+
+Back to ALIGNING, with the follower holding (``hold``), when the leader's data turns invalid
+(stamp 0), the follower refuses a step (the leader jumped), or the follower is PAUSED (it waits
+for ``resume``). It ends, the follower holding, when the follower leaves ENABLED otherwise
+(FAULT, DISABLED), when either daemon goes away (:class:`TeleopError` naming which), on
+``stop()`` or after ``duration`` s. Ending never disables or frees the follower.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from crtk_bridge.client.connection import DaemonConnectionError
+from crtk_bridge.client.device import Device, Robot
+from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
+
+SETTING_ARMS_STATE, ALIGNING, ENABLED, DISABLED = "SETTING_ARMS_STATE", "ALIGNING", "ENABLED", "DISABLED"
+#: how often ALIGNING repeats which joint is still off (s)
+_ALIGN_REPORT_S = 1.0
+
+
+class TeleopError(CrtkBridgeError):
+    """Teleoperation cannot start or had to end; the message names the robot and namespace."""
+
+
+@dataclass(frozen=True)
+class Pair:
+    leader: Device
+    follower: Device
+
+    def __str__(self) -> str:
+        return f"{self.leader.name} -> {self.follower.name}"
+
+
+def pair_namespaces(leader: Robot, follower: Robot, pairs: list[str] | None = None) -> list[Pair]:
+    """The namespaces to pair: ``pairs`` as ``"LEADER_NS=FOLLOWER_NS"``, else every namespace of
+    the leader with the follower's at the same position. Each pair must have the same number of
+    joints (joint i follows joint i). Raises :class:`TeleopError` naming what does not match."""
+    if pairs:
+        out = []
+        for text in pairs:
+            lead_ns, sep, follow_ns = text.partition("=")
+            if not sep or not lead_ns or not follow_ns:
+                raise TeleopError(f"--pair {text!r}: expected LEADER_NS=FOLLOWER_NS")
+            try:
+                out.append(Pair(leader.device(lead_ns), follower.device(follow_ns)))
+            except KeyError as exc:
+                raise TeleopError(f"--pair {text!r}: {exc.args[0]}") from None
+    else:
+        if len(leader.namespaces) != len(follower.namespaces):
+            raise TeleopError(
+                f"leader {leader.name!r} has namespaces {leader.namespaces}, follower {follower.name!r} "
+                f"has {follower.namespaces}: say which follow which with --pair LEADER_NS=FOLLOWER_NS")
+        out = [Pair(leader.device(a), follower.device(b)) for a, b in zip(leader.namespaces, follower.namespaces)]
+    for p in out:
+        if len(p.leader.joint_names) != len(p.follower.joint_names):
+            raise TeleopError(f"{p}: the leader has {len(p.leader.joint_names)} joints "
+                              f"({', '.join(p.leader.joint_names)}), the follower {len(p.follower.joint_names)} "
+                              f"({', '.join(p.follower.joint_names)})")
+        if not p.follower.supports("interpolate_jp"):
+            raise TeleopError(f"{p.follower.name}: the follower does not offer interpolate_jp")
+    return out
+
+
+class Teleop:
+    """Joint-space teleoperation of ``follower`` by ``leader`` (see the module's docstring).
+    ``on_state(state, message)`` is called on every state change and with ALIGNING's progress."""
+
+    def __init__(self, leader: Robot, follower: Robot, *, pairs: list[str] | None = None,
+                 rate_hz: float = 50.0, tolerance: float = 0.1, align: str = "wait",
+                 on_state: Callable[[str, str], None] | None = None):
+        if leader.connection.path == follower.connection.path:
+            raise TeleopError(f"the leader and the follower are the same daemon ({leader.connection.path})")
+        if not (rate_hz > 0 and np.isfinite(rate_hz)):
+            raise TeleopError(f"rate must be a finite number > 0 (Hz), got {rate_hz}")
+        if not (tolerance > 0 and np.isfinite(tolerance)):
+            raise TeleopError(f"tolerance must be a finite number > 0 (rad), got {tolerance}")
+        if align not in ("wait", "move"):
+            raise TeleopError(f"align must be 'wait' or 'move', got {align!r}")
+        self.leader, self.follower = leader, follower
+        self.pairs = pair_namespaces(leader, follower, pairs)
+        self.period = 1.0 / rate_hz
+        self.tolerance = float(tolerance)
+        self.align = align
+        self.state = DISABLED
+        self._on_state = on_state or (lambda state, message: None)
+        self._stop = threading.Event()
+        self._last_report = 0.0
+
+    # -- control from another thread -------------------------------------------------------
+    def stop(self) -> None:
+        """End :meth:`run` at its next tick (the follower holds)."""
+        self._stop.set()
+
+    # -- the loop --------------------------------------------------------------------------
+    def run(self, duration: float | None = None) -> None:
+        """Teleoperate until :meth:`stop`, ``duration`` s, or an error (:class:`TeleopError`,
+        after the follower was told to hold). Ends in state DISABLED."""
+        end = None if duration is None else time.monotonic() + duration
+        try:
+            self._set(SETTING_ARMS_STATE, f"{self.leader.name} -> {self.follower.name}: "
+                                          + ", ".join(str(p) for p in self.pairs))
+            self._setting_arms_state()
+            self._set(ALIGNING, self._align_message())
+            tick = time.monotonic()
+            while not self._stop.is_set() and (end is None or time.monotonic() < end):
+                self._step()
+                tick += self.period
+                delay = tick - time.monotonic()
+                if delay > 0:
+                    self._stop.wait(delay)
+                else:  # late (a slow daemon): do not try to catch up with a burst
+                    tick = time.monotonic()
+        finally:
+            if self.state in (ENABLED, ALIGNING):
+                self._hold_all()
+            self._set(DISABLED, "stopped")
+
+    def _setting_arms_state(self) -> None:
+        state = self._follower_call(lambda: self.follower.operating_state())
+        if state != "ENABLED":
+            raise TeleopError(
+                f"follower {self.follower.name!r} is {state}: teleop never enables a robot; enable it first "
+                f"(crtk-ctl --robot {self.follower.name} enable)")
+        self._follower_call(self.follower.acquire)
+
+    def _step(self) -> None:
+        lead = [self._leader_position(p) for p in self.pairs]
+        if self.state == ALIGNING:
+            if any(q is None for q in lead):
+                return
+            follow = [self._follower_call(lambda p=p: p.follower.measured_jp()[0]) for p in self.pairs]
+            worst = self._worst(lead, follow)
+            if worst is None:
+                self._set(ENABLED, "following")
+            elif self.align == "move":
+                self._move_follower(lead)
+            else:
+                self._report_alignment(worst)
+            return
+        if any(q is None for q in lead):
+            self._realign("the leader's measured_js is invalid (stamp 0)")
+            return
+        for p, q in zip(self.pairs, lead):
+            try:
+                self._follower_call(lambda p=p, q=q: p.follower.interpolate_jp(q))
+            except CommandError as exc:
+                self._refused(p, exc)
+                return
+
+    def _leader_position(self, p: Pair) -> np.ndarray | None:
+        try:
+            q, ts = p.leader.measured_jp()
+        except (DaemonConnectionError, ConnectionError, TimeoutError) as exc:
+            raise TeleopError(f"leader {self.leader.name!r} went away: {exc}") from exc
+        return q if ts != 0.0 and len(q) == len(p.leader.joint_names) else None
+
+    def _follower_call(self, fn):
+        try:
+            return fn()
+        except (DaemonConnectionError, ConnectionError, TimeoutError) as exc:
+            raise TeleopError(f"follower {self.follower.name!r} went away: {exc}") from exc
+
+    def _refused(self, p: Pair, exc: CommandError) -> None:
+        if exc.code == "step_too_large":
+            self._realign(f"{p.follower.name} refused the leader's step: {exc.message}")
+            return
+        if exc.code == "invalid_state":
+            state = self._follower_call(lambda: self.follower.operating_state())
+            if state == "PAUSED":
+                self._realign(f"follower {self.follower.name!r} is PAUSED: waiting for resume")
+                return
+            raise TeleopError(f"follower {self.follower.name!r} is {state}: teleop ended") from exc
+        raise TeleopError(f"{p.follower.name}: interpolate_jp refused ({exc.code}): {exc.message}") from exc
+
+    def _realign(self, why: str) -> None:
+        self._hold_all()
+        self._set(ALIGNING, why)
+
+    def _hold_all(self) -> None:
+        for p in self.pairs:
+            try:
+                p.follower.hold()
+            except (CrtkBridgeError, ConnectionError, TimeoutError):
+                pass  # a PAUSED / FAULT / lost follower is stopped by its own daemon
+
+    def _worst(self, lead: list[np.ndarray], follow: list[np.ndarray]) -> tuple[Pair, int, float] | None:
+        """The pair and joint furthest from alignment, when any is beyond the tolerance."""
+        worst = None
+        for p, a, b in zip(self.pairs, lead, follow):
+            err = np.abs(np.asarray(a) - np.asarray(b))
+            j = int(np.argmax(err))
+            if err[j] > self.tolerance and (worst is None or err[j] > worst[2]):
+                worst = (p, j, float(err[j]))
+        return worst
+
+    def _report_alignment(self, worst: tuple[Pair, int, float]) -> None:
+        now = time.monotonic()
+        if now - self._last_report >= _ALIGN_REPORT_S:
+            self._last_report = now
+            p, j, err = worst
+            self._on_state(ALIGNING, f"{p.leader.name} joint {p.leader.joint_names[j]!r} is {fmt_number(err)} rad "
+                                     f"from {p.follower.name} joint {p.follower.joint_names[j]!r} "
+                                     f"(tolerance {fmt_number(self.tolerance)}): move the leader to the follower")
+
+    def _move_follower(self, lead: list[np.ndarray]) -> None:
+        self._on_state(ALIGNING, "moving the follower to the leader (move_jp)")
+        for p, q in zip(self.pairs, lead):
+            try:
+                handle = self._follower_call(lambda p=p, q=q: p.follower.move_jp(q))
+            except CommandError as exc:
+                raise TeleopError(f"{p.follower.name}: cannot move to the leader ({exc.code}): {exc.message}") from exc
+            if not self._follower_call(lambda h=handle: h.wait(timeout=30.0)):
+                raise TeleopError(f"{p.follower.name}: the move to the leader did not end within 30 s")
+        # the leader may have moved meanwhile: the next tick checks the alignment again
+
+    def _align_message(self) -> str:
+        if self.align == "move":
+            return "moving the follower to the leader"
+        return f"waiting until every leader joint is within {fmt_number(self.tolerance)} rad of the follower's"
+
+    def _set(self, state: str, message: str) -> None:
+        self.state = state
+        self._last_report = time.monotonic()
+        self._on_state(state, message)

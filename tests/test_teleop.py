@@ -1,0 +1,167 @@
+"""Leader -> follower teleoperation (crtk_bridge/client/teleop.py, ``crtk-ctl teleop``): two simulated
+SO-101 daemons, the leader DISABLED (torque off) and moved by the simulator's hand, the follower
+ENABLED. Proves: teleop never enables the follower; it sends nothing until the operator aligned
+the leader (the follower does not move toward a far leader); then the follower tracks the
+leader; a leader that goes away ends teleop with an error naming it and the follower holds."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from crtk_bridge.client import connect
+from crtk_bridge.client.teleop import ALIGNING, DISABLED, ENABLED, Teleop, TeleopError
+from crtk_bridge.profile import load_profile
+from crtk_bridge.sim.control import control_request
+
+from .conftest import ROOT, SO101, DaemonProcess, _counts_per_rad, profile_data, wait_until
+
+
+@pytest.fixture(scope="module")
+def rig():
+    d = Path(tempfile.mkdtemp(prefix="crtk-"))
+    data = profile_data(SO101)
+    data["name"] = "so101_leader"
+    leader_profile = d / "leader.yaml"
+    leader_profile.write_text(yaml.safe_dump(data))
+    follower = DaemonProcess(["--profile", str(SO101), "--sim"], d / "f.sock", d / "f.log")
+    try:
+        leader = DaemonProcess(["--profile", str(leader_profile), "--sim"], d / "l.sock", d / "l.log")
+    except BaseException:
+        follower.stop()
+        raise
+    yield leader, follower, load_profile(leader_profile)
+    leader.stop()
+    follower.stop()
+    shutil.rmtree(d, ignore_errors=True)
+
+
+def hand_move(leader: DaemonProcess, profile, joint: str, delta_rad: float) -> None:
+    """Turn the leader's ``joint`` by ``delta_rad`` by hand (its servo is torque off)."""
+    j = next(j for j in profile.joints if j.name == joint)
+    sid = j.backend["id"]
+    ctl = leader.sim_control_path()
+    now = control_request(ctl, {"cmd": "read", "id": sid, "register": "Present_Position"})["value"]
+    target = int(round(now + delta_rad * _counts_per_rad(j)))
+    reply = control_request(ctl, {"cmd": "hand", "id": sid, "position": target, "speed": 3000})
+    assert reply["ok"], reply
+
+
+class Recorder:
+    def __init__(self):
+        self.lines: list[tuple[str, str]] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, state: str, message: str) -> None:
+        with self.lock:
+            self.lines.append((state, message))
+
+    def saw(self, state: str, text: str = "") -> bool:
+        with self.lock:
+            return any(s == state and text in m for s, m in self.lines)
+
+
+def start(teleop: Teleop) -> tuple[threading.Thread, list]:
+    errors: list = []
+
+    def run():
+        try:
+            teleop.run()
+        except BaseException as exc:  # noqa: BLE001 - reported to the test
+            errors.append(exc)
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    return t, errors
+
+
+def test_teleop_refuses_a_disabled_follower_and_never_enables_it(rig):
+    leader, follower, _ = rig
+    with connect(socket=str(leader.socket_path)) as lead, connect(socket=str(follower.socket_path)) as fol:
+        assert fol.device().operating_state() == "DISABLED"
+        with pytest.raises(TeleopError, match=r"follower 'so101' is DISABLED: teleop never enables a robot"):
+            Teleop(lead, fol).run()
+        assert fol.device().operating_state() == "DISABLED"
+
+
+def test_teleop_waits_for_alignment_then_the_follower_tracks_the_leader(rig):
+    leader, follower, profile = rig
+    with connect(socket=str(leader.socket_path)) as lead, connect(socket=str(follower.socket_path)) as fol:
+        arm = fol.device("so101")
+        assert arm.enable(10)
+        rec = Recorder()
+        # 0.3 rad: beyond the tolerance, yet within safety.servo_step_max (0.35), so only teleop's
+        # own alignment check keeps the follower from jumping there
+        hand_move(leader, profile, "elbow_flex", 0.3)
+        wait_until(lambda: abs(lead.device("so101").measured_jp()[0][2] - arm.measured_jp()[0][2]) > 0.28, 5,
+                   what="the leader's elbow 0.3 rad away from the follower's")
+        before = arm.measured_jp()[0]
+        t = Teleop(lead, fol, rate_hz=50, tolerance=0.1, on_state=rec)
+        thread, errors = start(t)
+        try:
+            wait_until(lambda: rec.saw(ALIGNING, "'elbow_flex'"), 5, what="ALIGNING naming elbow_flex")
+            # nothing was sent: the follower did not move toward the far leader
+            assert t.state == ALIGNING
+            assert np.allclose(arm.measured_jp()[0], before, atol=0.02)
+            hand_move(leader, profile, "elbow_flex", -0.3)  # the operator brings the leader back
+            wait_until(lambda: t.state == ENABLED, 5, what="teleop ENABLED once aligned")
+            hand_move(leader, profile, "wrist_flex", 0.3)
+            hand_move(leader, profile, "shoulder_pan", -0.25)
+            lead_arm = lead.device("so101")
+
+            def tracking() -> bool:
+                err = np.abs(arm.measured_jp()[0] - lead_arm.measured_jp()[0])
+                return err.max() < 0.03 and abs(arm.measured_jp()[0][3] - before[3]) > 0.25
+
+            wait_until(tracking, 8, what="the follower at the leader's pose (wrist_flex +0.3, shoulder_pan -0.25)")
+            # the gripper pair follows too
+            hand_move(leader, profile, "gripper", 0.3)
+            wait_until(lambda: abs(fol.device("so101/gripper").measured_jp()[0][0]
+                                   - lead.device("so101/gripper").measured_jp()[0][0]) < 0.03
+                       and abs(fol.device("so101/gripper").measured_jp()[0][0]) > 0.2, 8,
+                       what="the follower's gripper at the leader's")
+        finally:
+            t.stop()
+            thread.join(5)
+        assert not errors, errors
+        assert t.state == DISABLED and arm.operating_state() == "ENABLED"  # ending never disables
+
+
+def test_crtk_ctl_teleop_follows_and_a_lost_leader_ends_it_with_the_follower_holding(rig):
+    leader, follower, profile = rig
+    with connect(socket=str(follower.socket_path)) as fol:
+        arm = fol.device("so101")
+        assert arm.operating_state() == "ENABLED"  # left so by the test before
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "crtk_bridge.client.cli", "teleop", "--leader", str(leader.socket_path),
+             "--follower", str(follower.socket_path), "--align", "move", "--rate", "40"],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=ROOT, text=True)
+        try:
+            lines: list[str] = []
+
+            def read() -> None:
+                for line in proc.stdout:
+                    lines.append(line)
+
+            reader = threading.Thread(target=read, daemon=True)
+            reader.start()
+            wait_until(lambda: any("teleop ENABLED" in x for x in lines), 15, what="crtk-ctl teleop ENABLED")
+            leader.stop()
+            assert proc.wait(10) == 1
+            reader.join(5)
+            out = "".join(lines)
+            assert "leader 'so101_leader' went away" in out, out
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        held = arm.measured_jp()[0]
+        assert arm.operating_state() == "ENABLED"
+        wait_until(lambda: np.allclose(arm.measured_jp()[0], held, atol=0.01), 3, what="the follower holding")
