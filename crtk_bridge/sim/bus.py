@@ -270,6 +270,10 @@ class BusSimulator:
         #: bytes received and sent on the wire since start (for bench/)
         self.rx_bytes = 0
         self.tx_bytes = 0
+        #: bytes received whose packets the servos have acted on and answered (or ignored): a
+        #: client that waits until it reaches what it sent knows the bus has caught up with it,
+        #: whatever the host's load (a reply that will come is out, an unanswered write applied)
+        self.handled_bytes = 0
 
     @staticmethod
     def _servo_keys(profile: Profile) -> list:
@@ -777,6 +781,7 @@ class BusSimulator:
                 replies = self._parse(buf, now)
                 if replies:
                     self._send(master, replies)
+                self.handled_bytes += len(data)
         except Exception:
             log.exception("%s simulator thread died", self.vendor)
             raise
