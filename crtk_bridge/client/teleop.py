@@ -60,7 +60,8 @@ class Pair:
 def pair_namespaces(leader: Robot, follower: Robot, pairs: list[str] | None = None) -> list[Pair]:
     """The namespaces to pair: ``pairs`` as ``"LEADER_NS=FOLLOWER_NS"``, else every namespace of
     the leader with the follower's at the same position. Each pair must have the same number of
-    joints (joint i follows joint i). Raises :class:`TeleopError` naming what does not match."""
+    joints (joint i follows joint i), and a joint name both sides use at the same index. Raises
+    :class:`TeleopError` naming what does not match."""
     if pairs:
         out = []
         for text in pairs:
@@ -82,6 +83,12 @@ def pair_namespaces(leader: Robot, follower: Robot, pairs: list[str] | None = No
             raise TeleopError(f"{p}: the leader has {len(p.leader.joint_names)} joints "
                               f"({', '.join(p.leader.joint_names)}), the follower {len(p.follower.joint_names)} "
                               f"({', '.join(p.follower.joint_names)})")
+        lead, follow = list(p.leader.joint_names), list(p.follower.joint_names)
+        for i, name in enumerate(lead):  # a joint named on both sides must be at the same index
+            if name in follow and follow.index(name) != i:
+                raise TeleopError(f"{p}: leader joint {i} is {name!r}, follower joint {i} is {follow[i]!r} "
+                                  f"('{name}' is follower joint {follow.index(name)}): joint i follows joint i, so "
+                                  f"the profiles must list the joints in the same order")
         if not p.follower.supports("interpolate_jp"):
             raise TeleopError(f"{p.follower.name}: the follower does not offer interpolate_jp")
     return out
