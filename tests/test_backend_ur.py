@@ -18,6 +18,7 @@ from crtk_bridge.backends.ur.backend import UrBackend
 from crtk_bridge.core.actuator import Lifecycle
 from crtk_bridge.core.controller import Controller
 from crtk_bridge.core.state import OperatingState
+from crtk_bridge.errors import ProfileError
 from crtk_bridge.profile import load_profile
 from crtk_bridge.sim import simulator_class
 
@@ -355,6 +356,16 @@ def test_the_simulated_controller_gets_a_silent_link_limit_that_a_loaded_host_do
     longer = msgspec.structs.replace(profile, backend={**profile.backend, "link_timeout_s": 2.0})
     assert UrBackend.sim_profile(longer, "127.0.0.9").backend["link_timeout_s"] == 2.0  # a longer one kept
     assert UrBackend(wired).config.link_timeout_s == 0.5  # a valid profile key
+
+
+def test_the_scripts_watchdog_cannot_be_switched_off():
+    """backend.watchdog_hz: 0 would leave a dead control process's last speedJ running: refused
+    naming the key (CANopen refuses master_heartbeat_ms: 0 alike)."""
+    profile = load_profile(UR5E)
+    off = msgspec.structs.replace(profile, backend={**profile.backend, "watchdog_hz": 0})
+    with pytest.raises(ProfileError, match=r"backend\.watchdog_hz: 0 would switch the control script's RTDE watchdog off"):
+        UrBackend(off)
+    assert UrBackend(msgspec.structs.replace(profile, backend={**profile.backend, "watchdog_hz": 2})).config.watchdog_hz == 2
 
 
 def test_a_speedj_running_into_a_goal_check_is_stopped_by_the_scripts_watchdog(ur):
