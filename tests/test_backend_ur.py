@@ -18,6 +18,7 @@ from crtk_bridge.backends.ur.backend import UrBackend
 from crtk_bridge.core.actuator import Lifecycle
 from crtk_bridge.core.controller import Controller
 from crtk_bridge.core.state import OperatingState
+from crtk_bridge.errors import ProfileError
 from crtk_bridge.profile import load_profile
 from crtk_bridge.sim import simulator_class
 
@@ -357,6 +358,16 @@ def test_the_simulated_controller_gets_link_and_watchdog_limits_that_a_loaded_ho
     own = msgspec.structs.replace(profile, backend={**profile.backend, "link_timeout_s": 0.2, "watchdog_hz": 10.0})
     cfg = UrBackend(UrBackend.sim_profile(own, "127.0.0.9")).config
     assert (cfg.link_timeout_s, cfg.watchdog_hz) == (0.2, 10.0)  # a profile's own values kept
+
+
+def test_the_scripts_watchdog_cannot_be_switched_off():
+    """backend.watchdog_hz: 0 would leave a dead control process's last speedJ running: refused
+    naming the key (CANopen refuses master_heartbeat_ms: 0 alike)."""
+    profile = load_profile(UR5E)
+    off = msgspec.structs.replace(profile, backend={**profile.backend, "watchdog_hz": 0})
+    with pytest.raises(ProfileError, match=r"backend\.watchdog_hz: 0 would switch the control script's RTDE watchdog off"):
+        UrBackend(off)
+    assert UrBackend(msgspec.structs.replace(profile, backend={**profile.backend, "watchdog_hz": 2})).config.watchdog_hz == 2
 
 
 def test_a_speedj_running_into_a_goal_check_is_stopped_by_the_scripts_watchdog(ur):

@@ -163,7 +163,7 @@ class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     link_timeout_s: Annotated[float, msgspec.Meta(gt=0)] = 0.1
     # the control script's RTDE watchdog (ur_rtde setWatchdog): no input from the daemon for
     # 1 / watchdog_hz s stops the script, and the arm (a dead or stalled control process must not
-    # leave a speedJ running); 0: off
+    # leave a speedJ running); it cannot be switched off (0 is refused, as CANopen's master heartbeat)
     watchdog_hz: Annotated[float, msgspec.Meta(ge=0)] = 10.0
 
 
@@ -277,6 +277,10 @@ class UrBackend(Actuator):
         if "host" not in given:
             raise ProfileError(f"{source}: backend.host: required, the UR controller's address (e.g. 192.168.1.10)")
         self.config = cfg = backend_config(profile, Config, source)
+        if cfg.watchdog_hz == 0:
+            raise ProfileError(f"{source}: backend.watchdog_hz: 0 would switch the control script's RTDE watchdog "
+                               f"off, and a dead or stalled control process would then leave the arm following "
+                               f"its last speedJ / servoJ; not offered (give a rate in Hz, default 10)")
         if self.n != N_JOINTS:
             raise ProfileError(f"{source}: joints: a UR arm has {N_JOINTS} joints (base .. wrist 3), "
                                f"the profile lists {self.n}")
