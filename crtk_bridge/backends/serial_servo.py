@@ -7,8 +7,9 @@ with ``ping`` / ``readNByteTxRx`` / ``writeNByteTxRx`` returning ``(value, resul
 * :class:`SerialPortFixes` -- a mixin that fixes both SDKs' serial-port gaps (stale input, busy
   polling, 34 ms packet timeouts, wall-clock deadlines); each vendor's ``port.py`` mixes it into
   its SDK's ``PortHandler``.
-* :class:`LastStatus` -- a mixin that keeps the last status packet a ``PacketHandler`` parsed,
-  so a register read can check the reply's LENGTH field (the SDKs match a reply by id only).
+* :class:`LastStatus` -- a mixin that keeps the status packet of a ``PacketHandler``'s last
+  transaction, so a register read can check the reply's LENGTH field (the SDKs match a reply by
+  id only).
 * :class:`SerialServoBackend` -- profile validation (backend keys; the joints' servo keys,
   ``servo_keys.py``), the tick <-> rad calibration arrays, retried register reads/writes with errors
   naming robot, joint, id, register and port, opening (ping every servo, check its model number),
@@ -70,20 +71,21 @@ COMM_SUCCESS = 0  # the same value in scservo_sdk and dynamixel_sdk
 
 
 class LastStatus:
-    """Mixin for an SDK ``PacketHandler``: keeps the last status packet ``rxPacket`` parsed.
+    """Mixin for an SDK ``PacketHandler``: keeps the status packet of the last request /
+    reply transaction (``txRxPacket``: ping, register reads and writes).
 
     Both SDKs' ``readTxRx`` take any status packet of the right id as the reply and slice its
     parameters to the length asked for, so a late reply to an earlier read (of another register)
     passes for this one. :meth:`status_params` is the parameter count the packet's own LENGTH
-    field gives; the backend compares it with the length it asked for. Keeping a reference costs
-    no allocation. Each vendor fills :meth:`status_params` for its framing."""
+    field gives; the backend compares it with the length it asked for. The group sync read of
+    the real-time path does not go through ``txRxPacket``, so it pays nothing for this."""
 
     last_status: list[int] = []
 
-    def rxPacket(self, port, *args):  # noqa: N802 (SDK name; dynamixel_sdk adds fast_option)
-        rxpacket, result = super().rxPacket(port, *args)  # type: ignore[misc]
-        self.last_status = rxpacket
-        return rxpacket, result
+    def txRxPacket(self, port, txpacket):  # noqa: N802 (SDK name)
+        rxpacket, result, error = super().txRxPacket(port, txpacket)  # type: ignore[misc]
+        self.last_status = rxpacket or []
+        return rxpacket, result, error
 
     def status_params(self) -> int:
         """Parameter bytes of the last status packet per its LENGTH field (-1 if too short)."""
