@@ -143,7 +143,8 @@ def test_a_paused_follower_is_waited_for_and_can_be_resumed_by_the_operator(rig)
     leader, follower, _ = rig
     with connect(socket=str(leader.socket_path)) as lead, connect(socket=str(follower.socket_path)) as fol:
         arm = fol.device("so101")
-        assert arm.operating_state() == "ENABLED"  # left so by the test before
+        if arm.operating_state() != "ENABLED":  # the test before leaves it so; alone, enable it
+            assert arm.enable(10)
         rec = Recorder()
         t = Teleop(lead, fol, rate_hz=50, tolerance=0.1, on_state=rec)
         steps = [0]
