@@ -714,10 +714,14 @@ class Canopen402Backend(Actuator):
                              [d for d in self.drives if not d.missed], want)
         now = time.monotonic()
         missing = self._overdue(now)
+        if missing is not None:
+            self.stats["tpdos_missed"] += 1
+        else:  # a drive that missed and has sent nothing since stays missing in every read, not
+            # only in those that bring a new SYNC due (after a late cycle, several bring none)
+            missing = next((d for d in self.drives if d.missed and sum(d.arrived) == d.heard), None)
         self._decode()
         fault = None
         if missing is not None:
-            self.stats["tpdos_missed"] += 1
             missing.missed += 1
             fault = Fault("tpdo_missing",
                           f"{self.robot}: {missing.label} sent no TPDO answering a SYNC within "
