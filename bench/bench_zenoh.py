@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import socket
 import struct
@@ -185,6 +186,7 @@ def main() -> int:
     ap.add_argument("--window", type=float, default=3.0, help="seconds per measurement window")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="crtk-bench-zenoh-"))
+    load_before = os.getloadavg()[0]  # the host is shared: figures from a loaded one say little
 
     # -- 1. latency: daemon's measured_js vs a bare publisher of the same bytes, alternating --
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -246,8 +248,13 @@ def main() -> int:
             if variants[name] else ""
         print(f"  {name:36s}: p50 {ms(col(rs, 1))}, p99 {ms(col(rs, 0))}; overruns {ovr} of {cyc} cycles{extra}")
     base = float(np.median(col(rows["without Zenoh"], 0)))
+    base_ovr = sum(col(rows["without Zenoh"], 2)) / max(1, sum(col(rows["without Zenoh"], 3)))
     for name in list(variants)[:2]:
-        print(f"  ratio p99 {name} / without: {float(np.median(col(rows[name], 0))) / base:.2f}  (target: ~1)")
+        ovr = sum(col(rows[name], 2)) / max(1, sum(col(rows[name], 3)))
+        print(f"  ratio p99 {name} / without: {float(np.median(col(rows[name], 0))) / base:.2f}  (target: ~1); "
+              f"overruns per cycle: {ovr / base_ovr if base_ovr else float('nan'):.2f}x")
+    print(f"load average (1 min) at start {load_before:.2f}, at end {os.getloadavg()[0]:.2f} (this script's "
+          "own processes included)")
     return 0
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import shutil
 import signal
 import socket
@@ -25,6 +26,7 @@ SO101 = ROOT / "profiles" / "so101.yaml"
 SO101_URDF = ROOT / "profiles" / "urdf" / "so101.urdf"
 KOCH = ROOT / "profiles" / "koch.yaml"
 CANOPEN = ROOT / "profiles" / "canopen_2axis.yaml"
+UR5E = ROOT / "profiles" / "ur5e.yaml"
 
 
 def profile_data(path: Path) -> dict:
@@ -77,10 +79,12 @@ GOAL_MARGIN = 0.1  # rad inside the position limits
 DEFAULT_REQUIRES = ("servo_bus",)
 
 
-def _counts_per_rad(joint) -> float:
-    """Device position units per joint radian, signed by the joint's direction: the backend keys
-    ``counts_per_revolution`` x ``gear_ratio`` when the joint has them, else a 4096-tick servo
-    (both serial profiles' servos)."""
+def _counts_per_rad(joint, row=None) -> float:
+    """Device position units per joint radian, signed by the joint's direction: the row's
+    ``units_per_rad`` (a UR: urad), else the backend keys ``counts_per_revolution`` x
+    ``gear_ratio`` when the joint has them, else a 4096-tick servo (both serial profiles' servos)."""
+    if row is not None and row.units_per_rad is not None:
+        return row.units_per_rad
     keys = joint.backend
     cpr = keys.get("counts_per_revolution", 4096) * keys.get("gear_ratio", 1)
     return keys.get("direction", 1) * cpr / (2 * np.pi)
@@ -146,7 +150,7 @@ class SimRobot:
                    servo_id=device, pos_min=lo, pos_max=hi,
                    vel_max=np.array([j.limits.velocity_max for j in arm]),
                    home=np.array([j.home for j in arm]),
-                   counts_per_rad={str(device[j.name]): _counts_per_rad(j) for j in p.joints},
+                   counts_per_rad={str(device[j.name]): _counts_per_rad(j, row) for j in p.joints},
                    servo_timeout_s=p.safety.servo_timeout_s, rate_hz=float(p.loop.rate_hz), goals=goals,
                    row=row, capabilities=robot_capabilities(p, grip_ns is not None))
 
@@ -178,8 +182,14 @@ class SimRobot:
         return min(k, self.n - 1)
 
     def sim(self, control_path: str) -> RemoteSim:
-        """The robot's simulator behind its control socket, as the conformance row's hooks use it."""
-        return RemoteSim(control_path)
+        """The robot's simulator behind its control socket, as the conformance row's hooks use it
+        (the row's ``remote``, else :class:`RemoteSim`)."""
+        return (self.row.remote or RemoteSim)(control_path)
+
+    def prepare(self, control_path: str) -> None:
+        """The row's ``prepare`` on a simulator just started (quick where the device is slow)."""
+        if self.row.prepare is not None:
+            self.row.prepare(self.sim(control_path))
 
     def torque(self, sim: RemoteSim, ids=None) -> dict[str, bool]:
         """Torque (power stage) on, per device id (every device unless ``ids``)."""
@@ -199,11 +209,13 @@ def robot_capabilities(profile, has_gripper: bool) -> frozenset:
     - ``servo_bus``: the simulator is a serial servo bus (servo registers and the ``servos`` dump);
     - ``fault:<kind>``: a fault kind its simulator injects into one device (``silent``, ...);
     - ``park``: ``shutdown.action: park``;
-    - ``kinematics``: a namespace with a URDF (cartesian commands).
+    - ``kinematics``: a namespace with a URDF (cartesian commands);
+    - ``calibration``: its backend imports another tool's calibration file (``calibrate import``).
     """
     import importlib
 
     from crtk_bridge.backends import backend_class
+    from crtk_bridge.core.actuator import Actuator
     from crtk_bridge.sim import simulator_class
     from crtk_bridge.sim.bus import BusSimulator
 
@@ -217,6 +229,8 @@ def robot_capabilities(profile, has_gripper: bool) -> frozenset:
         caps.add("park")
     if any(ns.kinematics is not None for ns in profile.namespaces):
         caps.add("kinematics")
+    if backend_class(profile.backend_type).calibration_import is not Actuator.calibration_import:
+        caps.add("calibration")
     return frozenset(caps)
 
 
@@ -272,7 +286,7 @@ class _RemoteDevice:
 
 
 SIM_ROBOTS = {r.id: r for r in (SimRobot.load("so101-feetech", SO101), SimRobot.load("koch-dynamixel", KOCH),
-                                SimRobot.load("canopen-2axis", CANOPEN))}
+                                SimRobot.load("canopen-2axis", CANOPEN), SimRobot.load("ur5e", UR5E))}
 
 
 def only_on(*ids: str):
@@ -303,6 +317,9 @@ def sim_robot_params(metafunc) -> list:
 def pytest_configure(config):
     config.addinivalue_line("markers", "requires(*capabilities): the simulated robots a test using sim_robot "
                             "runs on (tests/conftest.py robot_capabilities); none given: servo_bus")
+    config.addinivalue_line("markers", "reuse_daemon: the test leaves its robot as it found it, or in a state "
+                            "sim_daemon can restore (DISABLED, at its start pose, no fault): one daemon per "
+                            "robot per module serves every such test (tests/conftest.py SharedDaemons)")
 
 
 def pytest_generate_tests(metafunc):
@@ -319,24 +336,41 @@ def pytest_generate_tests(metafunc):
 def standalone_sim(robot: SimRobot, tmp: Path):
     """``crtk-sim <device>`` on its own (so what the devices do during and after a daemon's
     shutdown can be read), and a copy of the robot's profile wired to it by its backend
-    (``sim_profile``). Yields (profile path, :class:`RemoteSim`)."""
+    (``sim_profile``): a pty link, or for a simulator on fixed TCP ports (a UR controller) a free
+    127.0.0.N. Yields (profile path, the robot's remote simulator: :meth:`SimRobot.sim`)."""
     import yaml
 
     from crtk_bridge.backends import backend_class
+    from crtk_bridge.sim.loopback import free_loopback_host
 
-    link, control = tmp / "tty", tmp / "sim.sock"
-    cls = backend_class(robot.backend)
-    sim = subprocess.Popen([sys.executable, "-m", "crtk_bridge.sim.cli", cls.simulator.device, "--profile",
-                            str(robot.profile), "--link", str(link), "--control", str(control)],
+    control = tmp / "sim.sock"
+    wiring = backend_class(robot.backend).simulator
+    if wiring.host_ports:
+        endpoint = free_loopback_host(wiring.host_ports)
+        where = ["--host", endpoint]
+
+        def ready() -> bool:
+            with socket.socket() as probe:
+                probe.settimeout(0.5)
+                return control.exists() and probe.connect_ex((endpoint, wiring.host_ports[0])) == 0
+    else:
+        endpoint = str(tmp / "tty")
+        where = ["--link", endpoint]
+
+        def ready() -> bool:
+            return Path(endpoint).exists() and control.exists()
+    sim = subprocess.Popen([sys.executable, "-m", "crtk_bridge.sim.cli", wiring.device, "--profile",
+                            str(robot.profile), *where, "--control", str(control), "--parent-pid", str(os.getpid())],
                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=ROOT)
     try:
-        wait_until(lambda: link.exists() and control.exists() or sim.poll() is not None, 15, what="simulator link")
+        wait_until(lambda: ready() or sim.poll() is not None, 15, what="simulator endpoint")
         assert sim.poll() is None, sim.stderr.read().decode()
+        robot.prepare(str(control))
         data = robot.data()
-        data["backend"] = dict(cls.sim_profile(load_profile(robot.profile), str(link)).backend)
+        data["backend"] = dict(backend_class(robot.backend).sim_profile(load_profile(robot.profile), endpoint).backend)
         profile = tmp / "sim-profile.yaml"
         profile.write_text(yaml.safe_dump(data))
-        yield profile, RemoteSim(str(control))
+        yield profile, robot.sim(str(control))
     finally:
         sim.terminate()
         sim.wait(10)
@@ -373,6 +407,13 @@ class DaemonProcess:
     def output(self) -> str:
         self._log.flush()
         return self.log_path.read_text(errors="replace")
+
+    def print_tail(self, lines: int = 30) -> None:
+        """The end of the daemon's output on stdout (pytest shows it when the test failed)."""
+        try:
+            print(f"--- {self.log_path.name} (last {lines} lines) ---\n" + "\n".join(self.output().splitlines()[-lines:]))
+        except (OSError, ValueError):
+            pass
 
     def sim_control_path(self) -> str:
         for line in self.output().splitlines():
@@ -418,12 +459,114 @@ def sim_robot(request) -> SimRobot:
     return request.param
 
 
+def start_sim_daemon(robot: SimRobot, tmp: Path) -> DaemonProcess:
+    """``crtk-bridge --profile <robot profile> --sim`` on a socket in ``tmp``, its simulator
+    prepared (the row's ``prepare``)."""
+    d = DaemonProcess(["--profile", str(robot.profile), "--sim"], tmp / f"{robot.id}.sock",
+                      tmp / f"{robot.id}.log", robot=robot)
+    try:
+        robot.prepare(d.sim_control_path())
+    except BaseException:
+        d.stop()
+        raise
+    return d
+
+
+RESTORE_TOL = 0.01  # rad: a shared daemon's arm this close to its start pose is left where it is
+
+
+class SharedDaemons:
+    """One daemon per simulated robot for a module's ``reuse_daemon`` tests (an enable or a
+    daemon start costs a second on some robots). Before each reuse the daemon is put back as a
+    fresh one starts: DISABLED, every namespace at the pose it started in; a daemon that is
+    gone, in FAULT, or that cannot be restored is replaced by a fresh one. One runs at a time."""
+
+    def __init__(self):
+        self.tmp = Path(tempfile.mkdtemp(prefix="crtk-"))
+        self.daemons: dict[str, DaemonProcess] = {}
+        self.start_pose: dict[str, dict[str, np.ndarray]] = {}
+
+    def get(self, robot: SimRobot) -> DaemonProcess:
+        d = self.daemons.get(robot.id)
+        if d is not None and not self._restore(d, self.start_pose[robot.id]):
+            self._stop(robot.id)
+            d = None
+        if d is None:
+            for other in list(self.daemons):
+                self._stop(other)
+            d = self.daemons[robot.id] = start_sim_daemon(robot, self.tmp)
+            from crtk_bridge.client import connect
+
+            client = connect(socket=str(d.socket_path))
+            try:
+                self.start_pose[robot.id] = {ns["name"]: client.device(ns["name"]).measured_jp()[0]
+                                             for ns in client.list()["namespaces"]}
+            finally:
+                client.close()
+        return d
+
+    @staticmethod
+    def _restore(d: DaemonProcess, start: dict[str, np.ndarray]) -> bool:
+        """Put ``d`` back as it started; False where it cannot (the caller replaces it)."""
+        from crtk_bridge.client import connect
+
+        if d.proc.poll() is not None:
+            return False
+        try:
+            client = connect(socket=str(d.socket_path))
+        except Exception:  # noqa: BLE001 - any failure: a fresh daemon instead
+            return False
+        try:
+            devices = {ns: client.device(ns) for ns in start}
+            arm = devices[d.robot.arm]
+            if arm.is_fault():
+                return False
+            away = [ns for ns, dev in devices.items()
+                    if not np.allclose(dev.measured_jp()[0], start[ns], atol=RESTORE_TOL)]
+            if away:
+                if not arm.is_enabled() and not arm.enable(10.0):
+                    return False
+                handles = [devices[ns].move_jp(start[ns]) for ns in away]
+                if not all(h.wait(timeout=20.0) for h in handles):
+                    return False
+                wait_until(lambda: all(np.allclose(devices[ns].measured_jp()[0], start[ns], atol=RESTORE_TOL)
+                                       for ns in away), 5, what="the start pose")
+            return (arm.is_disabled() or arm.disable(5.0)) and arm.is_disabled()
+        except Exception:  # noqa: BLE001 - any failure: a fresh daemon instead
+            return False
+        finally:
+            client.close()
+
+    def _stop(self, robot_id: str) -> None:
+        d = self.daemons.pop(robot_id, None)
+        if d is not None:
+            d.stop()
+
+    def close(self) -> None:
+        for robot_id in list(self.daemons):
+            self._stop(robot_id)
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def shared_daemons():
+    pool = SharedDaemons()
+    yield pool
+    pool.close()
+
+
 @pytest.fixture
-def sim_daemon(short_tmp, sim_robot):
-    """``crtk-bridge --profile <robot profile> --sim`` on its own socket; ``.robot`` is the SimRobot."""
-    d = DaemonProcess(["--profile", str(sim_robot.profile), "--sim"], short_tmp / f"{sim_robot.id}.sock",
-                      short_tmp / "daemon.log", robot=sim_robot)
+def sim_daemon(request, short_tmp, sim_robot):
+    """``crtk-bridge --profile <robot profile> --sim`` on its own socket; ``.robot`` is the SimRobot.
+    A test marked ``reuse_daemon`` shares its module's daemon for that robot (:class:`SharedDaemons`)."""
+    if request.node.get_closest_marker("reuse_daemon") is not None:
+        d = request.getfixturevalue("shared_daemons").get(sim_robot)
+        yield d
+        d.print_tail()
+        return
+    d = start_sim_daemon(sim_robot, short_tmp)
     yield d
+    d.print_tail()
     d.stop()
 
 

@@ -177,6 +177,10 @@ def test_adapter_bus_off_faults_and_enable_recovers_once_it_passes_again(rig, da
         assert err["joint"] in ("pan", "tilt") and "node" in err["message"]
         wait_until(lambda: arm.is_fault(), 3, what="FAULT")
         assert arm.measured_js()[3] == 0.0  # no valid sample while the bus is off
+        # the drives hear no master heartbeat either: each stops itself (0x1016 consumer, EMCY
+        # 0x8130) within 300 ms; enable must then reset their FAULT too
+        wait_until(lambda: {d["state"] for d in drives(sim).values()} == {"FAULT"}, 3,
+                   what="the drives' own heartbeat-loss FAULT")
         control_request(sim, {"cmd": "bus_off", "on": False})
         wait_until(lambda: arm.measured_js()[3] > 0 and not arm.is_busy(), 5,
                    what="valid samples again, the fault's torque off settled")

@@ -243,6 +243,22 @@ def test_protective_stop_faults_naming_the_cause_then_enable_recovers(ur):
     ur.until(lambda: np.allclose(ur.sim_q(), READY + 0.1, atol=2e-3), 2, "the arm at the goal")
 
 
+def test_enable_after_disable_from_a_protective_stop_unlocks_it(ur):
+    c = ur.enabled(READY)
+    ur.sim.inject_stop("protective", cause="a test collision")
+    ur.until(lambda: c.state is OperatingState.FAULT, 2, "FAULT")
+    ur.until(lambda: not c.is_busy, 5, "the fault reaction's end")
+    assert ur.do("disable", timeout=10)["ok"] and c.state is OperatingState.DISABLED  # FAULT -> DISABLED
+    assert ur.sim.state()["safety_mode"] == "PROTECTIVE_STOP"  # the stop outlives the FAULT...
+    r = ur.do("enable", timeout=15)  # ...and enable from DISABLED unlocks it, as from FAULT
+    assert r["ok"], r
+    st = ur.sim.state()
+    assert c.state is OperatingState.ENABLED and st["safety_mode"] == "NORMAL" and st["runtime_state"] == "PLAYING"
+    assert ur.do("move_jp", NS, position=list(READY + 0.1))["ok"]
+    ur.until(lambda: not c.is_busy, 10, "move_jp done")
+    ur.until(lambda: np.allclose(ur.sim_q(), READY + 0.1, atol=2e-3), 2, "the arm at the goal")
+
+
 def test_safeguard_stop_pauses_and_resume_starts_from_the_measured_pose(ur):
     c = ur.enabled(READY)
     goal = READY + np.array([0.6, 0, 0, 0, 0, 0])
@@ -329,3 +345,40 @@ def test_a_stalled_loop_stops_the_arm(ur):
     assert st["qd"] == [0.0] * 6 and "watchdog" in st["last_error"]
     ur.cycle()
     assert c.state is OperatingState.FAULT and ur.events("error")[-1]["code"] == "script_stopped"
+
+
+def test_the_simulated_controller_gets_a_silent_link_limit_that_a_loaded_host_does_not_trip():
+    profile = load_profile(UR5E)
+    wired = UrBackend.sim_profile(profile, "127.0.0.9")
+    assert wired.backend["host"] == "127.0.0.9"
+    assert wired.backend["link_timeout_s"] == UrBackend.SIM_LINK_TIMEOUT_S == 0.5  # the default 0.1, raised
+    longer = msgspec.structs.replace(profile, backend={**profile.backend, "link_timeout_s": 2.0})
+    assert UrBackend.sim_profile(longer, "127.0.0.9").backend["link_timeout_s"] == 2.0  # a longer one kept
+    assert UrBackend(wired).config.link_timeout_s == 0.5  # a valid profile key
+
+
+def test_a_speedj_running_into_a_goal_check_is_stopped_by_the_scripts_watchdog(ur):
+    """During a GOAL_CHECK the cycle sends nothing on the control interface (the check's blocking
+    call owns it, and no watchdog kick goes out meanwhile): a speedJ issued before it runs on
+    until the check ends. If the controller does not answer the check, what stops the arm is the
+    script's RTDE watchdog (1 / backend.watchdog_hz = 0.1 s after the check's own input package),
+    not the check's 2 s time limit."""
+    c = ur.enabled(READY)
+    ur.send("servo_jv", NS, velocity=[0.3, 0, 0, 0, 0, 0])
+    ur.until(lambda: abs(ur.sim.state()["qd"][0]) > 0.2, 2, "the arm turning under speedJ")
+    ur.sim.control({"cmd": "stall_script", "on": True})  # the program stops taking commands
+    try:
+        rid = ur.send("move_jp", NS, position=list(READY))  # its goal check waits for the program
+        t0 = time.monotonic()
+        ur.until(lambda: ur.sim.state()["qd"] == [0.0] * 6, 1.0, "the arm stopped")
+        stopped_after = time.monotonic() - t0
+        st = ur.sim.state()
+        assert "watchdog" in st["last_error"] and st["runtime_state"] != "PLAYING", st
+        assert stopped_after < 0.6, stopped_after  # 0.1 s watchdog + the stop; the check's limit is 2 s
+        r = ur.reply(rid, 5)
+        # refused: aborted by the FAULT of the stopped script, or ur_rtde's call failing first
+        assert not r["ok"] and r["error"]["code"] in ("aborted", "out_of_limits"), r
+        print(f"speedJ stopped {stopped_after * 1e3:.0f} ms after the goal check began")
+        ur.until(lambda: c.state is OperatingState.FAULT, 2, "FAULT")  # the script stopped
+    finally:
+        ur.sim.control({"cmd": "stall_script", "on": False})

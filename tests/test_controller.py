@@ -602,3 +602,50 @@ def test_pause_stops_an_effort_stream():
     c.handle({"id": 3, "cmd": "pause"})
     c.step()
     assert c.command.mode[0] == CommandMode.POSITION  # holding, not pushing
+
+
+class CheckingActuator(FakeActuator):
+    """A device that checks move goals against its own limits over a few cycles (as a UR asks its
+    controller), refusing any joint beyond 1 rad."""
+
+    def goal_check_steps(self, ns, cmd, goal):
+        def steps():
+            for _ in range(3):
+                yield
+            if np.any(np.abs(goal) > 1.0):
+                from crtk_bridge.errors import CommandError
+
+                raise CommandError("out_of_limits", f"{ns}: goal beyond the device's own limit")
+        return steps()
+
+
+def test_a_move_waiting_on_the_devices_goal_check_has_one_busy_seq_and_one_edge_each_way():
+    c, act, clock, cycle, req = make_rig(CheckingActuator(PROFILE))
+    assert req("enable")["ok"]
+    c.outbox.clear()
+    seq0 = c.busy_seq
+
+    def move(rid, position):
+        c.handle({"id": rid, "cmd": "move_jp", "ns": "so101", "data": {"position": position}})
+        for _ in range(20):
+            replies = [m for m in c.outbox if m.get("id") == rid]
+            if replies:
+                return replies[0]
+            cycle()
+        raise AssertionError("no reply")
+
+    r = move(101, [0.5, -0.3, 0.2, 0.1, -0.4])
+    assert r["ok"] and r["data"]["busy_seq"] == seq0 + 1  # the check and the move: one busy_seq
+    cycle(2000)
+    np.testing.assert_allclose(act.pos[:5], [0.5, -0.3, 0.2, 0.1, -0.4], atol=1e-9)
+    assert [(s["is_busy"], s["busy_seq"]) for s in states(c)] == [(True, seq0 + 1), (False, seq0 + 1)]
+    # a goal the device refuses: its own edges, and the next move a new busy_seq
+    c.outbox.clear()
+    r = move(102, [1.5, 0, 0, 0, 0])
+    assert not r["ok"] and r["error"]["code"] == "out_of_limits"
+    assert [(s["is_busy"], s["busy_seq"]) for s in states(c)] == [(True, seq0 + 2), (False, seq0 + 2)]
+    c.outbox.clear()
+    r = move(103, [0.0, 0, 0, 0, 0])
+    assert r["ok"] and r["data"]["busy_seq"] == seq0 + 3
+    cycle(2000)
+    assert [(s["is_busy"], s["busy_seq"]) for s in states(c)] == [(True, seq0 + 3), (False, seq0 + 3)]

@@ -18,17 +18,18 @@ from crtk_bridge.client.device import joint_state
 
 from .conftest import RawSession, wait_until
 
-pytestmark = pytest.mark.requires()  # every simulated robot
+# every simulated robot; each test leaves its arm ENABLED somewhere sim_daemon can move it back from
+pytestmark = [pytest.mark.requires(), pytest.mark.reuse_daemon]
 
 TOL = 0.02  # rad: sim quantisation 0.0015 rad; the first-order servo lag settles well inside this
 
 # What legitimately differs per backend (keyed by the profile's backend type):
 # setpoint_js fields (position, velocity, effort) under servo_jv / interpolate_jv. The STS3215 is
 # position-only: the velocity is integrated into a position setpoint. Dynamixel servos run velocity
-# mode natively, CiA 402 drives CSV: the setpoint has no position (core/motion.py setpoint_fields,
-# crtk-spec 4.2.5).
+# mode natively, CiA 402 drives CSV, a UR speedJ (backends/ur/backend.py): the setpoint has no
+# position (core/motion.py setpoint_fields, crtk-spec 4.2.5).
 VELOCITY_SETPOINT_FIELDS = {"feetech": (True, True, False), "dynamixel": (False, True, False),
-                            "canopen402": (False, True, False)}
+                            "canopen402": (False, True, False), "ur": (False, True, False)}
 #: namespaces whose every joint can follow an effort command (profiles: the Koch's XL330 gripper,
 #: the CANopen drives' CST); the others must not advertise servo_jf / interpolate_jf
 EFFORT_NAMESPACES = {"koch/gripper", "pantilt"}

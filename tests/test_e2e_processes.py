@@ -7,12 +7,15 @@ import signal
 import subprocess
 import sys
 
+import pytest
 import yaml
 
 from crtk_bridge.client import connect
 from crtk_bridge.sim.control import control_request
 
 from .conftest import SO101, DaemonProcess, so101_data, wait_until
+
+pytestmark = pytest.mark.requires()  # every simulated robot (each test kills a process: a daemon of its own)
 
 
 def _control_pid(daemon_pid: int) -> int:

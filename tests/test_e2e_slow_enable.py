@@ -1,7 +1,7 @@
 """End to end: an enable that takes 3 s never stalls the control loop (issue 8, "Done when").
 
-Each simulated robot's simulator is told to take 3 s to switch torque on (``torque_delay``), as a
-slow device would. While the enable runs: another session's ``measured_js`` stream keeps arriving
+Each simulated robot's simulator is told to take 3 s to switch torque on (the conformance row's
+``set_torque_delay``: a servo's torque, a drive's enable, a UR's power on), as a slow device would. While the enable runs: another session's ``measured_js`` stream keeps arriving
 with stamps advancing at the loop rate, its ``measured_js`` requests are answered at once, the
 robot stays DISABLED with ``is_busy`` true, and the enabling session gets exactly one reply, when
 the servos report torque on; only then is the robot ENABLED.
@@ -15,10 +15,11 @@ import threading
 import time
 
 import numpy as np
-
-from crtk_bridge.sim.control import control_request
+import pytest
 
 from .conftest import wait_until
+
+pytestmark = pytest.mark.requires()  # every simulated robot
 
 DELAY_S = 3.0
 
@@ -70,8 +71,8 @@ class Wire:
 
 def test_a_3s_enable_keeps_the_loop_cycling_and_replies_once_at_the_end(sim_daemon):
     bot = sim_daemon.robot
-    sim = sim_daemon.sim_control_path()
-    assert control_request(sim, {"cmd": "torque_delay", "seconds": DELAY_S})["ok"]
+    sim = bot.sim(sim_daemon.sim_control_path())
+    sim.set_torque_delay(DELAY_S)
     path = str(sim_daemon.socket_path)
     a, b = Wire(path), Wire(path)
     try:
@@ -101,8 +102,7 @@ def test_a_3s_enable_keeps_the_loop_cycling_and_replies_once_at_the_end(sim_daem
         assert reply["ok"] and reply["data"]["state"] == "ENABLED" and not reply["data"]["is_busy"], reply
         assert t_reply - t_enable >= DELAY_S - 0.2, t_reply - t_enable
         assert len(states) > 20 and all(s["state"] == "DISABLED" and s["is_busy"] for s in states[5:]), states[:8]
-        dump = control_request(sim, {"cmd": "dump"})
-        assert all(dump["servos"][i]["torque_enable"] == 1 for i in bot.servo_ids)
+        assert all(bot.torque(sim).values())
 
         # another session was answered at once throughout (a stalled loop would keep it 3 s)
         # (a loaded host stalls a process now and then; a blocked loop would keep it 3 s)

@@ -6,9 +6,13 @@ import json
 import socket
 import time
 
+import pytest
+
 from crtk_bridge.client import connect
 
 from .conftest import wait_until
+
+pytestmark = pytest.mark.requires()  # every simulated robot
 
 
 def test_subscription_rate_and_slow_subscriber(sim_daemon):

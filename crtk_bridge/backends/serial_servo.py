@@ -7,6 +7,8 @@ with ``ping`` / ``readNByteTxRx`` / ``writeNByteTxRx`` returning ``(value, resul
 * :class:`SerialPortFixes` -- a mixin that fixes both SDKs' serial-port gaps (stale input, busy
   polling, 34 ms packet timeouts, wall-clock deadlines); each vendor's ``port.py`` mixes it into
   its SDK's ``PortHandler``.
+* :class:`LastStatus` -- a mixin that keeps the last status packet a ``PacketHandler`` parsed,
+  so a register read can check the reply's LENGTH field (the SDKs match a reply by id only).
 * :class:`SerialServoBackend` -- profile validation (backend keys; the joints' servo keys,
   ``servo_keys.py``), the tick <-> rad calibration arrays, retried register reads/writes with errors
   naming robot, joint, id, register and port, opening (ping every servo, check its model number),
@@ -65,6 +67,27 @@ log = logging.getLogger(__name__)
 
 DEFAULT_MARGIN_MS = 10.0
 COMM_SUCCESS = 0  # the same value in scservo_sdk and dynamixel_sdk
+
+
+class LastStatus:
+    """Mixin for an SDK ``PacketHandler``: keeps the last status packet ``rxPacket`` parsed.
+
+    Both SDKs' ``readTxRx`` take any status packet of the right id as the reply and slice its
+    parameters to the length asked for, so a late reply to an earlier read (of another register)
+    passes for this one. :meth:`status_params` is the parameter count the packet's own LENGTH
+    field gives; the backend compares it with the length it asked for. Keeping a reference costs
+    no allocation. Each vendor fills :meth:`status_params` for its framing."""
+
+    last_status: list[int] = []
+
+    def rxPacket(self, port, *args):  # noqa: N802 (SDK name; dynamixel_sdk adds fast_option)
+        rxpacket, result = super().rxPacket(port, *args)  # type: ignore[misc]
+        self.last_status = rxpacket
+        return rxpacket, result
+
+    def status_params(self) -> int:
+        """Parameter bytes of the last status packet per its LENGTH field (-1 if too short)."""
+        raise NotImplementedError
 
 
 class SerialPortFixes:
@@ -412,8 +435,14 @@ class SerialServoBackend(Actuator):
     OPEN_PATIENCE_S = 0.5
     _realtime_txrx = False  # set around acknowledged transactions made from the real-time path
 
-    def _txrx(self, fn, *args):
-        """Call an SDK ``...TxRx`` function, retrying comm failures. Returns its tuple."""
+    def _txrx(self, fn, *args, length: int | None = None):
+        """Call an SDK ``...TxRx`` function, retrying comm failures. Returns its tuple.
+
+        ``length``: a read's data length. The SDKs take any status packet of the right id as the
+        reply, so a late status (of an earlier request that timed out, arriving after the input
+        flush that precedes every request) would be decoded as this read's data; one of another
+        length (the packet's LENGTH field, :class:`LastStatus`) is refused here as corrupt and
+        the read retried."""
         if self._port is not None:
             self._port.last_os_error = None
             self._port.is_using = False  # we own the port alone; a stale flag = PORT_BUSY forever
@@ -429,7 +458,9 @@ class SerialServoBackend(Actuator):
                 out = corrupt if fn.__name__.startswith(("write", "reboot")) else (0, *corrupt)
                 continue
             if out[-2] == COMM_SUCCESS:
-                break
+                if length is None or len(out[0]) == length == self._ph.status_params():
+                    break
+                out = (out[0], self.RX_CORRUPT, out[2])  # not this read's reply: retried
         return out
 
     def _write_register(self, i: int, name: str, value: int, check_error: bool = False,
@@ -452,14 +483,17 @@ class SerialServoBackend(Actuator):
 
     def _read_register(self, i: int, name: str, sid: int | None = None) -> int:
         """Read one register of joint ``i`` (of the servo with bus id ``sid`` if given), decoded
-        (signed where the table says). Blocks. Raises BackendError."""
+        (signed where the table says). The input is flushed before the request (the SDKs'
+        ``txPacket`` calls :meth:`SerialPortFixes.clearPort`), and a reply of another length than
+        the register's (a late reply to an earlier request) is refused and the read retried.
+        Blocks. Raises BackendError."""
         address, size = self._register(i, name)
-        fn = {1: self._ph.read1ByteTxRx, 2: self._ph.read2ByteTxRx, 4: self._ph.read4ByteTxRx}[size]
-        value, result, _ = self._txrx(fn, self._ids[i] if sid is None else sid, address)
+        data, result, _ = self._txrx(self._ph.readTxRx, self._ids[i] if sid is None else sid, address, size,
+                                     length=size)
         if result != COMM_SUCCESS:
             raise BackendError(f"{self.robot}: {self._label[i]}: reading {name} on {self._where} "
                                f"failed: {self._result_text(result)}")
-        return self._decode(i, name, value)
+        return self._decode(i, name, int.from_bytes(bytes(data), "little"))
 
     def _write_unacknowledged(self, i: int, name: str, value: int, sid: int) -> bool:
         """Write one register of the servo with bus id ``sid`` (joint ``i``'s model) without
@@ -536,13 +570,8 @@ class SerialServoBackend(Actuator):
         regs = {name: self._register(i, name) for name in self.EEPROM_REGISTERS}
         start = min(a for a, _ in regs.values())
         length = max(a + n for a, n in regs.values()) - start
-        data, result = [], self.RX_CORRUPT
-        for _ in range(self.LIFECYCLE_ATTEMPTS):
-            data, result, _ = self._txrx(self._ph.readTxRx, self._ids[i], start, length)
-            if result == COMM_SUCCESS and len(data or ()) == length:
-                break
-            result = result if result != COMM_SUCCESS else self.RX_CORRUPT
-        else:
+        data, result, _ = self._txrx(self._ph.readTxRx, self._ids[i], start, length, length=length)
+        if result != COMM_SUCCESS:
             raise BackendError(f"{self.robot}: {self._label[i]}: reading its EEPROM settings "
                                f"({', '.join(regs)}) on {self._where} failed: {self._result_text(result)}")
         return {name: self._decode(i, name, int.from_bytes(bytes(data[a - start:a - start + n]), "little"))
@@ -809,10 +838,10 @@ class SerialServoBackend(Actuator):
         return found
 
     def _read_id(self, sid: int, address: int, size: int = 1) -> int | None:
-        """One register of the servo with bus id ``sid`` (joint or not), or None without reply."""
-        fn = {1: self._ph.read1ByteTxRx, 2: self._ph.read2ByteTxRx, 4: self._ph.read4ByteTxRx}[size]
-        value, result, _ = self._txrx(fn, sid, address)
-        return value if result == COMM_SUCCESS else None
+        """One register of the servo with bus id ``sid`` (joint or not), or None without reply
+        (a reply of another length is not one: see :meth:`_txrx`)."""
+        data, result, _ = self._txrx(self._ph.readTxRx, sid, address, size, length=size)
+        return int.from_bytes(bytes(data), "little") if result == COMM_SUCCESS else None
 
     def _identify(self, sid: int, model: str | None, firmware: int | None) -> tuple[str | None, bool | None]:
         """(firmware version text, torque on) of servo ``sid`` of ``model`` (None: unknown model),

@@ -128,6 +128,7 @@ class Controller:
         self.homing = False
         self.busy_seq = 0
         self._busy_reported = False
+        self._checked_seq: int | None = None  # the busy_seq a running GOAL_CHECK raised (_move_edge)
         self.state_stamp = clock()
         self.outbox: list[dict] = []
         #: what each namespace's joints can do together: commands are offered and refused per namespace
@@ -346,6 +347,7 @@ class Controller:
     def _goal_refused(self, exc: Exception) -> Refused:
         """A GOAL_CHECK that refused the goal (or could not ask): the move is refused, the robot
         holds where it is (no FAULT: nothing moved)."""
+        self._checked_seq = None
         if isinstance(exc, CommandError):
             return Refused(exc.code, exc.message)
         return Refused("out_of_limits", f"{self.robot}: move refused: the device could not check the goal "
@@ -368,8 +370,7 @@ class Controller:
         if tm is not None:
             tm.cancel()
         if cmd == "move_cp":
-            self.busy_seq += 1
-            self._push_state()  # busy=True edge, before the reply
+            self._move_edge()
             return {"busy_seq": self.busy_seq}
         if was_busy and not self.is_busy:  # a stream pre-empted a move
             self._push_state()
@@ -531,9 +532,18 @@ class Controller:
         if m.mode is Mode.FREE:
             m.reset(self.feedback.position[m.idx])
         m.start_move(goal, self.clock())
-        self.busy_seq += 1
-        self._push_state()  # busy=True edge, before the reply
+        self._move_edge()
         return {"busy_seq": self.busy_seq}
+
+    def _move_edge(self) -> None:
+        """The busy=True edge of a move starting now, before its reply: a new busy_seq, unless
+        the GOAL_CHECK the move waited on raised it already (one move, one busy_seq, one edge
+        each way: is_busy stays true from the check into the move)."""
+        checked, self._checked_seq = self._checked_seq, None
+        if checked == self.busy_seq and self._busy_reported:
+            return
+        self.busy_seq += 1
+        self._push_state()
 
     def _state_command(self, cmd: StateCommand) -> Any:
         t = transition(self.state, cmd)
@@ -587,6 +597,8 @@ class Controller:
         if not self._advance(run):
             self.busy_seq += 1
             self._push_state()  # is_busy edge: the state stays until the transition ends
+            if t.kind is Lifecycle.GOAL_CHECK:
+                self._checked_seq = self.busy_seq  # the move it starts keeps this busy_seq
         return _DEFERRED
 
     def _advance(self, run: _Running) -> bool:

@@ -73,19 +73,22 @@ class SnapshotBuffer:
         self.seq[0] += 1  # even: consistent
 
     # ---- reader side (front process) ----
-    def read(self, out: np.ndarray | None = None, timeout_s: float = 0.05) -> tuple[np.ndarray, int]:
-        """Consistent copy of the data block and its sequence number. Never blocks long."""
+    def read(self, out: np.ndarray | None = None, timeout_s: float = 0.05,
+             upto: int | None = None) -> tuple[np.ndarray, int]:
+        """Consistent copy of the data block and its sequence number. Never blocks long.
+        ``upto``: copy only the first ``upto`` values (e.g. the state without the statistics rings)."""
         if out is None:
             out = np.empty_like(self.data)
+        src, dst = (self.data, out) if upto is None else (self.data[:upto], out[:upto])
         deadline = time.monotonic() + timeout_s
         while True:
             s1 = int(self.seq[0])
             if not s1 & 1:
-                np.copyto(out, self.data)
+                np.copyto(dst, src)
                 if int(self.seq[0]) == s1:
                     return out, s1
             if time.monotonic() > deadline:  # writer died mid-write: return what is there
-                np.copyto(out, self.data)
+                np.copyto(dst, src)
                 return out, int(self.seq[0])
 
     def close(self, unlink: bool = False) -> None:

@@ -208,9 +208,10 @@ class ControlLink:
     def cycles(self) -> int:
         return int(self.snap.data[self._slices["cycles"]][0])
 
-    def joint_state(self, topic: str, ns: str) -> dict:
-        """measured_js / setpoint_js / goal_js of one namespace as a JointState payload."""
-        buf = self.read()
+    def joint_state(self, topic: str, ns: str, buf: np.ndarray | None = None) -> dict:
+        """measured_js / setpoint_js / goal_js of one namespace as a JointState payload, from
+        ``buf`` (a snapshot copy the caller read) or a fresh read."""
+        buf = self.read() if buf is None else buf
         s = self._slices
         idx = self.ns_joints[ns]
         k = self.ns_index[ns]
@@ -239,9 +240,10 @@ class ControlLink:
             "effort": buf[s["goal_f"]][idx].tolist() if has_f else [],
         }
 
-    def ns_arrays(self, ns: str) -> dict:
-        """One consistent snapshot of a namespace's joint state as numpy arrays and flags."""
-        buf = self.read()
+    def ns_arrays(self, ns: str, buf: np.ndarray | None = None) -> dict:
+        """One consistent snapshot of a namespace's joint state as numpy arrays and flags (from
+        ``buf``, a snapshot copy the caller read, or a fresh read)."""
+        buf = self.read() if buf is None else buf
         s = self._slices
         idx = self.ns_joints[ns]
         k = self.ns_index[ns]

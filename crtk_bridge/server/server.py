@@ -73,10 +73,7 @@ class Server:
         self.robot = self.profile.name
         self.commands = commands  # motion and state commands the control process supports
         self.cartesian: dict[str, CartesianSpace] = {
-            ns.name: CartesianSpace(self.profile, ns.name, ns.kinematics, link.ns_commands[ns.name],
-                                    link.ns_measures_effort[ns.name], native=ns.name in link.native_cartesian,
-                                    measures_wrench=link.ns_measures_wrench[ns.name])
-            for ns in self.profile.namespaces if ns.kinematics is not None
+            ns.name: self.cartesian_space(ns.name) for ns in self.profile.namespaces if ns.kinematics is not None
         }
         self.socket_path = socket_path
         self.sessions: dict[int, Session] = {}
@@ -93,6 +90,14 @@ class Server:
         #: every command and query this daemon knows (data typed by protocol.PAYLOADS, else none)
         self._known = set(self.commands) | set(TOPICS) | set(SESSION_COMMANDS) | set(MaintenanceCommand) | {
             c for cs in self.cartesian.values() for c in cs.commands + cs.queries}
+
+    def cartesian_space(self, ns: str) -> CartesianSpace:
+        """A new CartesianSpace of kinematic namespace ``ns``, with its own pinocchio data (a
+        thread other than the event loop's computing cartesian data needs its own)."""
+        link = self.link
+        return CartesianSpace(self.profile, ns, self.profile.namespace(ns).kinematics, link.ns_commands[ns],
+                              link.ns_measures_effort[ns], native=ns in link.native_cartesian,
+                              measures_wrench=link.ns_measures_wrench[ns])
 
     # ---------------------------------------------------------------- events from the loop
     def on_event(self, msg: dict) -> None:

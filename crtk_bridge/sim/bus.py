@@ -9,7 +9,9 @@ pseudo-terminal, as LeRobot's ``MotorsBus`` is for the real ones:
 - state: the servos by id (an id change over the bus re-keys them), servos added factory-fresh,
   detached from the bus (keeping their EEPROM) and attached again, each known by a ``serial``
   handle; power cycles (EEPROM from flash, RAM defaults); the fault flags every servo
-  carries (``silent``, ``corrupt``, ``frozen``), the unplugged state of the whole bus, and a
+  carries (``silent``, ``corrupt``, ``frozen``, ``late_reply``: its previous status packet goes
+  out again just ahead of its next one, once, as a reply the master gave up on arrives late,
+  after the master flushed its input for the next request), the unplugged state of the whole bus, and a
   slow torque-on (``torque_delay_s``: a Torque_Enable = 1 written over the bus is acknowledged
   at once but takes effect -- and reads back 1 -- only that many seconds later, as a slow device
   would; how tests prove an enable never stalls the control loop);
@@ -93,6 +95,7 @@ class FaultKind(str, enum.Enum):
     CORRUPT = "corrupt"
     ERROR_BITS = "error_bits"
     FREEZE = "freeze"
+    LATE_REPLY = "late_reply"
 
 
 class BusServo:
@@ -107,7 +110,8 @@ class BusServo:
     def __init__(self, sim: BusSimulator):
         self._sim = sim
         self.registers = bytearray(256)
-        self.silent = self.corrupt = self.frozen = False
+        self.silent = self.corrupt = self.frozen = self.late_reply = False
+        self._last_status = b""  # the status packet sent last (late_reply sends it again)
         self._pending: tuple[int, bytes] | None = None  # REG_WRITE awaiting ACTION
         self._torque_on_at: float | None = None  # a delayed torque-on takes effect then (sim clock)
         self._hand: tuple[float, float] | None = None  # (actual ticks, ticks/s): moved by hand
@@ -155,6 +159,16 @@ class BusServo:
         data = bytearray(data)
         data[t] = 0
         return data
+
+    def _deliver(self, status: bytes) -> bytes:
+        """What goes on the wire for this servo's status packet ``status``: with the
+        ``late_reply`` fault (once), its previous status first. Vendors' ``_status`` returns it."""
+        out = status
+        if self.late_reply and self._last_status:
+            self.late_reply = False
+            out = self._last_status + status
+        self._last_status = status
+        return out
 
     def _torque_due(self, now: float) -> None:
         """Apply a delayed torque-on whose time has come. Vendors call it first in ``_update``."""
@@ -416,6 +430,8 @@ class BusSimulator:
                 servo.corrupt = True
             elif kind is FaultKind.FREEZE:
                 servo.frozen = True
+            elif kind is FaultKind.LATE_REPLY:
+                servo.late_reply = True
             else:
                 self._set_error_bits(servo, bits)
 
@@ -427,7 +443,7 @@ class BusSimulator:
             now = self.clock()
             for s in servos:
                 s._update(now)
-                s.silent = s.corrupt = s.frozen = False
+                s.silent = s.corrupt = s.frozen = s.late_reply = False
                 self._clear_error_bits(s)
             if servo_id is None:
                 self.unplugged = False
@@ -505,7 +521,7 @@ class BusSimulator:
 
     def _faults(self, servo: BusServo) -> list[str]:
         out = [k.value for k, on in ((FaultKind.SILENT, servo.silent), (FaultKind.CORRUPT,
-               servo.corrupt), (FaultKind.FREEZE, servo.frozen)) if on]
+               servo.corrupt), (FaultKind.FREEZE, servo.frozen), (FaultKind.LATE_REPLY, servo.late_reply)) if on]
         if self._error_bits(servo):
             out.append(FaultKind.ERROR_BITS.value)
         return out

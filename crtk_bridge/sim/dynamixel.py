@@ -27,6 +27,7 @@ or to EEPROM (< 64) with torque on, and nothing is written.
 Faults (control socket or :meth:`DynamixelSimulator.set_fault`), the same kinds as the STS
 simulator: ``silent`` (the servo receives but never replies; in a Fast Sync Read the reply stops
 before its slot, as the following servos wait for it), ``corrupt`` (its replies carry a bad CRC),
+``late_reply`` (its previous status goes out again just ahead of its next one, once),
 ``error_bits`` (OR bits into Hardware_Error_Status: a latched hardware error; if they are in the
 Shutdown mask (63) torque goes off; only a REBOOT clears it, so ``clear_faults`` does not),
 ``freeze`` (the joint stops moving), and ``unplug`` of the whole bus. A REBOOT restores the RAM
@@ -231,7 +232,7 @@ class SimServo(BusServo):
         pkt = packet(self.id, T.INST_STATUS, bytes((self._err() | errnum,)) + params)
         if self.corrupt:
             pkt = pkt[:-1] + bytes((pkt[-1] ^ 0xFF,))
-        return pkt
+        return self._deliver(pkt)
 
     def _update(self, now: float) -> None:
         self._torque_due(now)

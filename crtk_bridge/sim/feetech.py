@@ -32,7 +32,8 @@ the EEPROM back from flash and the RAM to its power-on defaults (torque off, Loc
 present). A factory-fresh servo (``add_servo``) has id 1 and 1 Mbps (servos.md section 2).
 
 Faults (control socket or :meth:`FeetechSimulator.set_fault`): ``silent`` (servo receives but
-never replies), ``corrupt`` (its replies carry a bad checksum), ``error_bits`` (OR bits into
+never replies), ``corrupt`` (its replies carry a bad checksum), ``late_reply`` (its previous
+status goes out again just ahead of its next one, once), ``error_bits`` (OR bits into
 Status, hence into every ERR byte), ``freeze`` (the joint stops moving, as if stalled), and
 ``unplug`` of the whole bus (nothing is received or answered).
 """
@@ -317,7 +318,7 @@ class SimServo(BusServo):
         chk = ~(sid + length + err + sum(data)) & 0xFF
         if self.corrupt:
             chk ^= 0xFF
-        return b"\xff\xff" + bytes((sid, length, err)) + bytes(data) + bytes((chk,))
+        return self._deliver(b"\xff\xff" + bytes((sid, length, err)) + bytes(data) + bytes((chk,)))
 
 
 class FeetechSimulator(BusSimulator):

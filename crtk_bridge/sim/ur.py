@@ -15,7 +15,8 @@ Two pieces:
   it. Fault injection goes through the controller's control socket (JSON lines,
   :mod:`crtk_bridge.sim.control`):
 
-  ``{"cmd": "state"}`` modes, joints, TCP pose, program, last error;
+  ``{"cmd": "state"}`` modes, joints, TCP pose, program, last error, ``rx_bytes`` (what clients
+  sent on every port);
   ``{"cmd": "stop", "kind": K, "cause": "..."}`` K in protective, safeguard, robot_estop,
   system_estop, fault, violation; ``{"cmd": "release", "kind": K}`` (safeguard, e-stops);
   ``{"cmd": "link_loss", "duration_s": S, "ports": ["rtde", "dashboard", "script"]}`` drops
@@ -23,7 +24,9 @@ Two pieces:
   ``{"cmd": "restart", "duration_s": S}`` a controller reboot: every connection dropped, ports
   closed for S s, then powered off with no program; ``{"cmd": "speed_slider", "fraction": F}``;
   ``{"cmd": "hand", "q": [...], "speed": rad/s}`` pushes the arm in teach mode;
-  ``{"cmd": "wrench", "force": [6]}`` the TCP force/torque; ``{"cmd": "timings", ...}``.
+  ``{"cmd": "wrench", "force": [6]}`` the TCP force/torque; ``{"cmd": "stall_script", "on": B}``
+  the program takes no command while the arm goes on (its watchdog still runs);
+  ``{"cmd": "timings", ...}``.
 """
 
 from __future__ import annotations
@@ -160,6 +163,10 @@ class URController:
         self._stopping = threading.Event()
         self._restart_at: float | None = None
         self.ticks = 0
+        #: bytes received from clients on every port (RTDE, dashboard, script): what reached the
+        #: controller, as a serial bus simulator counts what reached its servos
+        self.rx_bytes = 0
+        self._rx_lock = threading.Lock()
         self.running = False
         self._getters = self._output_getters()
 
@@ -275,6 +282,10 @@ class URController:
                     self._clients[name].add(conn)
                 self._spawn(handlers[name], f"ur-{name}", conn)
 
+    def _received(self, data: bytes) -> None:
+        with self._rx_lock:  # not the controller's lock: the tick must not wait on a client
+            self.rx_bytes += len(data)
+
     def _forget(self, name: str, conn: socket.socket) -> None:
         with self._lock:
             self._clients[name].discard(conn)
@@ -294,6 +305,7 @@ class URController:
                 data = conn.recv(65536)
                 if not data:
                     break
+                self._received(data)
                 buf += data
                 while len(buf) >= HEADER.size:
                     size, kind = HEADER.unpack_from(buf)
@@ -488,6 +500,7 @@ class URController:
             conn.sendall((WELCOME + "\n").encode())
             f = conn.makefile("rb")
             for raw in f:
+                self._received(raw)
                 line = raw.decode("utf-8", "replace").strip()
                 with self._lock:
                     reply = self.dashboard(line)
@@ -560,6 +573,7 @@ class URController:
                 data = conn.recv(65536)
                 if not data:
                     break
+                self._received(data)
                 text += data.decode("utf-8", "replace")
                 text = self._run_scripts(text)
         except OSError:
@@ -646,13 +660,16 @@ class URController:
                     return {"ok": False, "error": "wrench: force must be a list of 6 numbers (N, N*m)"}
                 r.tcp_force = np.asarray(f, dtype=float)
                 return {"ok": True}
+            if cmd == "stall_script":
+                r.script_stalled = bool(request.get("on", True))
+                return {"ok": True}
             if cmd == "timings":
                 for k in ("power_on_s", "brake_release_s", "unlock_delay_s"):
                     if k in request:
                         setattr(r.timings, k, float(request[k]))
                 return {"ok": True}
         return {"ok": False, "error": f"unknown command {cmd!r}; valid: state, stop, release, link_loss, "
-                                      "restart, speed_slider, hand, wrench, timings"}
+                                      "restart, speed_slider, hand, wrench, stall_script, timings"}
 
     def _refuse(self, ports: list[str], duration_s: float) -> None:
         """Drop the connections of ``ports`` and refuse new ones for ``duration_s`` (lock held)."""
@@ -665,7 +682,7 @@ class URController:
     def state(self) -> dict:
         r = self.robot
         return {
-            "robot_mode": r.robot_mode.name, "safety_mode": r.safety_mode.name,
+            "host": self.host, "robot_mode": r.robot_mode.name, "safety_mode": r.safety_mode.name,
             "runtime_state": r.runtime_state.name, "program": r.program, "teach_mode": r.teach_mode,
             "q": r.q.tolist(), "qd": r.qd.tolist(), "tcp_pose": r.tcp_pose(),
             # the joint target the controller follows: servoj's, else where the arm is held
@@ -673,7 +690,7 @@ class URController:
             "speed_fraction": r.speed_fraction, "stop_cause": r.stop_cause, "last_error": r.last_error,
             "motion": type(r.motion).__name__ if r.motion is not None else None,
             "rtde_clients": len(self._rtde), "ticks": self.ticks, "rate_hz": self.rate_hz,
-            "out_int_0": self.reg.out_ints[0], "command": self.reg.ints[0],
+            "out_int_0": self.reg.out_ints[0], "command": self.reg.ints[0], "rx_bytes": self.rx_bytes,
         }
 
 
@@ -758,6 +775,17 @@ class URSimulator:
         sim._own_tmpdir = True
         return sim
 
+    @classmethod
+    def attach(cls, control: str | os.PathLike) -> URSimulator:
+        """A handle on a controller another process started (``crtk-bridge --sim``), reached over
+        its control socket ``control``: the control calls work, ``start`` / ``stop`` do nothing."""
+        sim = cls("", control=control)
+        sim._attached = True
+        sim.host = sim.state().get("host")
+        return sim
+
+    _attached = False
+
     @property
     def port(self) -> str | None:
         return self.host
@@ -770,7 +798,7 @@ class URSimulator:
         """Spawn the controller and return once its three ports accept (raises SimulatorError
         with the child's last log lines otherwise; the child is then ended). Blocks up to
         ``timeout_s``. Call it from a long-lived thread (see :func:`_die_with_parent`)."""
-        if self.running:
+        if self.running or self._attached:
             return
         if self._tmpdir is None:
             self._tmpdir = tempfile.mkdtemp(prefix="crtk-ursim-")
@@ -830,6 +858,8 @@ class URSimulator:
 
     def stop(self) -> None:
         """End the child (SIGTERM, then SIGKILL after 5 s). Idempotent."""
+        if self._attached:
+            return
         if self.proc is not None and self.proc.poll() is None:
             self.proc.terminate()
             try:

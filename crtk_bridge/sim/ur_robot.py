@@ -318,6 +318,9 @@ class URRobot:
         self.safety_mode = SafetyMode.NORMAL
         self.runtime_state = RuntimeState.STOPPED
         self.speed_fraction = 1.0  # the pendant's speed slider (target_speed_fraction)
+        #: the program's main loop takes no command (a controller too busy to answer); the arm
+        #: goes on with its motion, and the RTDE watchdog still watches the inputs
+        self.script_stalled = False
         self.step_s = 0.002  # the controller tick (set by the server: 2 ms e-Series, 8 ms CB3)
         self.teach_mode = False
         self.tcp_force = np.zeros(6)  # injected external wrench at the TCP (base frame)

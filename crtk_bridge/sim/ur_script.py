@@ -144,8 +144,8 @@ class ControlScript:
         if self.watchdog_s and now - self.reg.input_at > self.watchdog_s:
             self.robot.script_error(f"RTDE watchdog: no input package for {now - self.reg.input_at:.3f} s")
             return
-        if self.blocking is not None:
-            return  # inside a synchronous move: motion_done() finishes it
+        if self.blocking is not None or self.robot.script_stalled:
+            return  # inside a synchronous move (motion_done() finishes it), or stalled
         cmd = self._in_int(0)
         if cmd in REALTIME:
             self._process(cmd)

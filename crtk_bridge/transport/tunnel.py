@@ -12,14 +12,17 @@ robot stops safely as on any client loss.
 
 Replies and events are published reliably with congestion control BLOCK (never dropped, in
 order); stream frames with DROP on a lower priority (Zenoh queues them apart), so a slow remote
-client loses frames and never slows the daemon, as on the socket. Zenoh delivers on its own threads: every sample is
-handed to the event loop (``call_soon_threadsafe``), where the server runs as for the socket.
+client loses frames and never slows the daemon, as on the socket. Every put runs on the
+session's sender thread (a stalled link holds that thread, never the event loop). Zenoh delivers
+on its own threads: every sample is handed to the event loop (``call_soon_threadsafe``), where
+the server runs as for the socket.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import queue
 import threading
 from typing import Any
 
@@ -36,10 +39,19 @@ DUPLICATE_CHECK_S = 1.0
 #: request lines a remote session may have waiting; beyond, new ones are refused (stops never
 #: are): Zenoh has no back-pressure towards a client the way a socket's buffer has
 MAX_PENDING = 4096
+#: messages a remote session may have waiting for its sender thread beyond which stream frames
+#: are dropped (replies and events never are)
+FRAME_BACKLOG = 64
 
 
 class TunnelSession(Session):
-    """A remote client's session: what the server sends goes to its ``out`` key."""
+    """A remote client's session: what the server sends goes to its ``out`` key.
+
+    Puts happen on the session's own sender thread, in the order the server sent: a reply waits
+    for room on a stalled link (congestion control BLOCK, up to Zenoh's ``wait_before_close``,
+    after which Zenoh closes the link and the client is lost), and the event loop, which serves
+    every other client, never waits with it. Stream frames are dropped while more than
+    ``FRAME_BACKLOG`` messages wait for the thread, as a socket drops them when its buffer is full."""
 
     def __init__(self, sid: int, cid: str, replies: Any, frames: Any):
         super().__init__(sid, None, peer=f"Zenoh client {cid[:8]}")
@@ -48,29 +60,45 @@ class TunnelSession(Session):
         self._frames = frames  # the same key, congestion control DROP
         self.lines: asyncio.Queue[bytes | None] = asyncio.Queue()
         self.task: asyncio.Task | None = None
+        self._outbox: queue.SimpleQueue[tuple[Any, bytes] | None] = queue.SimpleQueue()
+        self._sender = threading.Thread(target=self._send_all, name=f"zenoh out {cid[:8]}", daemon=True)
+        self._sender.start()
 
     def send(self, msg: Any) -> None:
         if not self.closed:
-            self._put(self._replies, msg)
+            self._outbox.put((self._replies, encode(msg)))
 
     def send_frame(self, msg: Any) -> None:
         if self.closed:
             return
-        self._put(self._frames, msg)
+        if self._outbox.qsize() > FRAME_BACKLOG:  # the link is not taking what we send
+            self.dropped += 1
+            return
+        self._outbox.put((self._frames, encode(msg)))
 
-    def _put(self, publisher: Any, msg: Any) -> None:
-        try:
-            publisher.put(encode(msg))
-        except Exception as exc:  # the session is closing under us: the client is gone anyway
-            log.debug("%s: put failed: %s", self.describe(), exc)
-
-    def close(self) -> None:
-        self.closed = True
+    def _send_all(self) -> None:
+        """Sender thread: put what the server sent, in order; undeclare once the session closed
+        and everything it sent before is out."""
+        while True:
+            item = self._outbox.get()
+            if item is None:
+                break
+            publisher, data = item
+            try:
+                publisher.put(data)
+            except Exception as exc:  # the session is closing under us: the client is gone anyway
+                log.debug("%s: put failed: %s", self.describe(), exc)
         for publisher in (self._replies, self._frames):
             try:
                 publisher.undeclare()
             except Exception:
                 pass
+
+    def close(self) -> None:
+        """Stop accepting messages; those already sent still go out (never blocks)."""
+        if not self.closed:
+            self.closed = True
+            self._outbox.put(None)
 
 
 class TunnelServer:

@@ -61,10 +61,18 @@ class Row:
     silent_hears: bool = True
     #: whether the FAULT that inject_error causes names the joint
     error_names_joint: bool = True
-    #: a device per joint that can be silenced alone, with raw goal / present registers that a
-    #: test may set and a byte count of what reached the bus (serial servo buses). A UR arm is
-    #: one device: its equivalents are in tests/test_backend_ur.py (named in each skip)
-    per_joint_registers: bool = True
+    #: every joint is one device on one link (a UR arm): no joint can fall silent alone
+    one_device: bool = False
+    #: a DISABLED arm is held by its brakes (a UR powered off): nothing displaces it by hand
+    braked_when_disabled: bool = False
+    #: device position units per joint radian (``goal`` / ``present`` / ``set_present``); None:
+    #: from the joint's backend keys (tests/conftest.py _counts_per_rad)
+    units_per_rad: float | None = None
+    #: the simulator another process started (``crtk-bridge --sim``), reached over its control
+    #: socket: ``remote(path)`` (default: tests/conftest.py RemoteSim)
+    remote: Callable[[str], object] | None = None
+    #: ``prepare(sim)`` before a test drives it: quick where the real device is slow
+    prepare: Callable[[object], None] | None = None
     #: the device applies no torque and holds nothing (what ``free`` leaves); None: torque off
     free: Callable[[object, int], bool] | None = None
     #: how to make the simulator (default: the device's ``from_profile(profile)``)
@@ -100,12 +108,47 @@ def _node_id(profile: Profile, i: int) -> int:
 
 class URSimAdapter:
     """The simulated UR controller (sim/ur.py) behind the calls the suite makes of a simulator.
-    A "device" is a joint index. Quick power-on and brake release; a protective stop may be
-    unlocked 0.3 s after it (UR: 5 s)."""
+    A "device" is a joint index, its unit the microradian. Quick power-on and brake release; a
+    protective stop may be unlocked 0.3 s after it (UR: 5 s). Either its own controller
+    (``URSimAdapter(profile)``) or, end to end, the one a daemon's ``--sim`` started
+    (:meth:`attach`)."""
 
-    def __init__(self, profile: Profile):
-        self.sim = simulator_class("ur").from_profile(profile, power_on_s=0.1, brake_release_s=0.1,
-                                                      unlock_delay_s=0.3)
+    QUICK = {"power_on_s": 0.1, "brake_release_s": 0.1, "unlock_delay_s": 0.3}
+
+    def __init__(self, profile: Profile | None = None, *, handle=None):
+        self.sim = handle if handle is not None else simulator_class("ur").from_profile(profile, **self.QUICK)
+
+    @classmethod
+    def attach(cls, control_path: str) -> URSimAdapter:
+        return cls(handle=simulator_class("ur").attach(control_path))
+
+    def prepare(self) -> None:
+        """The quick timings on a controller started with the real ones (``--sim``)."""
+        self.sim.control({"cmd": "timings", **self.QUICK})
+
+    @property
+    def rx_bytes(self) -> int:
+        """Bytes the controller received from clients on every port."""
+        return self.state()["rx_bytes"]
+
+    def devices(self) -> dict[str, dict]:
+        """One entry per joint (the suite's device ids), with where it is (rad)."""
+        return {str(i): {"q": q} for i, q in enumerate(self.state()["q"])}
+
+    def clear_faults(self) -> None:
+        """What an operator does by hand: reset a safeguard stop, release an e-stop button (a
+        protective stop stays until enable unlocks it)."""
+        kind = {"SAFEGUARD_STOP": "safeguard", "ROBOT_EMERGENCY_STOP": "robot_estop",
+                "SYSTEM_EMERGENCY_STOP": "system_estop"}.get(self.state()["safety_mode"])
+        if kind is not None:
+            self.sim.release(kind)
+
+    def hand(self, i: int, raw: int) -> None:
+        """A hand pushes joint ``i`` to ``raw`` urad (refused unless the arm is in teach mode:
+        its brakes hold it otherwise)."""
+        q = self.state()["q"]
+        q[i] = raw / 1e6
+        self.sim.control({"cmd": "hand", "q": q, "speed": 2.0})
 
     @property
     def port(self) -> str:
@@ -121,7 +164,7 @@ class URSimAdapter:
         return self.sim.state()
 
     def set_torque_delay(self, seconds: float) -> None:
-        self.sim.control({"cmd": "timings", "power_on_s": max(seconds, 0.1)})  # a slow power on
+        self.sim.control({"cmd": "timings", "power_on_s": max(seconds, self.QUICK["power_on_s"])})  # a slow power on
 
     backend = None  # set by the Rig: the UR backend on this simulator
 
@@ -166,7 +209,8 @@ ROWS = {
             sim.drive(nid).read("mode") == 10 and sim.drive(nid).read("target_torque") == 0),
     ),
     # one UR5e on the simulated controller: torque = powered with brakes released; goal = the
-    # servo target the controller follows, present = the joint's position (urad)
+    # servo target the controller follows, present = the joint's position (urad); free = teach
+    # mode, where a hand may push the arm (set_present)
     "ur": Row(
         backend="ur", profile=ROOT / "profiles" / "ur5e.yaml", device=lambda profile, i: i,
         silence=lambda sim, i: sim.set_unplugged(True),
@@ -176,8 +220,10 @@ ROWS = {
         goal=lambda sim, i: round(1e6 * sim.state()["target_q"][i]),
         present=lambda sim, i: round(1e6 * sim.state()["q"][i]),
         error_latched=True, error_code="protective_stop", error_names_joint=False,
-        per_joint_registers=False, make_sim=URSimAdapter, settle=URSimAdapter.settle,
-        set_present=lambda sim, i, raw: pytest.skip("a UR arm cannot be displaced by hand here"),
+        one_device=True, braked_when_disabled=True, units_per_rad=1e6,
+        make_sim=URSimAdapter, settle=URSimAdapter.settle, remote=URSimAdapter.attach, prepare=URSimAdapter.prepare,
+        set_present=lambda sim, i, raw: sim.hand(i, raw),
+        free=lambda sim, i: sim.state()["teach_mode"],
     ),
 }
 #: several buses in one robot (backends/composite.py): two SO-101 arms on two simulated Feetech

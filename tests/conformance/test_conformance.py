@@ -93,9 +93,6 @@ def test_nan_never_reaches_the_bus(rig):
 
 def test_nothing_goes_on_the_bus_while_disabled(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
-    if not row.per_joint_registers:
-        pytest.skip("no byte count on this simulator; test_backend_ur.py: enable from power off holds "
-                    "where the arm was")
     if b.cyclic_write:
         pytest.skip("this backend writes every cycle in every state by design (cyclic_write)")
     goals = [row.goal(sim, i) for i in rig.ids]
@@ -118,9 +115,10 @@ def test_nothing_goes_on_the_bus_while_disabled(rig):
 
 def test_enable_holds_the_measured_position(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
-    if not row.per_joint_registers:
-        pytest.skip("the arm cannot be displaced by a register write; test_backend_ur.py::"
-                    "test_enable_from_power_off_keeps_the_loop_cycling checks enable holds where it is")
+    if row.braked_when_disabled:
+        pytest.skip("a DISABLED (powered off) arm is held by its brakes: nothing displaces it before enable; "
+                    "test_backend_ur.py::test_enable_from_power_off_keeps_the_loop_cycling checks enable holds "
+                    "where it is")
     for k, sid in enumerate(rig.ids):  # somewhere other than where the goals were left
         row.set_present(sim, sid, row.present(sim, sid) + 150 + 40 * k)
     before = rig.measured()
@@ -137,8 +135,8 @@ def test_enable_holds_the_measured_position(rig):
 
 def test_a_silent_device_faults_naming_the_joint(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
-    if not row.per_joint_registers:
-        pytest.skip("one device for every joint; test_backend_ur.py::"
+    if row.one_device:
+        pytest.skip("every joint is one device on one link: no joint falls silent alone; test_backend_ur.py::"
                     "test_link_loss_faults_in_the_cycle_that_sees_it_then_reconnects")
     c = rig.enabled_controller()
     k = min(2, b.n - 1)

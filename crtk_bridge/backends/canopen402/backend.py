@@ -286,6 +286,10 @@ class Canopen402Backend(Actuator):
         self._master_hb_data = bytes([t.NMT_OPERATIONAL])
         self._master_hb_period_s = cfg.master_heartbeat_ms / 1000.0
         self._master_hb_due: float | None = None  # monotonic time the next one is due; None: not yet
+        # after an outage (TPDOs missing, bus down), a fault reset waits until the drives' consumer
+        # time has run out (bounded well inside the ENABLE time limit)
+        self._settle_s = min((self._consumer_ms + cfg.master_heartbeat_ms) / 1000.0, 2.0)
+        self._settle_until = 0.0
         self._joint_caps = [self.capabilities] * self.n
         self._network: canopen.Network | None = None
         self._rx_event = threading.Event()
@@ -697,6 +701,7 @@ class Canopen402Backend(Actuator):
         fault, a ``heartbeat_lost`` / ``nmt_state`` / ``bus_error`` fault, or None."""
         fault = self._unusable("read")
         if fault is not None:
+            self._settle_until = time.monotonic() + self._settle_s
             return fault
         self.stats["reads"] += 1
         self._reads += 1
@@ -722,6 +727,7 @@ class Canopen402Backend(Actuator):
         self._decode()
         fault = None
         if missing is not None:
+            self._settle_until = now + self._settle_s  # the drives may not hear us either
             missing.missed += 1
             fault = Fault("tpdo_missing",
                           f"{self.robot}: {missing.label} sent no TPDO answering a SYNC within "
@@ -1004,6 +1010,13 @@ class Canopen402Backend(Actuator):
         rebooted = [d for d in self.drives if d.rebooted]
         if rebooted:
             yield from on_worker(lambda: [self._configure_node(d) for d in rebooted], "canopen-reconfigure")
+        # After a bus outage a drive may still be about to trip on the master's heartbeat it
+        # missed (its consumer time after the last one it heard): let that happen first, so the
+        # reset below sees it, rather than the walk meeting a fresh FAULT
+        settle = min(self._settle_until, time.monotonic() + self._settle_s)  # a silent node keeps
+        while time.monotonic() < settle:  # pushing _settle_until: bounded from here
+            yield
+            self._pump()
         # a node whose heartbeat was lost gets a moment to be heard again (it may just be back)
         deadline = time.monotonic() + 2 * self._hb_timeout_s
         while True:

@@ -65,9 +65,9 @@ from dynamixel_sdk import (
     COMM_RX_CORRUPT,
     COMM_RX_TIMEOUT,
     COMM_SUCCESS,
-    PacketHandler,
     PortHandler,
 )
+from dynamixel_sdk.protocol2_packet_handler import Protocol2PacketHandler
 
 from ...core.actuator import (
     Capabilities,
@@ -82,7 +82,7 @@ from ...core.actuator import (
 )
 from ...errors import BackendError
 from ...profile import Profile
-from ..serial_servo import EepromDiff, SerialPortFixes, SerialServoBackend
+from ..serial_servo import EepromDiff, LastStatus, SerialPortFixes, SerialServoBackend
 from ..servo_keys import PortMatch, ServoJoint
 from . import tables as T
 from .tables import OperatingMode
@@ -118,6 +118,16 @@ REBOOT_TIMEOUT_S = 2.0  # a rebooting X servo answers again within ~0.5 s
 
 class FastPortHandler(SerialPortFixes, PortHandler):
     """dynamixel_sdk PortHandler with the shared serial fixes (see :class:`SerialPortFixes`)."""
+
+
+class XPacketHandler(LastStatus, Protocol2PacketHandler):
+    """dynamixel_sdk's protocol 2.0 packet handler, keeping the last status packet."""
+
+    def status_params(self) -> int:
+        # FF FF FD 00 ID LEN_L LEN_H INST ERR params.. CRC_L CRC_H; LEN (after the SDK removed the
+        # byte stuffing) counts INST, ERR, params and CRC
+        s = self.last_status
+        return (s[5] | s[6] << 8) - 4 if len(s) > 6 else -1
 
 
 class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
@@ -232,7 +242,7 @@ class DynamixelBackend(SerialServoBackend):
         return FastPortHandler(self._port_path, margin_ms=margin_ms)
 
     def _make_packet_handler(self):
-        return PacketHandler(2.0)
+        return XPacketHandler()
 
     def _discover(self) -> dict[int, tuple[int, int | None]]:
         """Protocol 2.0's broadcast ping: every servo answers in turn with model and firmware."""
@@ -484,7 +494,8 @@ class DynamixelBackend(SerialServoBackend):
                 value, result, _ = self._ph.read1ByteTxRx(self._port, self._ids[i],
                                                           self._tables[i]["Hardware_Error_Status"].address)
                 self._port.is_using = False
-                self._hw_bits[i] = value if result == COMM_SUCCESS and value else -1
+                ours = result == COMM_SUCCESS and self._ph.status_params() == 1  # not a late reply
+                self._hw_bits[i] = value if ours and value else -1
             bad.append(i)
         parts = []
         for i in bad:

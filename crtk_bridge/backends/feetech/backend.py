@@ -22,7 +22,7 @@ advertised. Register configuration (Return_Delay_Time, Acceleration, P/I/D...) i
 servos' RAM on every ``configure``; the EEPROM Lock is left alone, so nothing is persisted to
 flash (no wear, and a power cycle restores the servo's own settings).
 
-Endianness: ``PacketHandler(0)`` sets the SDK's module-GLOBAL byte order to little-endian
+Endianness: ``StsPacketHandler()`` (as ``PacketHandler(0)``) sets the SDK's module-GLOBAL byte order to little-endian
 (STS/SMS). An SCS-series (big-endian) bus in the same process would break this one.
 """
 
@@ -39,7 +39,6 @@ from scservo_sdk import (
     COMM_SUCCESS,
     GroupSyncRead,
     GroupSyncWrite,
-    PacketHandler,
 )
 
 from ...core.actuator import (
@@ -54,7 +53,7 @@ from ...profile import Profile
 from ..serial_servo import EepromDiff, SerialServoBackend
 from ..servo_keys import PortMatch
 from . import tables
-from .port import FastPortHandler
+from .port import FastPortHandler, StsPacketHandler
 
 Byte = Annotated[int, msgspec.Meta(ge=0, le=254)]
 
@@ -162,7 +161,7 @@ class FeetechBackend(SerialServoBackend):
         return FastPortHandler(self._port_path, margin_ms=margin_ms)
 
     def _make_packet_handler(self):
-        return PacketHandler(0)  # sets the SDK's global byte order: little-endian (STS)
+        return StsPacketHandler()  # sets the SDK's global byte order: little-endian (STS)
 
     def _register(self, i: int, name: str) -> tuple[int, int]:
         reg = tables.STS_CONTROL_TABLE[name]

@@ -50,7 +50,8 @@ the robot keeps following its last target):
   same to an arm found powered at start (the robot starts DISABLED).
 * FAULT_RESET (enable from FAULT): reconnect a lost link; unlock a protective stop (retried:
   e-Series refuses within 5 s of the stop), restart safety after a violation or safety fault;
-  an e-stop or recovery mode is refused with what to do by hand.
+  an e-stop or recovery mode is refused with what to do by hand. ENABLE from DISABLED does the
+  same first when such a stop outlived its FAULT (``disable`` from FAULT, then ``enable``).
 * RESUME: waits until the safeguard stop is reset and the script plays again (dashboard
   ``play`` if it was paused); core re-seeds every setpoint from the measured pose
   (``stops_itself_on_pause``), so the arm does not rush to where it was going when it stopped.
@@ -130,6 +131,8 @@ VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actual_TC
 _POSITION, _VELOCITY, _FREE, _NONE = (int(CommandMode.POSITION), int(CommandMode.VELOCITY),
                                       int(CommandMode.FREE), int(CommandMode.NONE))
 _C_POSE, _C_TWIST, _C_MOVE = int(CartesianMode.POSE), int(CartesianMode.TWIST), int(CartesianMode.MOVE)
+#: safety modes that enable resets over the dashboard (unlock protective stop, restart safety)
+_RESETTABLE = (SafetyMode.PROTECTIVE_STOP, SafetyMode.VIOLATION, SafetyMode.FAULT)
 _MOVE_DONE_POSITION_M = 0.002  # a move_cp ends once the TCP is this close to the goal...
 _MOVE_DONE_ROTATION_RAD = 0.02  # ...and turned this little from it
 
@@ -326,6 +329,21 @@ class UrBackend(Actuator):
         #: the device paused itself (safeguard stop): hold the pose it stopped at until resume
         self._paused_hold = False
         self._last_sent = 0.0  # perf_counter of the last RTDE input to the script (its watchdog)
+
+    #: the silent-link limit on the simulated controller (``sim_profile``), at least: a simulator
+    #: is a Python process on the daemon's own PC, without real-time scheduling, whose packets
+    #: (and the daemon's receive thread) pause for a loaded host's scheduling hiccups, measured
+    #: over 0.1 s with two busy cores; a real controller streams from a real-time system
+    SIM_LINK_TIMEOUT_S = 0.5
+
+    @classmethod
+    def sim_profile(cls, profile: Profile, endpoint: str) -> Profile:
+        """``profile`` wired to the simulated controller at ``endpoint``, its ``link_timeout_s``
+        at least :attr:`SIM_LINK_TIMEOUT_S` (a closed link still faults in the cycle that sees it)."""
+        wired = super().sim_profile(profile, endpoint)
+        given = wired.backend.get("link_timeout_s", 0.0)  # absent: the default, 0.1
+        return msgspec.structs.replace(wired, backend={**wired.backend,
+                                                       "link_timeout_s": max(float(given), cls.SIM_LINK_TIMEOUT_S)})
 
     # ------------------------------------------------------------------ start-up path
     @property
@@ -784,6 +802,11 @@ class UrBackend(Actuator):
 
     def _enable_steps(self, feedback: JointFeedback) -> Steps:
         self._require_link("enable")
+        if self.safety_mode in _RESETTABLE:
+            # a stop that outlived the FAULT it caused (disable from FAULT, then enable): enable
+            # clears it as enable from FAULT does (a latched error: as a Dynamixel REBOOT, a
+            # CiA 402 fault reset); e-stops stay refused below
+            yield from self._fault_reset_steps()
         state = device_state(True, self.robot_mode, self.safety_mode, self.runtime_state, False)
         if state.status is not DeviceStatus.OK and state.status is not DeviceStatus.PAUSED:
             raise BackendError(f"{self.robot}: enable refused: {state.text}")

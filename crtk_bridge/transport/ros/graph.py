@@ -32,9 +32,11 @@ published on the namespace's ``error`` topic. ``state_command`` is subscribed VO
 purpose: crtk_python_client latches it, and a daemon (re)starting must never replay an old
 ``enable`` (the robot never enables itself).
 
-Nothing here blocks the event loop: a Zenoh put never waits (congestion control DROP), samples
-arrive on Zenoh's threads and are handed to the loop with ``call_soon_threadsafe``, and IK for
-pose commands runs on the server's worker as for the socket.
+Nothing here blocks the event loop: the periodic topics are published from their own thread
+(periodic.py: one snapshot read and one CDR encoding per message per tick, stale ticks skipped,
+never queued), a Zenoh put never waits (congestion control DROP), samples arrive on Zenoh's
+threads and are handed to the loop with ``call_soon_threadsafe``, and IK for pose commands runs
+on the server's worker as for the socket.
 """
 
 from __future__ import annotations
@@ -53,8 +55,9 @@ import zenoh
 
 from ...errors import CrtkBridgeError
 from ...server.protocol import STATE_COMMANDS, STOP_COMMANDS
-from ...server.server import Server, Session, sleep_until_next
+from ...server.server import Server, Session
 from . import types as T
+from .periodic import CARTESIAN_TOPICS, JOINT_TOPICS, PeriodicTopics
 from .rmw import LATCHED, Node, Publisher, QoS, Subscription, mangle, type_mismatch
 
 log = logging.getLogger("crtk_bridge.ros")
@@ -70,11 +73,6 @@ POSE_COMMANDS = ("servo_cp", "interpolate_cp", "move_cp", "servo_cr", "interpola
 TWIST_COMMANDS = ("servo_cv", "interpolate_cv")
 WRENCH_COMMANDS = ("servo_cf", "interpolate_cf")
 EMPTY_COMMANDS = ("hold", "free")
-#: periodic cartesian topics: (ROS type, builder from the protocol payload)
-CARTESIAN_TOPICS = {
-    "measured_cp": (T.POSE_STAMPED, T.pose_stamped), "setpoint_cp": (T.POSE_STAMPED, T.pose_stamped),
-    "measured_cv": (T.TWIST_STAMPED, T.twist_stamped), "measured_cf": (T.WRENCH_STAMPED, T.wrench_stamped),
-}
 #: motion commands in flight per topic beyond which new samples are dropped (a flood never grows
 #: the loop's queue without bound; stops and state commands are never dropped)
 MAX_IN_FLIGHT = 32
@@ -131,7 +129,7 @@ class RosGraph:
         self.namespaces = [ns.name for ns in server.profile.namespaces]
         self.node: Node | None = None
         self.session: RosSession | None = None
-        self._task: asyncio.Task | None = None
+        self.periodic: PeriodicTopics | None = None  # the thread publishing the periodic topics
         self._loop: asyncio.AbstractEventLoop | None = None
         self._pubs: dict[tuple[str, str], Publisher] = {}  # (ns or "", topic) -> publisher
         self._subs: list[Subscription] = []
@@ -145,7 +143,6 @@ class RosGraph:
         self._liveliness = None
         self._checking = False  # a liveliness query for remote command publishers is under way
         self._endpoint = endpoint
-        self.published = 0  # ticks done (for tests and the bench)
 
     # ---------------------------------------------------------------- life cycle
     async def start(self) -> None:
@@ -168,14 +165,16 @@ class RosGraph:
             self._pubs[("", "robot_description")].put(T.encode(T.String(data=urdf), T.STRING))
         self._liveliness = self.zenoh.liveliness().declare_subscriber(
             f"@ros2_lv/{self.domain_id}/**", self._on_token, history=True)
-        self._task = self._loop.create_task(self._publish_loop())
+        spaces = {ns: server.cartesian_space(ns) for ns in server.cartesian}  # the thread's own
+        self.periodic = PeriodicTopics(self.link, self.namespaces, self._pubs, spaces, self.rate_hz, robot)
+        self.periodic.start()
 
     def _declare(self) -> None:
         node = self.node
         server = self.server
         for ns in self.namespaces:
             base = f"/{ns}/"
-            topics = [("measured_js", T.JOINT_STATE), ("setpoint_js", T.JOINT_STATE), ("goal_js", T.JOINT_STATE)]
+            topics = [(t, T.JOINT_STATE) for t in JOINT_TOPICS]
             cs = server.cartesian.get(ns)
             if cs is not None:
                 topics += [(t, typ) for t, (typ, _) in CARTESIAN_TOPICS.items() if t in cs.queries]
@@ -210,12 +209,10 @@ class RosGraph:
 
     async def close(self) -> None:
         """Stop publishing, leave the graph; control held by the ROS session is released."""
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except (asyncio.CancelledError, Exception):
-                pass
+        if self.periodic is not None:
+            await self._loop.run_in_executor(None, self.periodic.close)  # within one tick
+            for cs in self.periodic.spaces.values():
+                cs.close()
         if self._liveliness is not None:
             try:
                 self._liveliness.undeclare()
@@ -233,52 +230,7 @@ class RosGraph:
             self.server.controller = None
             self.server.link.send_nowait("_client_lost")
 
-    # ---------------------------------------------------------------- publications
-    async def _publish_loop(self) -> None:
-        period = 1.0 / self.rate_hz
-        next_t = asyncio.get_running_loop().time()
-        while True:
-            try:
-                self.publish_once()
-            except Exception:  # a bug here must not end the daemon's publications silently
-                log.exception("%s: publishing the ROS topics failed", self.server.robot)
-            next_t = await sleep_until_next(next_t, period)
-
-    def publish_once(self) -> None:
-        """One sample of every periodic topic somebody subscribes to, from the snapshot."""
-        link = self.link
-        pubs = self._pubs
-        joint_states = pubs[("", "joint_states")].wanted
-        tf = ("", "tf") in pubs and pubs[("", "tf")].wanted
-        all_js = []
-        transforms = []
-        for ns in self.namespaces:
-            for topic in ("measured_js", "setpoint_js", "goal_js"):
-                pub = pubs[(ns, topic)]
-                if pub.wanted or (joint_states and topic == "measured_js"):
-                    js = link.joint_state(topic, ns)
-                    if topic == "measured_js":
-                        all_js.append(js)
-                    if pub.wanted:
-                        pub.put(T.encode(T.joint_state(js), T.JOINT_STATE))
-            cs = self.server.cartesian.get(ns)
-            if cs is None:
-                continue
-            wanted = [t for t in CARTESIAN_TOPICS if (ns, t) in pubs and pubs[(ns, t)].wanted]
-            if not wanted and not tf:
-                continue
-            st = link.ns_arrays(ns)
-            for topic in wanted:
-                msg = CARTESIAN_TOPICS[topic]
-                pubs[(ns, topic)].put(T.encode(msg[1](cs.query(topic, st, "spatial")), msg[0]))
-            if tf:
-                transforms.append(T.transform_stamped(cs.query("measured_cp", st, "spatial")))
-        if joint_states:
-            pubs[("", "joint_states")].put(T.encode(_joint_states(all_js), T.JOINT_STATE))
-        if transforms:
-            pubs[("", "tf")].put(T.encode(T.TFMessage(transforms=transforms), T.TF_MESSAGE))
-        self.published += 1
-
+    # ---------------------------------------------------------------- event-driven publications
     def _publish_state(self, state: dict) -> None:
         for ns in self.namespaces:
             self._pubs[(ns, "operating_state")].put(T.encode(T.operating_state(state, ns), T.OPERATING_STATE))
@@ -461,11 +413,3 @@ def _finite(ns: str, cmd: str, data: dict) -> dict:
                 raise Refused(f"{ns}: {cmd} refused: non-finite value {v} at data.{f}[{i}]")
     return data
 
-
-def _joint_states(all_js: list[dict]) -> Any:
-    """/joint_states: every namespace's measured_js in one message (a vector only when every
-    namespace has it)."""
-    js = {"stamp": all_js[0]["stamp"], "frame_id": "", "name": [n for j in all_js for n in j["name"]]}
-    for f in ("position", "velocity", "effort"):
-        js[f] = [v for j in all_js for v in j[f]] if all(len(j[f]) for j in all_js) else []
-    return T.joint_state(js)

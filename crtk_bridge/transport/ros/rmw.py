@@ -175,8 +175,10 @@ class Publisher:
         # whether anyone subscribes (a plain publisher's matching status, kept by a listener):
         # a periodic topic nobody reads is then not even encoded
         self._watch = node.session.declare_publisher(self.key)
-        self.wanted = self._watch.matching_status
         self._matching = self._watch.declare_matching_listener(self._on_matching)
+        # after the listener, so no change is missed; ``.matching``: the status object itself
+        # is always true, which had every topic encoded at start-up with nobody subscribed
+        self.wanted: bool = self._watch.matching_status.matching
 
     def _on_matching(self, status: zenoh.MatchingStatus) -> None:  # a Zenoh thread
         self.wanted = status.matching

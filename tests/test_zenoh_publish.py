@@ -1,0 +1,203 @@
+"""The front's Zenoh publishing paths in-process: the ROS graph's (transport/ros: who is
+subscribed, the CDR it puts on the wire) and a remote client's (transport/tunnel: a stalled link
+never holds the event loop). No daemon: Zenoh sessions on loopback endpoints, multicast off."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import msgspec
+import numpy as np
+import pytest
+import zenoh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from rosbags.typesys import Stores, get_typestore
+
+from crtk_bridge.core.snapshot import Layout, SnapshotBuffer
+from crtk_bridge.transport.ros import types as T
+from crtk_bridge.transport.ros.periodic import Encoders
+from crtk_bridge.transport.ros.rmw import Node
+from crtk_bridge.transport.tunnel import FRAME_BACKLOG, TunnelSession
+from tests.conftest import free_port, wait_until
+
+# an independent type store (not the project's): the reference serializer
+STORE = get_typestore(Stores.ROS2_KILTED)
+R = STORE.types
+ENCODERS = Encoders()  # one for every example: its templates are reused as on the wire
+
+
+def _session(listen: list[str] = (), connect: list[str] = ()) -> zenoh.Session:
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    conf.insert_json5("timestamping/enabled", "true")  # the advanced publishers need it
+    return zenoh.open(conf)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    """The graph's session (listening) and a peer joined to it (a ROS node's view)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    ours = _session(listen=[endpoint])
+    theirs = _session(connect=[endpoint])
+    yield ours, theirs
+    theirs.close()
+    ours.close()
+
+
+def test_a_topic_is_wanted_only_while_somebody_subscribes(pair):
+    """A periodic topic nobody subscribes to is not encoded: ``wanted`` is False until a matching
+    subscriber appears (an unrelated one does not count) and False again once it leaves."""
+    ours, theirs = pair
+    node = Node(ours, 0, "wanted_test")
+    try:
+        pub = node.publisher("/so101/measured_js", T.JOINT_STATE)
+        assert pub.wanted is False
+        other = theirs.declare_subscriber("0/so101/setpoint_js/**", lambda s: None)
+        sub = theirs.declare_subscriber("0/so101/measured_js/**", lambda s: None)
+        wait_until(lambda: pub.wanted is True, 5, what="measured_js wanted once subscribed")
+        sub.undeclare()
+        wait_until(lambda: pub.wanted is False, 5, what="measured_js not wanted once unsubscribed")
+        other.undeclare()
+    finally:
+        node.close()
+
+
+def _time(stamp: float):
+    ns = int(round(stamp * 1e9)) if stamp > 0 else 0
+    return R["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
+
+
+def _header(stamp: float, frame: str):
+    return R["std_msgs/msg/Header"](stamp=_time(stamp), frame_id=frame)
+
+
+def _ref(msg, ros_type: str) -> bytes:
+    return bytes(STORE.serialize_cdr(msg, ros_type))
+
+
+finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+stamps = st.one_of(st.just(0.0), st.floats(1e9, 2.1e9))  # int32 seconds (to 2038)
+
+
+@settings(max_examples=60, deadline=None)
+@given(stamp=stamps, values=st.lists(finite, min_size=15, max_size=15),
+       present=st.tuples(st.booleans(), st.booleans(), st.booleans()), n=st.integers(1, 5))
+def test_joint_state_template_encodes_as_rosbags(stamp, values, present, n):
+    """The periodic JointState (a CDR template whose numbers are rewritten in place) is byte for
+    byte the reference serializer's, for every layout: vectors present or empty, any length."""
+    names = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"][:n]
+    vec = [np.array(values[5 * i:5 * i + n], dtype=np.float64) if present[i] else np.empty(0) for i in range(3)]
+    js = {"stamp": stamp, "frame_id": "so101", "name": names, "position": vec[0].tolist(),
+          "velocity": vec[1].tolist(), "effort": vec[2].tolist()}
+    ref = R["sensor_msgs/msg/JointState"](header=_header(stamp, "so101"), name=names, position=vec[0],
+                                          velocity=vec[1], effort=vec[2])
+    assert ENCODERS.joint_state(js) == _ref(ref, "sensor_msgs/msg/JointState")
+
+
+@settings(max_examples=40, deadline=None)
+@given(stamp=stamps, v=st.lists(finite, min_size=14, max_size=14), valid=st.booleans())
+def test_cartesian_and_tf_templates_encode_as_rosbags(stamp, v, valid):
+    """PoseStamped (an invalid pose: the identity, stamp 0), TwistStamped, WrenchStamped and a
+    two-transform TFMessage, byte for byte the reference serializer's."""
+    G = "geometry_msgs/msg/"
+    pos, q = (v[0:3], v[3:7]) if valid else ([0.0] * 3, [0.0, 0.0, 0.0, 1.0])
+    pose = {"stamp": stamp if valid else 0.0, "frame_id": "base_link", "child_frame_id": "tip",
+            "position": v[0:3] if valid else [], "orientation": v[3:7] if valid else []}
+    ref_pose = R[G + "Pose"](position=R[G + "Point"](x=pos[0], y=pos[1], z=pos[2]),
+                             orientation=R[G + "Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+    assert ENCODERS.cartesian(T.POSE_STAMPED, pose) == _ref(
+        R[G + "PoseStamped"](header=_header(pose["stamp"], "base_link"), pose=ref_pose), G + "PoseStamped")
+
+    def v3(x):
+        return R[G + "Vector3"](x=x[0], y=x[1], z=x[2])
+    six = (v[7:10], v[10:13]) if valid else ([0.0] * 3, [0.0] * 3)
+    twist = {"stamp": pose["stamp"], "frame_id": "tip", "linear": v[7:10] if valid else [],
+             "angular": v[10:13] if valid else []}
+    assert ENCODERS.cartesian(T.TWIST_STAMPED, twist) == _ref(R[G + "TwistStamped"](
+        header=_header(pose["stamp"], "tip"), twist=R[G + "Twist"](linear=v3(six[0]), angular=v3(six[1]))),
+        G + "TwistStamped")
+    wrench = {"stamp": pose["stamp"], "frame_id": "base_link", "force": twist["linear"], "torque": twist["angular"]}
+    assert ENCODERS.cartesian(T.WRENCH_STAMPED, wrench) == _ref(R[G + "WrenchStamped"](
+        header=_header(pose["stamp"], "base_link"), wrench=R[G + "Wrench"](force=v3(six[0]), torque=v3(six[1]))),
+        G + "WrenchStamped")
+
+    other = dict(pose, stamp=stamp, frame_id="world", child_frame_id="base_link", position=v[0:3],
+                 orientation=v[3:7])
+    transforms = [R[G + "TransformStamped"](
+        header=_header(p["stamp"], p["frame_id"]), child_frame_id=p["child_frame_id"],
+        transform=R[G + "Transform"](translation=v3(a), rotation=R[G + "Quaternion"](x=b[0], y=b[1], z=b[2], w=b[3])))
+        for p, (a, b) in ((pose, (pos, q)), (other, (v[0:3], v[3:7])))]
+    assert ENCODERS.tf([pose, other]) == _ref(R["tf2_msgs/msg/TFMessage"](transforms=transforms),
+                                              "tf2_msgs/msg/TFMessage")
+
+
+class StalledPublisher:
+    """A Zenoh publisher whose link is stalled: ``put`` waits (as congestion control BLOCK does)
+    until ``release`` is set."""
+
+    def __init__(self, log: list, kind: str, release: threading.Event):
+        self.log, self.kind, self.release = log, kind, release
+        self.waiting = threading.Event()
+        self.undeclared = False
+
+    def put(self, data: bytes) -> None:
+        self.waiting.set()
+        assert self.release.wait(10), "never released"
+        self.log.append((self.kind, msgspec.json.decode(data)))
+
+    def undeclare(self) -> None:
+        self.undeclared = True
+
+
+def test_a_stalled_remote_link_never_holds_the_event_loop():
+    """A remote client's replies wait for room on its link on the session's own thread: sending
+    returns at once while the put is stuck; once the link moves, replies and events arrive all
+    and in order, frames beyond the backlog were dropped (never queued without bound), and the
+    publishers are undeclared after the last message went out."""
+    release = threading.Event()
+    log: list = []
+    replies, frames = StalledPublisher(log, "reply", release), StalledPublisher(log, "frame", release)
+    s = TunnelSession(1, "0123456789abcdef", replies, frames)
+    try:
+        s.send({"id": 1, "ok": True})
+        assert replies.waiting.wait(5)  # the sender thread is stuck in the put
+        for i in range(FRAME_BACKLOG + 50):  # all of this returns while the link is stalled
+            s.send_frame({"sub": 1, "data": i})
+        s.send({"event": "operating_state", "data": {"state": "ENABLED"}})
+        s.send({"id": 2, "ok": True})
+        assert not release.is_set() and log == []
+        assert s.dropped > 0
+        s.close()
+        release.set()
+        wait_until(lambda: replies.undeclared and frames.undeclared, 5, what="publishers undeclared after the last put")
+    finally:
+        release.set()
+    kinds = [k for k, _ in log]
+    assert [m for k, m in log if k == "reply"] == [{"id": 1, "ok": True},
+                                                   {"event": "operating_state", "data": {"state": "ENABLED"}},
+                                                   {"id": 2, "ok": True}]
+    sent_frames = [m["data"] for k, m in log if k == "frame"]
+    assert sent_frames == list(range(len(sent_frames))) and len(sent_frames) + s.dropped == FRAME_BACKLOG + 50
+    assert kinds[0] == "reply" and kinds[-2:] == ["reply", "reply"]  # the order the server sent
+
+
+def test_the_publishing_thread_copies_the_state_without_the_statistics_rings():
+    """SnapshotBuffer.read(upto=): the periodic topics' one read per tick copies the joint state
+    and counters (a few hundred bytes), not the 16 KiB of lateness and compute rings."""
+    snap = SnapshotBuffer(Layout(6, 2), create=True)
+    try:
+        snap.begin()
+        snap.data[:] = np.arange(snap.data.size)
+        snap.end()
+        upto = snap.layout.slices["lateness"].start
+        out = np.full_like(snap.data, -1.0)
+        got, seq = snap.read(out, upto=upto)
+        assert got is out and seq == 2
+        assert np.array_equal(out[:upto], np.arange(upto)) and np.all(out[upto:] == -1.0)
+        assert snap.layout.slices["cycles"].stop <= upto
+    finally:
+        snap.close(unlink=True)
