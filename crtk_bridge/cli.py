@@ -2,7 +2,7 @@
 
     crtk-bridge --profile FILE [--sim] [--socket PATH] [--log-level L] [--no-realtime]
                 [--zenoh-connect ENDPOINT] [--zenoh-listen ENDPOINT] [--ros-domain-id N]
-    crtk-bridge check --profile FILE [--scan [--all-bauds]]
+    crtk-bridge check --profile FILE [--scan [--all-bauds]] [--json]
     crtk-bridge find-port [--replug]
     crtk-bridge setup-servos --profile FILE [--yes] [--json] [--joint NAME]
 """
@@ -22,7 +22,7 @@ def _run_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="crtk-bridge",
         usage="%(prog)s --profile FILE [--sim] [--socket PATH] [options]\n"
-              "       %(prog)s check --profile FILE [--scan [--all-bauds]]\n"
+              "       %(prog)s check --profile FILE [--scan [--all-bauds]] [--json]\n"
               "       %(prog)s find-port [--replug]\n"
               "       %(prog)s setup-servos --profile FILE [--yes] [--json] [--joint NAME]",
         description="Serve the CRTK robot API for the robot a profile describes.",
@@ -33,7 +33,8 @@ def _run_parser() -> argparse.ArgumentParser:
                "                        every id on the bus: model, firmware, torque of each\n"
                "                        servo; missing and extra ids; EEPROM settings that differ\n"
                "                        (register named); --all-bauds also the servos at other\n"
-               "                        baud rates (exit 1 on a mismatch)\n"
+               "                        baud rates (exit 1 on a mismatch); --json: the findings as\n"
+               "                        one JSON document (docs/check.md)\n"
                "  find-port [--replug]  list serial ports with their /dev/serial/by-id names and USB\n"
                "                        vendor / product / serial number; --replug names the one\n"
                "                        you unplug and plug back\n"
@@ -73,6 +74,9 @@ def _check(argv: list[str]) -> int:
     p.add_argument("--all-bauds", action="store_true",
                    help="with --scan: also ping at every other baud rate the servos support and "
                         "report the servos found there (exit 1; crtk-bridge setup-servos moves them)")
+    p.add_argument("--json", action="store_true",
+                   help="print the findings as one JSON document on stdout (and nothing else; keys in "
+                        "docs/check.md); the exit status is the same")
     args = p.parse_args(argv)
     if args.all_bauds and not args.scan:
         p.error("--all-bauds needs --scan")
@@ -81,6 +85,9 @@ def _check(argv: list[str]) -> int:
     from .profile import load_profile
     from .transport.zenoh_session import check_exposure, zenoh_config
 
+    doc: dict = {"check_format": CHECK_FORMAT, "profile": args.profile, "ok": False, "valid": False, "error": None,
+                 "robot": None, "backend": None, "joints": [], "namespaces": [], "kinematics": [],
+                 "scan": None, "problems": []}
     try:
         profile = load_profile(args.profile)
         backend = create_backend(profile, source=args.profile)
@@ -89,45 +96,83 @@ def _check(argv: list[str]) -> int:
         if zenoh is not None:  # loopback, or TLS + access control (transport/zenoh_session.py)
             check_exposure(zenoh, profile.name)
     except CrtkBridgeError as exc:
-        print(f"crtk-bridge: {exc}", file=sys.stderr)
-        return 1
-    print(f"{args.profile}: valid profile for robot {profile.name!r} ({profile.backend_type}, "
-          f"{len(profile.joints)} joints, namespaces {', '.join(ns.name for ns in profile.namespaces)}"
-          f"{'; kinematics ' + ', '.join(cartesian) if cartesian else ''})")
-    return _scan(profile, backend, args.profile, args.all_bauds) if args.scan else 0
-
-
-def _scan(profile, backend, source: str, all_bauds: bool) -> int:
-    """``check --scan``: each bus's servos against the profile. 0 when they match, else 1."""
-    buses = dict(zip(backend.bus_names, backend.parts)) if profile.backends is not None else {"": backend}
+        doc["error"] = str(exc)
+        doc["problems"].append(str(exc))
+        return _check_end(doc, args.json, 1)
+    doc.update(valid=True, robot=profile.name, backend=profile.backend_type, joints=list(profile.joint_names),
+               namespaces=[ns.name for ns in profile.namespaces], kinematics=list(cartesian or []))
+    if not args.json:
+        print(f"{args.profile}: valid profile for robot {profile.name!r} ({profile.backend_type}, "
+              f"{len(profile.joints)} joints, namespaces {', '.join(ns.name for ns in profile.namespaces)}"
+              f"{'; kinematics ' + ', '.join(cartesian) if cartesian else ''})")
     failed = False
+    if args.scan:
+        buses = _scan(profile, backend, args.profile, args.all_bauds, args.json)
+        doc["scan"] = {"all_bauds": args.all_bauds, "buses": buses}
+        doc["problems"] += [problem for bus in buses for problem in bus["problems"]]
+        failed = any(not bus["ok"] for bus in buses)
+    doc["ok"] = not failed
+    return _check_end(doc, args.json, 1 if failed else 0)
+
+
+#: ``check --json``'s document format; raised when a key changes meaning or goes (docs/check.md)
+CHECK_FORMAT = 1
+
+
+def _check_end(doc: dict, as_json: bool, status: int) -> int:
+    """End ``check``: the JSON document (``--json``), else the profile error if any (the
+    scan's lines are printed as it goes). Returns ``status``."""
+    if as_json:
+        print(json.dumps(doc, indent=2))
+    elif doc["error"] is not None:
+        print(f"crtk-bridge: {doc['error']}", file=sys.stderr)
+    return status
+
+
+def _scan(profile, backend, source: str, all_bauds: bool, quiet: bool = False) -> list[dict]:
+    """``check --scan``: each bus's servos against the profile, one record each (``check
+    --json``'s ``scan.buses``; ``ok`` false on any mismatch). Prints the report unless ``quiet``."""
+    buses = dict(zip(backend.bus_names, backend.parts)) if profile.backends is not None else {"": backend}
+    out = []
+
+    def fail(rec: dict, message: str) -> None:
+        rec.update(ok=False, error=message)
+        rec["problems"].append(message)
+        if not quiet:
+            print(f"crtk-bridge: {message}", file=sys.stderr)
+
     for bus, part in buses.items():
         where = f"backends.{bus}" if bus else "backend"
+        rec = {"bus": bus or None, "where": where, "vendor": getattr(part, "vendor", None), "port": None,
+               "baudrate": None, "ok": True, "error": None, "servos_answered": 0, "joints": [], "extra": [],
+               "other_rates": [], "problems": []}
+        out.append(rec)
         if not hasattr(part, "scan"):
-            print(f"crtk-bridge: {profile.name}: {where}: a {type(part).__name__} cannot scan its bus",
-                  file=sys.stderr)
-            failed = True
+            fail(rec, f"{profile.name}: {where}: a {type(part).__name__} cannot scan its bus")
             continue
-        print(f"scanning {where} ({part.vendor}) at {part.config.baudrate} baud"
-              f"{' (then every other rate)' if all_bauds else ''}, ids 0-{part.MAX_ID}...", flush=True)
+        rec.update(baudrate=part.config.baudrate, port=part.port_name)
+        if not quiet:
+            print(f"scanning {where} ({part.vendor}) at {part.config.baudrate} baud"
+                  f"{' (then every other rate)' if all_bauds else ''}, ids 0-{part.MAX_ID}...", flush=True)
         try:
             found = part.scan(all_bauds=all_bauds)
         except CrtkBridgeError as exc:
-            print(f"crtk-bridge: {exc}", file=sys.stderr)
-            failed = True
+            fail(rec, str(exc))
             continue
         bus_opt = f" --bus {bus}" if bus else ""
-        lines, problems = part.scan_report(
+        lines, problems, findings = part.scan_report(
             found, f": run crtk-bridge setup-servos --profile {source}{bus_opt} with only that servo connected")
         n = len(found.servos)
+        rec.update(findings, port=part.port_name, servos_answered=n, ok=not problems, problems=problems)
+        if quiet:
+            continue
         print(f"{where}: {part.port_name}: {n} servo{'s' if n != 1 else ''} answered")
         for line in lines:
             print("  " + line)
         if problems:
-            failed = True
             print(f"crtk-bridge: {profile.name}: {where} ({part.port_name}) does not match the profile: "
                   + "; ".join(problems), file=sys.stderr)
-    return 1 if failed else 0
+    return out
 
 
 def _find_port(argv: list[str]) -> int:

@@ -18,6 +18,7 @@ from crtk_bridge.backends.ur.backend import UrBackend
 from crtk_bridge.core.actuator import Lifecycle
 from crtk_bridge.core.controller import Controller
 from crtk_bridge.core.state import OperatingState
+from crtk_bridge.errors import ProfileError
 from crtk_bridge.profile import load_profile
 from crtk_bridge.sim import simulator_class
 
@@ -329,17 +330,18 @@ def test_speed_slider_and_tcp_wrench_are_reported(ur):
 
 
 def test_a_stalled_loop_stops_the_arm(ur):
-    """The control script's RTDE watchdog (backend.watchdog_hz, 10 Hz): a control process that
-    stops cycling (dead, stalled) must not leave a speedJ running; the script stops, the arm
-    with it, and the next cycle reports it (script_stopped -> FAULT)."""
+    """The control script's RTDE watchdog (backend.watchdog_hz: 10 Hz, 2 Hz under --sim): a control
+    process that stops cycling (dead, stalled) must not leave a speedJ running; the script stops,
+    the arm with it, and the next cycle reports it (script_stopped -> FAULT)."""
     c = ur.enabled(READY)
-    ur.cycle(int(0.3 / ur.backend.dt))  # held by the cycle past the watchdog's 0.1 s: it is fed
+    watchdog_s = 1.0 / ur.backend.config.watchdog_hz
+    ur.cycle(int(1.5 * watchdog_s / ur.backend.dt))  # held by the cycle past the watchdog's period: it is fed
     assert ur.sim.state()["runtime_state"] == "PLAYING"
     ur.send("servo_jv", NS, velocity=[0.3, 0, 0, 0, 0, 0])
     ur.until(lambda: abs(ur.sim.state()["qd"][0]) > 0.2, 2, "the arm turning under speedJ")
     t0 = time.monotonic()  # the loop stops cycling here
     while ur.sim.state()["runtime_state"] == "PLAYING":
-        assert time.monotonic() - t0 < 1.0, "the script ran on without the daemon's inputs"
+        assert time.monotonic() - t0 < watchdog_s + 0.5, "the script ran on without the daemon's inputs"
         time.sleep(0.01)
     st = ur.sim.state()
     assert st["qd"] == [0.0] * 6 and "watchdog" in st["last_error"]
@@ -347,23 +349,35 @@ def test_a_stalled_loop_stops_the_arm(ur):
     assert c.state is OperatingState.FAULT and ur.events("error")[-1]["code"] == "script_stopped"
 
 
-def test_the_simulated_controller_gets_a_silent_link_limit_that_a_loaded_host_does_not_trip():
+def test_the_simulated_controller_gets_link_and_watchdog_limits_that_a_loaded_host_does_not_trip():
     profile = load_profile(UR5E)
     wired = UrBackend.sim_profile(profile, "127.0.0.9")
     assert wired.backend["host"] == "127.0.0.9"
-    assert wired.backend["link_timeout_s"] == UrBackend.SIM_LINK_TIMEOUT_S == 0.5  # the default 0.1, raised
-    longer = msgspec.structs.replace(profile, backend={**profile.backend, "link_timeout_s": 2.0})
-    assert UrBackend.sim_profile(longer, "127.0.0.9").backend["link_timeout_s"] == 2.0  # a longer one kept
-    assert UrBackend(wired).config.link_timeout_s == 0.5  # a valid profile key
+    cfg = UrBackend(wired).config  # valid profile keys
+    assert (cfg.link_timeout_s, cfg.watchdog_hz) == (0.5, 2.0)  # the defaults 0.1 s and 10 Hz, under --sim
+    own = msgspec.structs.replace(profile, backend={**profile.backend, "link_timeout_s": 0.2, "watchdog_hz": 10.0})
+    cfg = UrBackend(UrBackend.sim_profile(own, "127.0.0.9")).config
+    assert (cfg.link_timeout_s, cfg.watchdog_hz) == (0.2, 10.0)  # a profile's own values kept
+
+
+def test_the_scripts_watchdog_cannot_be_switched_off():
+    """backend.watchdog_hz: 0 would leave a dead control process's last speedJ running: refused
+    naming the key (CANopen refuses master_heartbeat_ms: 0 alike)."""
+    profile = load_profile(UR5E)
+    off = msgspec.structs.replace(profile, backend={**profile.backend, "watchdog_hz": 0})
+    with pytest.raises(ProfileError, match=r"backend\.watchdog_hz: 0 would switch the control script's RTDE watchdog off"):
+        UrBackend(off)
+    assert UrBackend(msgspec.structs.replace(profile, backend={**profile.backend, "watchdog_hz": 2})).config.watchdog_hz == 2
 
 
 def test_a_speedj_running_into_a_goal_check_is_stopped_by_the_scripts_watchdog(ur):
     """During a GOAL_CHECK the cycle sends nothing on the control interface (the check's blocking
     call owns it, and no watchdog kick goes out meanwhile): a speedJ issued before it runs on
     until the check ends. If the controller does not answer the check, what stops the arm is the
-    script's RTDE watchdog (1 / backend.watchdog_hz = 0.1 s after the check's own input package),
-    not the check's 2 s time limit."""
+    script's RTDE watchdog (1 / backend.watchdog_hz after the check's own input package: 0.1 s,
+    0.5 s under --sim), not the check's 2 s time limit."""
     c = ur.enabled(READY)
+    watchdog_s = 1.0 / ur.backend.config.watchdog_hz
     ur.send("servo_jv", NS, velocity=[0.3, 0, 0, 0, 0, 0])
     ur.until(lambda: abs(ur.sim.state()["qd"][0]) > 0.2, 2, "the arm turning under speedJ")
     ur.sim.control({"cmd": "stall_script", "on": True})  # the program stops taking commands
@@ -374,7 +388,8 @@ def test_a_speedj_running_into_a_goal_check_is_stopped_by_the_scripts_watchdog(u
         stopped_after = time.monotonic() - t0
         st = ur.sim.state()
         assert "watchdog" in st["last_error"] and st["runtime_state"] != "PLAYING", st
-        assert stopped_after < 0.6, stopped_after  # 0.1 s watchdog + the stop; the check's limit is 2 s
+        # the watchdog's period + the stop, well before the check's limit
+        assert stopped_after < watchdog_s + 0.4 < ur.backend.transition_timeout_s(Lifecycle.GOAL_CHECK), stopped_after
         r = ur.reply(rid, 5)
         # refused: aborted by the FAULT of the stopped script, or ur_rtde's call failing first
         assert not r["ok"] and r["error"]["code"] in ("aborted", "out_of_limits"), r

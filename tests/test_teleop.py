@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 from crtk_bridge.client import connect
-from crtk_bridge.client.teleop import ALIGNING, DISABLED, ENABLED, Teleop, TeleopError
+from crtk_bridge.client.teleop import ALIGNING, DISABLED, ENABLED, Teleop, TeleopError, pair_namespaces
 from crtk_bridge.profile import load_profile
 from crtk_bridge.sim.control import control_request
 
@@ -135,6 +135,49 @@ def test_teleop_waits_for_alignment_then_the_follower_tracks_the_leader(rig):
         assert t.state == DISABLED and arm.operating_state() == "ENABLED"  # ending never disables
 
 
+def test_a_paused_follower_is_waited_for_and_can_be_resumed_by_the_operator(rig):
+    """A follower PAUSED under teleop (a stop from another session): teleop goes back to
+    ALIGNING and stays there -- it never claims to follow a PAUSED robot -- and gives up control
+    so the operator can resume it from another session (crtk-ctl resume); then it takes control
+    again and follows once aligned."""
+    leader, follower, _ = rig
+    with connect(socket=str(leader.socket_path)) as lead, connect(socket=str(follower.socket_path)) as fol:
+        arm = fol.device("so101")
+        assert arm.operating_state() == "ENABLED"  # left so by the test before
+        rec = Recorder()
+        t = Teleop(lead, fol, rate_hz=50, tolerance=0.1, on_state=rec)
+        steps = [0]
+        step = t._step
+
+        def counted() -> None:
+            steps[0] += 1
+            step()
+
+        t._step = counted
+        thread, errors = start(t)
+        try:
+            wait_until(lambda: t.state == ENABLED, 5, what="teleop ENABLED")
+            with connect(socket=str(follower.socket_path)) as op:
+                assert op.device("so101").pause()  # a stop from any session
+            wait_until(lambda: rec.saw(ALIGNING, "PAUSED"), 5, what="ALIGNING: the follower PAUSED")
+            with rec.lock:
+                seen = len(rec.lines)
+            at = steps[0]
+            wait_until(lambda: steps[0] >= at + 10, 5, what="ten teleop ticks while PAUSED")
+            with rec.lock:
+                during = [s for s, _ in rec.lines[seen:]]
+            assert ENABLED not in during, rec.lines[seen:]  # nothing sent, no 'following' while PAUSED
+            assert t.state == ALIGNING
+            with connect(socket=str(follower.socket_path)) as op:  # the operator resumes it
+                assert op.device("so101").resume(5)
+            wait_until(lambda: t.state == ENABLED, 5, what="teleop following again after resume")
+        finally:
+            t.stop()
+            thread.join(5)
+        assert not errors, errors
+        assert arm.operating_state() == "ENABLED"
+
+
 def test_crtk_ctl_teleop_follows_and_a_lost_leader_ends_it_with_the_follower_holding(rig):
     leader, follower, profile = rig
     with connect(socket=str(follower.socket_path)) as fol:
@@ -165,3 +208,34 @@ def test_crtk_ctl_teleop_follows_and_a_lost_leader_ends_it_with_the_follower_hol
         held = arm.measured_jp()[0]
         assert arm.operating_state() == "ENABLED"
         wait_until(lambda: np.allclose(arm.measured_jp()[0], held, atol=0.01), 3, what="the follower holding")
+
+
+class _Ns:
+    def __init__(self, name: str, joints: list[str]):
+        self.name, self.joint_names = name, joints
+
+    def supports(self, cmd: str) -> bool:
+        return True
+
+
+class _Bot:
+    def __init__(self, name: str, namespaces: dict[str, list[str]]):
+        self.name, self.namespaces = name, list(namespaces)
+        self._ns = {ns: _Ns(ns, joints) for ns, joints in namespaces.items()}
+
+    def device(self, name: str) -> _Ns:
+        return self._ns[name]
+
+
+def test_joints_paired_by_position_must_not_be_named_joints_of_the_other_order():
+    """Joint i follows joint i: a leader listing the follower's joints in another order would
+    drive each joint with another joint's angle. Refused, naming both; joints named alike in
+    the same order, or not sharing names at all (another kind of arm), pair."""
+    arm = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"]
+    swapped = ["shoulder_pan", "shoulder_lift", "wrist_flex", "elbow_flex", "wrist_roll"]
+    follower = _Bot("so101", {"so101": arm})
+    with pytest.raises(TeleopError, match=r"so101_leader -> so101: leader joint 2 is 'wrist_flex', "
+                                          r"follower joint 2 is 'elbow_flex'.*'wrist_flex' is follower joint 3"):
+        pair_namespaces(_Bot("so101_leader", {"so101_leader": swapped}), follower)
+    assert len(pair_namespaces(_Bot("so101_leader", {"so101_leader": list(arm)}), follower)) == 1
+    assert len(pair_namespaces(_Bot("other", {"other": ["j1", "j2", "j3", "j4", "j5"]}), follower)) == 1

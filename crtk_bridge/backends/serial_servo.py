@@ -7,8 +7,9 @@ with ``ping`` / ``readNByteTxRx`` / ``writeNByteTxRx`` returning ``(value, resul
 * :class:`SerialPortFixes` -- a mixin that fixes both SDKs' serial-port gaps (stale input, busy
   polling, 34 ms packet timeouts, wall-clock deadlines); each vendor's ``port.py`` mixes it into
   its SDK's ``PortHandler``.
-* :class:`LastStatus` -- a mixin that keeps the last status packet a ``PacketHandler`` parsed,
-  so a register read can check the reply's LENGTH field (the SDKs match a reply by id only).
+* :class:`LastStatus` -- a mixin that keeps the status packet of a ``PacketHandler``'s last
+  transaction, so a register read can check the reply's LENGTH field (the SDKs match a reply by
+  id only).
 * :class:`SerialServoBackend` -- profile validation (backend keys; the joints' servo keys,
   ``servo_keys.py``), the tick <-> rad calibration arrays, retried register reads/writes with errors
   naming robot, joint, id, register and port, opening (ping every servo, check its model number),
@@ -70,20 +71,21 @@ COMM_SUCCESS = 0  # the same value in scservo_sdk and dynamixel_sdk
 
 
 class LastStatus:
-    """Mixin for an SDK ``PacketHandler``: keeps the last status packet ``rxPacket`` parsed.
+    """Mixin for an SDK ``PacketHandler``: keeps the status packet of the last request /
+    reply transaction (``txRxPacket``: ping, register reads and writes).
 
     Both SDKs' ``readTxRx`` take any status packet of the right id as the reply and slice its
     parameters to the length asked for, so a late reply to an earlier read (of another register)
     passes for this one. :meth:`status_params` is the parameter count the packet's own LENGTH
-    field gives; the backend compares it with the length it asked for. Keeping a reference costs
-    no allocation. Each vendor fills :meth:`status_params` for its framing."""
+    field gives; the backend compares it with the length it asked for. The group sync read of
+    the real-time path does not go through ``txRxPacket``, so it pays nothing for this."""
 
     last_status: list[int] = []
 
-    def rxPacket(self, port, *args):  # noqa: N802 (SDK name; dynamixel_sdk adds fast_option)
-        rxpacket, result = super().rxPacket(port, *args)  # type: ignore[misc]
-        self.last_status = rxpacket
-        return rxpacket, result
+    def txRxPacket(self, port, txpacket):  # noqa: N802 (SDK name)
+        rxpacket, result, error = super().txRxPacket(port, txpacket)  # type: ignore[misc]
+        self.last_status = rxpacket or []
+        return rxpacket, result, error
 
     def status_params(self) -> int:
         """Parameter bytes of the last status packet per its LENGTH field (-1 if too short)."""
@@ -860,14 +862,22 @@ class SerialServoBackend(Actuator):
         read from it; None where it did not say."""
         raise NotImplementedError
 
-    def scan_report(self, scan: BusScan, hint: str = "") -> tuple[list[str], list[str]]:
+    def scan_report(self, scan: BusScan, hint: str = "") -> tuple[list[str], list[str], dict]:
         """(one line per servo, per missing joint, per EEPROM difference and per servo at another
-        rate; the mismatches) of a :meth:`scan` against the profile: a joint's id that did not
-        answer, a servo of another model than the joint's, an id that answered but no joint has,
-        an EEPROM setting that differs (naming the register), a servo at another baud rate
-        (``hint``: the command that fixes it)."""
+        rate; the mismatches; the same findings as data) of a :meth:`scan` against the profile: a
+        joint's id that did not answer, a servo of another model than the joint's, an id that
+        answered but no joint has, an EEPROM setting that differs (naming the register), a servo
+        at another baud rate (``hint``: the command that fixes it). The data (``crtk-bridge check
+        --json``, docs/check.md): ``joints`` (one per profile joint: joint, id, expected_model,
+        status ok / missing / wrong_model, model, model_number, firmware, torque, eeprom [register,
+        value, expected, key, enable_refused, why, remedy], eeprom_error), ``extra`` (id, model,
+        model_number, firmware, torque) and ``other_rates`` (id, baudrate, model, model_number)."""
         by_id = {s.id: s for s in scan.servos}
         lines, problems = [], []
+        findings: dict[str, list] = {"joints": [], "extra": [], "other_rates": []}
+
+        def servo(s: ScannedServo) -> dict:
+            return {"model": s.model, "model_number": s.model_number, "firmware": s.firmware, "torque": s.torque}
 
         def describe(s: ScannedServo) -> str:
             torque = {True: "torque on", False: "torque off", None: "torque ?"}[s.torque]
@@ -876,12 +886,20 @@ class SerialServoBackend(Actuator):
 
         for i, (name, j) in enumerate(zip(self.joint_names, self.joint_keys)):
             s = by_id.pop(self._ids[i], None)
+            joint = {"joint": name, "id": self._ids[i], "expected_model": j.model}
+            findings["joints"].append(joint)
             if s is None:
                 lines.append(f"id {self._ids[i]:3d}  {name:<16} MISSING: no reply")
                 problems.append(f"{self._label[i]}: no reply at {self.config.baudrate} baud")
+                joint.update(status="missing", model=None, model_number=None, firmware=None, torque=None,
+                             eeprom=[], eeprom_error=None)
                 continue
             expected = self.MODEL_NUMBERS[j.model]
             ok = s.model_number == expected
+            joint.update(status="ok" if ok else "wrong_model", **servo(s), eeprom_error=s.eeprom_error,
+                         eeprom=[{"register": d.register, "value": d.value, "expected": d.expected, "key": d.key,
+                                  "enable_refused": d.wrong_positions, "why": d.why, "remedy": d.remedy}
+                                 for d in s.eeprom])
             lines.append(f"id {s.id:3d}  {name:<16} {describe(s)}"
                          f"{'' if ok else f'  WRONG MODEL: the profile says {j.model}'}")
             if not ok:
@@ -895,6 +913,7 @@ class SerialServoBackend(Actuator):
                 lines.append(f"         EEPROM not read: {s.eeprom_error}")
                 problems.append(s.eeprom_error)
         for s in by_id.values():
+            findings["extra"].append({"id": s.id, **servo(s)})
             lines.append(f"id {s.id:3d}  {'(no joint)':<16} {describe(s)}  EXTRA: not in the profile")
             problems.append(f"id {s.id} ({s.model or f'model number {s.model_number}'}) answered "
                             f"but no joint has this id")
@@ -902,11 +921,13 @@ class SerialServoBackend(Actuator):
         for baud, servos in sorted(scan.elsewhere.items()):
             for sid, number in servos:
                 what = names.get(number) or f"model number {number}"
+                findings["other_rates"].append({"id": sid, "baudrate": baud, "model": names.get(number),
+                                                "model_number": number})
                 lines.append(f"id {sid:3d}  at {baud} baud  {what}  OTHER RATE: the profile's is "
                              f"{self.config.baudrate}")
                 problems.append(f"id {sid} ({what}) answers at {baud} baud, not the profile's "
                                 f"{self.config.baudrate}{hint}")
-        return lines, problems
+        return lines, problems, findings
 
     def _open_hook(self) -> None:
         """Open the port, ping every servo and check its model. Blocks. Raises BackendError."""

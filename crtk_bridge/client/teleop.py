@@ -18,10 +18,12 @@ the stream with its own velocity bounds, clips to its joint limits and refuses a
     following: one ``interpolate_jp`` per namespace per tick at ``rate_hz``.
 
 Back to ALIGNING, with the follower holding (``hold``), when the leader's data turns invalid
-(stamp 0), the follower refuses a step (the leader jumped), or the follower is PAUSED (it waits
-for ``resume``). It ends, the follower holding, when the follower leaves ENABLED otherwise
-(FAULT, DISABLED), when either daemon goes away (:class:`TeleopError` naming which), on
-``stop()`` or after ``duration`` s. Ending never disables or frees the follower.
+(stamp 0), the follower refuses a step (the leader jumped), or the follower is PAUSED: teleop
+then gives control up so the operator can ``resume`` it from another session, and takes it
+again once the follower is ENABLED (waiting while another session holds it). It ends, the
+follower holding, when the follower leaves ENABLED otherwise (FAULT, DISABLED), when either
+daemon goes away (:class:`TeleopError` naming which), on ``stop()`` or after ``duration`` s.
+Ending never disables or frees the follower.
 """
 
 from __future__ import annotations
@@ -58,7 +60,8 @@ class Pair:
 def pair_namespaces(leader: Robot, follower: Robot, pairs: list[str] | None = None) -> list[Pair]:
     """The namespaces to pair: ``pairs`` as ``"LEADER_NS=FOLLOWER_NS"``, else every namespace of
     the leader with the follower's at the same position. Each pair must have the same number of
-    joints (joint i follows joint i). Raises :class:`TeleopError` naming what does not match."""
+    joints (joint i follows joint i), and a joint name both sides use at the same index. Raises
+    :class:`TeleopError` naming what does not match."""
     if pairs:
         out = []
         for text in pairs:
@@ -80,6 +83,12 @@ def pair_namespaces(leader: Robot, follower: Robot, pairs: list[str] | None = No
             raise TeleopError(f"{p}: the leader has {len(p.leader.joint_names)} joints "
                               f"({', '.join(p.leader.joint_names)}), the follower {len(p.follower.joint_names)} "
                               f"({', '.join(p.follower.joint_names)})")
+        lead, follow = list(p.leader.joint_names), list(p.follower.joint_names)
+        for i, name in enumerate(lead):  # a joint named on both sides must be at the same index
+            if name in follow and follow.index(name) != i:
+                raise TeleopError(f"{p}: leader joint {i} is {name!r}, follower joint {i} is {follow[i]!r} "
+                                  f"('{name}' is follower joint {follow.index(name)}): joint i follows joint i, so "
+                                  f"the profiles must list the joints in the same order")
         if not p.follower.supports("interpolate_jp"):
             raise TeleopError(f"{p.follower.name}: the follower does not offer interpolate_jp")
     return out
@@ -109,6 +118,7 @@ class Teleop:
         self._on_state = on_state or (lambda state, message: None)
         self._stop = threading.Event()
         self._last_report = 0.0
+        self._in_control = False  # holds the follower's control (acquire; given up while PAUSED)
 
     # -- control from another thread -------------------------------------------------------
     def stop(self) -> None:
@@ -146,11 +156,12 @@ class Teleop:
                 f"follower {self.follower.name!r} is {state}: teleop never enables a robot; enable it first "
                 f"(crtk-ctl --robot {self.follower.name} enable)")
         self._follower_call(self.follower.acquire)
+        self._in_control = True
 
     def _step(self) -> None:
         lead = [self._leader_position(p) for p in self.pairs]
         if self.state == ALIGNING:
-            if any(q is None for q in lead):
+            if not self._follower_ready() or any(q is None for q in lead):
                 return
             follow = [self._follower_call(lambda p=p: p.follower.measured_jp()[0]) for p in self.pairs]
             worst = self._worst(lead, follow)
@@ -170,6 +181,29 @@ class Teleop:
             except CommandError as exc:
                 self._refused(p, exc)
                 return
+
+    def _follower_ready(self) -> bool:
+        """ALIGNING: True when the follower is ENABLED and under our control. PAUSED: False,
+        control given up so the operator can resume it from another session (a resume is not a
+        stop: only the controlling session may send it). FAULT / DISABLED: TeleopError."""
+        state = self._follower_call(lambda: self.follower.operating_state())
+        if state == "PAUSED":
+            if self._in_control:
+                self._in_control = False
+                self._follower_call(self.follower.release)
+            self._report(f"follower {self.follower.name!r} is PAUSED: waiting for resume "
+                         f"(crtk-ctl --robot {self.follower.name} resume)")
+            return False
+        if state != "ENABLED":
+            raise TeleopError(f"follower {self.follower.name!r} is {state}: teleop ended")
+        if not self._in_control:
+            try:
+                self._follower_call(self.follower.acquire)
+            except CommandError as exc:  # the operator's resume session may not have closed yet
+                self._report(f"follower {self.follower.name!r}: waiting for control ({exc.message})")
+                return False
+            self._in_control = True
+        return True
 
     def _leader_position(self, p: Pair) -> np.ndarray | None:
         try:
@@ -218,13 +252,17 @@ class Teleop:
         return worst
 
     def _report_alignment(self, worst: tuple[Pair, int, float]) -> None:
+        p, j, err = worst
+        self._report(f"{p.leader.name} joint {p.leader.joint_names[j]!r} is {fmt_number(err)} rad "
+                     f"from {p.follower.name} joint {p.follower.joint_names[j]!r} "
+                     f"(tolerance {fmt_number(self.tolerance)}): move the leader to the follower")
+
+    def _report(self, message: str) -> None:
+        """ALIGNING's progress, at most once per _ALIGN_REPORT_S."""
         now = time.monotonic()
         if now - self._last_report >= _ALIGN_REPORT_S:
             self._last_report = now
-            p, j, err = worst
-            self._on_state(ALIGNING, f"{p.leader.name} joint {p.leader.joint_names[j]!r} is {fmt_number(err)} rad "
-                                     f"from {p.follower.name} joint {p.follower.joint_names[j]!r} "
-                                     f"(tolerance {fmt_number(self.tolerance)}): move the leader to the follower")
+            self._on_state(ALIGNING, message)
 
     def _move_follower(self, lead: list[np.ndarray]) -> None:
         self._on_state(ALIGNING, "moving the follower to the leader (move_jp)")

@@ -163,7 +163,7 @@ class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     link_timeout_s: Annotated[float, msgspec.Meta(gt=0)] = 0.1
     # the control script's RTDE watchdog (ur_rtde setWatchdog): no input from the daemon for
     # 1 / watchdog_hz s stops the script, and the arm (a dead or stalled control process must not
-    # leave a speedJ running); 0: off
+    # leave a speedJ running); it cannot be switched off (0 is refused, as CANopen's master heartbeat)
     watchdog_hz: Annotated[float, msgspec.Meta(ge=0)] = 10.0
 
 
@@ -277,6 +277,10 @@ class UrBackend(Actuator):
         if "host" not in given:
             raise ProfileError(f"{source}: backend.host: required, the UR controller's address (e.g. 192.168.1.10)")
         self.config = cfg = backend_config(profile, Config, source)
+        if cfg.watchdog_hz == 0:
+            raise ProfileError(f"{source}: backend.watchdog_hz: 0 would switch the control script's RTDE watchdog "
+                               f"off, and a dead or stalled control process would then leave the arm following "
+                               f"its last speedJ / servoJ; not offered (give a rate in Hz, default 10)")
         if self.n != N_JOINTS:
             raise ProfileError(f"{source}: joints: a UR arm has {N_JOINTS} joints (base .. wrist 3), "
                                f"the profile lists {self.n}")
@@ -330,20 +334,21 @@ class UrBackend(Actuator):
         self._paused_hold = False
         self._last_sent = 0.0  # perf_counter of the last RTDE input to the script (its watchdog)
 
-    #: the silent-link limit on the simulated controller (``sim_profile``), at least: a simulator
-    #: is a Python process on the daemon's own PC, without real-time scheduling, whose packets
-    #: (and the daemon's receive thread) pause for a loaded host's scheduling hiccups, measured
-    #: over 0.1 s with two busy cores; a real controller streams from a real-time system
-    SIM_LINK_TIMEOUT_S = 0.5
+    #: the defaults of ``link_timeout_s`` and ``watchdog_hz`` on the simulated controller
+    #: (``sim_profile``; a profile that sets them keeps its own): the simulator is a Python
+    #: process on the daemon's own PC, and neither runs with real-time scheduling there, so a
+    #: loaded host's scheduling hiccups pause its packets, the daemon's receive thread and
+    #: ur_rtde's own threads for over 0.1 s (measured with two busy cores: link_lost, and the
+    #: script's watchdog stopping it at the end of an enable); a real controller streams from a
+    #: real-time system, and the daemon's control process runs SCHED_FIFO
+    SIM_DEFAULTS = {"link_timeout_s": 0.5, "watchdog_hz": 2.0}
 
     @classmethod
     def sim_profile(cls, profile: Profile, endpoint: str) -> Profile:
-        """``profile`` wired to the simulated controller at ``endpoint``, its ``link_timeout_s``
-        at least :attr:`SIM_LINK_TIMEOUT_S` (a closed link still faults in the cycle that sees it)."""
+        """``profile`` wired to the simulated controller at ``endpoint``, with
+        :attr:`SIM_DEFAULTS` where it sets no value of its own."""
         wired = super().sim_profile(profile, endpoint)
-        given = wired.backend.get("link_timeout_s", 0.0)  # absent: the default, 0.1
-        return msgspec.structs.replace(wired, backend={**wired.backend,
-                                                       "link_timeout_s": max(float(given), cls.SIM_LINK_TIMEOUT_S)})
+        return msgspec.structs.replace(wired, backend={**cls.SIM_DEFAULTS, **wired.backend})
 
     # ------------------------------------------------------------------ start-up path
     @property
