@@ -68,7 +68,11 @@ def sim():
 
 
 def make_backend(sim, data=None, **backend) -> FeetechBackend:
+    """The backend on the in-process simulator. Its packet margin (``timeout_ms``) is 100 ms
+    unless a test gives one: the simulator is a thread of this process, which a loaded host may
+    not run within the profile's 10 ms (only a read that gets no reply waits it out)."""
     data = data or profile_data()
+    backend.setdefault("timeout_ms", 100)
     data["backend"].update(port=sim.port, **backend)
     return FeetechBackend(parse_profile(data, "so101.yaml"), source="so101.yaml")
 
