@@ -1,19 +1,19 @@
-"""Run the tests marked ``in_child`` in a child pytest process, one per test module, so that a
-process abort in them fails those tests instead of ending the whole session.
+"""Run the tests marked ``in_child`` in a child pytest process, so that a process abort in them
+fails those tests instead of ending the whole session.
 
 Why: ur_rtde 1.6.5 runs in-process in the UR tests, and its interfaces can abort or crash the
 process they run in after a link breaks (C++ exceptions reaching ``std::terminate``; the control
 interface's own receive thread reconnecting while a command is sent on the same socket: SIGABRT
 or SIGSEGV, about one run in ten of those tests under load). pytest-forked forks per test, which
 would drop the module-scoped simulators and interfaces these modules share (and fork a process
-that runs ur_rtde's threads); this runs each module's selected tests in ONE child, in order, so
-their module fixtures are shared as before.
+that runs ur_rtde's threads); this runs the session's selected marked tests in ONE child, in
+order, so their module fixtures are shared as before.
 
-The parent runs the child when it reaches the module's first marked test, then replays the
+The parent runs the child when it reaches the first marked test, then replays the
 child's reports (``pytest_report_to_serializable`` / ``_from_serializable``, as pytest-xdist
 does) at each test's own place in the session, so ``-x``, ``-ra`` and the summary see them as
 usual. A child that dies fails the test it was running, naming the signal and showing the end
-of its output (faulthandler's stacks included); the module's remaining tests run in a new child.
+of its output (faulthandler's stacks included); the remaining tests run in a new child.
 
 Debugging in-process (pdb, ``-s``): ``CRTK_TEST_CHILD=/dev/null pytest ...`` runs everything in
 the parent as before.
@@ -39,7 +39,7 @@ _TAIL_LINES = 80
 
 
 def pytest_configure(config):
-    config.addinivalue_line("markers", f"{MARK}: run the module's marked tests in one child pytest process "
+    config.addinivalue_line("markers", f"{MARK}: run the marked tests in one child pytest process "
                             "(tests/in_child.py): a process abort in them fails them, not the session")
 
 
@@ -75,7 +75,8 @@ def pytest_sessionstart(session):
 
 # --------------------------------------------------------------------------------- parent side
 class _Group:
-    """The marked tests of one module, run together in a child; their reports by node id."""
+    """The session's marked tests, run together in one child (a child pytest costs ~1.5 s of CPU
+    to start); their reports by node id."""
 
     def __init__(self, items: list[pytest.Item]):
         self.items = items
@@ -155,23 +156,18 @@ def _failed(item: pytest.Item, when: str, text: str) -> TestReport:
     return rep
 
 
-def _groups(session) -> dict[str, _Group]:
-    groups = getattr(session, "_crtk_child_groups", None)
-    if groups is None:
-        by_module: dict[str, list[pytest.Item]] = {}
-        for item in session.items:
-            if item.get_closest_marker(MARK) is not None:
-                by_module.setdefault(str(item.path), []).append(item)
-        groups = {item.nodeid: g for g in (_Group(v) for v in by_module.values()) for item in g.items}
-        session._crtk_child_groups = groups
-    return groups
+def _group(session) -> _Group:
+    group = getattr(session, "_crtk_child_group", None)
+    if group is None:
+        group = session._crtk_child_group = _Group([i for i in session.items if i.get_closest_marker(MARK)])
+    return group
 
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_protocol(item, nextitem):
     if os.environ.get(ENV) or item.get_closest_marker(MARK) is None:
         return None  # the child itself, or an ordinary test: pytest runs it here
-    group = _groups(item.session)[item.nodeid]
+    group = _group(item.session)
     if not group.ran:
         group.ran = True
         _run_child(item.config, group)

@@ -12,7 +12,7 @@ from crtk_bridge.sim import simulator_class
 
 from .conftest import ROOT, wait_until
 
-# ur_rtde runs in this process and can abort it after a link breaks: a child pytest runs the module
+# ur_rtde runs in-process and can abort it after a link breaks: a child pytest runs these (tests/in_child.py)
 pytestmark = pytest.mark.in_child
 
 UR5E = ROOT / "profiles" / "ur5e.yaml"
