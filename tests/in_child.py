@@ -172,7 +172,12 @@ def pytest_runtest_protocol(item, nextitem):
         group.ran = True
         _run_child(item.config, group)
     item.ihook.pytest_runtest_logstart(nodeid=item.nodeid, location=item.location)
-    for rep in group.reports.get(item.nodeid, []):
+    reports = list(group.reports.get(item.nodeid, []))
+    try:  # what the parent set up for the tests before this one and the next one does not need
+        item.session._setupstate.teardown_exact(nextitem)
+    except Exception as exc:  # a fixture's finalizer failed: as pytest's own teardown reports it
+        reports.append(_failed(item, "teardown", f"tearing down before {nextitem and nextitem.nodeid}: {exc!r}"))
+    for rep in reports:
         item.ihook.pytest_runtest_logreport(report=rep)
     item.ihook.pytest_runtest_logfinish(nodeid=item.nodeid, location=item.location)
     return True
