@@ -74,10 +74,12 @@ threads may call it, and a call racing that corrupts the heap or throws through
 ``std::terminate``: the process aborts. So: the receive interface's thread is joined
 (``disconnect``) before ``reconnect``; a control interface that lived through a loss is never
 called, reconnected, disconnected or freed again (``_abandon``), enable builds a new one; and no
-interface is freed. What remains is the instant of the loss itself (a command sent by the cycle
-as the control interface's thread closes its socket): an abort then ends the control process;
-the script's watchdog stops the arm within 1 / watchdog_hz and the front reports FAULT and
-exits non-zero (tests/test_ur_process_abort.py, tests/test_e2e_processes.py).
+interface is freed. What remains is the instant of the loss itself (the cycle's servoJ or
+watchdog kick as the control interface's thread closes its socket): the heap it corrupts aborts
+the control process then or at a later allocation (seen at the next enable's new interface:
+1 link loss in ~60 under test, ~1 in 4 before); the script's watchdog stops the arm within
+1 / watchdog_hz and the front reports FAULT and exits non-zero (tests/test_ur_process_abort.py,
+tests/test_e2e_processes.py). Only ur_rtde in a process of its own would remove it.
 
 Move goals are checked by the controller before they start (:meth:`UrBackend.goal_check_steps`):
 ``isJointsWithinSafetyLimits`` for move_jp (the refusal names the first joint whose goal alone is
