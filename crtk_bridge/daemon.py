@@ -56,6 +56,23 @@ def _die_with_parent() -> None:
         pass  # not Linux: the daemon's normal shutdown still stops the simulator
 
 
+#: the nice value ``--sim`` asks for its simulator (where permitted): a device on a bus is never
+#: late because the PC is busy, so neither is the simulated one, which the control loop
+#: (SCHED_FIFO) would otherwise find silent on a loaded host and rightly FAULT
+SIM_NICE = -10
+
+
+def _simulator_child(raise_priority: bool) -> None:
+    """In the simulator's process before exec: dies with the daemon; a raised priority if asked
+    and permitted (else none, silently: the daemon says once what real-time it could not have)."""
+    _die_with_parent()
+    if raise_priority:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, SIM_NICE)
+        except OSError:
+            pass
+
+
 def _accepts(host: str, port: int) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
         probe.settimeout(0.5)
@@ -67,7 +84,7 @@ class SimulatorProcess:
     for a simulator with fixed TCP ports (``host_ports``) a free loopback address."""
 
     def __init__(self, profile_path: str, device: str, workdir: str, bus: str | None = None,
-                 host_ports: tuple[int, ...] = ()):
+                 host_ports: tuple[int, ...] = (), raise_priority: bool = False):
         tag = f"-{bus}" if bus else ""  # several buses: one simulator each
         self.control = os.path.join(workdir, f"sim{tag}.sock")
         if host_ports:
@@ -81,7 +98,8 @@ class SimulatorProcess:
              *where, "--control", self.control, *(["--bus", bus] if bus else []), "--parent-pid", str(os.getpid())],
             stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
             start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
-            preexec_fn=_die_with_parent,  # ...but a daemon killed outright must not leave it running
+            # ...but a daemon killed outright must not leave it running; SIM_NICE with realtime
+            preexec_fn=lambda: _simulator_child(raise_priority),
         )
 
         def started() -> bool:
@@ -259,13 +277,14 @@ def _sim_wiring(backend_type: str, source: str) -> SimWiring:
 
 
 def _simulate_buses(profile: Profile, profile_path: str, workdir: str,
-                    simulators: list[SimulatorProcess]) -> Profile:
+                    simulators: list[SimulatorProcess], realtime: bool) -> Profile:
     """--sim with several buses: one simulator per bus; the profile wired to their ports.
     Appends each started simulator to ``simulators`` (so they are stopped however this ends)."""
     backends = {}
     for bus, section in profile.backends.items():
         wiring = _sim_wiring(str(section["type"]), profile_path)
-        simulator = SimulatorProcess(profile_path, wiring.device, workdir, bus=bus, host_ports=wiring.host_ports)
+        simulator = SimulatorProcess(profile_path, wiring.device, workdir, bus=bus, host_ports=wiring.host_ports,
+                                     raise_priority=realtime)
         simulators.append(simulator)
         backends[bus] = {**section, wiring.endpoint_key: simulator.link}
         print(f"crtk-bridge: simulated {section['type']} bus {bus!r} on {simulator.link} "
@@ -296,13 +315,14 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
         workdir = tempfile.mkdtemp(prefix=f"crtk-bridge-{profile.name}-sim-")
         if profile.backends is None:
             wiring = _sim_wiring(profile.backend_type, source)
-            simulator = SimulatorProcess(str(profile_path), wiring.device, workdir, host_ports=wiring.host_ports)
+            simulator = SimulatorProcess(str(profile_path), wiring.device, workdir, host_ports=wiring.host_ports,
+                                         raise_priority=realtime)
             simulators.append(simulator)
             profile = backend_class(profile.backend_type, source).sim_profile(profile, simulator.link)
             print(f"crtk-bridge: simulated {profile.backend_type} bus on {simulator.link} "
                   f"(simulator control socket {simulator.control})", flush=True)
         else:
-            profile = _simulate_buses(profile, str(profile_path), workdir, simulators)
+            profile = _simulate_buses(profile, str(profile_path), workdir, simulators, realtime)
 
     snap = SnapshotBuffer(Layout(len(profile.joints), len(profile.namespaces)), create=True)
     zsession = None

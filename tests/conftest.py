@@ -21,6 +21,8 @@ import pytest
 
 from crtk_bridge.profile import load_profile
 
+from . import in_child
+
 ROOT = Path(__file__).resolve().parent.parent
 SO101 = ROOT / "profiles" / "so101.yaml"
 SO101_URDF = ROOT / "profiles" / "urdf" / "so101.urdf"
@@ -315,6 +317,7 @@ def sim_robot_params(metafunc) -> list:
 
 
 def pytest_configure(config):
+    config.pluginmanager.register(in_child, "crtk-in-child")  # the in_child marker (tests/in_child.py)
     config.addinivalue_line("markers", "requires(*capabilities): the simulated robots a test using sim_robot "
                             "runs on (tests/conftest.py robot_capabilities); none given: servo_bus")
     config.addinivalue_line("markers", "reuse_daemon: the test leaves its robot as it found it, or in a state "

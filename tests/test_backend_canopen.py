@@ -280,6 +280,34 @@ def test_heartbeat_loss_faults_naming_the_node(rig):
     rig.enable(2)
 
 
+def test_a_silent_drive_is_missing_in_every_read_also_after_a_late_cycle(iface):
+    """A drive that stopped sending is missing in each read until it answers again, also in the
+    reads right after a late cycle, which bring no new SYNC due: otherwise a loaded host breaks
+    the run of bus_errors_max faults (FAULT waits for the heartbeat timeout) and the silent
+    drive's stale data passes for fresh in between."""
+    data = profile_data(PROFILE)
+    data["backend"]["heartbeat_timeout_ms"] = 1000  # the TPDOs are what this test watches
+    r = CanRig(iface, data=data)
+    try:
+        c = r.start()
+        r.enable()
+        b = r.backend
+
+        def read():
+            b.wait_cycle(c.dt)
+            return b.read(r.fb)
+
+        r.sim.set_fault(2, "silent")
+        wait_until(lambda: read() is not None, 1, interval=0, what="the first missing TPDO")
+        time.sleep(0.1)  # a late cycle: the loop stalled beyond tpdo_timeout_ms
+        faults = [read() for _ in range(10)]
+        assert all(f is not None and f.code == "tpdo_missing" and f.joint == "tilt" for f in faults), faults
+        r.sim.clear_faults()
+        wait_until(lambda: read() is None, 1, interval=0, what="the drive answering again")
+    finally:
+        r.close()
+
+
 def test_pause_is_a_quick_stop_and_resume_leaves_it(rig):
     c = rig.c
     rig.enable()

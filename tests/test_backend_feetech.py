@@ -68,7 +68,11 @@ def sim():
 
 
 def make_backend(sim, data=None, **backend) -> FeetechBackend:
+    """The backend on the in-process simulator. Its packet margin (``timeout_ms``) is 100 ms
+    unless a test gives one: the simulator is a thread of this process, which a loaded host may
+    not run within the profile's 10 ms (only a read that gets no reply waits it out)."""
     data = data or profile_data()
+    backend.setdefault("timeout_ms", 100)
     data["backend"].update(port=sim.port, **backend)
     return FeetechBackend(parse_profile(data, "so101.yaml"), source="so101.yaml")
 
@@ -327,6 +331,28 @@ def test_silent_servo_mid_run_is_a_transient_fault_naming_it(sim):
         sim.clear_faults()
         read_ok(b, fb)  # recovers on the next cycle, and the stale late bytes are gone
         assert fb.position[0] == pytest.approx((2500 - 2048) * TICK)
+
+
+def test_a_run_of_failed_reads_names_the_joint_its_deepest_read_reached(sim):
+    """The FAULT ending a run of failed reads (safety.bus_errors_max) names one joint: the silent
+    one, even when a read of the run failed earlier on the bus -- a reply made late by a loaded
+    host; here the whole bus unplugged for one read -- since every servo from the first missing
+    on went unanswered in that read too. A good read ends the run."""
+    b = make_backend(sim, timeout_ms=5, read_retries=0)
+    with b:
+        fb = read_ok(b, b.new_feedback())
+        sim.set_fault(3, "silent")
+        wait_until(lambda: getattr(b.read(fb), "joint", None) == "elbow_flex", 2, what="a read naming elbow_flex")
+        sim.set_unplugged(True)  # no servo answers this read: the first one asked is missing
+        fault = b.read(fb)
+        assert fault.code == "bus_timeout" and fault.joint == "elbow_flex", fault
+        assert "joint 'elbow_flex' (id 3)" in fault.message
+        sim.set_unplugged(False)
+        assert b.read(fb).joint == "elbow_flex"
+        sim.clear_faults()
+        wait_until(lambda: b.read(fb) is None, 2, what="a good read")
+        sim.set_unplugged(True)  # a new run
+        assert b.read(fb).joint == "shoulder_pan"
 
 
 def test_corrupt_reply_is_bus_corrupt(sim, backend):

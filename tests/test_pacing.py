@@ -58,3 +58,37 @@ def test_a_pacing_backend_sets_the_period_and_paces_every_cycle():
         front.close()
         back.close()
         snap.close(unlink=True)
+
+
+REALTIME_PROBE = """
+import os, threading
+from crtk_bridge.core.loop import request_realtime
+started, done = threading.Event(), threading.Event()
+tid = []
+def receive():  # a bus's receive thread, started before the loop asks for real time
+    tid.append(threading.get_native_id()); started.set(); done.wait()
+threading.Thread(target=receive, daemon=True).start()
+started.wait()
+problems = request_realtime(10, None)
+print(int(any(p.startswith("SCHED_FIFO") for p in problems)), os.sched_getscheduler(0) == os.SCHED_FIFO,
+      os.sched_getscheduler(tid[0]) == os.SCHED_FIFO)
+done.set()
+"""
+
+
+def test_realtime_reaches_the_threads_a_backend_started_before_the_loop():
+    """A backend's threads started at open (python-can's notifier: the TPDOs) get the loop's
+    SCHED_FIFO too: left at the normal class, a loaded host starved them and the drives'
+    answers went unheard (tpdo_missing FAULTs). In a child process: it changes scheduling."""
+    import subprocess
+    import sys
+
+    from .conftest import ROOT
+
+    out = subprocess.run([sys.executable, "-c", REALTIME_PROBE], cwd=ROOT, capture_output=True, text=True,
+                         timeout=30)
+    assert out.returncode == 0, out.stderr
+    refused, main, other = out.stdout.split()
+    if refused == "1":
+        pytest.skip("SCHED_FIFO is not permitted on this host")
+    assert (main, other) == ("True", "True")

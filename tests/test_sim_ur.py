@@ -24,6 +24,9 @@ from crtk_bridge.sim.ur_robot import UR5E_URDF
 
 from .conftest import wait_until
 
+# ur_rtde runs in-process and can abort it after a link breaks: a child pytest runs these (tests/in_child.py)
+pytestmark = pytest.mark.in_child
+
 rtde_receive = pytest.importorskip("rtde_receive")
 rtde_control = pytest.importorskip("rtde_control")
 dashboard_client = pytest.importorskip("dashboard_client")

@@ -338,6 +338,9 @@ class SerialServoBackend(Actuator):
         # hot replug (module docstring): set by the cycle when the port went away, cleared by the
         # cycle once the worker reopened it
         self._lost: Any = None  # the port_lost Fault while the port is gone
+        #: (joint index, SDK result) of the deepest failure in the run of failed sync reads under
+        #: way (None after a good read): what the run's FAULT names (:meth:`_sync_read_fault`)
+        self._failed_run: tuple[int, int] | None = None
         self._reopened: str | None = None  # set by the reopen worker: what it found
         self._reopen_thread: threading.Thread | None = None
         self._reopen_stop = threading.Event()
@@ -747,6 +750,15 @@ class SerialServoBackend(Actuator):
         i = None
         if result in (self.RX_TIMEOUT, self.RX_CORRUPT):
             i = self._first_missing(data, length)
+            # A run of failed reads ends in FAULT (safety.bus_errors_max) naming one joint: the
+            # deepest any read of the run reached. The SDKs give up at the first servo without a
+            # good reply, so every servo from it on went unanswered in that read too: a reply made
+            # late by a loaded host shows an earlier servo missing in one read, while a silent
+            # servo is the first missing in every read that gets as far as it.
+            run = self._failed_run
+            if run is not None and (i is None or run[0] > i):
+                i, result = run
+            self._failed_run = (i, result) if i is not None else None
         code = "bus_corrupt" if result == self.RX_CORRUPT else "bus_timeout"
         what = "bad reply" if code == "bus_corrupt" else "no reply"
         who = f" from {self._label[i]}" if i is not None else ""

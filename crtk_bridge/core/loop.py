@@ -22,6 +22,7 @@ import gc
 import os
 import signal
 import socket
+import threading
 import time
 from collections import deque
 from typing import Any, Callable
@@ -42,16 +43,36 @@ _STOPS = ("disable", "pause", "hold")  # accepted during a shutdown park: a stop
 MAX_MESSAGE = 1 << 17  # bytes; the front refuses request lines above server.MAX_LINE (64 KiB)
 
 
+def _threads() -> list[int]:
+    """The ids of this process's threads (Linux; 0 alone, "this thread", elsewhere)."""
+    try:
+        return [0] + [int(t) for t in os.listdir("/proc/self/task") if int(t) != threading.get_native_id()]
+    except OSError:
+        return [0]
+
+
+def _each_thread(fn, tid: int, *args) -> None:
+    try:
+        fn(tid, *args)
+    except ProcessLookupError:
+        pass  # a thread that ended meanwhile
+
+
 def request_realtime(priority: int, cpu: int | None) -> list[str]:
-    """Ask for SCHED_FIFO and locked memory. Returns what could not be had (empty = all good)."""
+    """Ask for SCHED_FIFO and locked memory, for every thread of the process: the threads a
+    backend started at open (a bus's receive thread, python-can's notifier for CANopen) carry the
+    cycle's data, and left at the normal class a loaded host starves them (the drives answered,
+    the loop hears nothing). Returns what could not be had (empty = all good)."""
     problems = []
     if cpu is not None:
         try:
-            os.sched_setaffinity(0, {cpu})
+            for tid in _threads():
+                _each_thread(os.sched_setaffinity, tid, {cpu})
         except OSError as exc:
             problems.append(f"CPU affinity {cpu}: {exc.strerror}")
     try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        for tid in _threads():
+            _each_thread(os.sched_setscheduler, tid, os.SCHED_FIFO, os.sched_param(priority))
     except (OSError, AttributeError) as exc:
         problems.append(f"SCHED_FIFO priority {priority}: {getattr(exc, 'strerror', exc)} "
                         "(grant CAP_SYS_NICE or LimitRTPRIO, see systemd/README.md)")

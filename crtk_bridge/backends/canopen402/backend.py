@@ -186,6 +186,7 @@ class _Drive:
         self.base = [0, 0]
         self.missed = 0  # consecutive reads with a TPDO missing
         self.heard = 0  # sum(arrived) at the previous read: the node has sent TPDOs since if it grew
+        self.heard_t = 0.0  # monotonic time of the last read that found new TPDOs from it
         # next RPDO values
         self.cw = int(Command.DISABLE_VOLTAGE)
         self.mode = _CSP
@@ -719,11 +720,17 @@ class Canopen402Backend(Actuator):
                              [d for d in self.drives if not d.missed], want)
         now = time.monotonic()
         missing = self._overdue(now)
+        if missing is not None:
+            self.stats["tpdos_missed"] += 1
+        else:  # a drive that missed and has sent nothing for tpdo_timeout_ms stays missing in
+            # every read, not only in those that bring a new SYNC due (after a late cycle,
+            # several bring none)
+            missing = next((d for d in self.drives if d.missed and sum(d.arrived) == d.heard
+                            and now - d.heard_t > self._tpdo_timeout_s), None)
         self._decode()
         fault = None
         if missing is not None:
             self._settle_until = now + self._settle_s  # the drives may not hear us either
-            self.stats["tpdos_missed"] += 1
             missing.missed += 1
             fault = Fault("tpdo_missing",
                           f"{self.robot}: {missing.label} sent no TPDO answering a SYNC within "
@@ -731,6 +738,8 @@ class Canopen402Backend(Actuator):
                           joint=missing.name, transient=True)
         for d in self.drives:
             heard, d.heard = sum(d.arrived) != d.heard, sum(d.arrived)
+            if heard:
+                d.heard_t = now
             if d is not missing and heard:  # it sent TPDOs: waited for again (a silent one stays
                 d.missed = 0  # missed, not waited for every other cycle while none is overdue)
             silent = now - d.hb_t

@@ -416,6 +416,7 @@ class DynamixelBackend(SerialServoBackend):
             fast = False  # a retry reads plainly: its per-servo replies name a silent servo
         if result != COMM_SUCCESS:
             return self._sync_read_fault(result, blocks or {}, _BLOCK_LEN)
+        self._failed_run = None
         raw_pos, raw_vel, raw_cur = self._raw_pos, self._raw_vel, self._raw_cur
         alert = False
         for i, sid in enumerate(self._ids):

@@ -323,7 +323,7 @@ class FeetechBackend(SerialServoBackend):
                 break
         if result != COMM_SUCCESS:
             return self._bus_fault(result)
-
+        self._failed_run = None
         data = gsr.data_dict
         raw_pos, raw_vel, raw_cur = self._raw_pos, self._raw_vel, self._raw_cur
         status_any = 0

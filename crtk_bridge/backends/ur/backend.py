@@ -43,7 +43,8 @@ Lifecycle (blocking ur_rtde and dashboard calls run on a worker thread, one at a
 the robot keeps following its last target):
 
 * ENABLE = power on (dashboard) -> robot mode IDLE -> brake release -> RUNNING -> control script
-  uploaded (``RTDEControlInterface``, or ``reuploadScript``) -> runtime state PLAYING; the arm
+  uploaded (``RTDEControlInterface``, or ``reuploadScript``; a NEW ``RTDEControlInterface``
+  after a link loss: the old one is never called again, see below) -> runtime state PLAYING; the arm
   is then held where it is. Each wait is on the robot mode / runtime state read from RTDE.
 * DISABLE = stop the motion and the script, power off (dashboard), until robot mode POWER_OFF.
   It is also the fault reaction: the arm stops and its brakes engage. ``configure`` does the
@@ -66,6 +67,19 @@ FAULT in the cycle that sees it). Every command is gated on the link being up, t
 NORMAL / REDUCED and the script PLAYING, because ``servoJ`` returns True while the link is down.
 The RTDE link reconnects by itself (``reconnect_interval_s``), on a worker; the fault stays until
 ``enable``.
+
+ur_rtde 1.6.5 is not safe across a link loss in-process: each interface's own receive thread
+handles the loss (disconnect; the control interface then tries its own reconnect) while other
+threads may call it, and a call racing that corrupts the heap or throws through
+``std::terminate``: the process aborts. So: the receive interface's thread is joined
+(``disconnect``) before ``reconnect``; a control interface that lived through a loss is never
+called, reconnected, disconnected or freed again (``_abandon``), enable builds a new one; and no
+interface is freed. What remains is the instant of the loss itself (the cycle's servoJ or
+watchdog kick as the control interface's thread closes its socket): the heap it corrupts aborts
+the control process then or at a later allocation (seen at the next enable's new interface:
+1 link loss in ~60 under test, ~1 in 4 before); the script's watchdog stops the arm within
+1 / watchdog_hz and the front reports FAULT and exits non-zero (tests/test_ur_process_abort.py,
+tests/test_e2e_processes.py). Only ur_rtde in a process of its own would remove it.
 
 Move goals are checked by the controller before they start (:meth:`UrBackend.goal_check_steps`):
 ``isJointsWithinSafetyLimits`` for move_jp (the refusal names the first joint whose goal alone is
@@ -789,6 +803,10 @@ class UrBackend(Actuator):
 
         def run() -> None:
             try:
+                if not r.isConnected():
+                    # its own receive thread ended the link: join it (disconnect) before
+                    # reconnect() starts another, or both run on one socket (heap corruption)
+                    r.disconnect()
                 r.reconnect()
             except RuntimeError:
                 pass  # still down: the next attempt after reconnect_interval_s
@@ -841,8 +859,14 @@ class UrBackend(Actuator):
         if ctl is None:
             self._ctl = rtde_control.RTDEControlInterface(self.host, self.rate_hz)
             return
-        if not ctl.isConnected():
-            ctl.reconnect()
+        if self._ctl_link_lost or not ctl.isConnected():
+            # never reconnect() (nor call, nor free) an interface that lived through a link loss:
+            # its own receive thread handles the loss (disconnect, its own reconnect attempt) and
+            # races any call made meanwhile, corrupting the heap (seen: malloc aborts). A new one.
+            _abandon(ctl)
+            self._ctl = None
+            self._ctl = ctl = rtde_control.RTDEControlInterface(self.host, self.rate_hz)
+            self._ctl_link_lost = False
         if not ctl.isProgramRunning():
             ctl.reuploadScript()
 
@@ -863,7 +887,10 @@ class UrBackend(Actuator):
         if self._dash is None:
             return
         link = self._refresh()
-        if self._ctl is not None and link and self.runtime_state == RuntimeState.PLAYING:
+        if (self._ctl is not None and link and self.runtime_state == RuntimeState.PLAYING
+                and not self._ctl_link_lost and self._ctl.isConnected()):
+            # (not on an interface that lived through a link loss: see _start_script; the
+            # script's watchdog has stopped its program, power off below stops the rest)
             yield from self._job(self._stop_script, "stop")
         elif not link:
             yield from self._job(self._dash.powerOff, "power off", ctl=False)

@@ -1,0 +1,96 @@
+"""tests/in_child.py: the tests marked ``in_child`` run in a child pytest, one per module, so a
+process abort there (ur_rtde after a link broke) fails that test, not the whole session."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+CONFTEST = """
+import os
+
+import in_child
+
+os.environ.setdefault("PARENT_PID", str(os.getpid()))  # the children inherit the parent's
+
+
+def pytest_configure(config):
+    config.pluginmanager.register(in_child, "crtk-in-child")
+"""
+
+ABORTING = """
+import os
+
+import pytest
+
+PARENT = int(os.environ["PARENT_PID"])
+
+pytestmark = pytest.mark.in_child
+
+
+@pytest.fixture(scope="module")
+def shared():
+    return {"pid": os.getpid(), "n": 0}
+
+
+def test_first(shared):
+    shared["n"] += 1
+    assert shared["pid"] != PARENT  # in a child
+
+
+def test_aborts(shared):
+    assert shared["n"] == 1  # the same child: module fixtures are shared as in one process
+    os.abort()
+
+
+@pytest.mark.skip(reason="skipped, reported as such")
+def test_skipped():
+    pass
+
+
+def test_after_the_abort(shared):
+    assert shared["n"] == 0  # a new child ran the rest of the module
+"""
+
+
+def test_an_abort_fails_its_test_and_the_session_goes_on(tmp_path):
+    shutil.copy(HERE / "in_child.py", tmp_path / "in_child.py")
+    (tmp_path / "conftest.py").write_text(CONFTEST)
+    (tmp_path / "test_aborting.py").write_text(ABORTING)
+    (tmp_path / "test_plain.py").write_text("def test_plain():\n    pass\n")
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-rfs", "-p", "no:cacheprovider",
+                           "--rootdir", str(tmp_path), str(tmp_path)], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 1, out  # tests failed; the session itself was not aborted (-6)
+    assert "1 failed, 3 passed, 1 skipped" in out, out
+    assert "FAILED test_aborting.py::test_aborts" in out, out
+    assert "died of SIGABRT (signal 6)" in out, out
+    assert "Fatal Python error: Aborted" in out, out  # the child's faulthandler output is shown
+    assert "SKIPPED [1] test_aborting.py" in out and "skipped, reported as such" in out, out
+
+
+def test_tests_in_the_parent_around_child_tests_set_up_and_tear_down_as_usual(tmp_path):
+    """An unmarked test, then a marked one last in its module (the conformance suite's UR row
+    after the others), then another module's test: the parent still tears the first module down
+    before the next one's (pytest: "previous item was not torn down properly" otherwise)."""
+    shutil.copy(HERE / "in_child.py", tmp_path / "in_child.py")
+    (tmp_path / "test_mixed.py").write_text(
+        "import os\nimport pytest\n\nPARENT = int(os.environ['PARENT_PID'])\n\n\n"
+        "@pytest.fixture(scope='module')\ndef where():\n    yield os.getpid()\n\n\n"
+        "@pytest.mark.parametrize('row', ['here', 'child'])\n"
+        "def test_row(row, where):\n"
+        "    assert (where == PARENT) == (row != 'child')\n")
+    (tmp_path / "conftest.py").write_text(CONFTEST + "\n\ndef pytest_collection_modifyitems(items):\n"
+                                          "    import pytest\n    for i in items:\n"
+                                          "        if i.name.endswith('[child]'):\n"
+                                          "            i.add_marker(pytest.mark.in_child)\n")
+    (tmp_path / "test_next.py").write_text("def test_next():\n    pass\n")
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--rootdir",
+                           str(tmp_path), str(tmp_path)], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0 and "3 passed" in out, out
