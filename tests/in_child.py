@@ -12,8 +12,12 @@ order, so their module fixtures are shared as before.
 The parent runs the child when it reaches the first marked test, then replays the
 child's reports (``pytest_report_to_serializable`` / ``_from_serializable``, as pytest-xdist
 does) at each test's own place in the session, so ``-x``, ``-ra`` and the summary see them as
-usual. A child that dies fails the test it was running, naming the signal and showing the end
-of its output (faulthandler's stacks included); the remaining tests run in a new child.
+usual. A child that dies runs the test it was running once more, alone in a fresh child, with a
+line in the session's output naming the signal and the test: the heap ur_rtde corrupts at a link
+loss often brings down a LATER test of the same child (a SIGSEGV in a plain ``servoJ``), so the
+test that died is not to blame until it dies again on its own. A test that dies twice fails,
+naming the signal and showing the end of its output (faulthandler's stacks included). The
+remaining tests run in a new child.
 
 Debugging in-process (pdb, ``-s``): ``CRTK_TEST_CHILD=/dev/null pytest ...`` runs everything in
 the parent as before.
@@ -91,10 +95,12 @@ def _signal_name(rc: int) -> str:
         return f"signal {-rc}"
 
 
-def _run_child(config, group: _Group) -> None:
-    """Run the group's tests in children until each has its reports (a new child after a crash)."""
+def _run_child(config, group: _Group, rerun: set[str] | None = None) -> None:
+    """Run the group's tests in children until each has its reports (a new child after a crash;
+    a test that died runs once more alone, see the module's docstring)."""
     todo = list(group.items)
     root = str(config.rootpath)
+    rerun = set() if rerun is None else rerun  # tests that died once (run again alone)
     while todo:
         with tempfile.TemporaryDirectory(prefix="crtk-child-") as tmp:
             out_path, log_path = Path(tmp) / "reports.jsonl", Path(tmp) / "output.log"
@@ -141,13 +147,40 @@ def _run_child(config, group: _Group) -> None:
                                                       f"before running this test:\n{tail}")]
             return
         item = by_id[running]
+        rest = [i for i in todo if i.nodeid not in done and i.nodeid != running and i.nodeid not in started]
+        if why is not None and running not in rerun:
+            rerun.add(running)
+            group.reports.pop(running, None)
+            _say(config, f"in_child: the child pytest process {why} in {running}; running it again alone in a "
+                         f"fresh child (tests/in_child.py). The end of its output:\n{tail}")
+            _run_alone_then(config, group, item, rest, rerun)
+            return
         phases = [r.when for r in group.reports.get(running, [])]
         when = "teardown" if "call" in phases else ("call" if "setup" in phases else "setup")
         group.reports.setdefault(running, []).append(_failed(
             item, when, f"the child pytest process running this test {why or f'exited {rc}'} in its {when} "
             f"(an abort in native code, e.g. ur_rtde after a link broke; tests/in_child.py); "
             f"the end of its output:\n{tail}"))
-        todo = [i for i in todo if i.nodeid not in done and i.nodeid != running and i.nodeid not in started]
+        todo = rest
+
+
+def _run_alone_then(config, group: _Group, item: pytest.Item, rest: list[pytest.Item], rerun: set[str]) -> None:
+    """Run ``item`` alone in a fresh child (it died once), then ``rest`` in another."""
+    for batch in ([item], rest):
+        if batch:
+            sub = _Group(batch)
+            sub.reports = group.reports
+            _run_child(config, sub, rerun)
+
+
+def _say(config, text: str) -> None:
+    tr = config.pluginmanager.get_plugin("terminalreporter")
+    if tr is not None:
+        tr.write_line("")
+        for line in text.splitlines():
+            tr.write_line(line)
+    else:
+        print(text, file=sys.stderr)
 
 
 def _failed(item: pytest.Item, when: str, text: str) -> TestReport:

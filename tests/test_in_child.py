@@ -1,8 +1,10 @@
-"""tests/in_child.py: the tests marked ``in_child`` run in a child pytest, one per module, so a
-process abort there (ur_rtde after a link broke) fails that test, not the whole session."""
+"""tests/in_child.py: the tests marked ``in_child`` run in a child pytest, so a process abort there
+(ur_rtde after a link broke) does not end the whole session: the test that died runs once more
+alone, and fails if it dies again."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -43,8 +45,18 @@ def test_first(shared):
 
 
 def test_aborts(shared):
-    assert shared["n"] == 1  # the same child: module fixtures are shared as in one process
-    os.abort()
+    if shared["n"] == 1:  # the same child as test_first: module fixtures are shared as in one process
+        open(os.path.join(os.environ["MARKS"], "shared"), "w").close()
+    os.abort()  # every time: it dies again when run alone, so it fails
+
+
+def test_dies_once():
+    # dies the first time only (as a test brought down by a heap an earlier test corrupted):
+    # run again alone, it passes
+    mark = os.path.join(os.environ["MARKS"], "died")
+    if not os.path.exists(mark):
+        open(mark, "w").close()
+        os.abort()
 
 
 @pytest.mark.skip(reason="skipped, reported as such")
@@ -58,16 +70,22 @@ def test_after_the_abort(shared):
 
 
 def test_an_abort_fails_its_test_and_the_session_goes_on(tmp_path):
+    marks = tmp_path / "marks"
+    marks.mkdir()
     shutil.copy(HERE / "in_child.py", tmp_path / "in_child.py")
     (tmp_path / "conftest.py").write_text(CONFTEST)
     (tmp_path / "test_aborting.py").write_text(ABORTING)
     (tmp_path / "test_plain.py").write_text("def test_plain():\n    pass\n")
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-rfs", "-p", "no:cacheprovider",
                            "--rootdir", str(tmp_path), str(tmp_path)], cwd=tmp_path, capture_output=True,
-                          text=True, timeout=120)
+                          text=True, timeout=120, env={**os.environ, "MARKS": str(marks)})
     out = proc.stdout + proc.stderr
     assert proc.returncode == 1, out  # tests failed; the session itself was not aborted (-6)
-    assert "1 failed, 3 passed, 1 skipped" in out, out
+    assert "1 failed, 4 passed, 1 skipped" in out, out
+    assert (marks / "shared").exists() and (marks / "died").exists(), out
+    # a test that died once is run again alone, and says so; one that dies again fails
+    assert "died of SIGABRT (signal 6) in test_aborting.py::test_dies_once; running it again alone" in out, out
+    assert "FAILED test_aborting.py::test_dies_once" not in out, out
     assert "FAILED test_aborting.py::test_aborts" in out, out
     assert "died of SIGABRT (signal 6)" in out, out
     assert "Fatal Python error: Aborted" in out, out  # the child's faulthandler output is shown
