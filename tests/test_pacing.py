@@ -71,7 +71,17 @@ threading.Thread(target=receive, daemon=True).start()
 started.wait()
 problems = request_realtime(10, None)
 print(int(any(p.startswith("SCHED_FIFO") for p in problems)), os.sched_getscheduler(0) == os.SCHED_FIFO,
-      os.sched_getscheduler(tid[0]) == os.SCHED_FIFO)
+      os.sched_getscheduler(tid[0]) == os.SCHED_FIFO, os.sched_getparam(0).sched_priority,
+      os.sched_getparam(tid[0]).sched_priority, end=" ")
+from crtk_bridge.core.actuator import background_thread
+seen = []
+def work():  # blocking work started by the loop's thread later (a transition, a reconnect)
+    seen.append((os.sched_getscheduler(0), os.sched_getparam(0).sched_priority))
+plain = threading.Thread(target=work)  # what a thread inherits from the loop's thread
+plain.start(); plain.join()
+worker = background_thread(work, "probe")
+worker.start(); worker.join()
+print(seen[0] == (os.SCHED_FIFO, 10), seen[1] == (os.SCHED_OTHER, 0))
 done.set()
 """
 
@@ -79,7 +89,9 @@ done.set()
 def test_realtime_reaches_the_threads_a_backend_started_before_the_loop():
     """A backend's threads started at open (python-can's notifier: the TPDOs) get the loop's
     SCHED_FIFO too: left at the normal class, a loaded host starved them and the drives'
-    answers went unheard (tpdo_missing FAULTs). In a child process: it changes scheduling."""
+    answers went unheard (tpdo_missing FAULTs). They sit one priority below the loop, and blocking
+    work started later (actuator.background_thread) runs at the normal class, so nothing that
+    spins on the loop's pinned CPU starves the loop. In a child process: it changes scheduling."""
     import subprocess
     import sys
 
@@ -88,7 +100,12 @@ def test_realtime_reaches_the_threads_a_backend_started_before_the_loop():
     out = subprocess.run([sys.executable, "-c", REALTIME_PROBE], cwd=ROOT, capture_output=True, text=True,
                          timeout=30)
     assert out.returncode == 0, out.stderr
-    refused, main, other = out.stdout.split()
+    refused, main, other, main_prio, other_prio, inherited, background = out.stdout.split()
     if refused == "1":
         pytest.skip("SCHED_FIFO is not permitted on this host")
     assert (main, other) == ("True", "True")
+    # the loop preempts a thread of the backend's that spins: one priority below it
+    assert (main_prio, other_prio) == ("10", "9")
+    # a plain thread the loop starts inherits its class and priority (why the next is needed);
+    # blocking work (a worker that may spin on a dead link) runs at the normal class instead
+    assert (inherited, background) == ("True", "True")

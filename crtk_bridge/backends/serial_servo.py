@@ -56,7 +56,7 @@ from typing import Any, ClassVar
 import numpy as np
 import serial
 
-from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Fault, Lifecycle, Steps
+from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Fault, Lifecycle, Steps, background_thread
 from ..errors import BackendError, ProfileError
 from ..profile import Profile, backend_config
 from .calibration import RangeWatch, from_lerobot, sweep_calibration
@@ -691,8 +691,7 @@ class SerialServoBackend(Actuator):
         self._reopened = None
         self.report_status(DeviceStatus.FAULT, fault)
         self._reopen_stop.clear()
-        self._reopen_thread = threading.Thread(target=self._reopen_loop, name=f"reopen-{self.robot}",
-                                               daemon=True)
+        self._reopen_thread = background_thread(self._reopen_loop, f"reopen-{self.robot}")
         self._reopen_thread.start()
         return fault
 

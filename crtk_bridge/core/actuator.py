@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import abc
 import enum
+import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -307,6 +308,24 @@ class Transition:
         return f"Transition({self.robot!r}, {self.kind.value}, done={self.done})"
 
 
+def background_thread(target: Callable[[], Any], name: str) -> threading.Thread:
+    """A daemon thread for blocking work beside the cycle (a transition's SDK call, a reconnect, a
+    bus reopen), not started. It first drops the SCHED_FIFO class it inherits from the loop's
+    thread back to SCHED_OTHER: a call that spins (ur_rtde waiting for the answer of a link that
+    died) at the loop's own real-time priority, on the loop's pinned CPU, would never let the loop
+    run again (threads of one FIFO priority do not preempt each other)."""
+
+    def run() -> None:
+        try:
+            if os.sched_getscheduler(0) != os.SCHED_OTHER:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except (OSError, AttributeError):
+            pass  # not Linux, or not permitted: it keeps what it inherited
+        target()
+
+    return threading.Thread(target=run, name=name, daemon=True)
+
+
 def on_worker(fn: Callable[[], Any], name: str = "transition") -> Steps:
     """Steps that run the blocking call ``fn()`` on a worker thread, yielding every cycle until it
     returns; its exception is re-raised in the cycle that notices it. For vendor SDK calls that
@@ -320,7 +339,7 @@ def on_worker(fn: Callable[[], Any], name: str = "transition") -> Steps:
         except BaseException as exc:  # carried to the stepping thread
             box["exc"] = exc
 
-    worker = threading.Thread(target=run, name=name, daemon=True)
+    worker = background_thread(run, name)
     worker.start()
     while worker.is_alive():
         yield

@@ -62,7 +62,9 @@ def request_realtime(priority: int, cpu: int | None) -> list[str]:
     """Ask for SCHED_FIFO and locked memory, for every thread of the process: the threads a
     backend started at open (a bus's receive thread, python-can's notifier for CANopen) carry the
     cycle's data, and left at the normal class a loaded host starves them (the drives answered,
-    the loop hears nothing). Returns what could not be had (empty = all good)."""
+    the loop hears nothing). They get one priority below the calling (loop) thread's, so the loop
+    preempts any of them that spins; threads for blocking work started later drop the class they
+    inherit (``actuator.background_thread``). Returns what could not be had (empty = all good)."""
     problems = []
     if cpu is not None:
         try:
@@ -71,8 +73,9 @@ def request_realtime(priority: int, cpu: int | None) -> list[str]:
         except OSError as exc:
             problems.append(f"CPU affinity {cpu}: {exc.strerror}")
     try:
-        for tid in _threads():
-            _each_thread(os.sched_setscheduler, tid, os.SCHED_FIFO, os.sched_param(priority))
+        for tid in _threads():  # 0 first: the calling (loop) thread
+            prio = priority if tid == 0 else max(1, priority - 1)
+            _each_thread(os.sched_setscheduler, tid, os.SCHED_FIFO, os.sched_param(prio))
     except (OSError, AttributeError) as exc:
         problems.append(f"SCHED_FIFO priority {priority}: {getattr(exc, 'strerror', exc)} "
                         "(grant CAP_SYS_NICE or LimitRTPRIO, see systemd/README.md)")

@@ -80,6 +80,7 @@ from ...core.actuator import (
     Lifecycle,
     SimWiring,
     Steps,
+    background_thread,
     on_worker,
 )
 from ...errors import BackendError, ProfileError
@@ -937,7 +938,7 @@ class Canopen402Backend(Actuator):
     # ------------------------------------------------------------------ bus errors
     def _bus_fault(self) -> Fault:
         if self._reopening is None or not self._reopening.is_alive():
-            self._reopening = threading.Thread(target=self._reopen, name="can-reopen", daemon=True)
+            self._reopening = background_thread(self._reopen, "can-reopen")
             self._reopening.start()
         return Fault("bus_error", f"{self.robot}: CAN bus {self._where} failed ({self._bus_down}); "
                      f"reopening it", transient=False)

@@ -121,6 +121,7 @@ from ...core.actuator import (
     JointFeedback,
     Lifecycle,
     SimWiring,
+    background_thread,
     Steps,
     DEFAULT_TRANSITION_TIMEOUTS_S,
 )
@@ -723,7 +724,7 @@ class UrBackend(Actuator):
             except BaseException as exc:  # carried to the cycle / the transition
                 box["error"] = exc
 
-        thread = threading.Thread(target=run, name=f"ur {what}", daemon=True)
+        thread = background_thread(run, f"ur {what}")
         thread.start()
         return thread, box
 
@@ -815,7 +816,7 @@ class UrBackend(Actuator):
                 self._arrived = time.perf_counter()  # its packets have link_timeout_s to show up
                 self._reconnecting = False
 
-        self._reconnect_thread = threading.Thread(target=run, name="ur rtde reconnect", daemon=True)
+        self._reconnect_thread = background_thread(run, "ur rtde reconnect")
         self._reconnect_thread.start()
 
     # ------------------------------------------------------------------ lifecycle transitions
