@@ -22,7 +22,7 @@ from crtk_bridge.sim.canopen402 import CanopenSimulator, make_object_dictionary
 from crtk_bridge.sim.control import control_request
 from crtk_bridge.sim.slcan import SlcanAdapter, format_frame, parse_frame
 
-from .conftest import ROOT
+from .conftest import ROOT, wait_until
 from .test_sim_canopen import _emcy  # one helper for both files
 
 
@@ -221,8 +221,11 @@ def test_python_can_slcan_client_in_process():
             node.tpdo[1].trans_type = 1
             node.tpdo[1].save()  # TPDO1 = statusword, SYNC type
             node.nmt.state = "OPERATIONAL"
+            assert node.tpdo[1].timestamp is None  # nothing received before the SYNC
+            # not wait_for_reception(): it waits for the NEXT TPDO, and the in-process drive's
+            # answer can come before the call (it failed so once in a clean CI run)
             net.sync.transmit()
-            assert node.tpdo[1].wait_for_reception(1) is not None
+            wait_until(lambda: node.tpdo[1].timestamp is not None, 5, what="TPDO1 answering the SYNC")
             assert node.tpdo[1][0x6041].raw & 0x4F == 0x40
             assert sim.rx_bytes > 0
         finally:
