@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 from crtk_bridge.client import connect
-from crtk_bridge.client.teleop import ALIGNING, DISABLED, ENABLED, Teleop, TeleopError, pair_namespaces
+from crtk_bridge.client.teleop import ALIGNING, DISABLED, ENABLED, Pair, Teleop, TeleopError, pair_namespaces
 from crtk_bridge.profile import load_profile
 from crtk_bridge.sim.control import control_request
 
@@ -240,3 +240,19 @@ def test_joints_paired_by_position_must_not_be_named_joints_of_the_other_order()
         pair_namespaces(_Bot("so101_leader", {"so101_leader": swapped}), follower)
     assert len(pair_namespaces(_Bot("so101_leader", {"so101_leader": list(arm)}), follower)) == 1
     assert len(pair_namespaces(_Bot("other", {"other": ["j1", "j2", "j3", "j4", "j5"]}), follower)) == 1
+
+
+def test_a_non_finite_leader_position_is_never_followed_nor_counted_aligned():
+    """A leader reading NaN / inf (a broken sensor, a bad calibration) is no position: teleop treats
+    it as invalid data (the follower holds in ALIGNING) instead of counting it aligned (NaN > the
+    tolerance is false) and streaming it."""
+
+    class Leader(_Ns):
+        def measured_jp(self):
+            return np.array([0.0, np.nan, 0.0, np.inf, 0.0]), 1.0
+
+    t = Teleop.__new__(Teleop)
+    t.leader = _Bot("so101_leader", {})
+    arm = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"]
+    pair = Pair(Leader("so101_leader", arm), _Ns("so101", arm))
+    assert t._leader_position(pair) is None

@@ -18,7 +18,7 @@ the stream with its own velocity bounds, clips to its joint limits and refuses a
     following: one ``interpolate_jp`` per namespace per tick at ``rate_hz``.
 
 Back to ALIGNING, with the follower holding (``hold``), when the leader's data turns invalid
-(stamp 0), the follower refuses a step (the leader jumped), or the follower is PAUSED: teleop
+(stamp 0) or not finite, the follower refuses a step (the leader jumped), or the follower is PAUSED: teleop
 then gives control up so the operator can ``resume`` it from another session, and takes it
 again once the follower is ENABLED (waiting while another session holds it). It ends, the
 follower holding, when the follower leaves ENABLED otherwise (FAULT, DISABLED), when either
@@ -210,7 +210,9 @@ class Teleop:
             q, ts = p.leader.measured_jp()
         except (DaemonConnectionError, ConnectionError, TimeoutError) as exc:
             raise TeleopError(f"leader {self.leader.name!r} went away: {exc}") from exc
-        return q if ts != 0.0 and len(q) == len(p.leader.joint_names) else None
+        # invalid (stamp 0), short or non-finite data is no position to follow or align on
+        valid = ts != 0.0 and len(q) == len(p.leader.joint_names) and bool(np.all(np.isfinite(q)))
+        return q if valid else None
 
     def _follower_call(self, fn):
         try:
@@ -222,12 +224,9 @@ class Teleop:
         if exc.code == "step_too_large":
             self._realign(f"{p.follower.name} refused the leader's step: {exc.message}")
             return
-        if exc.code == "invalid_state":
-            state = self._follower_call(lambda: self.follower.operating_state())
-            if state == "PAUSED":
-                self._realign(f"follower {self.follower.name!r} is PAUSED: waiting for resume")
-                return
-            raise TeleopError(f"follower {self.follower.name!r} is {state}: teleop ended") from exc
+        if exc.code == "invalid_state":  # PAUSED: ALIGNING waits for resume; FAULT / DISABLED: it ends
+            self._realign(f"{p.follower.name} refused interpolate_jp: {exc.message}")
+            return
         raise TeleopError(f"{p.follower.name}: interpolate_jp refused ({exc.code}): {exc.message}") from exc
 
     def _realign(self, why: str) -> None:
@@ -271,8 +270,12 @@ class Teleop:
                 handle = self._follower_call(lambda p=p, q=q: p.follower.move_jp(q))
             except CommandError as exc:
                 raise TeleopError(f"{p.follower.name}: cannot move to the leader ({exc.code}): {exc.message}") from exc
-            if not self._follower_call(lambda h=handle: h.wait(timeout=30.0)):
-                raise TeleopError(f"{p.follower.name}: the move to the leader did not end within 30 s")
+            deadline = time.monotonic() + 30.0
+            while not self._follower_call(lambda h=handle: h.wait(timeout=0.1)):
+                if self._stop.is_set():
+                    return  # run() ends at once and holds the follower
+                if time.monotonic() > deadline:
+                    raise TeleopError(f"{p.follower.name}: the move to the leader did not end within 30 s")
         # the leader may have moved meanwhile: the next tick checks the alignment again
 
     def _align_message(self) -> str:
