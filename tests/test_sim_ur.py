@@ -161,7 +161,9 @@ def test_dashboard_power_on_and_brake_release(sim, recv, dash, powered):
 
 def test_control_interface_uploads_its_script(ready, recv, dash):
     assert ready.isProgramRunning()
-    assert recv.getRuntimeState() == 2  # PLAYING
+    # (isProgramRunning reads the control interface's own RTDE link; this receive interface is a
+    # second link whose packet may come a cycle later)
+    wait_until(lambda: recv.getRuntimeState() == 2, 2, what="runtime state PLAYING")
     assert dash.running()
     assert recv.getRobotStatus() & 2  # program running bit
 
@@ -212,7 +214,12 @@ def test_speedj_reaches_the_velocity_and_speedstop_stops(ready, recv):
     q = recv.getActualQ()[0]
     wait_until(lambda: recv.getActualQ()[0] > q + 0.03, 3, what="joint 0 moving at 0.3 rad/s")
     assert ready.speedStop(5.0)
-    assert not any(recv.getActualQd())
+    # speedStop returns when the script has taken the stop; this receive link sees the last
+    # decelerating packet up to a cycle later (0.3 rad/s at 5 rad/s^2 takes 60 ms)
+    wait_until(lambda: not any(recv.getActualQd()), 1, what="the arm at rest after speedStop")
+    q = recv.getActualQ()
+    time.sleep(0.05)
+    assert recv.getActualQ() == q  # and it stays at rest: speedJ is over
 
 
 def test_movel_goes_straight_and_servol_follows(ready, recv):
@@ -413,7 +420,7 @@ def test_watchdog_stops_the_program_when_inputs_stop(ready, recv):
     t0 = time.monotonic()
     wait_until(lambda: not ready.isProgramRunning(), 3, what="the watchdog stopping the program")
     assert time.monotonic() - t0 > 0.2  # not before its 250 ms
-    assert recv.getRuntimeState() == 1
+    wait_until(lambda: recv.getRuntimeState() == 1, 1, what="runtime state STOPPED on the receive link")
     ready.reuploadScript()
     wait_until(ready.isProgramRunning, 5, what="the script running again, without a watchdog")
     time.sleep(0.1)
@@ -441,6 +448,8 @@ def test_controller_restart_drops_everything_and_comes_back_powered_off(sim, rec
     sim.restart(0.3)
     wait_until(lambda: not recv.isConnected(), 2, what="the link dropped by the restart")
     wait_until(lambda: _try(recv.reconnect), 5, interval=0.1, what="reconnect after the reboot")
+    t0 = recv.getTimestamp()
+    wait_until(lambda: recv.getTimestamp() > t0, 2, what="data flowing after the reboot")
     assert recv.getRobotMode() == 3  # POWER_OFF
     assert recv.getRuntimeState() == 1  # no program
     assert recv.getSafetyMode() == 1
