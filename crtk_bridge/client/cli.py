@@ -53,6 +53,7 @@ from crtk_bridge.client.device import (
     CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, FRAMES, JS_TOPICS, Device, Robot, connect, encode_pose,
     list_robots)
 from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
+from crtk_bridge.profile import ZENOH_LEASE_MS_DEFAULT, ZENOH_LEASE_MS_MAX, ZENOH_LEASE_MS_MIN, zenoh_lease_problem
 
 PROG = "crtk-ctl"
 GET_TOPICS = (*JS_TOPICS, *CARTESIAN_TOPICS, *vocabulary.ROBOT_TOPICS)
@@ -139,6 +140,18 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _zenoh_lease(text: str) -> int:
+    """argparse type: a Zenoh lease in ms, within the bounds the daemon's profile key has."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer (ms), got {text!r}") from None
+    problem = zenoh_lease_problem(value)
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
+    return value
+
+
 def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
     # The same options on the main parser and on every subparser, so that they are accepted
     # before or after the subcommand; SUPPRESS on the subparsers keeps a value given before.
@@ -155,6 +168,10 @@ def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
     g.add_argument("--zenoh-config", metavar="FILE", default=d(None),
                    help="with --zenoh-connect: a Zenoh configuration file (JSON5) for what the endpoint "
                         "needs, e.g. transport/link/tls/root_ca_certificate for a tls/ router")
+    g.add_argument("--zenoh-lease-ms", metavar="MS", type=_zenoh_lease, default=d(None),
+                   help=f"with --zenoh-connect: this client's Zenoh link lease, {ZENOH_LEASE_MS_MIN}-"
+                        f"{ZENOH_LEASE_MS_MAX} (default {ZENOH_LEASE_MS_DEFAULT}): the daemon releases a "
+                        "frozen client's control after it (docs/zenoh.md, 'Lease')")
     g.add_argument("--ns", metavar="NAMESPACE", default=d(None),
                    help="CRTK namespace, e.g. so101/gripper (default: the first one)")
     g.add_argument("--json", action="store_true", default=d(False),
@@ -674,7 +691,7 @@ def _teleop(args, timeout: float) -> int:
     def open_robot(what: str) -> Robot:
         if args.zenoh_connect:
             return connect(robot=what, timeout=timeout, zenoh_connect=args.zenoh_connect,
-                           zenoh_config=args.zenoh_config)
+                           zenoh_config=args.zenoh_config, zenoh_lease_ms=args.zenoh_lease_ms)
         if "/" in what or what.endswith(".sock"):
             return connect(socket=what, timeout=timeout)
         return connect(robot=what, timeout=timeout)
@@ -741,13 +758,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         request_timeout = args.timeout if args.timeout is not None else 5.0
         if args.command == "robots":
-            names = list_robots(args.zenoh_connect, request_timeout, args.zenoh_config)
+            names = list_robots(args.zenoh_connect, request_timeout, args.zenoh_config, args.zenoh_lease_ms)
             _emit_json({"robots": names}) if args.json else print("\n".join(names))
             return 0
         if args.command == "teleop":
             return _teleop(args, request_timeout)
         robot = connect(socket=args.socket, robot=args.robot, timeout=request_timeout,
-                        zenoh_connect=args.zenoh_connect, zenoh_config=args.zenoh_config)
+                        zenoh_connect=args.zenoh_connect, zenoh_config=args.zenoh_config,
+                        zenoh_lease_ms=args.zenoh_lease_ms)
         return _run(args, robot)
     except KeyboardInterrupt:
         return 130
