@@ -171,3 +171,32 @@ def test_a_frozen_remote_client_is_lost_within_its_lease(daemon, frozen_client):
         assert client.poll() is None  # still there, only frozen: the lease found it, nothing else
         print(f"frozen client lost after {lost_after:.2f} s (lease {ZENOH_LEASE_MS_DEFAULT} ms)")
         assert arm.disable(15.0)
+
+
+def test_a_frozen_daemon_is_lost_by_its_remote_clients_within_the_daemons_lease(tmp_path):
+    """The other direction: the daemon's front frozen (SIGSTOP), a remote client's connection ends
+    (DaemonConnectionError) after the lease the DAEMON announced (transport.zenoh.lease_ms, 1 s
+    here), though the client's own is 60 s, instead of hanging until its requests time out."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    data = so101_data()
+    data["transport"] = {"zenoh": {"listen": [endpoint], "lease_ms": 1000}}
+    profile = tmp_path / "so101-short-lease.yaml"
+    profile.write_text(yaml.safe_dump(data))
+    d = DaemonProcess(["--profile", str(profile), "--sim"], tmp_path / "d.sock", tmp_path / "d.log")
+    frozen = False
+    try:
+        with connect(robot="so101", zenoh_connect=endpoint, timeout=15.0, zenoh_lease_ms=ZENOH_LEASE_MS_MAX) as robot:
+            assert robot.measured_js()[3] > 0
+            frozen_at = time.monotonic()
+            os.kill(d.proc.pid, signal.SIGSTOP)  # the front: its Zenoh session with it
+            frozen = True
+            wait_until(lambda: robot.connection.closed, 1.0 + MARGIN_S, interval=0.005,
+                       what=f"the client losing the frozen daemon within its 1 s lease + {MARGIN_S} s")
+            lost_after = time.monotonic() - frozen_at
+            with pytest.raises(ConnectionError):
+                robot.measured_js()
+            print(f"frozen daemon lost after {lost_after:.2f} s (daemon lease 1000 ms)")
+    finally:
+        if frozen:
+            os.kill(d.proc.pid, signal.SIGCONT)
+        d.stop()

@@ -108,7 +108,10 @@ class ZenohStream:
         try:
             # the reply subscriber first: it must exist before the daemon, seeing the token, greets
             self._entities.append(session.declare_subscriber(keys.replies(robot, self.cid), on_reply))
-            self._entities.append(live.declare_subscriber(keys.daemon_token(robot), on_daemon))
+            # history: the token already declared is then known to this session, so losing the
+            # link (the daemon frozen, killed, unplugged: no undeclaration ever sent) delivers its
+            # DELETE; without it only an explicit undeclaration would, and requests would hang
+            self._entities.append(live.declare_subscriber(keys.daemon_token(robot), on_daemon, history=True))
             self._pub = session.declare_publisher(keys.requests(robot, self.cid),
                                                   congestion_control=zenoh.CongestionControl.BLOCK,
                                                   reliability=zenoh.Reliability.RELIABLE)
