@@ -140,16 +140,20 @@ def _positive_float(text: str) -> float:
     return value
 
 
-def _zenoh_lease(text: str) -> int:
-    """argparse type: a Zenoh lease in ms, within the bounds the daemon's profile key has."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer (ms), got {text!r}") from None
-    problem = zenoh_lease_problem(value)
-    if problem:
-        raise argparse.ArgumentTypeError(problem)
-    return value
+def _checked(problem, kind=float):
+    """argparse type: a number (``kind``: float or int) that ``problem(value)`` finds nothing
+    wrong with (it says why otherwise)."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected {'an integer' if kind is int else 'a number'}, got {text!r}") from None
+        why = problem(value)
+        if why:
+            raise argparse.ArgumentTypeError(why)
+        return value
+    return parse
 
 
 def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
@@ -168,7 +172,7 @@ def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
     g.add_argument("--zenoh-config", metavar="FILE", default=d(None),
                    help="with --zenoh-connect: a Zenoh configuration file (JSON5) for what the endpoint "
                         "needs, e.g. transport/link/tls/root_ca_certificate for a tls/ router")
-    g.add_argument("--zenoh-lease-ms", metavar="MS", type=_zenoh_lease, default=d(None),
+    g.add_argument("--zenoh-lease-ms", metavar="MS", type=_checked(zenoh_lease_problem, int), default=d(None),
                    help=f"with --zenoh-connect: this client's Zenoh link lease, {ZENOH_LEASE_MS_MIN}-"
                         f"{ZENOH_LEASE_MS_MAX} (default {ZENOH_LEASE_MS_DEFAULT}): the daemon releases a "
                         "frozen client's control after it (docs/zenoh.md, 'Lease')")
@@ -292,10 +296,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--follower", required=True, metavar="ROBOT|SOCKET", help="the follower, as --leader")
     p.add_argument("--pair", action="append", metavar="LEADER_NS=FOLLOWER_NS",
                    help="which namespace follows which (repeatable; default: by position)")
-    p.add_argument("--rate", metavar="HZ", type=_positive_float, default=50.0,
-                   help="interpolate_jp samples per second (default 50)")
-    p.add_argument("--tolerance", metavar="RAD", type=_positive_float, default=0.1,
-                   help="alignment: every leader joint this close to the follower's (default 0.1 rad)")
+    p.add_argument("--rate", metavar="HZ", type=_checked(teleop.rate_problem), default=None,
+                   help=f"interpolate_jp samples per second, {teleop.RATE_MIN_HZ:g} up to the lower loop rate of "
+                        f"the two daemons (default {teleop.RATE_DEFAULT_HZ:g}, or that loop rate if lower)")
+    p.add_argument("--tolerance", metavar="RAD", type=_checked(teleop.tolerance_problem), default=0.1,
+                   help=f"alignment: every leader joint this close to the follower's, {teleop.TOLERANCE_MIN:g} "
+                        f"to {teleop.TOLERANCE_MAX:g} rad (default 0.1)")
     p.add_argument("--align", choices=("wait", "move"), default="wait",
                    help="wait: the operator brings the leader to the follower (default); move: the "
                         "follower moves to the leader first (move_jp)")
