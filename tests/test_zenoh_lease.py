@@ -8,6 +8,7 @@ within its lease plus a margin."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -32,16 +33,40 @@ MARGIN_S = 2.0
 #: the frozen client's stream: shoulder_pan at this speed (rad/s) until the daemon stops it
 SPEED = 0.15
 
-FROZEN_CLIENT = """
+REMOTE_CLIENT = """
 import sys
 from crtk_bridge.client import connect
-robot = connect(robot="so101", zenoh_connect=sys.argv[1], timeout=15.0)   # the library's default lease
-arm = robot.device("so101")
-assert arm.enable(15.0)
-arm.servo_jv([float(sys.argv[2]), 0.0, 0.0, 0.0, 0.0])
-print("streaming", flush=True)
-sys.stdin.read()   # holds control until frozen, then killed
+endpoint, robot, how = sys.argv[1:4]
+remote = connect(robot=robot, zenoh_connect=endpoint, timeout=15.0)   # the library's default lease
+arm = remote.device(robot)
+if how == "stream":   # enable, then shoulder_pan at argv[4] rad/s until the daemon stops it
+    assert arm.enable(15.0)
+    arm.servo_jv([float(sys.argv[4])] + [0.0] * (len(arm.joint_names) - 1))
+else:                 # only hold control
+    remote.acquire()
+print("ready", flush=True)
+sys.stdin.read()   # until frozen, then killed
 """
+
+
+@contextlib.contextmanager
+def remote_client(endpoint: str, robot: str, *how: str):
+    """A process holding control of ``robot`` over Zenoh (``how``: ``hold``, or ``stream SPEED``),
+    ready when entered; on the way out it is continued (if stopped) and killed."""
+    proc = subprocess.Popen([sys.executable, "-c", REMOTE_CLIENT, endpoint, robot, *how], cwd=ROOT,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        started = proc.stdout.readline().strip()
+        if started != b"ready":
+            raise AssertionError(f"the remote client did not start: {started + proc.stdout.read()!r}")
+        yield proc
+    finally:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGCONT)
+            proc.kill()
+        proc.wait(10)
+        proc.stdin.close()
+        proc.stdout.close()
 
 
 def _lease_keys(conf) -> tuple[int, int]:
@@ -121,38 +146,13 @@ def daemon(tmp_path_factory):
         d.stop()
 
 
-@pytest.fixture
-def frozen_client(daemon):
-    """Starts the client process; on the way out it is continued (if stopped) and killed."""
-    procs: list[subprocess.Popen] = []
-
-    def start() -> subprocess.Popen:
-        proc = subprocess.Popen([sys.executable, "-c", FROZEN_CLIENT, daemon[0], str(SPEED)], cwd=ROOT,
-                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-        procs.append(proc)
-        return proc
-
-    yield start
-    for proc in procs:
-        if proc.poll() is None:
-            os.kill(proc.pid, signal.SIGCONT)
-            proc.kill()
-        proc.wait(10)
-        proc.stdin.close()
-        proc.stdout.close()
-
-
-def test_a_frozen_remote_client_is_lost_within_its_lease(daemon, frozen_client):
-    _, d = daemon
-    with connect(socket=str(d.socket_path), timeout=15.0) as watcher:
+def test_a_frozen_remote_client_is_lost_within_its_lease(daemon):
+    endpoint, d = daemon
+    with connect(socket=str(d.socket_path), timeout=15.0) as watcher, \
+            remote_client(endpoint, "so101", "stream", str(SPEED)) as client:
         arm = watcher.device("so101")
         speed = lambda: abs(arm.measured_jv()[0][0])  # noqa: E731 - shoulder_pan, rad/s
         count = watcher.connection.event_count
-        client = frozen_client()
-        started = client.stdout.readline().strip()
-        if started != b"streaming":
-            d.print_tail()
-            raise AssertionError(f"the remote client did not start streaming: {started + client.stdout.read()!r}")
         wait_until(lambda: speed() > SPEED / 2, 15.0, what="the remote client's stream moving the joint")
         with pytest.raises(CrtkBridgeError) as held:  # the remote client holds control
             watcher.acquire()
