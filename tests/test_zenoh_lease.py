@@ -34,14 +34,21 @@ MARGIN_S = 2.0
 SPEED = 0.15
 
 REMOTE_CLIENT = """
-import sys
+import sys, threading, time
 from crtk_bridge.client import connect
 endpoint, robot, how = sys.argv[1:4]
 remote = connect(robot=robot, zenoh_connect=endpoint, timeout=15.0)   # the library's default lease
 arm = remote.device(robot)
-if how == "stream":   # enable, then shoulder_pan at argv[4] rad/s until the daemon stops it
+if how == "stream":   # enable, then shoulder_pan at argv[4] rad/s, streamed at 20 Hz until frozen
     assert arm.enable(15.0)
-    arm.servo_jv([float(sys.argv[4])] + [0.0] * (len(arm.joint_names) - 1))
+    velocity = [float(sys.argv[4])] + [0.0] * (len(arm.joint_names) - 1)
+    arm.servo_jv(velocity)
+
+    def stream():
+        while True:
+            time.sleep(0.05)
+            arm.servo_jv(velocity)
+    threading.Thread(target=stream, daemon=True).start()
 else:                 # only hold control
     remote.acquire()
 print("ready", flush=True)
@@ -128,14 +135,14 @@ def test_client_lease_out_of_range_is_refused_naming_the_option():
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory):
     """An SO-101 daemon on its simulator listening for Zenoh clients on a free loopback port, with
-    a servo watchdog (5 s) longer than lease + margin: only client loss can stop a silent stream
-    within the test's bound. Its own lease is the longest allowed (60 s): a frozen client is
+    a servo watchdog (10 s) far longer than lease + margin: only client loss can stop the frozen
+    client's stream within the test's bound. Its own lease is the longest allowed (60 s): a frozen client is
     expired after the lease the CLIENT announced, so the daemon's own must not delay it. Yields
     (endpoint, daemon)."""
     tmp = tmp_path_factory.mktemp("lease")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     data = so101_data()
-    data["safety"]["servo_timeout_s"] = 5.0
+    data["safety"]["servo_timeout_s"] = 10.0
     data["transport"] = {"zenoh": {"listen": [endpoint], "lease_ms": ZENOH_LEASE_MS_MAX}}
     profile = tmp / "so101-lease.yaml"
     profile.write_text(yaml.safe_dump(data))
@@ -161,9 +168,12 @@ def test_a_frozen_remote_client_is_lost_within_its_lease(daemon):
         frozen_at = time.monotonic()
         os.kill(client.pid, signal.SIGSTOP)  # frozen: no close, no keep-alive, the TCP link stays up
         bound = ZENOH_LEASE_MS_DEFAULT / 1000 + MARGIN_S
-        released = wait_until(lambda: [e for e in watcher.connection.events_since(count)
-                                       if e.data.get("code") == "control_released"],
-                              bound, interval=0.005, what=f"client loss within the lease + {MARGIN_S} s")
+        seen = lambda: watcher.connection.events_since(count)  # noqa: E731
+        try:
+            released = wait_until(lambda: [e for e in seen() if e.data.get("code") == "control_released"],
+                                  bound, interval=0.005, what=f"client loss within the lease + {MARGIN_S} s")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}; events meanwhile: {[(e.kind, e.data.get('code')) for e in seen()]}") from None
         lost_after = time.monotonic() - frozen_at
         assert released[0].kind == "warning" and "so101" in released[0].data["message"]
         wait_until(lambda: speed() < 0.01, 5.0, what="the stream stopped at client loss")
