@@ -153,6 +153,10 @@ def main() -> int:
     workdir = tempfile.mkdtemp(prefix="crtk-bench-ur-")
     data = yaml.safe_load(PROFILE.read_text())
     data["backend"]["host"] = sim.port
+    # the simulator shares this PC with the daemon, unscheduled: its --sim link timeout and
+    # watchdog (UrBackend.SIM_DEFAULTS), or a loaded host's hiccup is a link_lost FAULT mid-run
+    for key, value in {"link_timeout_s": 0.5, "watchdog_hz": 2.0}.items():
+        data["backend"].setdefault(key, value)
     data["namespaces"][0]["kinematics"]["urdf"] = str(PROFILE.parent / data["namespaces"][0]["kinematics"]["urdf"])
     profile_path = os.path.join(workdir, "ur5e.yaml")
     with open(profile_path, "w") as f:
