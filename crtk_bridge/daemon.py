@@ -286,7 +286,10 @@ def _simulate_buses(profile: Profile, profile_path: str, workdir: str,
         simulator = SimulatorProcess(profile_path, wiring.device, workdir, bus=bus, host_ports=wiring.host_ports,
                                      raise_priority=realtime)
         simulators.append(simulator)
-        backends[bus] = {**section, wiring.endpoint_key: simulator.link}
+        # the bus's section wired the way --sim wires a one-bus profile (the backend's sim_profile:
+        # its endpoint, and the simulator's defaults where the section sets no value of its own)
+        one_bus = msgspec.structs.replace(profile, backend=dict(section))
+        backends[bus] = backend_class(str(section["type"]), profile_path).sim_profile(one_bus, simulator.link).backend
         print(f"crtk-bridge: simulated {section['type']} bus {bus!r} on {simulator.link} "
               f"(simulator control socket {simulator.control})", flush=True)
     return msgspec.structs.replace(profile, backends=backends)

@@ -22,8 +22,15 @@ def test_subscription_rate_and_slow_subscriber(sim_daemon):
     try:
         # a normal subscriber gets frames at about the requested rate, each fresh
         sub = robot.device(ns).subscribe("measured_js", 50)
-        first = sub.get(timeout=2)
-        frames = [first] + [sub.get(timeout=2) for _ in range(50)]
+        # the frames that carry a valid sample (stamp 0 marks an invalid one: a simulated bus that
+        # a loaded host starved for safety.bus_errors_max cycles); every tenth may be invalid
+        frames, seen = [], 0
+        while len(frames) < 51:
+            f = sub.get(timeout=2)
+            seen += 1
+            assert seen <= 56, f"{seen - len(frames)} of {seen} measured_js frames invalid"
+            if (f["stamp"] if "stamp" in f else f["data"]["stamp"]) > 0:
+                frames.append(f)
         stamps = [f["stamp"] if "stamp" in f else f["data"]["stamp"] for f in frames]
         assert all(b >= a for a, b in zip(stamps, stamps[1:])) and stamps[-1] > stamps[0]
         # the rate, by the frames' own stamps (the sample each frame carried, so a client thread
