@@ -6,7 +6,8 @@ Joint configurations are drawn from a fixed-seed sample inside the arm's limits 
 where a test can use them: the tip above the base, the tool pointing down (so a body-frame +z
 and a base-frame +z give clearly different motions), well away from singularities (the largest
 smallest singular value of the Jacobian: of its position rows on an arm with fewer than six
-joints, which cannot hold every orientation), with room to move (scored down near the limits). Their forward kinematics are the targets.
+joints, which cannot hold every orientation), with room to move (scored down near the limits).
+Their forward kinematics are the targets.
 """
 
 from __future__ import annotations
@@ -31,8 +32,6 @@ NEAR = 0.8  # rad: the other configurations are this close (max over joints) to 
 # a straight line or an IK solve from one to the other stays on one solution branch
 APART = 0.05  # m: their tips at least this far from each other...
 FAR = 0.2  # m: ...and from the start tip at most this far (short moves)
-
-
 STILL_M_S = 1e-4  # m/s: the tip's measured speed once the arm stopped...
 STILL_M = 1e-5  # m: ...and how far it may move between two polls
 
@@ -95,7 +94,8 @@ class Targets:
             p, quat = self.fk(q)
             R = matrix_from_quaternion(quat)
             d = p - self.pan_axis
-            for pos, rot in ((p, Rz @ R), (self.pan_axis + 0.9 * self.reach * d / np.linalg.norm(d), R @ np.diag([-1.0, -1.0, 1.0]))):
+            edge = self.pan_axis + 0.9 * self.reach * d / np.linalg.norm(d)
+            for pos, rot in ((p, Rz @ R), (edge, R @ np.diag([-1.0, -1.0, 1.0]))):
                 t0 = time.perf_counter()
                 _, ok, *_ = self.kin.ik(pos, quaternion_from_matrix(rot), np.zeros(n), 1e-3, 1e-2)
                 took = time.perf_counter() - t0
@@ -107,11 +107,11 @@ class Targets:
 
 
 def targets(robot: SimRobot) -> Targets:
-    return _targets(robot.id, str(robot.profile), robot.arm)
+    return _targets(str(robot.profile), robot.arm)
 
 
 @functools.cache
-def _targets(robot_id: str, profile: str, arm: str) -> Targets:
+def _targets(profile: str, arm: str) -> Targets:
     p = load_profile(profile)
     ns = p.namespace(arm)
     k = ns.kinematics
