@@ -20,17 +20,16 @@ from crtk_bridge.client import CommandError, connect, pose_matrix, pose_pq
 from crtk_bridge.client.cli import main
 
 from .cartesian_targets import targets, wait_still
-from .conftest import start_sim_daemon, wait_until
+from .conftest import SIM_ROBOTS, start_sim_daemon, wait_until
 
 pytestmark = pytest.mark.requires("kinematics")
 
 POS_TOL = 0.005  # m: tip within 5 mm (servo quantisation times the reach, plus lag)
 
 
-@pytest.fixture(scope="module")
-def daemon(sim_robot):
+def _module_daemon(robot):
     d = Path(tempfile.mkdtemp(prefix="crtk-"))  # AF_UNIX paths must stay short
-    proc = start_sim_daemon(sim_robot, d)
+    proc = start_sim_daemon(robot, d)
     try:
         yield proc
     finally:
@@ -38,11 +37,24 @@ def daemon(sim_robot):
         shutil.rmtree(d, ignore_errors=True)
 
 
+@pytest.fixture(scope="module")
+def robot_daemon(sim_robot):
+    """One daemon per robot for this module."""
+    yield from _module_daemon(sim_robot)
+
+
+@pytest.fixture(scope="module")
+def daemon():
+    """One so101 --sim daemon for a module (tests/test_e2e_protocol.py and
+    tests/reliability/test_fuzz_protocol.py import it)."""
+    yield from _module_daemon(SIM_ROBOTS["so101-feetech"])
+
+
 @pytest.fixture
-def arm(daemon):
-    robot = connect(socket=str(daemon.socket_path), timeout=5.0)
+def arm(robot_daemon):
+    robot = connect(socket=str(robot_daemon.socket_path), timeout=5.0)
     try:
-        yield robot.device(daemon.robot.arm)
+        yield robot.device(robot_daemon.robot.arm)
     finally:
         robot.close()
 
@@ -69,7 +81,7 @@ def ctl(daemon, capsys, *argv) -> tuple[int, str, str]:
     return code, out.out, out.err
 
 
-def test_measured_cp_matrix_is_consistent_with_pq_and_fk(arm, daemon):
+def test_measured_cp_matrix_is_consistent_with_pq_and_fk(arm, robot_daemon):
     T, ts = arm.measured_cp()
     p, q, ts_pq = arm.measured_cp_pq()
     assert ts > 0 and ts_pq >= ts
@@ -85,15 +97,15 @@ def test_measured_cp_matrix_is_consistent_with_pq_and_fk(arm, daemon):
     if "measured_cf" in arm._robot.connection.request("list")["namespaces"][0]["queries"]:
         w, ts_w = arm.measured_cf()
         assert ts_w > 0 and w.shape == (6,) and np.all(np.isfinite(w))
-    if daemon.robot.gripper is not None:
+    if robot_daemon.robot.gripper is not None:
         # the body frame is not for poses; the gripper namespace has no kinematics
         with pytest.raises(CommandError) as info:
             arm.gripper.measured_cp()
         assert info.value.code == "unsupported"
 
 
-def test_move_cp_reaches_fk_of_a_joint_vector_via_client_and_ctl(arm, daemon, capsys):
-    tg = targets(daemon.robot)
+def test_move_cp_reaches_fk_of_a_joint_vector_via_client_and_ctl(arm, robot_daemon, capsys):
+    tg = targets(robot_daemon.robot)
     enabled(arm)
     _back_to(arm, tg.start)
     target = arm.forward_kinematics(tg.a)
@@ -118,13 +130,13 @@ def test_move_cp_reaches_fk_of_a_joint_vector_via_client_and_ctl(arm, daemon, ca
     arm._robot.release()
     target_b = arm.forward_kinematics(tg.b)
     p, q = pose_pq(target_b)
-    code, out, err = ctl(daemon, capsys, "move_cp", *map(str, [*p, *q]), "--wait", "--json")
+    code, out, err = ctl(robot_daemon, capsys, "move_cp", *map(str, [*p, *q]), "--wait", "--json")
     assert code == 0, err
     assert json.loads(out)["done"] is True
     wait_until(lambda: tip_error(arm, target_b) < POS_TOL, 5, what="tip at crtk-ctl's move_cp target")
-    code, out, _ = ctl(daemon, capsys, "--json", "get", "measured_cp")
+    code, out, _ = ctl(robot_daemon, capsys, "--json", "get", "measured_cp")
     assert code == 0 and np.linalg.norm(np.array(json.loads(out)["position"]) - p) < POS_TOL
-    code, out, _ = ctl(daemon, capsys, "get", "measured_cp")
+    code, out, _ = ctl(robot_daemon, capsys, "get", "measured_cp")
     assert code == 0
     line = next(x for x in out.splitlines() if x.strip().startswith("position"))
     assert line.endswith(" m (x y z)")
@@ -132,8 +144,8 @@ def test_move_cp_reaches_fk_of_a_joint_vector_via_client_and_ctl(arm, daemon, ca
     assert np.linalg.norm(printed - p) < POS_TOL
 
 
-def test_ik_fk_round_trip_client_and_ctl(arm, daemon, capsys):
-    tg = targets(daemon.robot)
+def test_ik_fk_round_trip_client_and_ctl(arm, robot_daemon, capsys):
+    tg = targets(robot_daemon.robot)
     n = len(tg.a)
     target = arm.forward_kinematics(tg.a)
     jp, ok, msg = arm.inverse_kinematics(target, jp_seed=[0.0] * n)
@@ -146,31 +158,31 @@ def test_ik_fk_round_trip_client_and_ctl(arm, daemon, capsys):
     assert not ok2 and "reach" in msg2 and jp2.shape == (n,)
 
     p, q = pose_pq(target)
-    code, out, err = ctl(daemon, capsys, "--json", "ik", *map(str, [*p, *q]), "--seed", *["0"] * n)
+    code, out, err = ctl(robot_daemon, capsys, "--json", "ik", *map(str, [*p, *q]), "--seed", *["0"] * n)
     assert code == 0, err
     reply = json.loads(out)
     assert reply["result"] is True
-    code, out, _ = ctl(daemon, capsys, "--json", "fk", *map(str, reply["jp"]))
+    code, out, _ = ctl(robot_daemon, capsys, "--json", "fk", *map(str, reply["jp"]))
     assert code == 0 and np.linalg.norm(np.array(json.loads(out)["position"]) - p) < 1e-3
-    code, out, err = ctl(daemon, capsys, "ik", *map(str, far), "0", "0", "0", "1")
+    code, out, err = ctl(robot_daemon, capsys, "ik", *map(str, far), "0", "0", "0", "1")
     assert code == 1 and out == ""
     assert err.count("\n") == 1 and "ik refused (ik_failed)" in err and "reach" in err
 
 
-def test_unreachable_move_cp_refused_with_ik_failed(arm, daemon, capsys):
+def test_unreachable_move_cp_refused_with_ik_failed(arm, robot_daemon, capsys):
     enabled(arm)
     seq = arm.operating_state_full()["busy_seq"]
     before, _ = arm.measured_jp()
-    far = targets(daemon.robot).beyond_reach()
+    far = targets(robot_daemon.robot).beyond_reach()
     # no IK on a native backend: the controller's own check (isPoseWithinSafetyLimits) refuses it
-    code, why = ("out_of_limits", "safety limits") if native(daemon) else ("ik_failed", "reach")
+    code, why = ("out_of_limits", "safety limits") if native(robot_daemon) else ("ik_failed", "reach")
     with pytest.raises(CommandError) as info:
         arm.move_cp((far, [0.0, 0.0, 0.0, 1.0]))
     assert info.value.code == code and why in info.value.message
     arm._robot.release()
-    code_ctl, _, err = ctl(daemon, capsys, "move_cp", *map(str, far), "0", "0", "0", "1", "--wait")
+    code_ctl, _, err = ctl(robot_daemon, capsys, "move_cp", *map(str, far), "0", "0", "0", "1", "--wait")
     assert code_ctl == 1 and f"move_cp refused ({code})" in err and err.count("\n") == 1
-    if native(daemon):
+    if native(robot_daemon):
         # the controller is asked first (a GOAL_CHECK transition: is_busy while it answers), so
         # each refused request raised one busy edge pair (the false edge is pushed just after
         # the refusal's reply); no move started
@@ -216,8 +228,8 @@ def _back_to(arm, q):
     wait_until(lambda: np.allclose(arm.measured_jp()[0], q, atol=0.01), 5, what=f"arm at {q}")
 
 
-def test_servo_cv_body_and_spatial_frames_go_to_their_namespaces(arm, daemon, capsys):
-    nat, q_b = native(daemon), targets(daemon.robot).b
+def test_servo_cv_body_and_spatial_frames_go_to_their_namespaces(arm, robot_daemon, capsys):
+    nat, q_b = native(robot_daemon), targets(robot_daemon.robot).b
     enabled(arm)
     _back_to(arm, q_b)
     v = 0.03
@@ -255,7 +267,7 @@ def test_servo_cv_body_and_spatial_frames_go_to_their_namespaces(arm, daemon, ca
     # crtk-ctl servo_cv --frame body reaches the daemon's <arm>/body namespace
     arm._robot.release()
     _, _, z0 = arm.measured_cp_pq()[0]
-    code, out, err = ctl(daemon, capsys, "servo_cv", "0", "0", str(v), "0", "0", "0", "--frame", "body",
+    code, out, err = ctl(robot_daemon, capsys, "servo_cv", "0", "0", str(v), "0", "0", "0", "--frame", "body",
                          "--duration", "0.3", "--rate", "100")
     assert code == 0 and "servo_cv sent (body)" in out, err
     wait_until(lambda: arm.measured_cp_pq()[0][2] < z0 - 0.003, 5, what="tip moved down under body servo_cv")
