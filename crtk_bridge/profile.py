@@ -124,6 +124,29 @@ class ZenohTls(_Strict, kw_only=True):
     verify_name_on_connect: bool = True  # the router's certificate must name the host connected to
 
 
+#: Zenoh link lease (ms, ``transport.zenoh.lease_ms``; Zenoh's ``transport/link/tx/lease``): a
+#: peer that sends nothing for the lease it announced (frozen, cable pulled) is dropped. Zenoh's
+#: own default is 10 s; 2 s notices a frozen remote client in 1.5-2 s (docs/zenoh.md, "Lease").
+ZENOH_LEASE_MS_DEFAULT = 2000
+#: below this a healthy link on a loaded PC or Wi-Fi (a TCP retransmission alone waits 200 ms or
+#: more) would expire: a spurious client loss
+ZENOH_LEASE_MS_MIN = 500
+#: rmw_zenoh's router uses 60 s, the longest lease Zenoh ships; beyond it client loss takes minutes
+ZENOH_LEASE_MS_MAX = 60000
+#: keep-alives per lease (Zenoh's ``transport/link/tx/keep_alive``): one every lease/4 on an idle
+#: link, so three may be lost before the peer expires it (Zenoh's own ratio, set explicitly)
+ZENOH_KEEP_ALIVE_PER_LEASE = 4
+
+
+def zenoh_lease_problem(value: Any) -> str | None:
+    """Why ``value`` is not a valid Zenoh lease in ms (an integer in [ZENOH_LEASE_MS_MIN,
+    ZENOH_LEASE_MS_MAX]), or ``None``. The caller names the key or option."""
+    if isinstance(value, bool) or not isinstance(value, int) \
+            or not ZENOH_LEASE_MS_MIN <= value <= ZENOH_LEASE_MS_MAX:
+        return f"must be an integer from {ZENOH_LEASE_MS_MIN} to {ZENOH_LEASE_MS_MAX} (ms), got {value!r}"
+    return None
+
+
 class ZenohTransport(_Strict, kw_only=True):
     """The Zenoh transport (transport/zenoh_session.py; docs/zenoh.md). Present = on."""
 
@@ -132,6 +155,8 @@ class ZenohTransport(_Strict, kw_only=True):
     # loopback only unless tls + access_control; default: one loopback port the system picks
     listen: list[str] = msgspec.field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     connect_timeout_s: float = 5.0  # how long start-up waits for each connect endpoint
+    # this session's link lease (ms): peers drop it after this much silence; keep-alives every lease/4
+    lease_ms: int = ZENOH_LEASE_MS_DEFAULT
     ros_domain_id: int = 0  # ROS_DOMAIN_ID of the ROS 2 graph (the first key segment)
     publish_rate_hz: float | None = None  # ROS topics' rate; default: the loop rate
     tls: ZenohTls | None = None
@@ -374,6 +399,9 @@ def _check_zenoh(z: ZenohTransport | None) -> list[str]:
         v = getattr(z, key)
         if v is not None and not (v > 0 and math.isfinite(v)):
             problems.append(f"transport.zenoh.{key}: must be a finite number > 0, got {v}")
+    lease = zenoh_lease_problem(z.lease_ms)
+    if lease:
+        problems.append(f"transport.zenoh.lease_ms: {lease}")
     return problems
 
 

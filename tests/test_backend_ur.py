@@ -348,8 +348,10 @@ def test_a_stalled_loop_stops_the_arm(ur):
         time.sleep(0.01)
     st = ur.sim.state()
     assert st["qd"] == [0.0] * 6 and "watchdog" in st["last_error"]
-    ur.cycle()
-    assert c.state is OperatingState.FAULT and ur.events("error")[-1]["code"] == "script_stopped"
+    # the simulator's control socket told us first; the RTDE packet that says so reaches the
+    # backend a cycle or two later on a loaded host
+    ur.until(lambda: c.state is OperatingState.FAULT, 1, "FAULT once the stopped script is seen over RTDE")
+    assert ur.events("error")[-1]["code"] == "script_stopped"
 
 
 def test_the_simulated_controller_gets_link_and_watchdog_limits_that_a_loaded_host_does_not_trip():

@@ -159,18 +159,26 @@ def test_servo_jp_jr_jv_setpoints_goal_and_watchdog(rig, sim_robot):
     wait_until(lambda: np.allclose(arm.setpoint_jp()[0], expect, atol=1e-9), 2, what="setpoint at the servo_jr target")
     wait_until(lambda: at(arm, expect), 5, what="servo_jr target reached")
 
-    # servo_jv at 50 Hz for 0.4 s: the joint moves at v (setpoint fields per backend)
+    # servo_jv at 50 Hz for 0.6 s: the joint moves at v (setpoint fields per backend). The speed is
+    # taken between two measured samples after the first 0.3 s (past any acceleration ramp: a
+    # UR's speedJ ramps), by the samples' own stamps, so a client or loop starved by a loaded
+    # host cannot make it look slow or fast
     v = bot.vec((0, 0.5))
-    start = measured(arm)
     t0 = time.monotonic()
-    while time.monotonic() - t0 < 0.4:
+    first = last = None
+    while time.monotonic() - t0 < 0.6:
         arm.servo_jv(v)
+        if time.monotonic() - t0 > 0.3:
+            js = arm.measured_js()
+            first = first or js
+            last = js
         time.sleep(0.02)  # paces the 50 Hz stream
     sp = arm.setpoint_js()
-    moved = measured(arm)[0] - start[0]
     assert fields(sp) == VELOCITY_SETPOINT_FIELDS[bot.backend] and sp[3] > 0
     np.testing.assert_allclose(sp[1], v, atol=1e-9)
-    assert 0.15 < moved < 0.35, moved  # ~0.5 rad/s * 0.4 s, plus the time since the last command
+    assert last[3] - first[3] > 0.1, (first[3], last[3])
+    speed = (last[0][0] - first[0][0]) / (last[3] - first[3])
+    assert 0.35 < speed < 0.65, speed  # 0.5 rad/s asked
     assert arm.goal_js()[3] == 0.0
 
     # the stream stops: the watchdog holds after safety.servo_timeout_s and says so

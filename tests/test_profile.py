@@ -84,7 +84,7 @@ def _documented_structs() -> list[Any]:
 
 #: keys that cannot coexist with the example's own (a one-bus robot), or whose section turns a
 #: transport on (transport.zenoh): documented as commented YAML
-ALTERNATIVE_KEYS = {"backends", "transport", "zenoh", "mode", "connect", "listen", "connect_timeout_s",
+ALTERNATIVE_KEYS = {"backends", "transport", "zenoh", "mode", "connect", "listen", "connect_timeout_s", "lease_ms",
                     "ros_domain_id", "publish_rate_hz", "tls", "access_control", "root_ca_certificate",
                     "listen_certificate", "listen_private_key", "connect_certificate", "connect_private_key",
                     "enable_mtls", "verify_name_on_connect"}

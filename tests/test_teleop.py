@@ -92,6 +92,16 @@ def test_teleop_refuses_a_disabled_follower_and_never_enables_it(rig):
         assert fol.device().operating_state() == "DISABLED"
 
 
+def test_crtk_ctl_teleop_refuses_a_rate_above_the_followers_loop_rate(rig, capsys):
+    from crtk_bridge.client.cli import main
+
+    leader, follower, _ = rig
+    assert main(["teleop", "--leader", str(leader.socket_path), "--follower", str(follower.socket_path),
+                 "--rate", "1000"]) == 1
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "crtk-ctl: --rate (rate_hz): must be from 10 to 200 Hz (the loop rate of the follower 'so101'), got 1000"]
+
+
 def test_teleop_waits_for_alignment_then_the_follower_tracks_the_leader(rig):
     leader, follower, profile = rig
     with connect(socket=str(leader.socket_path)) as lead, connect(socket=str(follower.socket_path)) as fol:
@@ -256,3 +266,57 @@ def test_a_non_finite_leader_position_is_never_followed_nor_counted_aligned():
     arm = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"]
     pair = Pair(Leader("so101_leader", arm), _Ns("so101", arm))
     assert t._leader_position(pair) is None
+
+
+class _Daemon(_Bot):
+    """A robot as Teleop's constructor sees it: its socket path and loop rate (``list``)."""
+
+    def __init__(self, name: str, rate_hz: float):
+        super().__init__(name, {name: ["j1", "j2"]})
+        self.info = {"rate_hz": rate_hz}
+        self.connection = type("Conn", (), {"path": f"/tmp/{name}.sock"})()
+
+
+@pytest.mark.parametrize("rate, why", [
+    (0.0, "got 0"), (-5.0, "got -5"), (9.5, "got 9.5"), (float("nan"), "got nan"), (float("inf"), "got inf"),
+    (200.5, "got 200.5"),
+])
+def test_a_rate_out_of_range_is_refused_naming_the_option_and_the_range(rate, why):
+    with pytest.raises(TeleopError) as refused:
+        Teleop(_Daemon("lead", 1000.0), _Daemon("follow", 200.0), rate_hz=rate)
+    assert str(refused.value) == (f"--rate (rate_hz): must be from 10 to 200 Hz (the loop rate of the follower "
+                                  f"'follow'), {why}")
+
+
+def test_the_rate_is_capped_by_the_slower_daemon_and_defaults_within_it():
+    with pytest.raises(TeleopError, match=r"^--rate \(rate_hz\): must be from 10 to 100 Hz \(the loop rate of the "
+                                          r"leader 'lead'\), got 150$"):
+        Teleop(_Daemon("lead", 100.0), _Daemon("follow", 200.0), rate_hz=150)
+    assert Teleop(_Daemon("lead", 100.0), _Daemon("follow", 200.0), rate_hz=100).period == pytest.approx(0.01)
+    assert Teleop(_Daemon("lead", 1000.0), _Daemon("follow", 200.0)).period == pytest.approx(1 / 50)
+    assert Teleop(_Daemon("lead", 1000.0), _Daemon("follow", 30.0)).period == pytest.approx(1 / 30)  # not refused
+
+
+@pytest.mark.parametrize("tolerance", [0.0, -0.1, 0.009, 0.31, float("nan"), float("inf"), float("-inf")])
+def test_a_tolerance_out_of_range_is_refused_naming_the_option_and_the_range(tolerance):
+    with pytest.raises(TeleopError) as refused:
+        Teleop(_Daemon("lead", 200.0), _Daemon("follow", 200.0), tolerance=tolerance)
+    assert str(refused.value) == f"--tolerance (tolerance): must be from 0.01 to 0.3 rad, got {tolerance:g}"
+    assert Teleop(_Daemon("lead", 200.0), _Daemon("follow", 200.0), tolerance=0.3).tolerance == 0.3
+
+
+@pytest.mark.parametrize("option, value, allowed", [
+    ("--rate", "nan", "must be from 10 to the daemons' loop rate (Hz), got nan"),
+    ("--rate", "5", "must be from 10 to the daemons' loop rate (Hz), got 5"),
+    ("--rate", "inf", "must be from 10 to the daemons' loop rate (Hz), got inf"),
+    ("--tolerance", "0.5", "must be from 0.01 to 0.3 rad, got 0.5"),
+    ("--tolerance", "0", "must be from 0.01 to 0.3 rad, got 0"),
+    ("--tolerance", "nan", "must be from 0.01 to 0.3 rad, got nan"),
+    ("--tolerance", "x", "expected a number, got 'x'"),
+])
+def test_crtk_ctl_teleop_refuses_out_of_range_options_before_connecting(capsys, option, value, allowed):
+    from crtk_bridge.client.cli import main
+
+    assert main(["teleop", "--leader", "/nonexistent/l.sock", "--follower", "/nonexistent/f.sock",
+                 option, value]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == f"crtk-ctl teleop: error: argument {option}: {allowed}"

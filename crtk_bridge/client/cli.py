@@ -53,6 +53,7 @@ from crtk_bridge.client.device import (
     CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, FRAMES, JS_TOPICS, Device, Robot, connect, encode_pose,
     list_robots)
 from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
+from crtk_bridge.profile import ZENOH_LEASE_MS_DEFAULT, ZENOH_LEASE_MS_MAX, ZENOH_LEASE_MS_MIN, zenoh_lease_problem
 
 PROG = "crtk-ctl"
 GET_TOPICS = (*JS_TOPICS, *CARTESIAN_TOPICS, *vocabulary.ROBOT_TOPICS)
@@ -139,6 +140,22 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _checked(problem, kind=float):
+    """argparse type: a number (``kind``: float or int) that ``problem(value)`` finds nothing
+    wrong with (it says why otherwise)."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected {'an integer' if kind is int else 'a number'}, got {text!r}") from None
+        why = problem(value)
+        if why:
+            raise argparse.ArgumentTypeError(why)
+        return value
+    return parse
+
+
 def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
     # The same options on the main parser and on every subparser, so that they are accepted
     # before or after the subcommand; SUPPRESS on the subparsers keeps a value given before.
@@ -155,6 +172,10 @@ def _add_globals(p: argparse.ArgumentParser, suppress: bool) -> None:
     g.add_argument("--zenoh-config", metavar="FILE", default=d(None),
                    help="with --zenoh-connect: a Zenoh configuration file (JSON5) for what the endpoint "
                         "needs, e.g. transport/link/tls/root_ca_certificate for a tls/ router")
+    g.add_argument("--zenoh-lease-ms", metavar="MS", type=_checked(zenoh_lease_problem, int), default=d(None),
+                   help=f"with --zenoh-connect: this client's Zenoh link lease, {ZENOH_LEASE_MS_MIN}-"
+                        f"{ZENOH_LEASE_MS_MAX} (default {ZENOH_LEASE_MS_DEFAULT}): the daemon releases a "
+                        "frozen client's control after it (docs/zenoh.md, 'Lease')")
     g.add_argument("--ns", metavar="NAMESPACE", default=d(None),
                    help="CRTK namespace, e.g. so101/gripper (default: the first one)")
     g.add_argument("--json", action="store_true", default=d(False),
@@ -275,10 +296,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--follower", required=True, metavar="ROBOT|SOCKET", help="the follower, as --leader")
     p.add_argument("--pair", action="append", metavar="LEADER_NS=FOLLOWER_NS",
                    help="which namespace follows which (repeatable; default: by position)")
-    p.add_argument("--rate", metavar="HZ", type=_positive_float, default=50.0,
-                   help="interpolate_jp samples per second (default 50)")
-    p.add_argument("--tolerance", metavar="RAD", type=_positive_float, default=0.1,
-                   help="alignment: every leader joint this close to the follower's (default 0.1 rad)")
+    p.add_argument("--rate", metavar="HZ", type=_checked(teleop.rate_problem), default=None,
+                   help=f"interpolate_jp samples per second, {teleop.RATE_MIN_HZ:g} up to the lower loop rate of "
+                        f"the two daemons (default {teleop.RATE_DEFAULT_HZ:g}, or that loop rate if lower)")
+    p.add_argument("--tolerance", metavar="RAD", type=_checked(teleop.tolerance_problem), default=0.1,
+                   help=f"alignment: every leader joint this close to the follower's, {teleop.TOLERANCE_MIN:g} "
+                        f"to {teleop.TOLERANCE_MAX:g} rad (default 0.1)")
     p.add_argument("--align", choices=("wait", "move"), default="wait",
                    help="wait: the operator brings the leader to the follower (default); move: the "
                         "follower moves to the leader first (move_jp)")
@@ -674,7 +697,7 @@ def _teleop(args, timeout: float) -> int:
     def open_robot(what: str) -> Robot:
         if args.zenoh_connect:
             return connect(robot=what, timeout=timeout, zenoh_connect=args.zenoh_connect,
-                           zenoh_config=args.zenoh_config)
+                           zenoh_config=args.zenoh_config, zenoh_lease_ms=args.zenoh_lease_ms)
         if "/" in what or what.endswith(".sock"):
             return connect(socket=what, timeout=timeout)
         return connect(robot=what, timeout=timeout)
@@ -741,13 +764,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         request_timeout = args.timeout if args.timeout is not None else 5.0
         if args.command == "robots":
-            names = list_robots(args.zenoh_connect, request_timeout, args.zenoh_config)
+            names = list_robots(args.zenoh_connect, request_timeout, args.zenoh_config, args.zenoh_lease_ms)
             _emit_json({"robots": names}) if args.json else print("\n".join(names))
             return 0
         if args.command == "teleop":
             return _teleop(args, request_timeout)
         robot = connect(socket=args.socket, robot=args.robot, timeout=request_timeout,
-                        zenoh_connect=args.zenoh_connect, zenoh_config=args.zenoh_config)
+                        zenoh_connect=args.zenoh_connect, zenoh_config=args.zenoh_config,
+                        zenoh_lease_ms=args.zenoh_lease_ms)
         return _run(args, robot)
     except KeyboardInterrupt:
         return 130

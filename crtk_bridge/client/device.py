@@ -1011,15 +1011,15 @@ def _event_matches(ev: Event, kind: str | None, code: str | None, ns: str | None
 
 
 def list_robots(zenoh_connect: str | list[str] | None = None, timeout: float = 5.0,
-                zenoh_config: str | None = None) -> list[str]:
+                zenoh_config: str | None = None, zenoh_lease_ms: int | None = None) -> list[str]:
     """The robots a client can reach, sorted: those with a socket in the default directory (see
     :func:`~crtk_bridge.client.paths.find_sockets`), or with ``zenoh_connect``, those whose
     daemons serve on the Zenoh network there (raises :class:`DaemonConnectionError` when the
-    endpoint does not answer; ``zenoh_config`` as for :func:`connect`)."""
+    endpoint does not answer; ``zenoh_config`` and ``zenoh_lease_ms`` as for :func:`connect`)."""
     if zenoh_connect:
         from crtk_bridge.client.zenoh_link import list_robots as on_zenoh
 
-        return on_zenoh(zenoh_connect, timeout, zenoh_config)
+        return on_zenoh(zenoh_connect, timeout, zenoh_config, zenoh_lease_ms)
     return sorted(os.path.basename(p)[:-len(".sock")] for p in find_sockets())
 
 
@@ -1049,15 +1049,16 @@ def resolve_socket(socket: str | None = None, robot: str | None = None) -> str:
 
 def connect(socket: str | None = None, robot: str | None = None,
             timeout: float = 5.0, zenoh_connect: str | list[str] | None = None,
-            zenoh_config: str | None = None) -> Robot:
+            zenoh_config: str | None = None, zenoh_lease_ms: int | None = None) -> Robot:
     """Connect to a crtk-bridge daemon and return its :class:`Robot`.
 
     ``socket``: a socket path; else ``robot``: a robot name, at its default path; else the only
     socket in the default directory. ``zenoh_connect``: instead of a socket, the Zenoh router or
     peer to join (an endpoint such as ``tcp/127.0.0.1:7447``, or several); ``robot`` chooses the
     daemon there (default: the only one); ``zenoh_config``: a Zenoh configuration file (JSON5) for
-    what the endpoint needs, e.g. TLS certificates; docs/zenoh.md. ``timeout`` (s): default reply timeout.
-    Blocks for one ``list`` round trip. Raises :class:`DaemonConnectionError` (a
+    what the endpoint needs, e.g. TLS certificates; ``zenoh_lease_ms``: this client's Zenoh link
+    lease (default 2000 ms: the daemon notices a frozen client within it; docs/zenoh.md, "Lease").
+    ``timeout`` (s): default reply timeout. Blocks for one ``list`` round trip. Raises :class:`DaemonConnectionError` (a
     ``ConnectionError`` naming the path or endpoint) if no daemon answers there,
     :class:`CrtkBridgeError` on a protocol version mismatch.
     """
@@ -1066,7 +1067,7 @@ def connect(socket: str | None = None, robot: str | None = None,
             raise CrtkBridgeError("give a socket path or a Zenoh endpoint (zenoh_connect), not both")
         from crtk_bridge.client.zenoh_link import open_stream
 
-        stream = open_stream(zenoh_connect, robot, timeout, zenoh_config)
+        stream = open_stream(zenoh_connect, robot, timeout, zenoh_config, zenoh_lease_ms)
         conn = Connection(stream.name, timeout=timeout, stream=stream)
     else:
         conn = Connection(resolve_socket(socket, robot), timeout=timeout)

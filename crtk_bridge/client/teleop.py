@@ -11,11 +11,12 @@ the stream with its own velocity bounds, clips to its joint limits and refuses a
     counts; control of the follower is taken (``acquire``).
 ``ALIGNING``
     nothing is sent to the follower until, on every paired joint, the leader's measured position
-    is within ``tolerance`` (rad) of the follower's: the operator brings the leader to the
+    is within ``tolerance`` (rad, TOLERANCE_MIN to TOLERANCE_MAX) of the follower's: the operator brings the leader to the
     follower. With ``align="move"`` the follower is moved to the leader instead, once, by a
     ``move_jp`` (a motion the operator asked for; bounded by the follower's limits).
 ``ENABLED``
-    following: one ``interpolate_jp`` per namespace per tick at ``rate_hz``.
+    following: one ``interpolate_jp`` per namespace per tick at ``rate_hz`` (from RATE_MIN_HZ to
+    the lower loop rate of the two daemons; default RATE_DEFAULT_HZ, or that loop rate if lower).
 
 Back to ALIGNING, with the follower holding (``hold``), when the leader's data turns invalid
 (stamp 0) or not finite, the follower refuses a step (the leader jumped), or the follower is PAUSED: teleop
@@ -28,6 +29,7 @@ Ending never disables or frees the follower.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -42,6 +44,38 @@ from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
 SETTING_ARMS_STATE, ALIGNING, ENABLED, DISABLED = "SETTING_ARMS_STATE", "ALIGNING", "ENABLED", "DISABLED"
 #: how often ALIGNING repeats which joint is still off (s)
 _ALIGN_REPORT_S = 1.0
+
+#: samples per second (--rate). At most the loop rate of either daemon: the follower's
+#: interpolation reaches each sample one estimated command period later, a period it never takes
+#: shorter than its loop's, so faster samples only overwrite each other (and the leader's
+#: measured_js changes once per its loop). At least RATE_MIN_HZ: that period is the lag the
+#: follower adds behind the hand (100 ms at 10 Hz), and it nears the follower's servo watchdog
+#: (safety.servo_timeout_s, 0.5 s by default), after which it holds between two samples.
+RATE_MIN_HZ = 10.0
+RATE_DEFAULT_HZ = 50.0
+#: alignment tolerance (--tolerance, rad). The first interpolate_jp after ALIGNING is a step of up
+#: to it, made within one sample period and bounded only by the follower's velocity limits: beyond
+#: a few tenths of a radian that is a lurch of the follower, not a take-over, and near the
+#: follower's safety.servo_step_max (0.35 rad by default) the step is refused and teleop falls
+#: back to ALIGNING. Below TOLERANCE_MIN no hand holds a leader still enough (a 4096-tick servo
+#: reads in steps of 1.5 mrad, and the measurement is noisy).
+TOLERANCE_MIN, TOLERANCE_MAX = 0.01, 0.3
+
+
+def rate_problem(rate_hz: float, cap_hz: float | None = None, capped_by: str = "") -> str | None:
+    """Why ``rate_hz`` is no teleop rate (finite, from RATE_MIN_HZ to ``cap_hz``: the lower loop
+    rate of the two daemons, ``capped_by`` naming whose), or ``None``."""
+    high = f"{cap_hz:g} Hz ({capped_by})" if cap_hz is not None else "the daemons' loop rate (Hz)"
+    if not (math.isfinite(rate_hz) and rate_hz >= RATE_MIN_HZ and (cap_hz is None or rate_hz <= cap_hz)):
+        return f"must be from {RATE_MIN_HZ:g} to {high}, got {rate_hz:g}"
+    return None
+
+
+def tolerance_problem(tolerance: float) -> str | None:
+    """Why ``tolerance`` (rad) is no alignment tolerance, or ``None``."""
+    if not (math.isfinite(tolerance) and TOLERANCE_MIN <= tolerance <= TOLERANCE_MAX):
+        return f"must be from {TOLERANCE_MIN:g} to {TOLERANCE_MAX:g} rad, got {tolerance:g}"
+    return None
 
 
 class TeleopError(CrtkBridgeError):
@@ -99,14 +133,19 @@ class Teleop:
     ``on_state(state, message)`` is called on every state change and with ALIGNING's progress."""
 
     def __init__(self, leader: Robot, follower: Robot, *, pairs: list[str] | None = None,
-                 rate_hz: float = 50.0, tolerance: float = 0.1, align: str = "wait",
+                 rate_hz: float | None = None, tolerance: float = 0.1, align: str = "wait",
                  on_state: Callable[[str, str], None] | None = None):
         if leader.connection.path == follower.connection.path:
             raise TeleopError(f"the leader and the follower are the same daemon ({leader.connection.path})")
-        if not (rate_hz > 0 and np.isfinite(rate_hz)):
-            raise TeleopError(f"rate must be a finite number > 0 (Hz), got {rate_hz}")
-        if not (tolerance > 0 and np.isfinite(tolerance)):
-            raise TeleopError(f"tolerance must be a finite number > 0 (rad), got {tolerance}")
+        cap, capped_by = min((float(robot.info["rate_hz"]), f"the loop rate of the {role} {robot.name!r}")
+                             for role, robot in (("follower", follower), ("leader", leader)))
+        rate_hz = min(RATE_DEFAULT_HZ, cap) if rate_hz is None else float(rate_hz)
+        problem = rate_problem(rate_hz, cap, capped_by)
+        if problem:
+            raise TeleopError(f"--rate (rate_hz): {problem}")
+        problem = tolerance_problem(float(tolerance))
+        if problem:
+            raise TeleopError(f"--tolerance (tolerance): {problem}")
         if align not in ("wait", "move"):
             raise TeleopError(f"align must be 'wait' or 'move', got {align!r}")
         self.leader, self.follower = leader, follower

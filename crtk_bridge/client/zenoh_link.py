@@ -23,6 +23,8 @@ import uuid
 from typing import Any, Iterable
 
 from crtk_bridge.client.connection import DaemonConnectionError
+from crtk_bridge.errors import CrtkBridgeError
+from crtk_bridge.profile import ZENOH_LEASE_MS_DEFAULT, zenoh_lease_problem
 from crtk_bridge.transport import tunnel_keys as keys
 from crtk_bridge.transport.zenoh_session import ZenohConfig, ZenohConnectError, open_session
 
@@ -37,13 +39,22 @@ def _endpoints(zenoh_connect: str | Iterable[str]) -> list[str]:
     return [zenoh_connect] if isinstance(zenoh_connect, str) else list(zenoh_connect)
 
 
-def open_client_session(zenoh_connect: str | Iterable[str], timeout: float, zenoh_config: str | None = None) -> Any:
+def open_client_session(zenoh_connect: str | Iterable[str], timeout: float, zenoh_config: str | None = None,
+                        lease_ms: int | None = None) -> Any:
     """A Zenoh client session connected to ``zenoh_connect`` (an endpoint or several). Blocks up
     to ``timeout`` s. ``zenoh_config``: a Zenoh configuration file (JSON5) for what the endpoint
     needs beyond it, e.g. ``transport/link/tls/root_ca_certificate`` for a ``tls/`` router; the
-    mode, endpoints and multicast scouting (off) are set over it. Raises DaemonConnectionError in
-    one line naming the endpoint and what to do when it does not answer."""
-    config = ZenohConfig(mode="client", connect=_endpoints(zenoh_connect), listen=[], connect_timeout_s=timeout)
+    mode, endpoints, multicast scouting (off) and lease are set over it. ``lease_ms``: the link
+    lease this client announces (default ZENOH_LEASE_MS_DEFAULT): the daemon, or the router
+    between, drops this client after that much silence, which is how a frozen client's control
+    is released. Raises DaemonConnectionError in one line naming the endpoint and what to do
+    when it does not answer, CrtkBridgeError naming ``--zenoh-lease-ms`` on a lease out of range."""
+    lease_ms = ZENOH_LEASE_MS_DEFAULT if lease_ms is None else lease_ms
+    problem = zenoh_lease_problem(lease_ms)
+    if problem:
+        raise CrtkBridgeError(f"{WHO}: --zenoh-lease-ms (zenoh_lease_ms): {problem}")
+    config = ZenohConfig(mode="client", connect=_endpoints(zenoh_connect), listen=[], connect_timeout_s=timeout,
+                         lease_ms=lease_ms)
     try:
         return open_session(config, WHO, hint=HINT, base=zenoh_config)
     except ZenohConnectError as exc:
@@ -56,10 +67,11 @@ def robots_on(session: Any, timeout: float) -> list[str]:
     return sorted({keys.robot_of(str(r.ok.key_expr)) for r in replies if r.ok is not None})
 
 
-def list_robots(zenoh_connect: str | Iterable[str], timeout: float = 5.0, zenoh_config: str | None = None) -> list[str]:
+def list_robots(zenoh_connect: str | Iterable[str], timeout: float = 5.0, zenoh_config: str | None = None,
+                lease_ms: int | None = None) -> list[str]:
     """The robots served on the Zenoh network at ``zenoh_connect``, sorted. Blocks for one
     liveliness query. Raises DaemonConnectionError when the endpoint does not answer."""
-    session = open_client_session(zenoh_connect, timeout, zenoh_config)
+    session = open_client_session(zenoh_connect, timeout, zenoh_config, lease_ms)
     try:
         return robots_on(session, timeout)
     finally:
@@ -96,7 +108,10 @@ class ZenohStream:
         try:
             # the reply subscriber first: it must exist before the daemon, seeing the token, greets
             self._entities.append(session.declare_subscriber(keys.replies(robot, self.cid), on_reply))
-            self._entities.append(live.declare_subscriber(keys.daemon_token(robot), on_daemon))
+            # history: the token already declared is then known to this session, so losing the
+            # link (the daemon frozen, killed, unplugged: no undeclaration ever sent) delivers its
+            # DELETE; without it only an explicit undeclaration would, and requests would hang
+            self._entities.append(live.declare_subscriber(keys.daemon_token(robot), on_daemon, history=True))
             self._pub = session.declare_publisher(keys.requests(robot, self.cid),
                                                   congestion_control=zenoh.CongestionControl.BLOCK,
                                                   reliability=zenoh.Reliability.RELIABLE)
@@ -162,12 +177,12 @@ class ZenohStream:
 
 
 def open_stream(zenoh_connect: str | Iterable[str], robot: str | None, timeout: float,
-                zenoh_config: str | None = None) -> ZenohStream:
+                zenoh_config: str | None = None, lease_ms: int | None = None) -> ZenohStream:
     """Join the Zenoh network at ``zenoh_connect`` and open a stream to the daemon of ``robot``
     (default: the only robot there). Raises DaemonConnectionError in one line: the endpoint does
     not answer (start a router, check the address), no daemon there, or several and none chosen.
-    ``zenoh_config``: see :func:`open_client_session`."""
-    session = open_client_session(zenoh_connect, timeout, zenoh_config)
+    ``zenoh_config``, ``lease_ms``: see :func:`open_client_session`."""
+    session = open_client_session(zenoh_connect, timeout, zenoh_config, lease_ms)
     try:
         found = robots_on(session, timeout)
         # discovery is eventually consistent: a session just opened may not see every token yet

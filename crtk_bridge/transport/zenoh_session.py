@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any, Iterable
 import msgspec
 
 from ..errors import CrtkBridgeError
-from ..profile import Profile, ZenohTransport
+from ..profile import ZENOH_KEEP_ALIVE_PER_LEASE, Profile, ZenohTransport
 
 if TYPE_CHECKING:
     import zenoh
@@ -135,7 +135,9 @@ def session_config(config: ZenohConfig, extra: dict[str, Any] | None = None,
                    base: str | None = None) -> "zenoh.Config":
     """The ``zenoh.Config`` of ``config``: multicast scouting off, exactly the configured endpoints,
     start-up failing (instead of retrying forever) when a connect endpoint does not answer within
-    ``connect_timeout_s`` or a listen endpoint cannot be bound. ``extra``: more Zenoh keys (path ->
+    ``connect_timeout_s`` or a listen endpoint cannot be bound, the link lease ``lease_ms`` with a
+    keep-alive every lease/4 (a peer expires this session after the lease IT was announced, and
+    this session expires each peer after the peer's own: docs/zenoh.md, "Lease"). ``extra``: more Zenoh keys (path ->
     JSON value), e.g. ``{"timestamping/enabled": True}``. ``base``: a Zenoh configuration file
     (JSON5, Zenoh's own format: TLS, user-password authentication...) the keys above are set over."""
     import zenoh
@@ -148,6 +150,10 @@ def session_config(config: ZenohConfig, extra: dict[str, Any] | None = None,
         "connect/timeout_ms": int(config.connect_timeout_s * 1000),
         "connect/exit_on_failure": True,
         "listen/exit_on_failure": True,
+        # announced to every peer at link open (OpenSyn/OpenAck): the peer drops this session after
+        # that much silence; keep-alives go out on an idle link every lease/keep_alive
+        "transport/link/tx/lease": config.lease_ms,
+        "transport/link/tx/keep_alive": ZENOH_KEEP_ALIVE_PER_LEASE,
         # HLC timestamps on samples, as rmw_zenoh's default session has them: zenoh.ext's
         # AdvancedPublishers (the ROS graph's, transport/ros) need them for their sequencing
         "timestamping/enabled": True,

@@ -1,0 +1,202 @@
+"""The Zenoh link lease (docs/zenoh.md, "Lease"): ``transport.zenoh.lease_ms`` on the daemon's
+session and ``--zenoh-lease-ms`` / ``zenoh_lease_ms`` on the client library's, both with a short
+default (2 s, against Zenoh's own 10 s), validated in one line naming the key or option. Zenoh
+expires a link when the peer sends nothing for the lease THE PEER announced at link open, so it is
+the client's own lease that bounds how long a frozen remote client keeps control: a client process
+frozen (SIGSTOP) while its velocity stream runs is lost, its stream stops and control is free,
+within its lease plus a margin."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import yaml
+
+from crtk_bridge.client import connect, list_robots
+from crtk_bridge.errors import CrtkBridgeError, ProfileError
+from crtk_bridge.profile import (ZENOH_KEEP_ALIVE_PER_LEASE, ZENOH_LEASE_MS_DEFAULT, ZENOH_LEASE_MS_MAX,
+                                 ZENOH_LEASE_MS_MIN, load_profile)
+from crtk_bridge.transport.zenoh_session import ZenohConfig, session_config, zenoh_config
+
+from .conftest import ROOT, DaemonProcess, free_port, so101_data, wait_until
+
+#: the daemon's reaction after the client's lease ran out (link closed, token gone, session ended,
+#: control process told, event back on the socket): generous, for a loaded 2-core PC
+MARGIN_S = 2.0
+#: the frozen client's stream: shoulder_pan at this speed (rad/s) until the daemon stops it
+SPEED = 0.15
+
+FROZEN_CLIENT = """
+import sys
+from crtk_bridge.client import connect
+robot = connect(robot="so101", zenoh_connect=sys.argv[1], timeout=15.0)   # the library's default lease
+arm = robot.device("so101")
+assert arm.enable(15.0)
+arm.servo_jv([float(sys.argv[2]), 0.0, 0.0, 0.0, 0.0])
+print("streaming", flush=True)
+sys.stdin.read()   # holds control until frozen, then killed
+"""
+
+
+def _lease_keys(conf) -> tuple[int, int]:
+    """(lease, keep_alive) of a zenoh.Config, as Zenoh will use them."""
+    return tuple(json.loads(conf.get_json(f"transport/link/tx/{key}")) for key in ("lease", "keep_alive"))
+
+
+def _write(tmp_path, lease):
+    data = so101_data()
+    data["transport"] = {"zenoh": {"lease_ms": lease}}
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize("lease", [0, -1000, ZENOH_LEASE_MS_MIN - 1, ZENOH_LEASE_MS_MAX + 1, 1500.5, True, "2s"])
+def test_profile_refuses_a_lease_out_of_range_naming_the_key(tmp_path, lease):
+    with pytest.raises(ProfileError) as refused:
+        load_profile(_write(tmp_path, lease))
+    text = str(refused.value)
+    assert len(text.splitlines()) == 1 and "transport.zenoh.lease_ms" in text, text
+
+
+def test_profile_lease_reaches_the_daemons_session_with_keep_alive_a_quarter(tmp_path):
+    assert load_profile(_write(tmp_path, ZENOH_LEASE_MS_MIN)).transport.zenoh.lease_ms == ZENOH_LEASE_MS_MIN
+    profile = load_profile(_write(tmp_path, 3000))
+    conf = session_config(zenoh_config(profile))
+    assert _lease_keys(conf) == (3000, 4)
+    # no section, --zenoh-connect alone: the short default, not Zenoh's 10 s
+    plain = zenoh_config(load_profile(_write(tmp_path, ZENOH_LEASE_MS_MAX)), connect=["tcp/127.0.0.1:1"])
+    assert plain.lease_ms == ZENOH_LEASE_MS_MAX
+    assert _lease_keys(session_config(ZenohConfig())) == (ZENOH_LEASE_MS_DEFAULT, 4) == (2000, 4)
+    assert ZENOH_KEEP_ALIVE_PER_LEASE == 4
+
+
+def test_lease_is_set_over_a_zenoh_configuration_file(tmp_path):
+    base = tmp_path / "z.json5"
+    base.write_text('{ transport: { link: { tx: { lease: 10000, keep_alive: 1 } } } }')
+    conf = session_config(ZenohConfig(mode="client", listen=[]), base=str(base))
+    assert _lease_keys(conf) == (2000, 4)
+
+
+def test_client_lease_out_of_range_is_refused_naming_the_option():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"  # never reached: refused before any session opens
+    for bad in (0, ZENOH_LEASE_MS_MIN - 1, ZENOH_LEASE_MS_MAX + 1, 1000.0):
+        with pytest.raises(CrtkBridgeError, match=r"^crtk-bridge client: --zenoh-lease-ms \(zenoh_lease_ms\): "
+                                                  r"must be an integer from 500 to 60000 \(ms\), got "):
+            connect(robot="so101", zenoh_connect=endpoint, zenoh_lease_ms=bad)
+        with pytest.raises(CrtkBridgeError, match="--zenoh-lease-ms"):
+            list_robots(zenoh_connect=endpoint, zenoh_lease_ms=bad)
+    for bad in ("0", "-5", "499", "60001", "nan", "1e3"):
+        done = subprocess.run([sys.executable, "-m", "crtk_bridge.client.cli", "--zenoh-connect", endpoint,
+                               "--zenoh-lease-ms", bad, "state"], cwd=ROOT, capture_output=True, text=True,
+                              timeout=30)
+        assert done.returncode == 2
+        assert done.stderr.strip().splitlines()[-1].startswith("crtk-ctl: error: argument --zenoh-lease-ms: "), bad
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory):
+    """An SO-101 daemon on its simulator listening for Zenoh clients on a free loopback port, with
+    a servo watchdog (5 s) longer than lease + margin: only client loss can stop a silent stream
+    within the test's bound. Its own lease is the longest allowed (60 s): a frozen client is
+    expired after the lease the CLIENT announced, so the daemon's own must not delay it. Yields
+    (endpoint, daemon)."""
+    tmp = tmp_path_factory.mktemp("lease")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    data = so101_data()
+    data["safety"]["servo_timeout_s"] = 5.0
+    data["transport"] = {"zenoh": {"listen": [endpoint], "lease_ms": ZENOH_LEASE_MS_MAX}}
+    profile = tmp / "so101-lease.yaml"
+    profile.write_text(yaml.safe_dump(data))
+    d = DaemonProcess(["--profile", str(profile), "--sim"], tmp / "d.sock", tmp / "d.log")
+    try:
+        yield endpoint, d
+    finally:
+        d.stop()
+
+
+@pytest.fixture
+def frozen_client(daemon):
+    """Starts the client process; on the way out it is continued (if stopped) and killed."""
+    procs: list[subprocess.Popen] = []
+
+    def start() -> subprocess.Popen:
+        proc = subprocess.Popen([sys.executable, "-c", FROZEN_CLIENT, daemon[0], str(SPEED)], cwd=ROOT,
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        procs.append(proc)
+        return proc
+
+    yield start
+    for proc in procs:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGCONT)
+            proc.kill()
+        proc.wait(10)
+        proc.stdin.close()
+        proc.stdout.close()
+
+
+def test_a_frozen_remote_client_is_lost_within_its_lease(daemon, frozen_client):
+    _, d = daemon
+    with connect(socket=str(d.socket_path), timeout=15.0) as watcher:
+        arm = watcher.device("so101")
+        speed = lambda: abs(arm.measured_jv()[0][0])  # noqa: E731 - shoulder_pan, rad/s
+        count = watcher.connection.event_count
+        client = frozen_client()
+        started = client.stdout.readline().strip()
+        if started != b"streaming":
+            d.print_tail()
+            raise AssertionError(f"the remote client did not start streaming: {started + client.stdout.read()!r}")
+        wait_until(lambda: speed() > SPEED / 2, 15.0, what="the remote client's stream moving the joint")
+        with pytest.raises(CrtkBridgeError) as held:  # the remote client holds control
+            watcher.acquire()
+        assert "Zenoh client" in str(held.value)
+
+        frozen_at = time.monotonic()
+        os.kill(client.pid, signal.SIGSTOP)  # frozen: no close, no keep-alive, the TCP link stays up
+        bound = ZENOH_LEASE_MS_DEFAULT / 1000 + MARGIN_S
+        released = wait_until(lambda: [e for e in watcher.connection.events_since(count)
+                                       if e.data.get("code") == "control_released"],
+                              bound, interval=0.005, what=f"client loss within the lease + {MARGIN_S} s")
+        lost_after = time.monotonic() - frozen_at
+        assert released[0].kind == "warning" and "so101" in released[0].data["message"]
+        wait_until(lambda: speed() < 0.01, 5.0, what="the stream stopped at client loss")
+        watcher.acquire()  # control is free: the frozen client no longer holds it
+        assert client.poll() is None  # still there, only frozen: the lease found it, nothing else
+        print(f"frozen client lost after {lost_after:.2f} s (lease {ZENOH_LEASE_MS_DEFAULT} ms)")
+        assert arm.disable(15.0)
+
+
+def test_a_frozen_daemon_is_lost_by_its_remote_clients_within_the_daemons_lease(tmp_path):
+    """The other direction: the daemon's front frozen (SIGSTOP), a remote client's connection ends
+    (DaemonConnectionError) after the lease the DAEMON announced (transport.zenoh.lease_ms, 1 s
+    here), though the client's own is 60 s, instead of hanging until its requests time out."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    data = so101_data()
+    data["transport"] = {"zenoh": {"listen": [endpoint], "lease_ms": 1000}}
+    profile = tmp_path / "so101-short-lease.yaml"
+    profile.write_text(yaml.safe_dump(data))
+    d = DaemonProcess(["--profile", str(profile), "--sim"], tmp_path / "d.sock", tmp_path / "d.log")
+    frozen = False
+    try:
+        with connect(robot="so101", zenoh_connect=endpoint, timeout=15.0, zenoh_lease_ms=ZENOH_LEASE_MS_MAX) as robot:
+            assert robot.measured_js()[3] > 0
+            frozen_at = time.monotonic()
+            os.kill(d.proc.pid, signal.SIGSTOP)  # the front: its Zenoh session with it
+            frozen = True
+            wait_until(lambda: robot.connection.closed, 1.0 + MARGIN_S, interval=0.005,
+                       what=f"the client losing the frozen daemon within its 1 s lease + {MARGIN_S} s")
+            lost_after = time.monotonic() - frozen_at
+            with pytest.raises(ConnectionError):
+                robot.measured_js()
+            print(f"frozen daemon lost after {lost_after:.2f} s (daemon lease 1000 ms)")
+    finally:
+        if frozen:
+            os.kill(d.proc.pid, signal.SIGCONT)
+        d.stop()
