@@ -17,7 +17,8 @@ One simulated UR5e controller (``crtk-sim ur``, e-Series: a data package every 2
     to a second simulated controller of the same kind (the daemon's control connection owns the
     first one's RTDE input registers), timed the same way.
   Both include the same polling delay of the simulator's state, so their difference is what the
-  daemon adds (socket, front process, control process, one cycle).
+  daemon adds (socket, front process, control process, one cycle, and the hop from the control
+  process to the backend's ur_rtde worker process, which makes the servoJ call).
 
 Figures only; nothing is asserted. Usage:
 
@@ -104,7 +105,8 @@ def direct_latency(sim, host: str, steps: int) -> list[float]:
 
 def bare_receive(host: str, seconds: float) -> tuple[int, int]:
     """The baseline: an RTDEReceiveInterface polled for new packages (timestamp changes) with
-    0.1 ms sleeps, as the backend's wait_cycle does, for ``seconds``. (packages seen, missed)"""
+    0.1 ms sleeps, as the backend's ur_rtde worker process does, for ``seconds``. (packages seen,
+    missed)"""
     import rtde_receive
 
     r = rtde_receive.RTDEReceiveInterface(host, 500.0, ["timestamp"])
@@ -151,6 +153,10 @@ def main() -> int:
     workdir = tempfile.mkdtemp(prefix="crtk-bench-ur-")
     data = yaml.safe_load(PROFILE.read_text())
     data["backend"]["host"] = sim.port
+    # the simulator shares this PC with the daemon, unscheduled: its --sim link timeout and
+    # watchdog (UrBackend.SIM_DEFAULTS), or a loaded host's hiccup is a link_lost FAULT mid-run
+    for key, value in {"link_timeout_s": 0.5, "watchdog_hz": 2.0}.items():
+        data["backend"].setdefault(key, value)
     data["namespaces"][0]["kinematics"]["urdf"] = str(PROFILE.parent / data["namespaces"][0]["kinematics"]["urdf"])
     profile_path = os.path.join(workdir, "ur5e.yaml")
     with open(profile_path, "w") as f:

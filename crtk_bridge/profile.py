@@ -126,7 +126,7 @@ class ZenohTls(_Strict, kw_only=True):
 
 #: Zenoh link lease (ms, ``transport.zenoh.lease_ms``; Zenoh's ``transport/link/tx/lease``): a
 #: peer that sends nothing for the lease it announced (frozen, cable pulled) is dropped. Zenoh's
-#: own default is 10 s; 2 s notices a frozen remote client in 1.5-2 s (docs/zenoh.md, "Lease").
+#: own default is 10 s; with 2 s a frozen remote client is lost within 2 s (docs/zenoh.md, "Lease").
 ZENOH_LEASE_MS_DEFAULT = 2000
 #: below this a healthy link on a loaded PC or Wi-Fi (a TCP retransmission alone waits 200 ms or
 #: more) would expire: a spurious client loss

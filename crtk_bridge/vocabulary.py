@@ -180,6 +180,8 @@ class EventCode(StrEnum):
     MOVE_TIMEOUT = "move_timeout"
     COMMAND_REFUSED = "command_refused"
     COMMAND_FAILED = "command_failed"
+    WORKER_DIED = "worker_died"  # the UR backend's ur_rtde worker process died (backends/ur/worker.py)
+    WORKER_STALLED = "worker_stalled"  # ...or took no command for a channel's worth
 
 
 #: accepted from any session, whoever holds control: a stop is never refused (as on the dVRK)

@@ -1,8 +1,9 @@
 """Run the tests marked ``in_child`` in a child pytest process, so that a process abort in them
 fails those tests instead of ending the whole session.
 
-Why: ur_rtde 1.6.5 runs in-process in the UR tests, and its interfaces can abort or crash the
-process they run in after a link breaks (C++ exceptions reaching ``std::terminate``; the control
+Why: ur_rtde 1.6.5 runs in-process in tests/test_sim_ur.py (ur_rtde's own interfaces driving the
+simulated controller; the UR backend runs ur_rtde in a worker process of its own, so its tests
+need no child), and its interfaces can abort or crash the process they run in after a link breaks (C++ exceptions reaching ``std::terminate``; the control
 interface's own receive thread reconnecting while a command is sent on the same socket: SIGABRT
 or SIGSEGV, about one run in ten of those tests under load). pytest-forked forks per test, which
 would drop the module-scoped simulators and interfaces these modules share (and fork a process

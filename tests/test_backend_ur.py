@@ -2,12 +2,15 @@
 unmodified: the controller (core/controller.py) driven cycle by cycle as core/loop.py does, paced by
 the controller's RTDE packets (``wait_cycle``), checked on what the simulated controller reports.
 
-One simulator and one backend serve the whole module (ur_rtde's ``disconnect`` sleeps 0.5 s);
-each test starts from a fresh controller, the arm DISABLED and powered off with no stop active.
+One simulator and one backend serve the whole module; each test starts from a fresh controller,
+the arm DISABLED and powered off with no stop active. ur_rtde runs in the backend's worker process
+(backends/ur/worker.py), never in this one: an abort there ends the worker, not the session.
 """
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 
 import msgspec
@@ -15,6 +18,7 @@ import numpy as np
 import pytest
 
 from crtk_bridge.backends.ur.backend import UrBackend
+from crtk_bridge.backends.ur.channel import CTL_RUNNING
 from crtk_bridge.core.actuator import Lifecycle
 from crtk_bridge.core.controller import Controller
 from crtk_bridge.core.state import OperatingState
@@ -22,10 +26,7 @@ from crtk_bridge.errors import ProfileError
 from crtk_bridge.profile import load_profile
 from crtk_bridge.sim import simulator_class
 
-from .conftest import ROOT
-
-# ur_rtde runs in-process and can abort it after a link breaks: a child pytest runs these (tests/in_child.py)
-pytestmark = pytest.mark.in_child
+from .conftest import ROOT, wait_until
 
 UR5E = ROOT / "profiles" / "ur5e.yaml"
 NS = "ur5e"
@@ -402,3 +403,139 @@ def test_a_speedj_running_into_a_goal_check_is_stopped_by_the_scripts_watchdog(u
         ur.until(lambda: c.state is OperatingState.FAULT, 2, "FAULT")  # the script stopped
     finally:
         ur.sim.control({"cmd": "stall_script", "on": False})
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split()[2] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGABRT], ids=["SIGKILL", "SIGABRT"])
+def test_a_worker_that_dies_mid_servo_faults_naming_the_signal_then_enable_recovers(ur, sig):
+    """ur_rtde's heap corruption at a link loss aborts the process it runs in: that is the worker,
+    never the control process. Its death is a FAULT naming robot and signal in the cycle that
+    sees it; the arm stops (nothing feeds the script's watchdog, and the fault reaction powers it
+    off through the new worker that comes by itself, whichever is first); ``enable`` recovers
+    with that worker, and the arm moves again."""
+    c = ur.enabled(READY)
+    b = ur.backend
+    ur.send("servo_jv", NS, velocity=[0.3, 0, 0, 0, 0, 0])
+    ur.until(lambda: abs(ur.sim.state()["qd"][0]) > 0.2, 2, "the arm turning under speedJ")
+    old = b.worker_pid
+    os.kill(old, sig)
+    killed = time.monotonic()
+    ur.until(lambda: not b._link, 2, "the backend to see the worker gone")
+    assert c.state is OperatingState.FAULT  # in that same cycle
+    err = ur.events("error")[-1]
+    assert err["code"] == "worker_died", err
+    assert f"ur5e: ur_rtde worker died ({sig.name})" in err["message"], err
+    watchdog_s = 1.0 / b.config.watchdog_hz
+    ur.until(lambda: ur.sim.state()["qd"] == [0.0] * 6, watchdog_s + 1.5, "the arm stopped")
+    assert time.monotonic() - killed < watchdog_s + 1.5
+    assert not _alive(old)
+    # a new worker by itself; once its link is up the fault reaction (power off) is confirmed
+    ur.until(lambda: b.worker_pid not in (None, old) and not c.is_busy and not c._torque_unconfirmed, 10,
+             "a new worker and the fault reaction confirmed")
+    assert ur.sim.state()["robot_mode"] == "POWER_OFF"
+    r = ur.do("enable", timeout=15)
+    assert r["ok"], r
+    assert ur.do("move_jp", NS, position=list(READY + 0.1))["ok"]
+    ur.until(lambda: not c.is_busy, 10, "move_jp done")
+    ur.until(lambda: np.allclose(ur.sim_q(), READY + 0.1, atol=2e-3), 2, "the arm at the goal")
+
+
+def test_link_losses_end_workers_not_the_process_and_leak_no_file(ur, monkeypatch):
+    """Each link loss ends the worker (its ur_rtde interfaces with it: none is reconnected in
+    place, none abandoned) and a fresh one connects once the controller is back: over many
+    losses, this process's open files do not grow and every old worker is gone. The backend is
+    cycled alone (no controller, so no fault reaction powers the arm off): every few losses the
+    new worker builds a control interface too, uploading its script."""
+    ur.enabled(READY)
+    b = ur.backend
+    monkeypatch.setattr(b.config, "reconnect_interval_s", 0.05)  # (0.5 s by default) a quicker run
+
+    def spin(predicate, timeout: float, what: str):
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            assert time.monotonic() < deadline, f"timed out after {timeout} s waiting for {what}"
+            b.wait_cycle(2 * b.dt)
+            b.read(ur.fb)
+
+    losses = 30
+    fds = len(os.listdir("/proc/self/fd"))
+    olds = []
+    for k in range(losses):
+        old = b.worker_pid
+        olds.append(old)
+        ur.sim.link_loss(0.05, ports=("rtde",))
+        spin(lambda: b.worker_pid not in (None, old) and b._link, 5, f"worker {k + 2}")
+        if k % 5 == 0:
+            steps = b._job("start_script", "control script upload")
+            spin(lambda: next(steps, True) is True, 5, "the control script uploaded")
+            spin(lambda: b._flags & CTL_RUNNING, 2, "the control interface up")
+    wait_until(lambda: not any(_alive(p) for p in olds), 5, what="every old worker gone")
+    assert len(set(olds)) == losses
+    assert len(os.listdir("/proc/self/fd")) <= fds, os.listdir("/proc/self/fd")
+
+
+def test_a_stalled_worker_never_blocks_the_cycle(ur):
+    """A worker that stops (SIGSTOP: it takes no command, forwards no package): the cycle goes on
+    (its commands are never waited for) and the robot FAULTs (link_lost once no package came for
+    link_timeout_s, or worker_stalled once the channel is full, whichever first); the stalled
+    worker is then ended and a fresh one connects."""
+    c = ur.enabled(READY)
+    b = ur.backend
+    old = b.worker_pid
+    q = ur.fb.position.copy()
+    os.kill(old, signal.SIGSTOP)
+    try:
+        longest = 0.0
+        deadline = time.monotonic() + 5
+        while c.state is not OperatingState.FAULT:
+            assert time.monotonic() < deadline, "no FAULT with the worker stopped"
+            q[5] += 1e-4
+            ur.send("servo_jp", NS, position=list(q))
+            t0 = time.monotonic()
+            ur.cycle()
+            longest = max(longest, time.monotonic() - t0)
+        assert longest < 1.0, longest  # a blocking send would wait for as long as the worker is stopped
+        assert ur.events("error")[-1]["code"] in ("worker_stalled", "link_lost"), ur.events("error")[-1]
+        print("stalled worker:", ur.events("error")[-1]["message"], f"longest cycle {longest * 1e3:.1f} ms")
+        ur.until(lambda: b.worker_pid not in (None, old) and b._link, 10, "a fresh worker")
+        assert not _alive(old)
+    finally:
+        try:
+            os.kill(old, signal.SIGCONT)
+        except ProcessLookupError:
+            pass
+
+
+def test_a_full_channel_drops_the_command_and_faults_never_blocks():
+    """Drop-and-fault: a worker that takes no commands (here a channel nobody reads) fills the
+    socket; the next command is refused at once (never waited for) and the cycle's write is a
+    FAULT naming the robot and the dropped command."""
+    import socket
+
+    from crtk_bridge.backends.ur.channel import SERVOJ, WorkerHandle
+
+    b = UrBackend(UrBackend.sim_profile(load_profile(UR5E), "127.0.0.1"))
+    h = WorkerHandle("127.0.0.1", 500.0)
+    h.sock, nobody = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    h.sock.setblocking(False)
+    try:
+        b._w = h
+        sent = 0
+        while b._out(SERVOJ, [0.0] * 6) is None:  # each returns at once; a blocking send would hang here
+            sent += 1
+            assert sent < 100000
+        fault = b._out(SERVOJ, [0.0] * 6)
+        assert fault is not None and fault.code == "worker_stalled" and not fault.transient, fault
+        assert fault.message.startswith("ur5e: the ur_rtde worker takes no commands") and "servoJ dropped" in fault.message
+        assert sent > 100  # the whole buffer first: ~0.5 s of commands at 500 Hz
+    finally:
+        b._w = None
+        h.sock.close()
+        nobody.close()

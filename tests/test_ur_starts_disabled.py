@@ -12,9 +12,6 @@ from crtk_bridge.sim import simulator_class
 
 from .conftest import ROOT, wait_until
 
-# ur_rtde runs in-process and can abort it after a link breaks: a child pytest runs these (tests/in_child.py)
-pytestmark = pytest.mark.in_child
-
 UR5E = ROOT / "profiles" / "ur5e.yaml"
 
 

@@ -220,3 +220,36 @@ def test_a_second_daemon_for_the_same_robot_is_refused(lab, short_tmp):
     assert list_robots(zenoh_connect=endpoint) == ["koch", "so101"]  # the first one still serves
     with connect(robot="so101", zenoh_connect=endpoint) as robot:
         assert robot.measured_js()[3] > 0
+
+
+def test_a_frozen_client_behind_the_router_gives_control_up_within_its_lease(lab):
+    """The lab's layout: the client reaches the daemon through the router. Frozen (SIGSTOP), it
+    is dropped by the router after the lease it announced (the library's 2 s), which withdraws its
+    token; for the daemon that is client loss, and control is free again (docs/zenoh.md, Lease)."""
+    import os
+    import signal
+
+    from crtk_bridge.profile import ZENOH_LEASE_MS_DEFAULT
+
+    from .test_zenoh_lease import MARGIN_S, remote_client
+
+    endpoint, _, koch = lab
+
+    def control_free() -> bool:
+        try:
+            local.acquire()
+        except CommandError as exc:
+            assert exc.code == "read_only", exc
+            return False
+        return True
+
+    with connect(socket=str(koch.socket_path), timeout=15.0) as local, \
+            remote_client(endpoint, "koch", "hold") as client:
+        assert not control_free()  # the remote client holds it
+        frozen_at = time.monotonic()
+        os.kill(client.pid, signal.SIGSTOP)
+        wait_until(control_free, ZENOH_LEASE_MS_DEFAULT / 1000 + MARGIN_S, interval=0.02,
+                   what=f"control free within the frozen client's lease + {MARGIN_S} s")
+        print(f"frozen client behind the router lost after {time.monotonic() - frozen_at:.2f} s")
+        assert client.poll() is None  # frozen, not gone: only the lease could find it
+        local.release()

@@ -1058,8 +1058,8 @@ def connect(socket: str | None = None, robot: str | None = None,
     daemon there (default: the only one); ``zenoh_config``: a Zenoh configuration file (JSON5) for
     what the endpoint needs, e.g. TLS certificates; ``zenoh_lease_ms``: this client's Zenoh link
     lease (default 2000 ms: the daemon notices a frozen client within it; docs/zenoh.md, "Lease").
-    ``timeout`` (s): default reply timeout. Blocks for one ``list`` round trip. Raises :class:`DaemonConnectionError` (a
-    ``ConnectionError`` naming the path or endpoint) if no daemon answers there,
+    ``timeout`` (s): default reply timeout. Blocks for one ``list`` round trip. Raises
+    :class:`DaemonConnectionError` (a ``ConnectionError`` naming the path or endpoint) if no daemon answers there,
     :class:`CrtkBridgeError` on a protocol version mismatch.
     """
     if zenoh_connect:

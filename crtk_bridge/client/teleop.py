@@ -11,8 +11,8 @@ the stream with its own velocity bounds, clips to its joint limits and refuses a
     counts; control of the follower is taken (``acquire``).
 ``ALIGNING``
     nothing is sent to the follower until, on every paired joint, the leader's measured position
-    is within ``tolerance`` (rad, TOLERANCE_MIN to TOLERANCE_MAX) of the follower's: the operator brings the leader to the
-    follower. With ``align="move"`` the follower is moved to the leader instead, once, by a
+    is within ``tolerance`` (rad, TOLERANCE_MIN to TOLERANCE_MAX) of the follower's: the operator
+    brings the leader to the follower. With ``align="move"`` the follower is moved to the leader instead, once, by a
     ``move_jp`` (a motion the operator asked for; bounded by the follower's limits).
 ``ENABLED``
     following: one ``interpolate_jp`` per namespace per tick at ``rate_hz`` (from RATE_MIN_HZ to

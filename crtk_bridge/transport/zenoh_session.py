@@ -137,8 +137,8 @@ def session_config(config: ZenohConfig, extra: dict[str, Any] | None = None,
     start-up failing (instead of retrying forever) when a connect endpoint does not answer within
     ``connect_timeout_s`` or a listen endpoint cannot be bound, the link lease ``lease_ms`` with a
     keep-alive every lease/4 (a peer expires this session after the lease IT was announced, and
-    this session expires each peer after the peer's own: docs/zenoh.md, "Lease"). ``extra``: more Zenoh keys (path ->
-    JSON value), e.g. ``{"timestamping/enabled": True}``. ``base``: a Zenoh configuration file
+    this session expires each peer after the peer's own: docs/zenoh.md, "Lease"). ``extra``: more
+    Zenoh keys (path -> JSON value), e.g. ``{"timestamping/enabled": True}``. ``base``: a Zenoh configuration file
     (JSON5, Zenoh's own format: TLS, user-password authentication...) the keys above are set over."""
     import zenoh
 

@@ -166,17 +166,10 @@ class URSimAdapter:
     def set_torque_delay(self, seconds: float) -> None:
         self.sim.control({"cmd": "timings", "power_on_s": max(seconds, self.QUICK["power_on_s"])})  # a slow power on
 
-    backend = None  # set by the Rig: the UR backend on this simulator
-
     def set_unplugged(self, unplugged: bool) -> None:
         if unplugged:  # every connection dropped, new ones refused for a while
-            # not in the middle of a blocking control call (a teach-mode switch): ur_rtde's call
-            # would then wait for its answer for minutes, spinning (tests/test_backend_ur.py
-            # drops the link under a running arm)
-            b = self.backend
-            if b is not None:
-                wait_until(lambda: b._ctl_thread is None or not b._ctl_thread.is_alive(), 2,
-                           what="no control call in flight")
+            # (a blocking control call in flight then ends with the backend's ur_rtde worker,
+            # which the backend ends at the loss)
             self.sim.link_loss(0.5, ports=("rtde", "dashboard", "script"))
 
     def settle(self) -> None:
@@ -323,8 +316,6 @@ class Rig:
                 self.profile = msgspec.structs.replace(
                     self.profile, backend={**self.profile.backend, "interface": "virtual", "options": {}})
             self.backend = cls(self.profile)
-            if isinstance(self.sim, URSimAdapter):
-                self.sim.backend = self.backend
         self.backend.open()
         self.backend.configure()
         self.fb = self.backend.new_feedback()
@@ -401,12 +392,3 @@ def rig(request):
     r = Rig(row)
     yield r
     r.close()
-
-
-def pytest_collection_modifyitems(items):
-    """The UR row runs ur_rtde in this process, which can abort it after a link breaks: its tests
-    run in a child pytest (tests/in_child.py), a crash failing that test, not the session."""
-    for item in items:
-        spec = getattr(item, "callspec", None)
-        if spec is not None and spec.params.get("rig") == "ur":
-            item.add_marker(pytest.mark.in_child)

@@ -1,19 +1,29 @@
-"""Universal Robots arms over RTDE, on ur_rtde (``rtde_receive``, ``rtde_control``, ``dashboard_client``).
+"""Universal Robots arms over RTDE, on ur_rtde (``rtde_receive``, ``rtde_control``, ``dashboard_client``)
+run in a worker process of its own.
 
-Three connections to the controller at ``backend.host`` (the ports are fixed by UR):
+ur_rtde never runs in the control process: :mod:`.worker` (``python -m
+crtk_bridge.backends.ur.worker``, exec'd by :meth:`UrBackend._open_hook`, never a fork) holds every
+ur_rtde object, and the backend talks to it over :mod:`.channel` (the newest package in shared
+memory under a seqlock, a wake-up and everything else on a socketpair). Why: ur_rtde 1.6.5
+corrupts its heap when a link drops while it is called (each interface handles the loss on its
+own thread), and its constructors hold the GIL for ~16 ms. In the worker, an abort ends the
+worker only (FAULT ``worker_died`` naming the signal, in the cycle that sees it; the script's
+watchdog stops the arm), and nothing it does can stall the cycle. The worker's three connections
+to the controller at ``backend.host`` (the ports are fixed by UR):
 
 * ``RTDEReceiveInterface`` (RTDE 30004), opened with the backend: joint and TCP state, robot /
   safety mode, runtime state and the speed slider, one packet every 2 ms (e-Series, 500 Hz) or
-  8 ms (CB3, 125 Hz). Its packets PACE THE LOOP (``paces_cycle``): :meth:`UrBackend.wait_cycle`
-  returns when the packet's timestamp moved on, and counts the packets skipped.
+  8 ms (CB3, 125 Hz). Its packets PACE THE LOOP (``paces_cycle``): the worker forwards each as it
+  comes, and :meth:`UrBackend.wait_cycle` blocks until it does (and counts the packets skipped).
 * ``DashboardClient`` (29999): power on / off, brake release, unlock protective stop, restart
   safety, play (lifecycle path only).
 * ``RTDEControlInterface`` (RTDE 30004 + script 30003), built on the first enable: ur_rtde uploads
   its control script and talks to it through RTDE registers.
 
-Real-time path (every cycle, nothing blocks): ``read`` copies the latest packet (ur_rtde's own
-thread receives them); ``write`` sends ONE realtime script command, which ur_rtde writes to the
-RTDE input registers without waiting for an answer:
+Real-time path (every cycle, nothing blocks): ``read`` takes the newest packet the worker
+forwarded; ``write`` sends ONE realtime script command to the worker (never blocking: a worker
+whose channel is full gets it dropped and the robot FAULTs, ``worker_stalled``), which hands it
+to ur_rtde, which writes the RTDE input registers without waiting for an answer:
 
 | CRTK | what the cycle sends |
 |---|---|
@@ -38,18 +48,19 @@ stopped by a pause in the next cycle, its duration is known when it starts (its 
 1.5 x the duration + 2 s; a pose not reached by then faults the robot, code ``move_timeout``),
 and ``is_busy`` falls when the measured TCP pose is at the goal.
 
-Lifecycle (blocking ur_rtde and dashboard calls run on a worker thread, one at a time, through
-:meth:`UrBackend._job`; while one runs the cycle sends no command on the control interface and
-the robot keeps following its last target):
+Lifecycle (blocking ur_rtde and dashboard calls are requests to the worker, which runs each on a
+thread of its own and replies; :meth:`UrBackend._job` yields every cycle until the reply; while
+one on the control interface runs the cycle sends no command and the robot keeps following its
+last target):
 
 * ENABLE = power on (dashboard) -> robot mode IDLE -> brake release -> RUNNING -> control script
-  uploaded (``RTDEControlInterface``, or ``reuploadScript``; a NEW ``RTDEControlInterface``
-  after a link loss: the old one is never called again, see below) -> runtime state PLAYING; the arm
+  uploaded (the worker builds its ``RTDEControlInterface``, or calls ``reuploadScript``) ->
+  runtime state PLAYING; the arm
   is then held where it is. Each wait is on the robot mode / runtime state read from RTDE.
 * DISABLE = stop the motion and the script, power off (dashboard), until robot mode POWER_OFF.
   It is also the fault reaction: the arm stops and its brakes engage. ``configure`` does the
   same to an arm found powered at start (the robot starts DISABLED).
-* FAULT_RESET (enable from FAULT): reconnect a lost link; unlock a protective stop (retried:
+* FAULT_RESET (enable from FAULT): a fresh worker if the link is down; unlock a protective stop (retried:
   e-Series refuses within 5 s of the stop), restart safety after a violation or safety fault;
   an e-stop or recovery mode is refused with what to do by hand. ENABLE from DISABLED does the
   same first when such a stop outlived its FAULT (``disable`` from FAULT, then ``enable``).
@@ -65,21 +76,14 @@ State: :mod:`.state` maps link, robot mode, safety mode and runtime state onto a
 (protective stop and e-stops -> FAULT naming the cause, safeguard stop -> PAUSED, link loss ->
 FAULT in the cycle that sees it). Every command is gated on the link being up, the safety mode
 NORMAL / REDUCED and the script PLAYING, because ``servoJ`` returns True while the link is down.
-The RTDE link reconnects by itself (``reconnect_interval_s``), on a worker; the fault stays until
-``enable``.
 
-ur_rtde 1.6.5 is not safe across a link loss in-process: each interface's own receive thread
-handles the loss (disconnect; the control interface then tries its own reconnect) while other
-threads may call it, and a call racing that corrupts the heap or throws through
-``std::terminate``: the process aborts. So: the receive interface's thread is joined
-(``disconnect``) before ``reconnect``; a control interface that lived through a loss is never
-called, reconnected, disconnected or freed again (``_abandon``), enable builds a new one; and no
-interface is freed. What remains is the instant of the loss itself (the cycle's servoJ or
-watchdog kick as the control interface's thread closes its socket): the heap it corrupts aborts
-the control process then or at a later allocation (seen at the next enable's new interface:
-1 link loss in ~60 under test, ~1 in 4 before); the script's watchdog stops the arm within
-1 / watchdog_hz and the front reports FAULT and exits non-zero (tests/test_ur_process_abort.py,
-tests/test_e2e_processes.py). Only ur_rtde in a process of its own would remove it.
+A link loss (the worker's receive or control link drops, or no package for ``link_timeout_s``)
+or a dead worker is a FAULT in the cycle that sees it; the worker is ended there (killed if still
+running: ur_rtde is never asked to reconnect in place, where its own threads race our calls, and
+no interface outlives its link, so nothing leaks) and a fresh worker is started on a thread every
+``reconnect_interval_s`` until one connects (``fault_cleared``); the fault stays until ``enable``.
+The worker dies with the control process (it sees the socket close), and never moves the arm
+on its own: it sends only what a cycle asked, once.
 
 Move goals are checked by the controller before they start (:meth:`UrBackend.goal_check_steps`):
 ``isJointsWithinSafetyLimits`` for move_jp (the refusal names the first joint whose goal alone is
@@ -96,9 +100,10 @@ m, axis-angle (UR) <-> unit quaternion [x, y, z, w] (CRTK) converted here.
 
 from __future__ import annotations
 
-import ctypes
 import dataclasses
+import importlib.util
 import math
+import os
 import threading
 import time
 from typing import Annotated, Any, Callable, Literal
@@ -127,22 +132,19 @@ from ...core.actuator import (
 )
 from ...errors import BackendError, CommandError, ProfileError, fmt_number
 from ...profile import Profile, backend_config, unknown_key_message
+from .channel import (CTL_CONNECTED, CTL_RUNNING, CTL_UP, KICK, OP_NAMES, SERVOJ, SERVOL, SPEEDJ, SPEEDL, WorkerHandle,
+                      encode)
 from .state import device_state
 from .tables import MOVABLE, RobotMode, RuntimeState, SafetyMode
 
-try:  # the SDK; the registry names the pip extra when it is missing
-    import dashboard_client
-    import rtde_control
-    import rtde_receive
-except ImportError as _exc:  # pragma: no cover - exercised by the registry's message
-    raise ImportError(_exc.msg, name="ur_rtde") from _exc
+# the SDK runs in the worker process only (never imported here); the registry names the pip
+# extra when it is missing
+for _sdk in ("rtde_receive", "rtde_control", "dashboard_client"):
+    if importlib.util.find_spec(_sdk) is None:  # pragma: no cover - exercised by the registry's message
+        raise ImportError(f"No module named {_sdk!r}", name="ur_rtde")
 
 N_JOINTS = 6
 SERIES_RATE_HZ = {"e-series": 500.0, "cb3": 125.0}  # RTDE's highest rate per controller generation
-#: the RTDE outputs read every cycle (a small recipe: ur_rtde's default asks for ~58)
-VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actual_TCP_force", "robot_mode",
-             "safety_mode", "runtime_state", "target_speed_fraction", "robot_status_bits",
-             "safety_status_bits"]
 _POSITION, _VELOCITY, _FREE, _NONE = (int(CommandMode.POSITION), int(CommandMode.VELOCITY),
                                       int(CommandMode.FREE), int(CommandMode.NONE))
 _C_POSE, _C_TWIST, _C_MOVE = int(CartesianMode.POSE), int(CartesianMode.TWIST), int(CartesianMode.MOVE)
@@ -150,12 +152,7 @@ _C_POSE, _C_TWIST, _C_MOVE = int(CartesianMode.POSE), int(CartesianMode.TWIST), 
 _RESETTABLE = (SafetyMode.PROTECTIVE_STOP, SafetyMode.VIOLATION, SafetyMode.FAULT)
 _MOVE_DONE_POSITION_M = 0.002  # a move_cp ends once the TCP is this close to the goal...
 _MOVE_DONE_ROTATION_RAD = 0.02  # ...and turned this little from it
-
-
-def _abandon(obj: Any) -> None:
-    """Keep ``obj`` alive for the life of the process, past interpreter finalization (an extra
-    reference no one releases): a ur_rtde interface that cannot be disconnected safely."""
-    ctypes.pythonapi.Py_IncRef(ctypes.py_object(obj))
+_ZERO6 = (0.0,) * 6
 
 
 class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
@@ -173,7 +170,7 @@ class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     move_linear_acceleration: Annotated[float, msgspec.Meta(gt=0)] = 0.5  # m/s^2
     move_angular_speed: Annotated[float, msgspec.Meta(gt=0)] = 0.8  # rad/s: move_cp's TCP turn rate
     move_angular_acceleration: Annotated[float, msgspec.Meta(gt=0)] = 1.6  # rad/s^2
-    reconnect_interval_s: Annotated[float, msgspec.Meta(gt=0)] = 0.5  # RTDE link retries after a loss
+    reconnect_interval_s: Annotated[float, msgspec.Meta(gt=0)] = 0.5  # a fresh ur_rtde worker this often after a link loss
     # no RTDE packet for this long is a lost link (ur_rtde's isConnected() alone misses a silent one)
     link_timeout_s: Annotated[float, msgspec.Meta(gt=0)] = 0.1
     # the control script's RTDE watchdog (ur_rtde setWatchdog): no input from the daemon for
@@ -265,7 +262,7 @@ class _CartesianMove:
 
 
 class UrBackend(Actuator):
-    """One UR arm (six joints) through ur_rtde. See the module docstring.
+    """One UR arm (six joints) through ur_rtde in a worker process. See the module docstring.
 
     Constructing validates the profile (raises ProfileError naming the key); nothing connects
     before :meth:`open`.
@@ -310,11 +307,15 @@ class UrBackend(Actuator):
         self._pos_min = np.array([j.limits.position_min for j in profile.joints])
         self._pos_max = np.array([j.limits.position_max for j in profile.joints])
         self._vel_max = np.array([j.limits.velocity_max for j in profile.joints])
-        self._rcv: Any = None
-        self._dash: Any = None
-        self._ctl: Any = None
-        # latest packet
-        self._ts = -1.0  # controller timestamp of the last packet seen (s)
+        #: the ur_rtde worker process (None: none up, e.g. after a link loss until a new one is)
+        self._w: WorkerHandle | None = None
+        self._opened = False
+        self._dispose: list[WorkerHandle] = []  # ended workers, reaped off the cycle
+        self._down: tuple[str, str] | None = None  # (fault code, text) of the link's loss
+        self._rt_priority = 0  # SCHED_FIFO priority for the worker's package thread (0: none)
+        self._rt_checked = False
+        # latest package
+        self._ts = -1.0  # controller timestamp of the last package seen (s)
         self._arrived = 0.0  # perf_counter when it was seen
         self.packets = 0
         self.missed_packets = 0
@@ -322,21 +323,24 @@ class UrBackend(Actuator):
         self.robot_mode = int(RobotMode.NO_CONTROLLER)
         self.safety_mode = int(SafetyMode.UNDEFINED_SAFETY_MODE)
         self.runtime_state = int(RuntimeState.STOPPED)
+        self._flags = 0  # the control interface in the worker: CTL_UP | CTL_CONNECTED | CTL_RUNNING
         #: the controller's speed slider (0..1), NaN before the first packet; core reports it
         self.speed_fraction = math.nan
+        self._q = np.zeros(N_JOINTS)
+        self._qd = np.zeros(N_JOINTS)
+        self._pose = np.zeros(6)
+        self._wrench = np.zeros(6)
         self._tcp_p = np.zeros(3)
         self._tcp_r = np.eye(3)
         self._tcp_rotvec = np.zeros(3)
         self._state_code: str | None = None
-        # blocking calls on a worker (one at a time)
-        self._ctl_thread: threading.Thread | None = None  # a blocking call on the control interface
+        # blocking calls, run by the worker (one at a time on the control interface)
+        self._ctl_job: int | None = None  # id of the request in flight on the control interface
         self._cycle_job = False  # it was started by the cycle's write (teach mode), not a transition
-        self._job_box: dict[str, Any] = {}
         self._job_what = ""
         self._job_after: tuple[Callable[[Any], None], Any] = (lambda arg: None, None)
         self._reconnecting = False
         self._reconnect_thread: threading.Thread | None = None
-        self._ctl_link_lost = False  # the control interface lived through a lost link
         self._next_reconnect = 0.0
         # command side
         self._target = np.zeros(N_JOINTS)  # last servoJ target (rad)
@@ -370,22 +374,24 @@ class UrBackend(Actuator):
     def host(self) -> str:
         return self.config.host
 
+    @property
+    def worker_pid(self) -> int | None:
+        """The process id of the ur_rtde worker now up (None: none is)."""
+        w = self._w
+        return w.proc.pid if w is not None and w.proc is not None else None
+
     def _open_hook(self) -> None:
-        cfg = self.config
+        w = WorkerHandle(self.config.host, self.rate_hz, self._rt_priority)
         try:
-            self._rcv = rtde_receive.RTDEReceiveInterface(cfg.host, self.rate_hz, VARIABLES)
-        except RuntimeError as exc:
-            raise BackendError(f"{self.robot}: backend.host: cannot open RTDE to the UR controller at "
-                               f"{cfg.host}:30004 at {self.rate_hz:g} Hz (backend.series / rate_hz): {exc}") from exc
-        try:
-            dash = dashboard_client.DashboardClient(cfg.host)
-            dash.connect()
-        except RuntimeError as exc:
-            self._rcv.disconnect()
-            self._rcv = None
-            raise BackendError(f"{self.robot}: backend.host: cannot reach the UR dashboard server at "
-                               f"{cfg.host}:29999: {exc}") from exc
-        self._dash = dash
+            w.start()
+        except OSError as exc:
+            w.close()
+            raise BackendError(f"{self.robot}: cannot start the ur_rtde worker process: {exc}") from exc
+        error = w.hello()
+        if error is not None:
+            w.close()
+            raise BackendError(f"{self.robot}: backend.host: {error}")
+        self._w, self._down, self._opened = w, None, True
         self._refresh()
 
     def _configure_hook(self) -> None:
@@ -400,40 +406,26 @@ class UrBackend(Actuator):
             self.disable()
 
     def _close_hook(self) -> None:
-        # ur_rtde's interfaces throw C++ exceptions out of disconnect() and out of their
-        # destructors once their link broke ("write: Broken pipe", also from the control
-        # interface's own reconnect thread), which aborts the process (std::terminate). So: a
-        # blocking control call is waited for; an interface is disconnected only while its link
-        # is healthy; and none is ever freed (_abandon: one per backend, the daemon's control
-        # process ends with os._exit anyway).
-        self._wait_job(8.0)
-        if self._reconnect_thread is not None:
-            self._reconnect_thread.join(5.0)
-        busy = self._ctl_thread is not None and self._ctl_thread.is_alive()
-        if self._ctl is not None and self._ctl_link_lost and not busy:
-            # its own thread reconnects once the controller answers again: let it, then
-            # disconnect it properly, else it lingers on, reconnecting to this host forever
-            deadline = time.monotonic() + 1.0
-            while not self._ctl.isConnected() and time.monotonic() < deadline:
-                time.sleep(0.05)
-            self._ctl_link_lost = not self._ctl.isConnected()
-        for name in ("_ctl", "_rcv", "_dash"):
-            obj = getattr(self, name)
-            setattr(self, name, None)
-            if obj is None:
-                continue
-            _abandon(obj)
-            healthy = not (name == "_ctl" and (busy or self._ctl_link_lost)) and obj.isConnected()
-            if healthy:
-                try:
-                    obj.disconnect()  # sleeps 0.5 s (ur_rtde), on the way out only
-                except Exception:
-                    pass
+        # a blocking control call (the disable's stop) is let finish, then the worker ends: its
+        # socket closes and it exits without running ur_rtde's destructors (they throw on a
+        # broken link); the controller sees the connections close
+        deadline = time.monotonic() + 8.0
+        while self._ctl_busy() and time.monotonic() < deadline:
+            time.sleep(0.005)
+        self._opened = False
+        t = self._reconnect_thread
+        if t is not None:
+            t.join(15.0)
+        w, self._w = self._w, None
+        for h in [w, *self._dispose]:
+            if h is not None:
+                h.close()
+        self._dispose.clear()
         self._link = False
 
     def info(self) -> ActuatorInfo:
         details = {"host": self.host, "rate_hz": self.rate_hz, "packets": self.packets,
-                   "missed_packets": self.missed_packets}
+                   "missed_packets": self.missed_packets, "worker_pid": self.worker_pid}
         return ActuatorInfo(list(self.joint_names), self.capabilities, details)
 
     # ------------------------------------------------------------------ pacing
@@ -441,30 +433,49 @@ class UrBackend(Actuator):
         return self.dt
 
     def wait_cycle(self, timeout_s: float) -> bool:
-        """Until the next RTDE packet (its timestamp moved on), at most ``timeout_s``. Sleeps
-        until shortly before the packet is due, then polls every 0.1 ms. Counts skipped
-        packets in ``missed_packets``."""
+        """Until the worker forwards the next RTDE package (its timestamp moved on), at most
+        ``timeout_s``: blocks in poll() on the worker's socket. Counts skipped packages in
+        ``missed_packets``."""
+        if not self._rt_checked:
+            self._note_realtime()
         clock = time.perf_counter
-        start = clock()
-        deadline = start + timeout_s
-        r = self._rcv
-        if r is None or self._reconnecting or not self._link:
+        w = self._w
+        if w is None or not self._link:
             time.sleep(min(timeout_s, self.dt))
             return False
-        due = self._arrived + self.dt - 0.0003
-        if due > start:
-            time.sleep(min(due, deadline) - start)
+        deadline = clock() + timeout_s
         while True:
-            if self._new_packet(r):
+            if self._take(w):
                 return True
-            now = clock()
-            if now >= deadline:
+            if w.dead:
                 return False
-            time.sleep(min(0.0001, deadline - now))
+            left = deadline - clock()
+            if left <= 0:
+                return False
+            w.wait(left)
 
-    def _new_packet(self, r: Any) -> bool:
-        """True when a packet newer than the last one seen arrived (counts skipped ones)."""
-        ts = r.getTimestamp()
+    def _note_realtime(self) -> None:
+        """Once, on the loop's thread: when it runs SCHED_FIFO, the worker's package thread and
+        ur_rtde's threads run one priority below it (as a backend's threads in the control
+        process do), now and in every worker started later."""
+        self._rt_checked = True
+        try:
+            if os.sched_getscheduler(0) == os.SCHED_FIFO:
+                self._rt_priority = max(1, os.sched_getparam(0).sched_priority - 1)
+        except OSError:
+            return
+        w = self._w
+        if self._rt_priority and w is not None:
+            w.send(encode(b"P", self._rt_priority))
+
+    def _take(self, w: WorkerHandle) -> bool:
+        """Take the worker's messages and its newest package; True when that package is newer
+        than the last one seen (counts skipped ones). Never blocks."""
+        w.pump()
+        st = w.read_state()
+        if st is None:
+            return False
+        ts = st[0]
         last = self._ts
         if ts == last:
             return False
@@ -475,29 +486,44 @@ class UrBackend(Actuator):
         self.packets += 1
         self._ts = ts
         self._arrived = time.perf_counter()
+        self._q[:] = st[1:7]
+        self._qd[:] = st[7:13]
+        self._pose[:] = st[13:19]
+        self._wrench[:] = st[19:25]
+        self.robot_mode, self.safety_mode, self.runtime_state = st[25], st[26], st[27]
+        self.speed_fraction = st[28]
+        self._flags = st[29]
         return True
 
     # ------------------------------------------------------------------ real-time path
     def _refresh(self) -> bool:
-        """Copy the modes and the speed slider from the latest packet. Never blocks. False: no link."""
-        r = self._rcv
-        if r is None or self._reconnecting:
+        """Take the newest package (modes, speed slider, joints, TCP). Never blocks. False: no
+        link (no worker, a worker that ended, or no package for ``link_timeout_s``)."""
+        w = self._w
+        if w is None:
             self._link = False
             return False
-        # isConnected() alone is not enough: after a failed reconnect() it says True with no data
-        # coming (and a pulled cable sends no FIN): the packets must keep arriving too
-        self._link = bool(r.isConnected()) and (self._new_packet(r) or
-                                                time.perf_counter() - self._arrived < self.config.link_timeout_s)
-        if not self._link:
-            return False
-        try:
-            self.robot_mode = int(r.getRobotMode())
-            self.safety_mode = int(r.getSafetyMode())
-            self.runtime_state = int(r.getRuntimeState())
-            self.speed_fraction = float(r.getTargetSpeedFraction())
-        except RuntimeError:  # the link went down since isConnected() said yes
+        fresh = self._take(w)
+        if w.dead:
+            if self._down is None:
+                self._down = w.cause()
             self._link = False
-        return self._link
+            return False
+        if self._flags & CTL_UP and not self._flags & CTL_CONNECTED:
+            # the control interface's link dropped (the worker is ending itself on it): lost NOW,
+            # before a write or a transition meets it
+            if self._down is None:
+                self._down = ("link_lost", "RTDE control link lost")
+            self._link = False
+            return False
+        # a pulled cable sends no FIN: the packages must keep arriving
+        if not fresh and time.perf_counter() - self._arrived >= self.config.link_timeout_s:
+            if self._down is None:
+                self._down = ("link_lost", f"RTDE link lost (no data package for {self.config.link_timeout_s:g} s)")
+            self._link = False
+            return False
+        self._link = True
+        return True
 
     def _movable(self) -> bool:
         """Commands may go out: link up, safety NORMAL / REDUCED, robot RUNNING, script PLAYING."""
@@ -505,15 +531,18 @@ class UrBackend(Actuator):
                 and self.runtime_state == RuntimeState.PLAYING)
 
     def _read(self, feedback: JointFeedback) -> Fault | None:
-        if self._rcv is None:
+        if not self._opened:
             return Fault("link_lost", f"{self.robot}: the RTDE link is closed", transient=False)
         link = self._refresh()
         state = device_state(link, self.robot_mode, self.safety_mode, self.runtime_state, self._enabled)
-        if state.code != self._state_code:
-            self._state_code = state.code
+        code, text = state.code, state.text
+        if not link and self._down is not None:
+            code, text = self._down
+        if code != self._state_code:
+            self._state_code = code
             cause = None
-            if state.code is not None:
-                cause = Fault(state.code, f"{self.robot}: {state.text} (UR controller at {self.host}; robot mode "
+            if code is not None:
+                cause = Fault(code, f"{self.robot}: {text} (UR controller at {self.host}; robot mode "
                               f"{_name(RobotMode, self.robot_mode)}, safety mode {_name(SafetyMode, self.safety_mode)}, "
                               f"runtime {_name(RuntimeState, self.runtime_state)})", transient=False)
             if state.status is DeviceStatus.OK and self.device_status is DeviceStatus.FAULT:
@@ -522,27 +551,21 @@ class UrBackend(Actuator):
                 self.report_status(state.status, cause)
         if not link:
             return self._link_lost()
-        r = self._rcv
-        try:
-            q, qd, pose = r.getActualQ(), r.getActualQd(), r.getActualTCPPose()
-            wrench = r.getActualTCPForce()
-        except RuntimeError:  # the link went down since isConnected() said yes
-            self._link = False
-            return self._link_lost()
-        feedback.position[:] = q
-        feedback.velocity[:] = qd
+        feedback.position[:] = self._q
+        feedback.velocity[:] = self._qd
         feedback.stamp = self.now()
         if self._enabled:
             self._feed_watchdog()
         if state.status is DeviceStatus.PAUSED and not self._paused_hold and self._enabled:
             self._paused_hold = True  # where the arm stopped: the target until resume (see _write)
             self._target[:] = feedback.position
+        pose = self._pose
         cart = feedback.cartesian
         if cart is not None:
             cart.position[0] = pose[:3]
             self._tcp_rotvec[:] = pose[3:]
             _quat_xyzw(self._tcp_rotvec, cart.orientation[0])
-            cart.wrench[0] = wrench
+            cart.wrench[0] = self._wrench
             cart.done_seq[0] = self._done_seq
             cart.stamp = feedback.stamp
         self._tcp_p[:] = pose[:3]
@@ -554,61 +577,110 @@ class UrBackend(Actuator):
         commands are that; when none went out for 20 ms (teach mode, a paused program, a
         transition), a kick. So it stops the arm only when the control process stops cycling."""
         now = time.perf_counter()
-        if now - self._last_sent < 0.02 or self._ctl is None or not self._ctl.isConnected():
-            return
-        t = self._ctl_thread
-        if t is not None and t.is_alive():
-            return  # a blocking call's own inputs feed it
-        try:
-            self._ctl.kickWatchdog()
-        except RuntimeError:
-            return  # the link is going: the state table reports it
-        self._last_sent = now
+        if now - self._last_sent < 0.02 or not self._flags & CTL_CONNECTED or self._ctl_busy():
+            return  # (a blocking call's own inputs feed it)
+        w = self._w
+        if w is not None and w.command(KICK, _ZERO6):
+            self._last_sent = now
 
     def _link_lost(self) -> Fault:
-        self._ctl_link_lost = self._ctl is not None  # see _close_hook
+        """The link is down: the worker is ended now (killed: it stops talking to the controller
+        at once) and a fresh one started once the controller answers (:meth:`_maybe_reconnect`)."""
+        w = self._w
+        if w is not None:
+            self._w = None
+            w.kill()
+            self._dispose.append(w)  # reaped on the restart's thread
+        self._ctl_job = None
+        self._flags = 0
         self._maybe_reconnect()
-        return Fault("link_lost", f"{self.robot}: RTDE link to the UR controller at {self.host} lost "
-                     "(reconnecting by itself; enable once it is back)", transient=False)
+        code, text = self._down or ("link_lost", "RTDE link lost")
+        if code == "link_lost":
+            return Fault(code, f"{self.robot}: RTDE link to the UR controller at {self.host} lost "
+                         "(reconnecting by itself; enable once it is back)", transient=False)
+        return Fault(code, f"{self.robot}: {text}, talking to the UR controller at {self.host} (a new worker "
+                     "starts by itself; enable once it is back)", transient=False)
+
+    def _maybe_reconnect(self) -> None:
+        """After a link loss: a fresh worker, started on a thread every ``reconnect_interval_s``
+        until one connects (the old one is reaped there). The cycle sees no link meanwhile."""
+        now = time.monotonic()
+        if self._reconnecting or now < self._next_reconnect or not self._opened or self._w is not None:
+            return
+        self._next_reconnect = now + self.config.reconnect_interval_s
+        self._reconnecting = True
+        dispose = self._dispose
+
+        def run() -> None:
+            try:
+                while dispose:
+                    dispose.pop().close()
+                w = WorkerHandle(self.config.host, self.rate_hz, self._rt_priority)
+                try:
+                    w.start()
+                except OSError:
+                    w.close()
+                    return  # the next attempt after reconnect_interval_s
+                if w.hello() is not None or not self._opened:
+                    w.close()  # still down: the next attempt after reconnect_interval_s
+                    return
+                self._ts = -1.0
+                self._arrived = time.perf_counter()  # its packages have link_timeout_s to show up
+                self._down = None
+                self._w = w
+            finally:
+                self._reconnecting = False
+
+        self._reconnect_thread = background_thread(run, "ur worker restart")
+        self._reconnect_thread.start()
 
     def _write(self, command: JointCommand) -> Fault | None:
-        if not self._enabled or self._ctl is None:
+        w = self._w
+        if not self._enabled or w is None or not self._flags & CTL_UP:
             return None
-        if self._ctl_thread is not None:  # a blocking call owns the control interface
-            if self._ctl_thread.is_alive() or not self._cycle_job:
+        if self._ctl_job is not None:  # a blocking call owns the control interface
+            if self._ctl_busy() or not self._cycle_job:
                 return None  # (a transition's job is collected by the transition's own steps)
             fault = self._end_job()
             if fault is not None:
                 return fault
+        if w.refused is not None:
+            op, error = w.refused
+            w.refused = None
+            return Fault("command_refused", f"{self.robot}: the UR control script refused {_op_name(op)}"
+                         + (f": {error}" if error else ""), transient=True)
         if self._move_fault is not None:
             fault, self._move_fault = self._move_fault, None
             return fault
+        cfg = self.config
         if self._paused_hold:
             # Paused by the device: the script's servo target becomes the pose the arm stopped at,
             # written even while the program is paused, so that when the safeguard is reset the
             # program resumes on THAT target instead of rushing to the one it had before the stop
             # (what UR users report). Core's setpoint no longer matters; resume re-seeds it.
             if (self._link and self.robot_mode == RobotMode.RUNNING and self.runtime_state in
-                    (RuntimeState.PLAYING, RuntimeState.PAUSED, RuntimeState.PAUSING) and self._ctl.isConnected()):
-                cfg = self.config
-                try:
-                    self._ctl.servoJ(self._target.tolist(), 0.0, 0.0, self.dt, cfg.servo_lookahead_time_s,
-                                     cfg.servo_gain)
-                except RuntimeError:
-                    return None  # the link went down: the state table reports it
+                    (RuntimeState.PLAYING, RuntimeState.PAUSED, RuntimeState.PAUSING) and self._flags & CTL_CONNECTED):
                 self._last_kind = "servoj"
-                self._last_sent = time.perf_counter()
+                return self._out(SERVOJ, self._target, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain)
             return None
         if not self._movable():
             return None  # gated: servoJ would "succeed" with the link down; the state table says why
-        if not self._ctl.isConnected():  # (a servoJ then tries to reconnect, blocking the cycle)
-            return Fault("link_lost", f"{self.robot}: the RTDE control link to {self.host} is down "
-                         "(reconnecting by itself)", transient=True)
-        try:
-            return self._send(command)
-        except RuntimeError as exc:  # it went down meanwhile
-            return Fault("link_lost", f"{self.robot}: the RTDE control link to {self.host} failed: {exc}",
-                         transient=True)
+        if not self._flags & CTL_CONNECTED:  # the worker ends itself on that: a new one comes
+            return Fault("link_lost", f"{self.robot}: the RTDE control link to {self.host} is down", transient=True)
+        return self._send(command)
+
+    def _out(self, op: int, values: Any, a: float = 0.0, t: float = 0.0, lookahead: float = 0.0,
+             gain: float = 0.0) -> Fault | None:
+        """One realtime command to the worker. Never blocks: a worker whose channel is full (it
+        takes no commands) gets the command DROPPED and the robot faults."""
+        w = self._w
+        if w is None or not w.command(op, values, a, t, lookahead, gain):
+            if w is not None and w.dead:
+                return None  # the next read reports it
+            return Fault("worker_stalled", f"{self.robot}: the ur_rtde worker takes no commands (its channel "
+                         f"is full); {_op_name(op)} dropped", transient=False)
+        self._last_sent = time.perf_counter()
+        return None
 
     def _send(self, command: JointCommand) -> Fault | None:
         """This cycle's one realtime script command (the gates passed)."""
@@ -616,51 +688,41 @@ class UrBackend(Actuator):
         if cart is not None and cart.mode[0] != _NONE:
             return self._write_cartesian(cart)
         mode = command.mode
-        # a blocking call started as the link dies waits for its answer for minutes (ur_rtde),
-        # spinning: teach-mode switches start only on a link whose packet came this cycle
+        # a blocking call started as the link dies waits for its answer (ur_rtde), and the
+        # worker is then ended: teach-mode switches start only on a link whose packet came this cycle
         fresh = time.perf_counter() - self._arrived < 2.0 * self.dt
         if np.all(mode == _FREE):
             if not self._teach and fresh:
-                self._start_job(self._ctl.teachMode, "teach mode", self._set_teach, True)
+                self._start_job("teachMode", "teach mode", self._set_teach, True)
             return None
         if np.any(mode == _FREE):
             return Fault("invalid_command", f"{self.robot}: free applies to the whole UR arm (teach mode), "
                          "not to some joints", transient=False)
         if self._teach:
             if fresh:
-                self._start_job(self._ctl.endTeachMode, "end of teach mode", self._set_teach, False)
+                self._start_job("endTeachMode", "end of teach mode", self._set_teach, False)
             return None
-        ok = True
         if np.any(mode == _VELOCITY):
             qd = np.where(mode == _VELOCITY, command.velocity, 0.0)
             bad = _first_bad(qd)
             if bad is not None:
                 return self._invalid(bad, "velocity", qd[bad])
             np.clip(qd, -self._vel_max, self._vel_max, out=qd)
-            ok = self._ctl.speedJ(qd.tolist(), self._speed_acc, 0.0)
             self._last_kind = "speedj"
             self._target[:] = command.position  # a later hold starts from core's (measured) setpoint
-        else:
-            q = self._target
-            fault = None
-            for i in range(N_JOINTS):
-                if mode[i] == _POSITION:
-                    v = command.position[i]
-                    if not math.isfinite(v):
-                        fault = fault or self._invalid(i, "position", v)
-                        continue  # this joint keeps its last target; the others are sent
-                    q[i] = min(max(v, self._pos_min[i]), self._pos_max[i])
-            cfg = self.config
-            ok = self._ctl.servoJ(q.tolist(), 0.0, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain)
-            self._last_kind = "servoj"
-            self._last_sent = time.perf_counter()
-            if fault is not None:
-                return fault
-        if not ok:
-            return Fault("command_refused", f"{self.robot}: the UR control script refused {self._last_kind}",
-                         transient=True)
-        self._last_sent = time.perf_counter()
-        return None
+            return self._out(SPEEDJ, qd, self._speed_acc, 0.0)
+        q = self._target
+        fault = None
+        for i in range(N_JOINTS):
+            if mode[i] == _POSITION:
+                v = command.position[i]
+                if not math.isfinite(v):
+                    fault = fault or self._invalid(i, "position", v)
+                    continue  # this joint keeps its last target; the others are sent
+                q[i] = min(max(v, self._pos_min[i]), self._pos_max[i])
+        cfg = self.config
+        self._last_kind = "servoj"
+        return self._out(SERVOJ, q, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain) or fault
 
     def _write_cartesian(self, cart) -> Fault | None:
         cfg = self.config
@@ -672,35 +734,29 @@ class UrBackend(Actuator):
             if int(cart.frame[0]) == FRAME_BODY:  # speedL takes base-frame axes
                 xd[:3] = self._tcp_r @ xd[:3]
                 xd[3:] = self._tcp_r @ xd[3:]
-            ok = self._ctl.speedL(xd.tolist(), cfg.speedl_acceleration, 0.0)
             self._last_kind = "speedl"
+            return self._out(SPEEDL, xd, cfg.speedl_acceleration, 0.0)
+        if m == _C_MOVE:
+            now = time.monotonic()
+            mv = self._move
+            if int(cart.seq[0]) != mv.seq or (mv.finished and self._done_seq < mv.seq):
+                if int(cart.seq[0]) != mv.seq:
+                    mv.start(int(cart.seq[0]), self._tcp_p, self._tcp_r, cart.position[0], cart.orientation[0], now)
+            p, rot = mv.step(now)
+            if mv.reached(self._tcp_p, self._tcp_r):
+                self._done_seq = mv.seq
+            elif now > mv.deadline:
+                self._done_seq = mv.seq
+                return Fault("move_timeout", f"{self.robot}: move_cp did not reach its pose within "
+                             f"{1.5 * mv.duration + 2.0:.1f} s (1.5 x its duration {mv.duration:.2f} s + 2 s); "
+                             f"TCP at {np.round(self._tcp_p, 4).tolist()} m", transient=False)
+            pose = [float(p[0]), float(p[1]), float(p[2]), *map(float, pin.log3(rot))]
         else:
-            if m == _C_MOVE:
-                now = time.monotonic()
-                mv = self._move
-                if int(cart.seq[0]) != mv.seq or (mv.finished and self._done_seq < mv.seq):
-                    if int(cart.seq[0]) != mv.seq:
-                        mv.start(int(cart.seq[0]), self._tcp_p, self._tcp_r, cart.position[0], cart.orientation[0], now)
-                p, rot = mv.step(now)
-                if mv.reached(self._tcp_p, self._tcp_r):
-                    self._done_seq = mv.seq
-                elif now > mv.deadline:
-                    self._done_seq = mv.seq
-                    return Fault("move_timeout", f"{self.robot}: move_cp did not reach its pose within "
-                                 f"{1.5 * mv.duration + 2.0:.1f} s (1.5 x its duration {mv.duration:.2f} s + 2 s); "
-                                 f"TCP at {np.round(self._tcp_p, 4).tolist()} m", transient=False)
-                pose = [float(p[0]), float(p[1]), float(p[2]), *map(float, pin.log3(rot))]
-            else:
-                if not (np.all(np.isfinite(cart.position[0])) and np.all(np.isfinite(cart.orientation[0]))):
-                    return Fault("invalid_command", f"{self.robot}: servo_cp pose is not finite", transient=False)
-                pose = _pose6(cart.position[0], cart.orientation[0])
-            ok = self._ctl.servoL(pose, 0.0, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain)
-            self._last_kind = "servol"
-        self._last_sent = time.perf_counter()
-        if not ok:
-            return Fault("command_refused", f"{self.robot}: the UR control script refused {self._last_kind}",
-                         transient=True)
-        return None
+            if not (np.all(np.isfinite(cart.position[0])) and np.all(np.isfinite(cart.orientation[0]))):
+                return Fault("invalid_command", f"{self.robot}: servo_cp pose is not finite", transient=False)
+            pose = _pose6(cart.position[0], cart.orientation[0])
+        self._last_kind = "servol"
+        return self._out(SERVOL, pose, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain)
 
     def _invalid(self, i: int, field: str, value: float) -> Fault:
         name = self.joint_names[i]
@@ -710,73 +766,81 @@ class UrBackend(Actuator):
     def _set_teach(self, on: bool) -> None:
         self._teach = on
         if not on:
-            self._target[:] = self._rcv.getActualQ() if self._rcv is not None else self._target
+            self._target[:] = self._q
 
     # ------------------------------------------------------------------ worker jobs
-    @staticmethod
-    def _spawn(fn: Callable[[], Any], what: str) -> tuple[threading.Thread, dict]:
-        """``fn()`` on a daemon thread; its result or exception lands in the returned box."""
-        box: dict[str, Any] = {}
+    def _ctl_busy(self) -> bool:
+        """A blocking call on the control interface is in flight (its reply not in yet)."""
+        rid = self._ctl_job
+        if rid is None:
+            return False
+        w = self._w
+        if w is None or w.dead:
+            return False
+        w.pump()
+        return rid not in w.replies
 
-        def run() -> None:
-            try:
-                box["result"] = fn()
-            except BaseException as exc:  # carried to the cycle / the transition
-                box["error"] = exc
-
-        thread = background_thread(run, f"ur {what}")
-        thread.start()
-        return thread, box
-
-    def _start_job(self, fn: Callable[[], Any], what: str, after: Callable[[Any], None], arg: Any) -> None:
-        """The cycle's own blocking call (a teach-mode switch) on a worker; the control interface
-        is its until the cycle collects it (:meth:`_end_job`), then ``after(arg)`` runs."""
-        self._ctl_thread, self._job_box = self._spawn(fn, what)
-        self._job_what, self._job_after, self._cycle_job = what, (after, arg), True
+    def _start_job(self, name: str, what: str, after: Callable[[Any], None], arg: Any) -> None:
+        """The cycle's own blocking call (a teach-mode switch), run by the worker; the control
+        interface is its until the cycle collects the reply (:meth:`_end_job`), then ``after(arg)``."""
+        rid = self._w.request(name)
+        if rid is not None:
+            self._ctl_job, self._cycle_job = rid, True
+            self._job_what, self._job_after = what, (after, arg)
 
     def _end_job(self) -> Fault | None:
-        self._ctl_thread = None
-        exc = self._job_box.get("error")
-        if exc is None:
+        rid, self._ctl_job = self._ctl_job, None
+        w = self._w
+        error, _ = (w.replies.pop(rid, None) if w is not None else None) or ("the ur_rtde worker ended", None)
+        if error is None:
             after, arg = self._job_after
             after(arg)
             return None
         return Fault("command_failed", f"{self.robot}: {self._job_what} failed on the UR controller at "
-                     f"{self.host}: {exc}", transient=False)
+                     f"{self.host}: {error}", transient=False)
 
-    def _wait_job(self, timeout_s: float) -> None:
-        t = self._ctl_thread
-        if t is not None:
-            t.join(timeout_s)
-            if not t.is_alive():
-                self._ctl_thread = None
-
-    def _job(self, fn: Callable[[], Any], what: str, retry_s: float = 0.0, ctl: bool = True) -> Steps:
-        """Steps running ``fn()`` on a worker, yielding every cycle until it returns; its error
-        raised as a BackendError naming ``what``. ``ctl``: it uses the control interface, which
-        is one caller's at a time (the cycle sends nothing on it meanwhile); dashboard calls do
-        not wait for it. ``retry_s`` > 0: a failure is retried every 0.3 s for that long
-        (e-Series refuses to unlock a protective stop within 5 s of it)."""
+    def _job(self, name: str, what: str, *args: Any, retry_s: float = 0.0, ctl: bool = True) -> Steps:
+        """Steps sending request ``name`` (channel.REQUESTS) to the worker and yielding every
+        cycle until its reply; returns its result, raises its error as a BackendError naming
+        ``what``. ``ctl``: it uses the control interface, which is one caller's at a time (the
+        cycle sends nothing on it meanwhile); dashboard calls do not wait for it. ``retry_s`` > 0:
+        a failure is retried every 0.3 s for that long (e-Series refuses to unlock a protective
+        stop within 5 s of it)."""
         if ctl:
-            while self._ctl_thread is not None and self._ctl_thread.is_alive():
+            while self._ctl_busy():
                 yield  # a teach-mode switch of the cycle's own is finishing
-            self._ctl_thread = None
+            self._ctl_job = None
         give_up = time.monotonic() + retry_s
         while True:
-            thread, box = self._spawn(fn, what)
+            w = self._w
+            rid = w.request(name, *args) if w is not None and not w.dead else None
+            if rid is None:
+                if w is not None and not w.dead:
+                    raise BackendError(f"{self.robot}: {what} failed: the ur_rtde worker takes no requests (its "
+                                       "channel is full)")
+                why = self._down[1] if self._down else "no link"
+                raise BackendError(f"{self.robot}: {what} failed: no ur_rtde worker talking to the UR controller "
+                                   f"at {self.host} ({why})")
             if ctl:
-                self._ctl_thread, self._cycle_job = thread, False
+                self._ctl_job, self._cycle_job = rid, False
             try:
-                while thread.is_alive():
+                while True:
+                    w.pump()
+                    got = w.replies.pop(rid, None)
+                    if got is not None:
+                        break
+                    if w.dead or self._w is not w:
+                        raise BackendError(f"{self.robot}: {what} failed on the UR controller at {self.host}: "
+                                           f"{(self._down or w.cause())[1]}")
                     yield
             finally:
-                if ctl and self._ctl_thread is thread and not thread.is_alive():
-                    self._ctl_thread = None
-            exc = box.get("error")
-            if exc is None:
-                return
+                if ctl and self._ctl_job == rid:
+                    self._ctl_job = None
+            error, result = got
+            if error is None:
+                return result
             if time.monotonic() >= give_up:
-                raise BackendError(f"{self.robot}: {what} failed on the UR controller at {self.host}: {exc}") from exc
+                raise BackendError(f"{self.robot}: {what} failed on the UR controller at {self.host}: {error}")
             pause = time.monotonic() + 0.3
             while time.monotonic() < pause:
                 yield
@@ -791,33 +855,6 @@ class UrBackend(Actuator):
             if done():
                 return
             yield
-
-    def _maybe_reconnect(self) -> None:
-        """After a link loss: ``reconnect()`` on a worker every ``reconnect_interval_s``. The cycle
-        does not touch the receive interface meanwhile (``_reconnecting``)."""
-        now = time.monotonic()
-        if self._reconnecting or now < self._next_reconnect or self._rcv is None:
-            return
-        self._next_reconnect = now + self.config.reconnect_interval_s
-        self._reconnecting = True
-        r = self._rcv
-
-        def run() -> None:
-            try:
-                if not r.isConnected():
-                    # its own receive thread ended the link: join it (disconnect) before
-                    # reconnect() starts another, or both run on one socket (heap corruption)
-                    r.disconnect()
-                r.reconnect()
-            except RuntimeError:
-                pass  # still down: the next attempt after reconnect_interval_s
-            finally:
-                self._ts = -1.0
-                self._arrived = time.perf_counter()  # its packets have link_timeout_s to show up
-                self._reconnecting = False
-
-        self._reconnect_thread = background_thread(run, "ur rtde reconnect")
-        self._reconnect_thread.start()
 
     # ------------------------------------------------------------------ lifecycle transitions
     def _require_link(self, what: str) -> None:
@@ -838,43 +875,27 @@ class UrBackend(Actuator):
             raise BackendError(f"{self.robot}: enable refused: {state.text}; reset it first")
         if self.robot_mode != RobotMode.RUNNING:
             if self.robot_mode != RobotMode.IDLE:
-                yield from self._job(self._dash.powerOn, "power on", ctl=False)
+                yield from self._job("powerOn", "power on", ctl=False)
                 yield from self._until(lambda: self.robot_mode in (RobotMode.IDLE, RobotMode.RUNNING),
                                        "robot mode IDLE after power on")
             if self.robot_mode != RobotMode.RUNNING:
-                yield from self._job(self._dash.brakeRelease, "brake release", ctl=False)
+                yield from self._job("brakeRelease", "brake release", ctl=False)
                 yield from self._until(lambda: self.robot_mode == RobotMode.RUNNING,
                                        "robot mode RUNNING after brake release")
-        yield from self._job(self._start_script, "control script upload")
+        # the worker builds the control interface (uploading its script) or re-uploads the script
+        yield from self._job("start_script", "control script upload")
         # ur_rtde refuses commands until ITS connection saw the program run (a packet later, maybe)
-        yield from self._until(lambda: self.runtime_state == RuntimeState.PLAYING and self._ctl.isProgramRunning(),
+        yield from self._until(lambda: self.runtime_state == RuntimeState.PLAYING and bool(self._flags & CTL_RUNNING),
                                "the control script to run")
         if self.config.watchdog_hz > 0:  # from now on the cycle feeds it (_write, _feed_watchdog)
             self._last_sent = time.perf_counter()
-            yield from self._job(lambda: self._ctl.setWatchdog(self.config.watchdog_hz), "setWatchdog")
+            yield from self._job("setWatchdog", "setWatchdog", float(self.config.watchdog_hz))
         self._hold_here()
-
-    def _start_script(self) -> None:
-        """Worker: the control interface up and its script running (built, reconnected or re-uploaded)."""
-        ctl = self._ctl
-        if ctl is None:
-            self._ctl = rtde_control.RTDEControlInterface(self.host, self.rate_hz)
-            return
-        if self._ctl_link_lost or not ctl.isConnected():
-            # never reconnect() (nor call, nor free) an interface that lived through a link loss:
-            # its own receive thread handles the loss (disconnect, its own reconnect attempt) and
-            # races any call made meanwhile, corrupting the heap (seen: malloc aborts). A new one.
-            _abandon(ctl)
-            self._ctl = None
-            self._ctl = ctl = rtde_control.RTDEControlInterface(self.host, self.rate_hz)
-            self._ctl_link_lost = False
-        if not ctl.isProgramRunning():
-            ctl.reuploadScript()
 
     def _hold_here(self) -> None:
         """The arm holds where it is: the next servoJ target is the measured pose."""
-        if self._rcv is not None and self._link:
-            self._target[:] = self._rcv.getActualQ()
+        if self._link:
+            self._target[:] = self._q
         self._teach = False
         self._last_kind = ""
         self._paused_hold = False
@@ -885,68 +906,55 @@ class UrBackend(Actuator):
         self._paused_hold = False
         self._move.finished = True
         self._done_seq = self._move.seq
-        if self._dash is None:
+        if not self._opened:
             return
         link = self._refresh()
-        if (self._ctl is not None and link and self.runtime_state == RuntimeState.PLAYING
-                and not self._ctl_link_lost and self._ctl.isConnected()):
-            # (not on an interface that lived through a link loss: see _start_script; the
-            # script's watchdog has stopped its program, power off below stops the rest)
-            yield from self._job(self._stop_script, "stop")
+        if (link and self._flags & CTL_UP and self._flags & CTL_CONNECTED
+                and self.runtime_state == RuntimeState.PLAYING):
+            yield from self._job("stop_script", "stop", self._teach, self._last_kind)
         elif not link:
-            yield from self._job(self._dash.powerOff, "power off", ctl=False)
-            raise BackendError(f"{self.robot}: power off sent, but not confirmed: no RTDE link to {self.host}")
+            # no worker can reach the controller: the script's watchdog has stopped the arm (no
+            # input for 1 / watchdog_hz s); power off follows once the link is back (core retries)
+            raise BackendError(f"{self.robot}: power off not confirmed: no RTDE link to {self.host}")
         if self.robot_mode != RobotMode.POWER_OFF:
-            yield from self._job(self._dash.powerOff, "power off", ctl=False)
+            yield from self._job("powerOff", "power off", ctl=False)
             yield from self._until(lambda: self.robot_mode == RobotMode.POWER_OFF, "robot mode POWER_OFF")
         self._teach = False
 
-    def _stop_script(self) -> None:
-        """Worker: decelerate whatever runs, leave teach mode, end the control script."""
-        ctl = self._ctl
-        try:
-            if self._teach:
-                ctl.endTeachMode()
-            if self._last_kind in ("speedj", "speedl"):
-                ctl.speedStop(4.0)
-            elif self._last_kind in ("servoj", "servol"):
-                ctl.servoStop(4.0)
-        finally:
-            ctl.stopScript()
-
     def _fault_reset_steps(self) -> Steps:
         if not self._refresh():
-            if self._rcv is None:
+            if not self._opened:
                 raise BackendError(f"{self.robot}: enable refused: the RTDE link is closed")
+            if self._w is not None:
+                self._link_lost()  # a silent worker: ended here, a fresh one below
             self._next_reconnect = 0.0
-            self._maybe_reconnect()  # now, on the worker the cycle's reads stay away from
+            self._maybe_reconnect()  # now: a fresh worker, on a thread
             while self._reconnecting:
                 yield
             self._require_link("enable")
-        if not self._dash.isConnected():
-            yield from self._job(self._dash.connect, "dashboard reconnect", ctl=False)
+        yield from self._job("dashboard_connect", "dashboard reconnect", ctl=False)
         mode = self.safety_mode
         if mode == SafetyMode.PROTECTIVE_STOP:
-            yield from self._job(self._dash.closeSafetyPopup, "close safety popup", ctl=False)
-            yield from self._job(self._dash.unlockProtectiveStop, "unlock protective stop", retry_s=7.0, ctl=False)
+            yield from self._job("closeSafetyPopup", "close safety popup", ctl=False)
+            yield from self._job("unlockProtectiveStop", "unlock protective stop", retry_s=7.0, ctl=False)
             yield from self._until(lambda: self.safety_mode in MOVABLE, "the protective stop to clear")
         elif mode in (SafetyMode.VIOLATION, SafetyMode.FAULT):
-            yield from self._job(self._dash.closeSafetyPopup, "close safety popup", ctl=False)
-            yield from self._job(self._dash.restartSafety, "restart safety", ctl=False)
+            yield from self._job("closeSafetyPopup", "close safety popup", ctl=False)
+            yield from self._job("restartSafety", "restart safety", ctl=False)
             yield from self._until(lambda: self.safety_mode in MOVABLE, "the safety system to restart")
         elif mode in (SafetyMode.SYSTEM_EMERGENCY_STOP, SafetyMode.ROBOT_EMERGENCY_STOP):
             raise BackendError(f"{self.robot}: enable refused: the emergency stop is still engaged; release it first")
         elif mode == SafetyMode.RECOVERY:
             raise BackendError(f"{self.robot}: enable refused: safety recovery mode; move the arm back inside "
                                "its limits by hand (teach mode on the pendant) first")
-        # the control interface reconnects (and uploads its script) in ENABLE, once the arm runs
+        # the control interface (and its script) comes up in ENABLE, once the arm runs
 
     def _resume_steps(self) -> Steps:
         self._require_link("resume")
         if self.safety_mode not in MOVABLE:
             yield from self._until(lambda: self.safety_mode in MOVABLE, "the safeguard stop to be reset")
         if self.runtime_state in (RuntimeState.PAUSED, RuntimeState.PAUSING):
-            yield from self._job(self._dash.play, "play", ctl=False)
+            yield from self._job("play", "play", ctl=False)
             yield from self._until(lambda: self.runtime_state == RuntimeState.PLAYING, "the control script to resume")
         self._hold_here()  # from the measured pose: no rush to where it was going when stopped
 
@@ -955,44 +963,30 @@ class UrBackend(Actuator):
         """The controller's own safety limits, asked before a move starts (see the module
         docstring). ``goal``: the namespace's joint positions (move_jp) or the pose [x, y, z,
         qx, qy, qz, qw] (move_cp). Raises CommandError("out_of_limits") naming the joint / pose."""
-        if self._ctl is None:
+        if not self._flags & CTL_UP:
             return None
         return self._goal_check(ns, cmd, np.array(goal, dtype=float))
 
     def _goal_check(self, ns: str, cmd: str, goal: np.ndarray) -> Steps:
-        box: dict[str, Any] = {}
-        ctl = self._ctl
         if cmd == "move_cp":
             pose = _pose6(goal[:3], goal[3:])
-
-            def check() -> None:
-                box["ok"] = ctl.isPoseWithinSafetyLimits(pose)
-
-            yield from self._job(check, "isPoseWithinSafetyLimits")
-            if not box["ok"]:
+            ok = yield from self._job("isPoseWithinSafetyLimits", "isPoseWithinSafetyLimits", pose)
+            if not ok:
                 raise CommandError("out_of_limits", f"{ns}: {cmd} refused: the pose "
                                    f"[{', '.join(fmt_number(v) for v in pose)}] (x, y, z m, rx, ry, rz rad) is "
                                    f"outside the UR controller's safety limits (isPoseWithinSafetyLimits)")
             return
-        here = list(self._rcv.getActualQ())
-
-        def check_joints() -> None:
-            box["ok"] = ctl.isJointsWithinSafetyLimits(goal.tolist())
-            if not box["ok"]:  # which joint: the first whose goal alone is refused
-                for i in range(N_JOINTS):
-                    q = list(here)
-                    q[i] = float(goal[i])
-                    if not ctl.isJointsWithinSafetyLimits(q):
-                        box["joint"] = i
-                        return
-
-        yield from self._job(check_joints, "isJointsWithinSafetyLimits")
-        if not box["ok"]:
-            i = box.get("joint")
+        found = yield from self._job("joints_within", "isJointsWithinSafetyLimits", goal.tolist(), self._q.tolist())
+        if not found["ok"]:
+            i = found.get("joint")
             what = (f"goal {fmt_number(goal[i])} rad for joint {self.joint_names[i]!r}" if i is not None
                     else f"goal [{', '.join(fmt_number(v) for v in goal)}] rad")
             raise CommandError("out_of_limits", f"{ns}: {cmd} refused: {what} is outside the UR controller's "
                                "safety limits (isJointsWithinSafetyLimits)")
+
+
+def _op_name(op: int) -> str:
+    return OP_NAMES.get(op, str(op))
 
 
 def _first_bad(v: np.ndarray) -> int | None:
