@@ -361,8 +361,37 @@ def _check(profile: Profile) -> list[str]:
         if jn not in used:
             problems.append(f"namespaces: joint {jn!r} belongs to no namespace")
     problems += _check_buses(profile)
+    problems += _check_safety(profile)
     problems += _check_shutdown(profile)
     problems += _check_zenoh(profile.transport.zenoh)
+    return problems
+
+
+#: safety.servo_timeout_s at most: a stream silent longer than this is no stream a watchdog guards
+SERVO_TIMEOUT_MAX_S = 10.0
+#: safety.bus_errors_max at most this many seconds of failed bus cycles (at loop.rate_hz)
+BUS_ERRORS_MAX_S = 1.0
+
+
+def _check_safety(profile: Profile) -> list[str]:
+    """Every safety threshold a finite positive number, within what still guards something."""
+    sf, problems = profile.safety, []
+
+    def bounded(key: str, value: float, high: float, unit: str) -> None:
+        if not (math.isfinite(value) and 0 < value <= high):
+            problems.append(f"safety.{key}: {value} is not in (0, {high:g}] {unit}")
+
+    bounded("servo_timeout_s", sf.servo_timeout_s, SERVO_TIMEOUT_MAX_S, "s (the servo stream watchdog)")
+    bounded("servo_step_max", sf.servo_step_max, math.pi, "rad")
+    bounded("tracking_error_max", sf.tracking_error_max, 2 * math.pi, "rad")
+    bounded("cartesian_step_max", sf.cartesian_step_max, 1.0, "m")
+    bounded("cartesian_rotation_step_max", sf.cartesian_rotation_step_max, math.pi, "rad")
+    bounded("cartesian_velocity_max", sf.cartesian_velocity_max, 5.0, "m/s")
+    bounded("cartesian_angular_velocity_max", sf.cartesian_angular_velocity_max, 2 * math.pi, "rad/s")
+    most = max(1, int(BUS_ERRORS_MAX_S * profile.loop.rate_hz)) if 0 < profile.loop.rate_hz <= 10000 else 1
+    if not 1 <= sf.bus_errors_max <= most:
+        problems.append(f"safety.bus_errors_max: {sf.bus_errors_max} is not in [1, {most}] (at most "
+                        f"{BUS_ERRORS_MAX_S:g} s of failed bus cycles at loop.rate_hz {profile.loop.rate_hz:g})")
     return problems
 
 

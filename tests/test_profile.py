@@ -424,3 +424,30 @@ def test_backend_config_error_names_key(base):
     with pytest.raises(ProfileError) as info:
         backend_config(p, Config, source="so101.yaml")
     assert str(info.value) == "so101.yaml: backend.baudrate: Expected `int`, got `str`"
+
+
+@pytest.mark.parametrize("key, value, where", [
+    ("servo_timeout_s", 0.0, "(0, 10]"), ("servo_timeout_s", -1.0, "(0, 10]"),
+    ("servo_timeout_s", 1e9, "(0, 10]"), ("servo_timeout_s", float("nan"), "(0, 10]"),
+    ("servo_step_max", 0.0, "(0, 3.14159]"), ("servo_step_max", float("inf"), "(0, 3.14159]"),
+    ("tracking_error_max", -0.1, "(0, 6.28319]"), ("tracking_error_max", 100.0, "(0, 6.28319]"),
+    ("cartesian_step_max", 0.0, "(0, 1]"), ("cartesian_rotation_step_max", 4.0, "(0, 3.14159]"),
+    ("cartesian_velocity_max", float("inf"), "(0, 5]"), ("cartesian_angular_velocity_max", -1.0, "(0, 6.28319]"),
+    ("bus_errors_max", 0, "[1, 100]"), ("bus_errors_max", 10**6, "[1, 100]"),
+])
+def test_safety_thresholds_are_finite_positive_and_bounded(tmp_path, base, key, value, where):
+    """A safety threshold of 0, below 0, NaN, inf or beyond what still guards anything (a 1e9 s
+    servo watchdog, a million failed bus cycles before FAULT) is refused, naming the key."""
+    base["loop"]["rate_hz"] = 100.0  # bus_errors_max: at most 1 s of failed cycles
+    base["safety"][key] = value
+    msg = load_bad(tmp_path, base)
+    assert f"safety.{key}: {value} is not in {where}" in msg
+
+
+def test_safety_thresholds_at_their_bounds_load(tmp_path, base):
+    base["loop"]["rate_hz"] = 100.0
+    base["safety"].update(servo_timeout_s=10.0, bus_errors_max=100, tracking_error_max=0.01)
+    path = tmp_path / "edge.yaml"
+    path.write_text(yaml.safe_dump(base))
+    sf = load_profile(path).safety
+    assert (sf.servo_timeout_s, sf.bus_errors_max, sf.tracking_error_max) == (10.0, 100, 0.01)
