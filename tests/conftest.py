@@ -212,7 +212,9 @@ def robot_capabilities(profile, has_gripper: bool) -> frozenset:
     - ``fault:<kind>``: a fault kind its simulator injects into one device (``silent``, ...);
     - ``park``: ``shutdown.action: park``;
     - ``kinematics``: a namespace with a URDF (cartesian commands);
-    - ``calibration``: its backend imports another tool's calibration file (``calibrate import``).
+    - ``calibration``: its backend imports another tool's calibration file (``calibrate import``);
+    - ``native_cartesian``: its backend does cartesian control itself (a UR: servoL / speedL, its
+      TCP pose and wrench), no IK or Jacobian mapping in the daemon.
     """
     import importlib
 
@@ -233,6 +235,8 @@ def robot_capabilities(profile, has_gripper: bool) -> frozenset:
         caps.add("kinematics")
     if backend_class(profile.backend_type).calibration_import is not Actuator.calibration_import:
         caps.add("calibration")
+    if backend_class(profile.backend_type).capabilities.native_cartesian:
+        caps.add("native_cartesian")
     return frozenset(caps)
 
 

@@ -142,6 +142,30 @@ def test_servo_stream_watchdog_hands_the_joints_back(native):
     assert m.setpoint_p == pytest.approx(act.pos[ARM_IDX])  # held where the backend left the arm
 
 
+def test_what_was_commanded_is_the_setpoint_and_the_goal(native):
+    c, act, clock, cycle, req = native
+    nc, m = c.native_cartesian[ARM], c.namespaces[ARM]
+    assert req("move_jp", ARM, position=list(act.pos[ARM_IDX]))["ok"]
+    cycle(2)
+    assert m.goal_stamp > 0
+    assert req("servo_cp", ARM, **NEAR)["ok"]
+    assert nc.setpoint_stamp > 0 and nc.position == pytest.approx(NEAR["position"])
+    assert nc.goal_stamp == 0.0 and m.goal_stamp == 0.0  # the move_jp's goal is not the arm's any more
+    cycle(int(PROFILE.safety.servo_timeout_s / c.dt) + 3)  # the stream's watchdog: held there
+    assert not nc.active and nc.setpoint_stamp > 0
+    assert req("move_cp", ARM, **POSE)["ok"]
+    assert nc.setpoint_stamp == 0.0  # the backend's own trajectory runs: its setpoints are its own
+    assert nc.goal_stamp > 0 and nc.goal_position == pytest.approx(POSE["position"])
+    cycle(MOVE_CYCLES + 2)
+    assert not c.is_busy and nc.setpoint_stamp > 0 and nc.position == pytest.approx(POSE["position"])
+    assert nc.goal_stamp > 0  # the goal stays after the move
+    assert req("servo_cv", ARM, linear=[0.01, 0, 0], angular=[0, 0, 0], frame="body")["ok"]
+    assert nc.twist_stamp > 0 and nc.setpoint_stamp == 0.0 and nc.goal_stamp == 0.0
+    assert req("hold", ARM)["ok"]
+    cycle()
+    assert nc.twist_stamp == nc.setpoint_stamp == nc.goal_stamp == 0.0  # hold: nothing commanded remains
+
+
 @pytest.mark.parametrize("how", ["joint command", "hold", "pause", "fault", "client lost"])
 def test_anything_else_ends_the_cartesian_setpoint(native, how):
     c, act, clock, cycle, req = native
@@ -244,13 +268,17 @@ def test_twists_beyond_the_safety_bounds_are_refused(native, cmd):
 
 
 # ------------------------------------------------------------------ the front's routing
-def _state(native_p, native_q, stamp=5.0):
+def _state(native_p, native_q, stamp=5.0, **commanded):
     z = np.zeros(5)
     return {"measured_stamp": 4.0, "measured_p": z, "measured_v": z, "measured_f": z, "measures_velocity": True,
             "measures_effort": False, "setpoint_stamp": 0.0, "setpoint_p": z, "setpoint_v": z, "setpoint_f": z,
             "setpoint_has_p": False, "setpoint_has_v": False, "setpoint_has_f": False, "goal_stamp": 0.0,
             "goal_p": z, "goal_v": z, "goal_f": z, "goal_has_p": False, "goal_has_v": False, "goal_has_f": False,
-            "native_stamp": stamp, "native_p": np.array(native_p), "native_q": np.array(native_q)}
+            "native_stamp": stamp, "native_p": np.array(native_p), "native_q": np.array(native_q),
+            "native_sp_stamp": 0.0, "native_sp_p": np.zeros(3), "native_sp_q": np.array([0.0, 0, 0, 1]),
+            "native_tw_stamp": 0.0, "native_tw": np.zeros(6), "native_tw_body": False,
+            "native_goal_stamp": 0.0, "native_goal_p": np.zeros(3), "native_goal_q": np.array([0.0, 0, 0, 1]),
+            **{k: np.array(v) if isinstance(v, list) else v for k, v in commanded.items()}}
 
 
 def test_the_front_routes_cartesian_commands_to_a_native_backend_without_ik():
@@ -276,5 +304,20 @@ def test_the_front_routes_cartesian_commands_to_a_native_backend_without_ik():
         mcp = cs.query("measured_cp", st, "spatial")
         assert mcp["stamp"] == 5.0 and mcp["position"] == pytest.approx([0.3, 0.0, 0.2])
         assert cs.query("measured_cp", _state([0, 0, 0], [0, 0, 0, 1], stamp=0.0), "spatial")["stamp"] == 0.0
+        # setpoint_cp / goal_cp / setpoint_cv: what the backend was commanded, not FK of the joints
+        st = _state([0.3, 0.0, 0.2], [0.0, 1.0, 0.0, 0.0], native_sp_stamp=6.0, native_sp_p=[0.31, 0.0, 0.19],
+                    native_sp_q=[0.0, 2.0, 0.0, 0.0], native_goal_stamp=7.0, native_goal_p=[0.25, 0.05, 0.15],
+                    native_tw_stamp=8.0, native_tw=[0.0, 0.02, 0.0, 0.0, 0.0, 0.1], native_tw_body=False)
+        sp = cs.query("setpoint_cp", st, "spatial")
+        assert sp["stamp"] == 6.0 and sp["position"] == pytest.approx([0.31, 0.0, 0.19])
+        assert sp["orientation"] == pytest.approx([0.0, 1.0, 0.0, 0.0])
+        g = cs.query("goal_cp", st, "spatial")
+        assert g["stamp"] == 7.0 and g["position"] == pytest.approx([0.25, 0.05, 0.15])
+        tw = cs.query("setpoint_cv", st, "spatial")
+        assert tw["stamp"] == 8.0 and tw["linear"] == pytest.approx([0.0, 0.02, 0.0])
+        body = cs.query("setpoint_cv", st, "body")  # the tip is turned pi about y: y stays, z flips
+        assert body["linear"] == pytest.approx([0.0, 0.02, 0.0], abs=1e-12)
+        assert body["angular"] == pytest.approx([0.0, 0.0, -0.1], abs=1e-12)
+        assert cs.query("setpoint_cp", _state([0.3, 0.0, 0.2], [0.0, 1.0, 0.0, 0.0]), "spatial")["stamp"] == 0.0
     finally:
         cs.close()

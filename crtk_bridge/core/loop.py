@@ -121,8 +121,8 @@ class ControlLoop:
         self.abort_park = False  # a second signal: torque off now
         ns = list(self.controller.namespaces.values())
         self._ns = ns
-        self._native_rows = [(k, self.controller.native_cartesian[m.name].row) for k, m in enumerate(ns)
-                             if m.name in self.controller.native_cartesian]
+        self._native_rows = [(k, self.controller.native_cartesian[m.name].row, self.controller.native_cartesian[m.name])
+                             for k, m in enumerate(ns) if m.name in self.controller.native_cartesian]
         v = snapshot.views
         self._v = v
 
@@ -208,12 +208,21 @@ class ControlLoop:
             v["ns_goal_has_v"][k] = g_v
             v["ns_goal_has_f"][k] = g_f
         fc = fb.cartesian
-        for k, row in self._native_rows:  # measured_cp straight from a native cartesian backend
+        for k, row, nc in self._native_rows:  # measured_cp straight from a native cartesian backend
             v["ns_cart_stamp"][k] = fc.stamp if c._consecutive_bus_errors < self._bus_errors_max else 0.0
             v["ns_cart_p"][3 * k:3 * k + 3] = fc.position[row]
             v["ns_cart_q"][4 * k:4 * k + 4] = fc.orientation[row]
             if fc.wrench is not None:
                 v["ns_cart_f"][6 * k:6 * k + 6] = fc.wrench[row]
+            v["ns_cart_sp_stamp"][k] = nc.setpoint_stamp  # what it was commanded
+            v["ns_cart_sp_p"][3 * k:3 * k + 3] = nc.position
+            v["ns_cart_sp_q"][4 * k:4 * k + 4] = nc.orientation
+            v["ns_cart_tw_stamp"][k] = nc.twist_stamp
+            v["ns_cart_tw"][6 * k:6 * k + 6] = nc.twist
+            v["ns_cart_tw_frame"][k] = nc.frame
+            v["ns_cart_goal_stamp"][k] = nc.goal_stamp
+            v["ns_cart_goal_p"][3 * k:3 * k + 3] = nc.goal_position
+            v["ns_cart_goal_q"][4 * k:4 * k + 4] = nc.goal_orientation
         self.snap.end()
 
     # ---------------------------------------------------------------- the loop

@@ -22,6 +22,14 @@ measured pose) is refused with ``step_too_large``; a twist faster than ``cartesi
 scaled: the bound is the profile's safety limit, not what the hardware can do, and a client whose
 twist silently went slower would integrate a wrong pose; the previous command stays in force.
 ``move_cp`` is not bounded by a step: the backend plans it (as ``move_jp``).
+
+What it commanded is the namespace's cartesian setpoint and goal (the front serves them as
+``setpoint_cp``, ``setpoint_cv``, ``goal_cp``; the joints have no setpoint of core's meanwhile):
+the pose of the running ``servo_cp`` / ``interpolate_cp`` stream, then of a finished ``move_cp``
+(the goal its trajectory ended on; none while the backend's own trajectory runs); the twist of a
+running ``servo_cv`` / ``interpolate_cv``; the goal of the last ``move_cp`` / ``interpolate_cp``.
+They stay valid after a stream's watchdog or a move's end (the joints then hold there), and
+end with :meth:`NativeCartesian.cancel` (another command, a stop, a pause, a fault).
 """
 
 from __future__ import annotations
@@ -58,6 +66,12 @@ class NativeCartesian:
         self.seq = 0  # MOVE goals sent
         self.done_seq = 0  # MOVE goals the backend finished
         self.last_cmd_time = 0.0
+        # what was commanded (module docstring); stamp: when, 0 = none
+        self.setpoint_stamp = 0.0  # pose: self.position / self.orientation
+        self.twist_stamp = 0.0  # twist: self.twist in self.frame
+        self.goal_stamp = 0.0
+        self.goal_position = np.zeros(3)
+        self.goal_orientation = np.array([0.0, 0.0, 0.0, 1.0])
 
     @property
     def active(self) -> bool:
@@ -81,17 +95,27 @@ class NativeCartesian:
             self.mode = CartesianMode.MOVE if cmd == "move_cp" else CartesianMode.POSE
             if cmd == "move_cp":
                 self.seq += 1
+            self.setpoint_stamp = 0.0 if cmd == "move_cp" else now  # a move's setpoints are the backend's
+            self.twist_stamp = 0.0
+            if cmd == "servo_cp":
+                self.goal_stamp = 0.0
+            else:
+                self.goal_position[:], self.goal_orientation[:], self.goal_stamp = p, q, now
         else:
             twist, frame = parse_twist(ns, cmd, data)
             self._check_twist(cmd, twist)
             self.twist[:] = twist
             self.frame = FRAME_BODY if frame == "body" else FRAME_SPATIAL
             self.mode = CartesianMode.TWIST
+            self.twist_stamp = now
+            self.setpoint_stamp = self.goal_stamp = 0.0
         self.last_cmd_time = now
         m = self.motion
         m.hold()
         m.level = None  # the joints have no setpoint of core's while the backend drives them
         m.setpoint_stamp = 0.0
+        m.goal_level = None  # nor a goal: an earlier move_jp's is not the arm's goal any more
+        m.goal_stamp = 0.0
 
     def _check_step(self, cmd: str, p: np.ndarray, q: np.ndarray, measured: CartesianFeedback) -> None:
         ns, sf = self.motion.name, self.safety
@@ -124,8 +148,9 @@ class NativeCartesian:
                                    f"speed {fmt_number(speed)} {unit} is above safety.{key} = {bound}")
 
     def cancel(self) -> None:
-        """Another command, a stop or a fault took the namespace over."""
+        """Another command, a stop or a fault took the namespace over: nothing commanded remains."""
         self.mode = CartesianMode.NONE
+        self.setpoint_stamp = self.twist_stamp = self.goal_stamp = 0.0
 
     def update(self, now: float, measured_p: np.ndarray, feedback: CartesianFeedback) -> str | None:
         """One cycle, before the namespace's motion step. Returns a watchdog message when a
@@ -136,10 +161,12 @@ class NativeCartesian:
         self.motion.setpoint_p[:] = measured_p  # on the way out, hold where the backend left the arm
         if self.mode is not CartesianMode.MOVE and now - self.last_cmd_time > self.timeout_s:
             kind = "servo_cv / interpolate_cv" if self.mode is CartesianMode.TWIST else "servo_cp / interpolate_cp"
-            self.cancel()
+            self.mode = CartesianMode.NONE  # the joints hold where they are: the pose stays the setpoint
+            self.twist_stamp = 0.0
             return f"{self.motion.name}: no {kind} command for {self.timeout_s} s; holding position"
         if self.mode is CartesianMode.MOVE and not self.busy:
-            self.cancel()  # the move ended: the joints hold where it stopped
+            self.mode = CartesianMode.NONE  # the move ended: the joints hold where it stopped
+            self.setpoint_stamp = now  # its goal, where the backend's trajectory ended
         return None
 
     def fill(self, joint_mode: np.ndarray, cart: CartesianCommand) -> None:

@@ -6,7 +6,8 @@ sequence was odd or changed meanwhile. Nothing is allocated on the writer's side
 
 Layout (float64 unless said): ``seq`` (int64) | measured stamp, p[n], v[n], f[n] |
 setpoint p[n], v[n], f[n] | goal p[n], v[n], f[n] | per namespace: setpoint stamp, has_p,
-has_v, has_f, goal stamp, goal has_p, has_v, has_f | per namespace: native cartesian stamp, p[3], q[4], wrench[6] | cycle count, overrun count, lateness ring [RING], compute ring [RING].
+has_v, has_f, goal stamp, goal has_p, has_v, has_f | per namespace: native cartesian stamp, p[3], q[4], wrench[6] | per namespace: native
+cartesian setpoint stamp, p[3], q[4], twist stamp, twist[6], twist frame, goal stamp, p[3], q[4] | cycle count, overrun count, lateness ring [RING], compute ring [RING].
 """
 
 from __future__ import annotations
@@ -34,6 +35,10 @@ class Layout:
             ("ns_goal_has_p", k), ("ns_goal_has_v", k), ("ns_goal_has_f", k),
             # the tip pose a native cartesian backend measures (its stamp 0 elsewhere)
             ("ns_cart_stamp", k), ("ns_cart_p", 3 * k), ("ns_cart_q", 4 * k), ("ns_cart_f", 6 * k),
+            # ...and what it was commanded (core/native_cartesian.py): setpoint_cp, setpoint_cv, goal_cp
+            ("ns_cart_sp_stamp", k), ("ns_cart_sp_p", 3 * k), ("ns_cart_sp_q", 4 * k),
+            ("ns_cart_tw_stamp", k), ("ns_cart_tw", 6 * k), ("ns_cart_tw_frame", k),
+            ("ns_cart_goal_stamp", k), ("ns_cart_goal_p", 3 * k), ("ns_cart_goal_q", 4 * k),
             ("cycles", 1), ("overruns", 1), ("ring_index", 1), ("lateness", RING), ("compute", RING),
         ]
         self.slices: dict[str, slice] = {}

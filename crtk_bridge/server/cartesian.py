@@ -11,7 +11,8 @@ configuration only, so the control process maps it every cycle (core/twist.py).
 A namespace whose backend does cartesian control itself (``native_cartesian``: a UR's
 ``servoL`` / ``speedL`` / ``moveL``) gets its pose and twist commands passed through unchanged
 (relative ones composed with the pose the backend measures), no IK, and its ``measured_cp`` is
-the backend's own tip pose.
+the backend's own tip pose; ``setpoint_cp``, ``setpoint_cv`` and ``goal_cp`` are what it was
+commanded (core/native_cartesian.py), while that command is in force.
 
 IK never runs on the front's event loop: position-level commands and ``inverse_kinematics`` run
 on one worker thread per namespace (FIFO, so a namespace's IK requests keep their order) with
@@ -95,10 +96,24 @@ class CartesianSpace:
                 "position": p.tolist(), "orientation": quat.tolist()}
 
     def _native_pose(self, st: dict) -> dict:
-        ok = st["native_stamp"] > 0
-        return {"stamp": st["native_stamp"], "frame_id": self.cfg.base_frame, "child_frame_id": self.cfg.tip_frame,
-                "position": st["native_p"].tolist() if ok else [],
-                "orientation": quaternion_from_matrix(matrix_from_quaternion(st["native_q"])).tolist() if ok else []}
+        if not st["native_stamp"] > 0:
+            return self._pose(0.0, None)
+        return self._commanded_pose(st["native_stamp"], st["native_p"], st["native_q"])
+
+    def _commanded_pose(self, stamp: float, p: np.ndarray, quat: np.ndarray) -> dict:
+        return {"stamp": stamp, "frame_id": self.cfg.base_frame, "child_frame_id": self.cfg.tip_frame,
+                "position": p.tolist(), "orientation": quaternion_from_matrix(matrix_from_quaternion(quat)).tolist()}
+
+    @staticmethod
+    def _native_twist(st: dict, frame: str) -> np.ndarray:
+        """The twist a native backend runs, in ``frame``'s axes (turned by the measured tip orientation)."""
+        v = st["native_tw"]
+        if st["native_tw_body"] == (frame == "body"):
+            return v
+        rot = matrix_from_quaternion(st["native_q"])
+        if frame == "body":
+            rot = rot.T
+        return np.concatenate([rot @ v[:3], rot @ v[3:]])
 
     def _six(self, kind: str, stamp: float, vec: np.ndarray | None, frame: str) -> dict:
         a, b = ("linear", "angular") if kind == "twist" else ("force", "torque")
@@ -132,6 +147,13 @@ class CartesianSpace:
             ok = st["measured_stamp"] and st["measures_effort"]
             w = self.kin.wrench_from_efforts(st["measured_p"], st["measured_f"], frame) if ok else None
             return self._six("wrench", st["measured_stamp"], w, frame)
+        if self.native:  # what the backend was commanded, while a cartesian command of it is in force
+            if cmd == "setpoint_cp" and st["native_sp_stamp"] > 0:
+                return self._commanded_pose(st["native_sp_stamp"], st["native_sp_p"], st["native_sp_q"])
+            if cmd == "goal_cp" and st["native_goal_stamp"] > 0:
+                return self._commanded_pose(st["native_goal_stamp"], st["native_goal_p"], st["native_goal_q"])
+            if cmd == "setpoint_cv" and st["native_tw_stamp"] > 0:
+                return self._six("twist", st["native_tw_stamp"], self._native_twist(st, frame), frame)
         if cmd == "setpoint_cp":  # spec 4.2.6: valid only when the active command is position based
             return self._pose(st["setpoint_stamp"], st["setpoint_p"] if st["setpoint_has_p"] else None)
         if cmd == "setpoint_cv":

@@ -17,6 +17,7 @@ from typing import Any, Callable
 import msgspec
 import numpy as np
 
+from ..core.actuator import FRAME_BODY
 from ..core.snapshot import RING, SnapshotBuffer
 from ..errors import CrtkBridgeError
 from ..profile import Profile
@@ -266,6 +267,16 @@ class ControlLink:
             "native_p": buf[s["ns_cart_p"]][3 * k:3 * k + 3].copy(),
             "native_q": buf[s["ns_cart_q"]][4 * k:4 * k + 4].copy(),
             "native_f": buf[s["ns_cart_f"]][6 * k:6 * k + 6].copy(),
+            # what it was commanded (core/native_cartesian.py; stamp 0: nothing)
+            "native_sp_stamp": float(buf[s["ns_cart_sp_stamp"]][k]),
+            "native_sp_p": buf[s["ns_cart_sp_p"]][3 * k:3 * k + 3].copy(),
+            "native_sp_q": buf[s["ns_cart_sp_q"]][4 * k:4 * k + 4].copy(),
+            "native_tw_stamp": float(buf[s["ns_cart_tw_stamp"]][k]),
+            "native_tw": buf[s["ns_cart_tw"]][6 * k:6 * k + 6].copy(),
+            "native_tw_body": int(buf[s["ns_cart_tw_frame"]][k]) == FRAME_BODY,
+            "native_goal_stamp": float(buf[s["ns_cart_goal_stamp"]][k]),
+            "native_goal_p": buf[s["ns_cart_goal_p"]][3 * k:3 * k + 3].copy(),
+            "native_goal_q": buf[s["ns_cart_goal_q"]][4 * k:4 * k + 4].copy(),
         }
 
     def period_statistics(self) -> dict:
