@@ -142,6 +142,7 @@ class EventCode(StrEnum):
     DRIVE_FAULT = "drive_fault"  # CANopen
     BUS_ERROR = "bus_error"  # CANopen
     TRACKING_ERROR = "tracking_error"
+    TRAJECTORY_FAILED = "trajectory_failed"
     INVALID_COMMAND = "invalid_command"
     BACKEND_EXCEPTION = "backend_exception"
     INTERNAL = "internal"

@@ -539,3 +539,32 @@ def test_a_full_channel_drops_the_command_and_faults_never_blocks():
         b._w = None
         h.sock.close()
         nobody.close()
+
+
+class _NoPlan:
+    """A ruckig whose every plan fails (RuckigError), as ruckig 0.19 does on a few bit-exact inputs."""
+
+    calls = 0
+
+    def update(self, inp, out):
+        self.calls += 1
+        from ruckig import RuckigError
+        raise RuckigError("[ruckig] error in step 1")
+
+    def reset(self):
+        pass
+
+
+def test_a_move_cp_no_plan_reaches_stays_on_its_path_start_and_never_jumps_to_the_goal():
+    from crtk_bridge.backends.ur.backend import _CartesianMove
+
+    cfg = UrBackend(load_profile(UR5E)).config
+    mv = _CartesianMove(0.002, cfg)
+    p0, r0 = np.array([0.3, -0.2, 0.4]), np.eye(3)
+    mv.start(1, p0, r0, np.array([0.5, 0.1, 0.2]), np.array([0.0, 0.0, 0.0, 1.0]), now=0.0)
+    mv.otg = _NoPlan()
+    for k in range(3):
+        p, r = mv.step(0.002 * k)
+        np.testing.assert_allclose(p, p0)  # the path's start, not its goal
+        np.testing.assert_allclose(r, r0, atol=1e-12)
+    assert mv.failed and mv.finished and mv.otg.calls == 5  # the plan and its four nudged retries, once

@@ -176,14 +176,15 @@ def test_movej_arrives_along_a_trajectory(ready, recv):
                      interval=0.002, what="the arm part way")
     assert ready.getAsyncOperationProgress() >= 0  # still running
     wait_until(lambda: ready.getAsyncOperationProgress() < 0, 5, what="the async moveJ to finish")
-    np.testing.assert_allclose(recv.getActualQ(), goal, atol=1e-6)
+    # (the control interface's own link said so; this receive link's packet may come a cycle later)
+    wait_until(lambda: np.allclose(recv.getActualQ(), goal, atol=1e-6), 1, what="the arm at the goal")
     # phase-synchronised (a line in joint space): every joint was the same fraction of the way when joint 0 was
     frac = (np.array(mid) - start) / (goal - start)
     np.testing.assert_allclose(frac, frac[0], atol=0.03)
     goal2 = goal - [0.2, 0.0, 0.0, 0.0, 0.0, 0.0]
     assert ready.moveJ(goal2.tolist(), 2.0, 8.0)  # synchronous: returns on arrival
-    np.testing.assert_allclose(recv.getActualQ(), goal2, atol=1e-6)
-    assert ready.isSteady()
+    wait_until(lambda: np.allclose(recv.getActualQ(), goal2, atol=1e-6), 1, what="the arm at the second goal")
+    wait_until(ready.isSteady, 1, what="isSteady after the synchronous moveJ")
 
 
 def test_servoj_streaming_tracks(ready, recv):
@@ -234,7 +235,7 @@ def test_movel_goes_straight_and_servol_follows(ready, recv):
         off = (p - start[:3]) - d * np.dot(p - start[:3], d) / np.dot(d, d)
         worst = max(worst, float(np.linalg.norm(off)))
         time.sleep(0.005)
-    np.testing.assert_allclose(recv.getActualTCPPose()[:3], goal[:3], atol=1e-4)
+    wait_until(lambda: np.allclose(recv.getActualTCPPose()[:3], goal[:3], atol=1e-4), 1, what="the TCP at the moveL goal")
     assert worst < 1e-3  # a straight line, not a joint-space arc
     # servoL: a stream of poses along x; the TCP follows
     p0 = np.array(recv.getActualTCPPose())
@@ -283,7 +284,7 @@ def test_speed_slider_scales_motion(sim, ready, recv):
             peak = max(peak, abs(recv.getActualQd()[0]))
             time.sleep(0.002)
         assert 0.3 < peak <= 0.5 + 1e-9  # 1.0 rad/s asked, half of it allowed
-        np.testing.assert_allclose(recv.getActualQ()[0], q[0] + 0.6, atol=1e-6)
+        wait_until(lambda: abs(recv.getActualQ()[0] - (q[0] + 0.6)) < 1e-6, 1, what="joint 0 at the slowed moveJ's goal")
     finally:
         sim.set_speed_slider(1.0)
 
@@ -412,14 +413,16 @@ def test_io_interface_sets_outputs_and_the_speed_slider(sim, recv):
 
 
 def test_watchdog_stops_the_program_when_inputs_stop(ready, recv):
-    assert ready.setWatchdog(4.0)  # a command-register write at least every 250 ms, or it stops
+    # a command-register write at least every 500 ms, or it stops (2 Hz: a loaded host's scheduling
+    # hiccup between two kicks must not stop it; 4 Hz did once at load 10)
+    assert ready.setWatchdog(2.0)
     for _ in range(25):
         assert ready.kickWatchdog()
         time.sleep(0.02)
     assert ready.isProgramRunning()  # kicked every 20 ms: still running
     t0 = time.monotonic()
     wait_until(lambda: not ready.isProgramRunning(), 3, what="the watchdog stopping the program")
-    assert time.monotonic() - t0 > 0.2  # not before its 250 ms
+    assert time.monotonic() - t0 > 0.4  # not before its 500 ms
     wait_until(lambda: recv.getRuntimeState() == 1, 1, what="runtime state STOPPED on the receive link")
     ready.reuploadScript()
     wait_until(ready.isProgramRunning, 5, what="the script running again, without a watchdog")

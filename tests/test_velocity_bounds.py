@@ -13,12 +13,14 @@ import itertools
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
+from ruckig import RuckigError
 
 from crtk_bridge.core.actuator import CommandMode
 from crtk_bridge.core.controller import Controller
 from crtk_bridge.core.motion import Mode
+from crtk_bridge.core.state import OperatingState
 
 from .test_controller import PROFILE, Clock, FakeActuator, VelocityActuator
 
@@ -206,8 +208,16 @@ _command = st.tuples(
 )
 
 
+# hypothesis found it: the setpoint ends at 0.3000000000000002 rad on wrist_flex, a bit-exact input
+# ruckig 0.19 raises on (a RuckigError out of the control cycle: FAULT, torque off)
+RUCKIG_EDGE = [("servo_jp", [0.0] * N, 0), ("servo_jp", [0.0] * N, 0), ("servo_jp", vec(v3=1.0), 7),
+               ("servo_jp", vec(v3=1.0), 8), ("servo_jp", vec(v3=2.220446049250313e-16), 2),
+               ("move_jp", [0.0] * N, 1)]
+
+
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(actuator=st.sampled_from([FakeActuator, VelocityActuator]), commands=st.lists(_command, min_size=1, max_size=12))
+@example(actuator=FakeActuator, commands=RUCKIG_EDGE)
 def test_any_command_sequence_respects_the_velocity_bounds(actuator, commands):
     r = Rig(actuator)
     m = r.c.namespaces[ARM]
@@ -228,3 +238,68 @@ def test_any_command_sequence_respects_the_velocity_bounds(actuator, commands):
         r.cycle(cycles)
         r.check_bounds()
         assert m.mode is not Mode.FREE
+
+
+def errors(r: Rig, code: str) -> list[dict]:
+    return [m["data"] for m in r.c.outbox if m.get("event") == "error" and m["data"]["code"] == code]
+
+
+def test_a_move_from_a_position_ruckig_cannot_plan_from_reaches_its_goal():
+    r = Rig()
+    m = r.c.namespaces[ARM]
+    for cmd, values, cycles in RUCKIG_EDGE[:-1]:
+        assert r.req(cmd, ARM, position=list(m.setpoint_p + np.clip(values, -0.3, 0.3)))["ok"]
+        r.cycle(cycles)
+    assert m.setpoint_p[3] == 0.3000000000000002  # (the input of the hypothesis example)
+    seq = r.req("move_jp", ARM, position=[0.0] * N)["data"]["busy_seq"]
+    r.cycle(300)
+    assert r.c.state is OperatingState.ENABLED and not errors(r, "trajectory_failed") and not errors(r, "internal")
+    np.testing.assert_allclose(r.act.pos[:N], 0.0, atol=1e-6)  # (within the nudge: 1e-9 rad)
+    assert not m.busy and seq
+    r.check_bounds()
+
+
+class _Refusing:
+    """A ruckig whose plans fail (RuckigError) for the first ``fails`` updates."""
+
+    def __init__(self, otg, fails: int):
+        self.otg, self.fails, self.calls = otg, fails, 0
+
+    def update(self, inp, out):
+        self.calls += 1
+        if self.calls <= self.fails:
+            raise RuckigError("[ruckig] error in step 1")
+        return self.otg.update(inp, out)
+
+
+def test_a_failed_plan_is_retried_from_a_nudged_position():
+    r = Rig()
+    m = r.c.namespaces[ARM]
+    m.otg = _Refusing(m.otg, fails=2)  # the plan from the setpoint and from +1 nrad fail
+    assert r.req("move_jp", ARM, position=vec(v0=0.4))["ok"]
+    r.cycle(300)
+    assert m.otg.calls > 3  # the third plan (-1 nrad) was taken and followed
+    assert r.act.pos[0] == pytest.approx(0.4, abs=1e-6)
+    assert r.c.state is OperatingState.ENABLED and not errors(r, "trajectory_failed")
+    r.check_bounds()
+
+
+def test_a_move_no_plan_reaches_holds_says_so_and_ends_without_a_fault():
+    r = Rig()
+    m = r.c.namespaces[ARM]
+    r.cycle(5)
+    here = m.setpoint_p.copy()
+    m.otg = _Refusing(m.otg, fails=10**9)
+    seq = r.req("move_jp", ARM, position=vec(v0=0.4))["data"]["busy_seq"]
+    r.cycle(3)
+    (err,) = errors(r, "trajectory_failed")
+    assert err["ns"] == ARM and "holding position" in err["message"] and ARM in err["message"]
+    assert r.c.state is OperatingState.ENABLED  # not a FAULT: torque stays on, the arm holds
+    assert m.mode is Mode.HOLD and not m.busy
+    np.testing.assert_array_equal(m.setpoint_p, here)  # nothing moved
+    idle = [s for s in (x["data"] for x in r.c.outbox if x.get("event") == "operating_state")
+            if not s["is_busy"] and s["busy_seq"] == seq]
+    assert idle, "the move's idle edge"
+    r.cycle(20)
+    np.testing.assert_array_equal(r.act.pos[:N], here)
+    assert len(errors(r, "trajectory_failed")) == 1  # said once

@@ -69,6 +69,7 @@ from typing import Any, ClassVar, Sequence
 
 import msgspec
 import numpy as np
+from ruckig import InputParameter, OutputParameter, Result, Ruckig, RuckigError
 
 from ..errors import BackendError
 from ..profile import Profile
@@ -692,3 +693,30 @@ class Actuator(abc.ABC):
 
     @abc.abstractmethod
     def _write(self, command: JointCommand) -> Fault | None: ...
+
+
+# ---------------------------------------------------------------- ruckig, for the motion layer and
+# backends that plan on their own (a UR's move_cp)
+#: position offsets a failed ruckig plan is retried from, in order (see ruckig_update)
+_NUDGES = (1e-9, -1e-9, 1e-7, -1e-7)
+
+
+def ruckig_update(otg: Ruckig, inp: InputParameter, out: OutputParameter) -> Result | None:
+    """One ruckig cycle (``otg.update``). Ruckig 0.19 raises RuckigError on a few bit-exact inputs
+    (a rest-to-rest move of 0.3000000000000002 rad at 4 rad/s, 15 rad/s^2, 150 rad/s^3 fails its
+    step-1 profile search; 0.3 and 0.30000000000000004 do not; a rate-limited servo setpoint makes
+    such sums): the plan is then made from the current position moved by a nanoradian or so (far
+    below any encoder's resolution). None when every such plan fails too (``inp`` as it was)."""
+    try:
+        return otg.update(inp, out)
+    except RuckigError:
+        pass
+    here = np.array(inp.current_position)
+    for nudge in _NUDGES:
+        inp.current_position = here + nudge
+        try:
+            return otg.update(inp, out)
+        except RuckigError:
+            continue
+    inp.current_position = here
+    return None

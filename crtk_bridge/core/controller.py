@@ -993,6 +993,9 @@ class Controller:
             msg = m.step(now, measured[m.idx])
             if msg:
                 self._event("warning", "servo_timeout", msg, m.name)
+            if m.error is not None:
+                self._event("error", "trajectory_failed", m.error, m.name)
+                m.error = None
             m.fill(cmd)
             if nc is not None:
                 nc.fill(cmd.mode, cmd.cartesian)  # the backend's cartesian row; its joints left to it

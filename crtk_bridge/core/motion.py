@@ -39,7 +39,7 @@ import numpy as np
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig
 
 from ..profile import Profile
-from .actuator import Capabilities, CommandMode, JointCommand
+from .actuator import Capabilities, CommandMode, JointCommand, ruckig_update
 
 
 class Mode(enum.Enum):
@@ -72,6 +72,8 @@ class NamespaceMotion:
 
     def __init__(self, name: str, indices: list[int], profile: Profile, dt: float, caps: Capabilities):
         self.name = name
+        #: an error the controller reports (and clears) after the cycle's step: a failed plan
+        self.error: str | None = None
         self.idx = np.asarray(indices, dtype=np.intp)
         joints = [profile.joints[i] for i in indices]
         self.joint_names = [j.name for j in joints]
@@ -410,9 +412,13 @@ class NamespaceMotion:
         self.setpoint_stamp = now
 
     def _step_trajectory(self, now: float) -> bool:
-        result = self.otg.update(self.inp, self.out)
+        result = ruckig_update(self.otg, self.inp, self.out)
         if result is not Result.Working and result is not Result.Finished:
-            self.hold()  # invalid input cannot happen with validated limits; hold, don't guess
+            # invalid input cannot happen with validated limits, and a plan ruckig cannot make is
+            # retried from nudged positions (above): hold where the setpoint is, don't guess; say so
+            self.hold()
+            self.error = (f"{self.name}: no trajectory to the move's goal could be planned from the current "
+                          f"setpoint (ruckig: {result!s}); holding position")
             return True
         self.setpoint_p[:] = self.out.new_position
         self.setpoint_v[:] = self.out.new_velocity

@@ -129,6 +129,7 @@ from ...core.actuator import (
     background_thread,
     Steps,
     DEFAULT_TRANSITION_TIMEOUTS_S,
+    ruckig_update,
 )
 from ...errors import BackendError, CommandError, ProfileError, fmt_number
 from ...profile import Profile, backend_config, unknown_key_message
@@ -215,6 +216,8 @@ class _CartesianMove:
         self.goal_r = np.eye(3)
         self.seq = 0
         self.finished = True
+        self.failed = False  # no plan could be made: the path stays where it was (never jumps to s = 1)
+        self.s = 1.0
         self.deadline = 0.0
         self.duration = 0.0
 
@@ -238,6 +241,8 @@ class _CartesianMove:
         inp.max_velocity, inp.max_acceleration, inp.max_jerk = [min(v, 1e6)], [min(a, 1e6)], [min(10.0 * a, 1e7)]
         self.seq = seq
         self.finished = False
+        self.failed = False
+        self.s = 0.0
         self.otg.reset()
         self.duration = 0.0
         self.deadline = now + 2.0  # refined by the first step, once ruckig knows the duration
@@ -245,15 +250,19 @@ class _CartesianMove:
     def step(self, now: float) -> tuple[np.ndarray, np.ndarray]:
         """The next (position, rotation matrix) of the path."""
         if not self.finished:
-            result = self.otg.update(self.inp, self.out)
+            result = ruckig_update(self.otg, self.inp, self.out)
             if self.duration == 0.0 and result in (Result.Working, Result.Finished):
                 self.duration = float(self.out.trajectory.duration)
                 self.deadline = now + 1.5 * self.duration + 2.0
             if result is Result.Working:
+                self.s = float(self.out.new_position[0])
                 self.out.pass_to_input(self.inp)
-            else:
+            elif result is Result.Finished:
+                self.s = 1.0
                 self.finished = True
-        s = float(self.out.new_position[0]) if not self.finished else 1.0
+            else:  # no plan: stay where the path is (a jump to the goal would be a surprise motion)
+                self.finished = self.failed = True
+        s = self.s
         return self.p0 + s * self.dp, self.r0 @ pin.exp3(s * self.w)
 
     def reached(self, p: np.ndarray, r: np.ndarray) -> bool:
@@ -743,6 +752,11 @@ class UrBackend(Actuator):
                 if int(cart.seq[0]) != mv.seq:
                     mv.start(int(cart.seq[0]), self._tcp_p, self._tcp_r, cart.position[0], cart.orientation[0], now)
             p, rot = mv.step(now)
+            if mv.failed and self._done_seq < mv.seq:
+                self._done_seq = mv.seq
+                return Fault("trajectory_failed", f"{self.robot}: move_cp: no path to the pose "
+                             f"{np.round(mv.goal_p, 4).tolist()} m could be planned (ruckig); stopped on "
+                             f"the way, TCP at {np.round(self._tcp_p, 4).tolist()} m", transient=False)
             if mv.reached(self._tcp_p, self._tcp_r):
                 self._done_seq = mv.seq
             elif now > mv.deadline:
