@@ -260,6 +260,14 @@ class Worker:
         if not ctl.isConnected():  # (the main thread ends this worker: never reconnected in place)
             raise RuntimeError("the RTDE control link is down")
         if not ctl.isProgramRunning():
+            # A stop that ended the script (protective stop, e-stop, violation) left its last
+            # command in the command register (input_int_register_0), and a re-uploaded script
+            # plays the register first: a speedJ / speedL running at the stop would start again
+            # before the first hold. With the program stopped, any command makes ur_rtde only
+            # clear the register (over RTDE; it returns False): done here, and a few controller
+            # cycles let the controller take it before the script goes out on port 30003.
+            ctl.speedStop(4.0)
+            time.sleep(3.0 / self.rate_hz)
             ctl.reuploadScript()
 
     def stop_script(self, teach: bool, last_kind: str) -> None:

@@ -1,0 +1,49 @@
+"""The ur_rtde worker's own logic (crtk_bridge/backends/ur/worker.py), on stand-in ur_rtde objects:
+no controller, no simulator, no ur_rtde in this process."""
+
+from __future__ import annotations
+
+import sys
+import types
+
+from crtk_bridge.backends.ur.worker import Worker
+
+
+class _Recorder:
+    """A stand-in RTDEControlInterface recording the calls made on it."""
+
+    def __init__(self, log: list, connected: bool = True, running: bool = False):
+        self.log, self.connected, self.running = log, connected, running
+
+    def isConnected(self):  # noqa: N802 - ur_rtde's names
+        return self.connected
+
+    def isProgramRunning(self):  # noqa: N802
+        return self.running
+
+    def __getattr__(self, attr):
+        def call(*args):
+            self.log.append(attr)
+            return not (attr.endswith("Stop") and not self.running)  # ur_rtde: refused while stopped
+        return call
+
+
+def test_a_stopped_script_is_uploaded_again_only_after_its_command_register_is_cleared(monkeypatch):
+    """A stop that ends the control script (protective stop, e-stop, violation, its watchdog)
+    leaves the command it ran in input_int_register_0, and a re-uploaded script plays the
+    register first: a speedJ running at the stop started again on enable, until the first hold
+    (simulated UR5e, speedJ at 0.3 rad/s when a protective stop came: the arm at 0.016-0.08 rad/s,
+    up to 0.34 mrad, in 10 of 10 enables measured before; still in all 13 after). With the
+    program stopped, a command makes ur_rtde clear the register instead: enable sends one before
+    reuploadScript, never after."""
+    monkeypatch.setitem(sys.modules, "rtde_control", types.ModuleType("rtde_control"))  # not ur_rtde's
+    log: list[str] = []
+    w = Worker(None, None, "127.0.0.1", 500.0, 0)
+    w.ctl = _Recorder(log)
+    w.start_script()
+    assert log == ["speedStop", "reuploadScript"], log
+    # a script that runs is left alone: no stop, no upload
+    log.clear()
+    w.ctl = _Recorder(log, running=True)
+    w.start_script()
+    assert log == []
