@@ -516,7 +516,7 @@ def test_a_stalled_worker_never_blocks_the_cycle(ur):
 def test_a_full_channel_drops_the_command_and_faults_never_blocks():
     """Drop-and-fault: a worker that takes no commands (here a channel nobody reads) fills the
     socket; the next command is refused at once (never waited for) and the cycle's write is a
-    FAULT naming the robot and the dropped command."""
+    FAULT naming the robot and the dropped command; the worker is ended, as on a lost link."""
     import socket
 
     from crtk_bridge.backends.ur.channel import SERVOJ, WorkerHandle
@@ -534,6 +534,7 @@ def test_a_full_channel_drops_the_command_and_faults_never_blocks():
         fault = b._out(SERVOJ, [0.0] * 6)
         assert fault is not None and fault.code == "worker_stalled" and not fault.transient, fault
         assert fault.message.startswith("ur5e: the ur_rtde worker takes no commands") and "servoJ dropped" in fault.message
+        assert b._w is None and h in b._dispose  # that worker is ended (reaped on the restart's thread)
         assert sent > 100  # the whole buffer first: ~0.5 s of commands at 500 Hz
     finally:
         b._w = None

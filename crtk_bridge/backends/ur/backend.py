@@ -686,8 +686,13 @@ class UrBackend(Actuator):
         if w is None or not w.command(op, values, a, t, lookahead, gain):
             if w is not None and w.dead:
                 return None  # the next read reports it
-            return Fault("worker_stalled", f"{self.robot}: the ur_rtde worker takes no commands (its channel "
-                         f"is full); {_op_name(op)} dropped", transient=False)
+            # ended like a lost link (a fresh worker starts by itself): a worker whose reader is
+            # stuck while its packages still flow would otherwise refuse every stop and enable, and
+            # run its newest queued command whenever it came unstuck
+            if self._down is None:
+                self._down = ("worker_stalled", f"the ur_rtde worker takes no commands (its channel is full); "
+                              f"{_op_name(op)} dropped and the worker ended")
+            return self._link_lost()
         self._last_sent = time.perf_counter()
         return None
 
