@@ -320,3 +320,14 @@ def test_crtk_ctl_teleop_refuses_out_of_range_options_before_connecting(capsys, 
     assert main(["teleop", "--leader", "/nonexistent/l.sock", "--follower", "/nonexistent/f.sock",
                  option, value]) == 2
     assert capsys.readouterr().err.strip().splitlines()[-1] == f"crtk-ctl teleop: error: argument {option}: {allowed}"
+
+
+@pytest.mark.parametrize("option, kwargs, shown", [
+    ("--rate (rate_hz)", {"rate_hz": "x"}, "'x'"), ("--rate (rate_hz)", {"rate_hz": True}, "True"),
+    ("--tolerance (tolerance)", {"tolerance": None}, "None"), ("--tolerance (tolerance)", {"tolerance": "0.1"}, "'0.1'"),
+])
+def test_an_ill_typed_rate_or_tolerance_is_a_teleop_error_naming_the_option(option, kwargs, shown):
+    with pytest.raises(TeleopError) as refused:
+        Teleop(_Daemon("lead", 200.0), _Daemon("follow", 200.0), **kwargs)
+    assert str(refused.value) == f"{option}: expected a number, got {shown}"
+    assert Teleop(_Daemon("lead", 200.0), _Daemon("follow", 200.0), rate_hz=np.int64(20)).period == pytest.approx(0.05)

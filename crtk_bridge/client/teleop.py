@@ -30,6 +30,7 @@ Ending never disables or frees the follower.
 from __future__ import annotations
 
 import math
+import numbers
 import threading
 import time
 from dataclasses import dataclass
@@ -128,6 +129,13 @@ def pair_namespaces(leader: Robot, follower: Robot, pairs: list[str] | None = No
     return out
 
 
+def _number(option: str, value: object) -> float:
+    """``value`` as a float; a string, None or bool is refused (TeleopError naming ``option``)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TeleopError(f"{option}: expected a number, got {value!r}")
+    return float(value)
+
+
 class Teleop:
     """Joint-space teleoperation of ``follower`` by ``leader`` (see the module's docstring).
     ``on_state(state, message)`` is called on every state change and with ALIGNING's progress."""
@@ -139,11 +147,12 @@ class Teleop:
             raise TeleopError(f"the leader and the follower are the same daemon ({leader.connection.path})")
         cap, capped_by = min((float(robot.info["rate_hz"]), f"the loop rate of the {role} {robot.name!r}")
                              for role, robot in (("follower", follower), ("leader", leader)))
-        rate_hz = min(RATE_DEFAULT_HZ, cap) if rate_hz is None else float(rate_hz)
+        rate_hz = min(RATE_DEFAULT_HZ, cap) if rate_hz is None else _number("--rate (rate_hz)", rate_hz)
         problem = rate_problem(rate_hz, cap, capped_by)
         if problem:
             raise TeleopError(f"--rate (rate_hz): {problem}")
-        problem = tolerance_problem(float(tolerance))
+        tolerance = _number("--tolerance (tolerance)", tolerance)
+        problem = tolerance_problem(tolerance)
         if problem:
             raise TeleopError(f"--tolerance (tolerance): {problem}")
         if align not in ("wait", "move"):
