@@ -23,11 +23,11 @@ def test_serial_sim_relaxes_the_reply_margin_only_where_the_profile_is_silent(na
     cls = backend_class(profile.backend_type, name)
     wired = cls.sim_profile(profile, "/tmp/some-pty")
     assert wired.backend["port"] == "/tmp/some-pty"
-    assert wired.backend["timeout_ms"] == SerialServoBackend.SIM_TIMEOUT_MS > DEFAULT_MARGIN_MS
+    assert wired.backend["timeout_ms"] == SerialServoBackend.SIM_DEFAULTS["timeout_ms"] == 30.0 > DEFAULT_MARGIN_MS
     own = msgspec.structs.replace(profile, backend={**profile.backend, "timeout_ms": 12.5})
     assert cls.sim_profile(own, "/tmp/some-pty").backend["timeout_ms"] == 12.5
     # and the backend built from it takes it
-    assert cls(wired, source=name).config.timeout_ms == SerialServoBackend.SIM_TIMEOUT_MS
+    assert cls(wired, source=name).config.timeout_ms == 30.0
 
 
 class _FakeSimulator:
@@ -45,5 +45,17 @@ def test_every_bus_of_a_several_bus_profile_is_wired_by_its_backend(monkeypatch,
     for bus in ("left", "right"):
         section = wired.backends[bus]
         assert section["port"] == f"{tmp_path}/tty-{bus}"
-        assert section["timeout_ms"] == SerialServoBackend.SIM_TIMEOUT_MS
+        assert section["timeout_ms"] == 30.0
         assert section["type"] == "feetech" and section["baudrate"] == profile.backends[bus]["baudrate"]
+
+
+@pytest.mark.parametrize("name, key, value", [("canopen_2axis.yaml", "tpdo_timeout_ms", 50.0),
+                                              ("ur5e.yaml", "link_timeout_s", 0.5), ("ur5e.yaml", "watchdog_hz", 2.0)])
+def test_each_backends_sim_defaults_fill_only_what_the_profile_leaves_unset(name, key, value):
+    profile = load_profile(PROFILES / name)
+    cls = backend_class(profile.backend_type, name)
+    assert cls.SIM_DEFAULTS[key] == value
+    assert cls.sim_profile(profile, "127.0.0.9").backend[key] == value
+    for own in (None, value * 2):  # null is "no value": the simulator's; a number is kept
+        mine = msgspec.structs.replace(profile, backend={**profile.backend, key: own})
+        assert cls.sim_profile(mine, "127.0.0.9").backend[key] == (value if own is None else own)

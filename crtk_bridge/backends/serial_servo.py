@@ -53,7 +53,6 @@ import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-import msgspec
 import numpy as np
 import serial
 
@@ -296,12 +295,12 @@ class SerialServoBackend(Actuator):
     FACTORY_BAUD: ClassVar[int] = 1_000_000
     #: largest |Homing_Offset| the servo takes (calibration.homing_offset is checked against it)
     HOMING_OFFSET_MAX: ClassVar[int] = 2047
-    #: ``timeout_ms`` under ``--sim`` unless the profile sets one: the simulated servos are a
+    #: ``timeout_ms`` 30 under ``--sim`` unless the profile sets one: the simulated servos are a
     #: Python process on the same (possibly loaded) PC behind a pty, where a reply can take tens of
     #: ms; a real servo answers within ~1 ms of its wire time. A silent simulated servo still
     #: faults the robot within ``safety.bus_errors_max`` cycles, each costing up to
-    #: ``(read_retries + 1) * (wire time + SIM_TIMEOUT_MS)``.
-    SIM_TIMEOUT_MS: ClassVar[float] = 30.0
+    #: ``(read_retries + 1) * (wire time + 30 ms)``.
+    SIM_DEFAULTS: ClassVar[dict[str, Any]] = {"timeout_ms": 30.0}
     #: SDK result codes that mean "no reply" / "bad reply"
     RX_TIMEOUT: ClassVar[int] = -1
     RX_CORRUPT: ClassVar[int] = -2
@@ -773,16 +772,6 @@ class SerialServoBackend(Actuator):
                      f"{','.join(map(str, self._ids))} on {self._where} ({self._attempts} attempt"
                      f"{'s' if self._attempts > 1 else ''}): {self._result_text(result)}",
                      joint=self.joint_names[i] if i is not None else None, transient=True)
-
-    @classmethod
-    def sim_profile(cls, profile: Profile, endpoint: str) -> Profile:
-        """``profile`` wired to the simulated bus at ``endpoint`` (its pty), with
-        :attr:`SIM_TIMEOUT_MS` as ``timeout_ms`` unless the profile sets its own."""
-        wired = super().sim_profile(profile, endpoint)
-        backend = dict(wired.backend)
-        if backend.get("timeout_ms") is None:
-            backend["timeout_ms"] = cls.SIM_TIMEOUT_MS
-        return msgspec.structs.replace(wired, backend=backend)
 
     # ------------------------------------------------------------------ lifecycle
     def _open_port(self) -> tuple[Any, float]:

@@ -384,6 +384,10 @@ class Actuator(abc.ABC):
     paces_cycle: ClassVar[bool] = False
     #: how ``--sim`` wires this backend to its simulator; None: no simulator
     simulator: ClassVar[SimWiring | None] = None
+    #: backend keys ``--sim`` sets where the profile gives no value (absent or null): limits that
+    #: the simulator, a Python process on the daemon's own (possibly loaded) PC, needs wider than
+    #: the real device (a serial reply margin, a CAN TPDO deadline, an RTDE link timeout)
+    SIM_DEFAULTS: ClassVar[dict[str, Any]] = {}
     #: time limit (s) of each lifecycle transition; exceeding it faults the robot
     transition_timeouts_s: ClassVar[dict[Lifecycle, float]] = DEFAULT_TRANSITION_TIMEOUTS_S
     #: True: PAUSE stops the device by itself (a CiA 402 quick stop ramp; a UR safeguard stop stops
@@ -572,11 +576,15 @@ class Actuator(abc.ABC):
     # ---- simulator wiring ----
     @classmethod
     def sim_profile(cls, profile: Profile, endpoint: str) -> Profile:
-        """``profile`` wired to a running simulator at ``endpoint`` (see :class:`SimWiring`)."""
+        """``profile`` wired to a running simulator at ``endpoint`` (see :class:`SimWiring`), with
+        :attr:`SIM_DEFAULTS` where it gives no value of its own."""
         if cls.simulator is None:
             raise BackendError(f"{profile.name}: backend {profile.backend_type!r} has no simulator")
-        return msgspec.structs.replace(
-            profile, backend={**profile.backend, cls.simulator.endpoint_key: endpoint})
+        backend = {**profile.backend, cls.simulator.endpoint_key: endpoint}
+        for key, value in cls.SIM_DEFAULTS.items():
+            if backend.get(key) is None:
+                backend[key] = value
+        return msgspec.structs.replace(profile, backend=backend)
 
     # ---- real-time path (bounded, returns a Fault instead of raising) ----
     def read(self, feedback: JointFeedback) -> Fault | None:

@@ -245,8 +245,10 @@ class Canopen402Backend(Actuator):
     simulator = SimWiring("canopen", endpoint_key="channel")
     #: the interface ``--sim`` uses to reach the simulated USB-CAN adapter
     SIM_INTERFACE = "slcan"
-    #: ``tpdo_timeout_ms`` on the simulator unless the profile sets one
-    SIM_TPDO_TIMEOUT_MS = 50.0
+    #: ``tpdo_timeout_ms`` on the simulator unless the profile sets one: the simulated adapter
+    #: and drives are Python threads in another process, on a loaded host their answers can take
+    #: tens of ms (a real drive answers within a millisecond)
+    SIM_DEFAULTS = {"tpdo_timeout_ms": 50.0}
     transition_timeouts_s = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 3.0,
                              Lifecycle.RESUME: 3.0, Lifecycle.FAULT_RESET: 2.0, Lifecycle.HOME: 60.0}
     #: cycles a drive's statusword may stay missing inside a transition before it fails
@@ -345,9 +347,6 @@ class Canopen402Backend(Actuator):
         wired = super().sim_profile(profile, endpoint)
         options = {**wired.backend.get("options", {}), **cls.sim_options()}
         backend = {**wired.backend, "interface": cls.SIM_INTERFACE, "options": options}
-        # the simulated adapter and drives are Python threads in another process: on a loaded
-        # host their answers can take tens of ms (a real drive answers within a millisecond)
-        backend.setdefault("tpdo_timeout_ms", cls.SIM_TPDO_TIMEOUT_MS)
         return msgspec.structs.replace(wired, backend=backend)
 
     @classmethod

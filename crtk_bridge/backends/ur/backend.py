@@ -371,13 +371,6 @@ class UrBackend(Actuator):
     #: real-time system, and the daemon's control process runs SCHED_FIFO
     SIM_DEFAULTS = {"link_timeout_s": 0.5, "watchdog_hz": 2.0}
 
-    @classmethod
-    def sim_profile(cls, profile: Profile, endpoint: str) -> Profile:
-        """``profile`` wired to the simulated controller at ``endpoint``, with
-        :attr:`SIM_DEFAULTS` where it sets no value of its own."""
-        wired = super().sim_profile(profile, endpoint)
-        return msgspec.structs.replace(wired, backend={**cls.SIM_DEFAULTS, **wired.backend})
-
     # ------------------------------------------------------------------ start-up path
     @property
     def host(self) -> str:
