@@ -42,6 +42,24 @@ class JointLimits(_Strict, kw_only=True):
     acceleration_max: float
     jerk_max: float
     effort_max: float | None = None
+    #: rad/s^2: what a stop (hold, pause, a stream's watchdog, client loss, the shutdown's first
+    #: stop) brakes at, jerk-unlimited; None: :func:`stop_deceleration`'s default
+    stop_deceleration_max: float | None = None
+
+
+#: the default stop deceleration, in multiples of ``acceleration_max`` (bounded by the hardware)
+STOP_DECELERATION_FACTOR = 4.0
+
+
+def stop_deceleration(limits: JointLimits, hardware_max: float = math.inf) -> float:
+    """rad/s^2 a stop brakes this joint at: ``limits.stop_deceleration_max`` when the profile gives
+    it, else ``STOP_DECELERATION_FACTOR * acceleration_max`` bounded by ``hardware_max`` (what the
+    backend says the joint can do, :meth:`~crtk_bridge.core.actuator.Actuator.deceleration_limit`).
+    A trajectory's acceleration is chosen for smooth motion; a stop needs the shortest distance
+    the hardware allows (docs/protocol.md, Safety: stopping distances)."""
+    if limits.stop_deceleration_max is not None:
+        return limits.stop_deceleration_max
+    return min(STOP_DECELERATION_FACTOR * limits.acceleration_max, hardware_max)
 
 
 class Joint(_Strict, kw_only=True):
@@ -51,7 +69,9 @@ class Joint(_Strict, kw_only=True):
 
     name: str
     limits: JointLimits
-    home: float = 0.0  # rad: the position `home` moves to
+    #: rad: the position `home` moves to. No default: a joint's zero is not always a safe pose (a
+    #: UR's zero is the arm stretched out), so `home` is refused while a joint has none
+    home: float | None = None
     backend: dict[str, Any] = {}
 
 
@@ -331,12 +351,13 @@ def _check(profile: Profile) -> list[str]:
         lim = j.limits
         if not lim.position_min < lim.position_max:
             problems.append(f"{key}.limits: position_min must be < position_max")
-        for field in ("velocity_max", "acceleration_max", "jerk_max"):
+        for field in ("velocity_max", "acceleration_max", "jerk_max", "stop_deceleration_max"):
             v = getattr(lim, field)
-            if not (v > 0 and math.isfinite(v)):
+            if v is not None and not (v > 0 and math.isfinite(v)):
                 problems.append(f"{key}.limits.{field}: must be a finite number > 0, got {v}")
-        if not lim.position_min <= j.home <= lim.position_max:
-            problems.append(f"{key}.home: {j.home} is outside the position limits")
+        if j.home is not None and not lim.position_min <= j.home <= lim.position_max:
+            problems.append(f"{key}.home: {j.home} is outside the position limits "
+                            f"[{lim.position_min}, {lim.position_max}]")
     used: dict[str, str] = {}
     ns_names = set()
     if not profile.namespaces:

@@ -164,7 +164,7 @@ def test_unknown_nested_key(tmp_path, base):
     assert "joints[2] (elbow_flex).limits.bogus: unknown key; valid keys, nearest first: " in msg
     valid = msg.rsplit(": ", 1)[1].split(", ")
     assert sorted(valid) == sorted(["position_min", "position_max", "velocity_max", "acceleration_max",
-                                    "jerk_max", "effort_max"])
+                                    "jerk_max", "effort_max", "stop_deceleration_max"])
 
 
 def test_unknown_key_in_section(tmp_path, base):

@@ -49,6 +49,7 @@ from ...core.actuator import (
     JointFeedback,
     SimWiring,
 )
+from ...errors import ProfileError
 from ...profile import Profile
 from ..serial_servo import EepromDiff, SerialServoBackend
 from ..servo_keys import PortMatch
@@ -152,11 +153,27 @@ class FeetechBackend(SerialServoBackend):
             position=True, velocity=False, effort=False, measures_velocity=True,
             measures_effort=self._measures_effort, needs_homing=False, can_free=True,
         )
+        for i, j in enumerate(profile.joints):  # a stop the servo cannot follow is a longer stop than said
+            want, most = j.limits.stop_deceleration_max, self.deceleration_limit(i)
+            if want is not None and want > most:
+                raise ProfileError(
+                    f"{source}: joints[{i}] ({j.name}).limits.stop_deceleration_max: {want:g} rad/s^2 is above "
+                    f"what the servo follows with backend.acceleration {self.config.acceleration} "
+                    f"({most:.2f} rad/s^2); lower it, or raise backend.acceleration (0 = unlimited)")
         self._last_goal = [0] * n  # ticks last sent / written at enable (int)
         self._sync_read: GroupSyncRead | None = None
         self._sync_write: GroupSyncWrite | None = None
 
     # ------------------------------------------------------------------ hooks
+    def deceleration_limit(self, i: int) -> float:
+        """The servo's own Acceleration register (``backend.acceleration`` x 100 ticks/s^2, 0 =
+        unlimited) bounds how fast it follows a braking setpoint: 254 is 38.96 rad/s^2 on a
+        4096-tick servo, the default stop deceleration's bound (core/motion.py, Stops)."""
+        acc = self.config.acceleration
+        if acc == 0:
+            return float("inf")
+        return acc * 100.0 * abs(float(self._rad_per_tick[i]))
+
     def _make_port(self, margin_ms: float) -> FastPortHandler:
         return FastPortHandler(self._port_path, margin_ms=margin_ms)
 
