@@ -73,4 +73,6 @@ def test_endless_commands_stop_and_hold_on_client_loss(rig):  # noqa: F811
     assert req("interpolate_jv", "so101", velocity=[0.5, 0, 0, 0, 0])["ok"]
     cycle(10)
     assert _lost(c) == ["control_released"]
-    assert c.namespaces["so101"].mode is Mode.HOLD
+    assert m.mode is Mode.STOP
+    cycle(50)
+    assert m.mode is Mode.HOLD
