@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
+from pathlib import Path
 
 import msgspec
 import numpy as np
 import pytest
 
 from crtk_bridge.backends import create_backend
+from crtk_bridge.core.actuator import effective_period_s
 from crtk_bridge.core.controller import Controller
 from crtk_bridge.core.motion import Mode
 from crtk_bridge.core.state import OperatingState
@@ -266,3 +269,78 @@ def test_hold_of_a_paused_arm_is_a_no_op_success():
     cycle(5)
     np.testing.assert_array_equal(act.pos, held)
     assert not req("move_jp", "so101", position=[0.1, 0, 0, 0, 0])["ok"]  # motion still refused
+
+
+# ---------------------------------------------------------------- shipped profiles
+
+PROFILES_DIR = Path(__file__).resolve().parent.parent / "profiles"
+PROTOCOL_MD = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
+SERIAL_SERVOS = {"feetech", "dynamixel"}  # no brakes: an arm of these falls when torque goes off
+
+
+def shipped_profiles() -> list[Path]:
+    """Every shipped robot profile a user drives: not example.yaml (documentation), not a
+    leader arm (``*_leader.yaml``: read with torque off for teleoperation, never enabled)."""
+    return sorted(p for p in PROFILES_DIR.glob("*.yaml")
+                  if p.name != "example.yaml" and not p.stem.endswith("_leader"))
+
+
+def _backend_types(p) -> set[str]:
+    sections = [p.backend] if p.backend is not None else list(p.backends.values())
+    return {s["type"] for s in sections}
+
+
+@pytest.mark.parametrize("path", shipped_profiles(), ids=lambda p: p.name)
+def test_every_shipped_arm_that_falls_with_torque_off_parks(path):
+    """issue 18 item 6: bimanual_so101 dropped both arms on Ctrl-C while so101 parked."""
+    p = load_profile(path)
+    if _backend_types(p) & SERIAL_SERVOS:
+        assert p.shutdown.action == "park", f"{path.name}: serial servos without brakes: needs shutdown: park"
+        assert set(p.shutdown.rest) == set(p.joint_names), f"{path.name}: the rest pose names every joint"
+
+
+@pytest.mark.parametrize("path", shipped_profiles(), ids=lambda p: p.name)
+def test_every_shipped_profile_that_homes_has_a_home_pose(path):
+    """issue 18 item 3: `home` on the UR5e drove every joint to 0 (the arm stretched out)."""
+    p = load_profile(path)
+    native = create_backend(p).native_homing
+    if not native:
+        missing = [j.name for j in p.joints if j.home is None]
+        assert not missing, f"{path.name}: no home pose for {missing}"
+
+
+def test_ur5e_home_is_the_folded_upright_pose():
+    p = load_profile(PROFILES_DIR / "ur5e.yaml")
+    np.testing.assert_allclose([j.home for j in p.joints], [0, -math.pi / 2, 0, -math.pi / 2, 0, 0], atol=1e-4)
+
+
+_ROW = re.compile(r"^\| `([^`]+\.yaml)` \| [^|]+ \| ([0-9.]+) \| ([0-9.]+) \| ([0-9.]+) \| ([0-9.]+) \|$")
+
+
+def _stopping_rows(path: Path) -> set[tuple[str, str, str, str]]:
+    """(velocity_max, stop deceleration, distance, time) per distinct joint group, from the
+    profile and its backend, formatted as docs/protocol.md writes them."""
+    p = load_profile(path)
+    b = create_backend(p)
+    dt = effective_period_s(p, b)
+    out = set()
+    for i, j in enumerate(p.joints):
+        v, d = j.limits.velocity_max, stop_deceleration(j.limits, b.deceleration_limit(i))
+        out.add((f"{v:g}", f"{d:.4g}", f"{v * v / (2 * d) + v * dt:.3f}", f"{v / d + dt:.3f}"))
+    return out
+
+
+def test_protocol_md_stopping_distances_match_the_profiles():
+    """docs/protocol.md (Safety, Stopping distances) is computed from the shipped profiles; it
+    cannot drift from them. The SO-101 stops from any joint's velocity_max within 0.25 rad."""
+    doc: dict[str, set] = {}
+    for line in PROTOCOL_MD.read_text().splitlines():
+        m = _ROW.match(line)
+        if m:
+            doc.setdefault(m.group(1), set()).add(m.groups()[1:])
+    names = [p.name for p in shipped_profiles()]
+    assert sorted(doc) == sorted(names), "one table row (or more) per shipped profile"
+    for path in shipped_profiles():
+        assert doc[path.name] == _stopping_rows(path), path.name
+    for name in ("so101.yaml", "bimanual_so101.yaml"):
+        assert all(float(dist) <= SO101_STOP_MAX_RAD for _, _, dist, _ in doc[name])
