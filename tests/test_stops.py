@@ -14,6 +14,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
+import yaml
 
 from crtk_bridge.backends import create_backend
 from crtk_bridge.core.actuator import effective_period_s
@@ -344,3 +345,19 @@ def test_protocol_md_stopping_distances_match_the_profiles():
         assert doc[path.name] == _stopping_rows(path), path.name
     for name in ("so101.yaml", "bimanual_so101.yaml"):
         assert all(float(dist) <= SO101_STOP_MAX_RAD for _, _, dist, _ in doc[name])
+
+
+def test_dynamixel_bounds_the_stop_deceleration_by_its_profile_acceleration():
+    koch = PROFILES_DIR / "koch.yaml"
+    assert create_backend(load_profile(koch)).deceleration_limit(0) == math.inf  # 0: no on-servo profile
+    data = yaml.safe_load(koch.read_text())
+    data["backend"]["profile_acceleration"] = 50  # 50 x 214.577 rev/min^2 = 18.7 rad/s^2
+    data["joints"][1]["limits"]["stop_deceleration_max"] = 30.0
+    p = parse_profile(data, "<koch>")
+    with pytest.raises(ProfileError, match=r"joints\[1\] \(shoulder_lift\)\.limits\.stop_deceleration_max: 30 "
+                                           r"rad/s\^2 is above what the servo follows with backend\.profile_acceleration 50 "
+                                           r"\(18\.73 rad/s\^2\)"):
+        create_backend(p)
+    del data["joints"][1]["limits"]["stop_deceleration_max"]
+    b = create_backend(parse_profile(data, "<koch>"))
+    assert b.deceleration_limit(1) == pytest.approx(50 * 214.577 * 2 * math.pi / 3600)

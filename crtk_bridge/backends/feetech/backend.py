@@ -49,7 +49,6 @@ from ...core.actuator import (
     JointFeedback,
     SimWiring,
 )
-from ...errors import ProfileError
 from ...profile import Profile
 from ..serial_servo import EepromDiff, SerialServoBackend
 from ..servo_keys import PortMatch
@@ -127,6 +126,7 @@ class FeetechBackend(SerialServoBackend):
     MODEL_NUMBERS = tables.MODEL_NUMBERS
     RESOLUTION = tables.RESOLUTION
     MAX_ID = 253
+    ACCELERATION_KEY = "acceleration"
     SUPPORTED_BAUDS = SUPPORTED_BAUDS
     BAUD_CODES = tables.BAUD_CODES
     FACTORY_BAUD = 1_000_000  # STS3215 (servos.md section 2)
@@ -153,13 +153,6 @@ class FeetechBackend(SerialServoBackend):
             position=True, velocity=False, effort=False, measures_velocity=True,
             measures_effort=self._measures_effort, needs_homing=False, can_free=True,
         )
-        for i, j in enumerate(profile.joints):  # a stop the servo cannot follow is a longer stop than said
-            want, most = j.limits.stop_deceleration_max, self.deceleration_limit(i)
-            if want is not None and want > most:
-                raise ProfileError(
-                    f"{source}: joints[{i}] ({j.name}).limits.stop_deceleration_max: {want:g} rad/s^2 is above "
-                    f"what the servo follows with backend.acceleration {self.config.acceleration} "
-                    f"({most:.2f} rad/s^2); lower it, or raise backend.acceleration (0 = unlimited)")
         self._last_goal = [0] * n  # ticks last sent / written at enable (int)
         self._sync_read: GroupSyncRead | None = None
         self._sync_write: GroupSyncWrite | None = None
@@ -170,7 +163,7 @@ class FeetechBackend(SerialServoBackend):
         unlimited) bounds how fast it follows a braking setpoint: 254 is 38.96 rad/s^2 on a
         4096-tick servo, the default stop deceleration's bound (core/motion.py, Stops)."""
         acc = self.config.acceleration
-        if acc == 0:
+        if acc == 0:  # (computed from the config only: the base __init__ checks the profile with it)
             return float("inf")
         return acc * 100.0 * abs(float(self._rad_per_tick[i]))
 
