@@ -59,6 +59,16 @@ class Joint(_Strict, kw_only=True):
 CORE_JOINT_KEYS = frozenset(Joint.__struct_fields__) - {"backend"}
 
 
+def joint_bus_id(joint: Joint) -> int | None:
+    """The joint's address on its bus as its backend keys give it: a servo's ``id``, a CiA 402
+    drive's ``node_id``; None for a backend without one (a UR arm). Not validated here."""
+    for key in ("id", "node_id"):
+        value = joint.backend.get(key)
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+    return None
+
+
 class KinematicsConfig(_Strict, kw_only=True):
     """Cartesian space of a namespace (pinocchio, see core/kinematics.py)."""
 
