@@ -52,6 +52,9 @@ def test_the_install_is_not_editable_and_holds_every_shipped_profile_and_urdf(in
 
 def test_init_profile_then_check_as_readme_says_from_a_folder_outside_the_clone(installed):
     """README, First time with a real arm, steps 2 and 4 (without --scan, which needs the arm)."""
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert "`crtk-bridge init-profile so101 my_arm.yaml`" in readme
+    assert "`crtk-bridge check --profile my_arm.yaml --scan`" in readme
     cwd = installed.cwd("first")
     made = installed.run(["crtk-bridge", "init-profile", "so101", "my_arm.yaml"], cwd)
     assert made.returncode == 0, made.stderr
