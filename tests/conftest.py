@@ -671,8 +671,10 @@ def _build_installed(base: Path) -> Installed:
                 continue
             lines += [ln for ln in pth.read_text().splitlines() if ln.startswith("import ")]
     (site / "_crtk_test_deps.pth").write_text("\n".join(lines) + "\n")
+    # --ignore-installed: the test venv's crtk-bridge, visible through the .pth, is never touched
     subprocess.run([sys.executable, "-m", "pip", "--python", str(inst.python), "install", "--no-deps", "-q",
-                    "--disable-pip-version-check", str(src)], check=True, timeout=600, capture_output=True)
+                    "--ignore-installed", "--disable-pip-version-check", str(src)], check=True, timeout=600,
+                   capture_output=True)
     shutil.rmtree(src)
     return inst
 
