@@ -19,7 +19,7 @@ from pathlib import Path
 PACKAGE_ROOT = str(Path(__file__).resolve().parents[1])
 
 # Python 3.10 has no -P: drop the current folder ('' with -c), then run the module as -m would
-_BOOTSTRAP = ("import runpy, sys; del sys.path[0]; sys.argv = sys.argv[1:]; "
+_BOOTSTRAP = ("import runpy, sys; sys.path[:1] == [''] and sys.path.pop(0); sys.argv = sys.argv[1:]; "
               "runpy.run_module(sys.argv[0], run_name='__main__', alter_sys=True)")
 
 

@@ -6,6 +6,7 @@ installed package's code even from a folder holding another ``crtk_bridge``."""
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import sys
@@ -65,6 +66,23 @@ def test_init_profile_then_check_as_readme_says_from_a_folder_outside_the_clone(
     assert "kinematics so101: base_link -> gripper_frame_link" in checked.stdout
     again = installed.run(["crtk-bridge", "init-profile", "so101", "my_arm.yaml"], cwd)
     assert again.returncode == 1 and "my_arm.yaml exists" in again.stderr and "--force" in again.stderr
+    # steps 5 and 6 on the simulator: the daemon on that profile, and calibrate writing into it
+    assert "`crtk-bridge --profile my_arm.yaml`" in readme and "`crtk-ctl calibrate --profile my_arm.yaml" in readme
+    proc = installed.popen(["crtk-bridge", "--profile", "my_arm.yaml", "--sim", "--no-realtime"], cwd, cwd / "d.log")
+    try:
+        wait_until(lambda: (installed.runtime / "crtk-bridge" / "so101.sock").exists() or proc.poll() is not None,
+                   60, what="the my_arm.yaml daemon's socket")
+        assert proc.poll() is None, (cwd / "d.log").read_text()
+        lerobot = {name: {"id": k + 1, "drive_mode": 0, "homing_offset": 0, "range_min": 1000, "range_max": 3000}
+                   for k, name in enumerate(["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex",
+                                             "wrist_roll", "gripper"])}
+        (cwd / "arm.json").write_text(json.dumps(lerobot, indent=4))
+        cal = installed.run(["crtk-ctl", "calibrate", "--profile", "my_arm.yaml", "--import", "arm.json"], cwd)
+        assert cal.returncode == 0 and "Wrote" in cal.stdout, cal.stdout + cal.stderr
+        assert "range: [1000, 3000]" in (cwd / "my_arm.yaml").read_text()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(20)
 
 
 def test_a_copied_shipped_profile_keeps_its_urdf(installed):
