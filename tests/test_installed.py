@@ -173,3 +173,22 @@ def test_a_profiles_urdf_resolves_beside_it_first_then_among_the_shipped_profile
     message = str(err.value)
     assert "kinematics.urdf: no file" in message and str(tmp_path / "urdf" / "mine.urdf") in message
     assert "shipped profiles" in message and "\n" not in message
+
+
+def test_init_profile_refuses_an_unknown_name_listing_the_shipped_ones_and_overwrites_only_with_force(
+        tmp_path, capsys):
+    from crtk_bridge.cli import main as bridge_main
+
+    with pytest.raises(SystemExit) as exit_:
+        bridge_main(["init-profile", "so100", str(tmp_path / "a.yaml")])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "no shipped profile 'so100'" in err and "so101_leader" in err and "koch_leader" in err
+    assert not (tmp_path / "a.yaml").exists()
+    (tmp_path / "a.yaml").write_text("mine\n")
+    assert bridge_main(["init-profile", "koch_leader", str(tmp_path / "a.yaml")]) == 1
+    assert (tmp_path / "a.yaml").read_text() == "mine\n"
+    assert bridge_main(["init-profile", "koch_leader", str(tmp_path / "a.yaml"), "--force"]) == 0
+    assert load_profile(tmp_path / "a.yaml").name == "koch_leader"
+    assert bridge_main(["init-profile", "so101", str(tmp_path / "no" / "dir.yaml")]) == 1
+    assert "cannot write" in capsys.readouterr().err
