@@ -449,8 +449,9 @@ class Controller:
 
     def _hold_anyway(self, ns: str) -> bool:
         """``hold`` where motion commands are refused (homing, a lifecycle transition under way,
-        not homed, PAUSED with something moving): a stop is never refused. What moves there is robot-wide (home, a
-        shutdown park), so it all stops; a native home is aborted. True: handled (reply ok)."""
+        not homed, PAUSED): a stop is never refused. What moves there is robot-wide (home, a
+        shutdown park, a pause's braking), so it all stops; a native home is aborted; a paused arm
+        at rest is held already (a no-op). True: handled (reply ok)."""
         if self.state is OperatingState.PAUSED:
             if not self.in_motion():
                 return True  # nothing moves: already stopped, a stop is never refused
