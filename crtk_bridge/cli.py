@@ -15,11 +15,12 @@ import logging
 import sys
 
 from . import __version__
+from .argparsing import ArgumentParser
 from .errors import CrtkBridgeError
 
 
 def _run_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="crtk-bridge",
         usage="%(prog)s --profile FILE [--sim] [--socket PATH] [options]\n"
               "       %(prog)s check --profile FILE [--scan [--all-bauds]] [--json]\n"
@@ -62,7 +63,7 @@ def _run_parser() -> argparse.ArgumentParser:
 
 
 def _check(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="crtk-bridge check", description="Validate a robot profile; exit 0 if valid.")
+    p = ArgumentParser(prog="crtk-bridge check", description="Validate a robot profile; exit 0 if valid.")
     p.add_argument("--profile", required=True)
     p.add_argument("--scan", action="store_true",
                    help="also open each bus (the daemon must not be running) and ping every id at "
@@ -176,7 +177,7 @@ def _scan(profile, backend, source: str, all_bauds: bool, quiet: bool = False) -
 
 
 def _find_port(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="crtk-bridge find-port",
         description="List serial ports: device, /dev/serial/by-id names, USB vendor:product, serial "
                     "number. Put a by-id path or {serial_number: ...} in the profile's backend.port "
@@ -199,7 +200,7 @@ def _find_port(argv: list[str]) -> int:
 
 
 def _setup_servos(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="crtk-bridge setup-servos",
         description="Give each joint's servo its id and the profile's baud rate, one servo at a time "
                     "(as lerobot-setup-motors): for each joint, in reverse profile order, connect ONLY "
