@@ -220,8 +220,9 @@ def pose_share(delta: dict, before: float, reached: float) -> dict:
 
 @dataclass(frozen=True)
 class StreamReport:
-    """What :meth:`Device.stream` did: ``samples`` sent at ``rate_hz`` (after the cap at the loop
-    rate) over ``elapsed_s`` on the wall clock; ``held``: it ended with ``hold``."""
+    """What :meth:`Device.stream` did: ``samples`` of ``cmd`` sent at up to ``rate_hz`` (after the
+    cap at the loop rate) over ``elapsed_s`` on the wall clock; ``held``: it ended with ``hold``
+    (not counted in ``samples``)."""
 
     cmd: str
     samples: int
@@ -757,7 +758,7 @@ class Device:
                 method(pose_share(pose, tick.before, tick.reached) if relative else pose)
         endless = cmd in ENDLESS_COMMANDS
         pacing = Pacing(duration, rate_hz)
-        held = False
+        held, samples = False, 0
         t0 = time.monotonic()
         try:
             for tick in pacing:
@@ -766,6 +767,7 @@ class Device:
                     held = True
                 else:
                     send(tick)
+                    samples += 1
         except BaseException:
             if not held:
                 try:
@@ -773,7 +775,7 @@ class Device:
                 except Exception:  # noqa: BLE001 - the first error is the one to report
                     pass
             raise
-        return StreamReport(cmd, pacing.sent, float(rate_hz), time.monotonic() - t0, held)
+        return StreamReport(cmd, samples, float(rate_hz), time.monotonic() - t0, held)
 
     # -- cartesian space (docs/cartesian.md) -------------------------------------------------
     #
