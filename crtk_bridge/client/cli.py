@@ -20,13 +20,16 @@ rotation). Twists are VX VY VZ (m/s) WX WY WZ (rad/s), wrenches FX FY FZ (N) TX 
 the spatial frame (base axes) or, with --frame body, the tip frame's axes.
 
 When crtk-ctl leaves, a move or position goal it sent runs to its end; a velocity or effort
-command has no end and stops, so it needs --duration (docs/protocol.md, Client loss). With
---duration a relative command (_jr, _cr) is split over the samples: it moves by the offset given.
+command has no end and stops, so it needs --duration (docs/protocol.md, Client loss). A
+--duration stream ends at its duration on the wall clock whatever --rate (capped at the loop
+rate), a velocity or effort stream with hold; a relative command (_jr, _cr) is split over the
+samples: it moves by the offset given.
 
 Exit status: 0 on success; 1 when the daemon refuses a command (one line on stderr with the
 error code and the daemon's message), a wait times out or a state is not reached; 2 when no
 daemon answers (the line names the socket path, or the Zenoh endpoint with --zenoh-connect) or
-the arguments are wrong; 130 on Ctrl-C.
+the arguments are wrong; 130 on Ctrl-C (a move waited on, a home or a stream is stopped with
+hold first, said in one line).
 
 Across machines: `crtk-ctl --zenoh-connect tcp/127.0.0.1:7447 --robot so101 state` reaches the
 daemon through a Zenoh router (docs/zenoh.md); `crtk-ctl --zenoh-connect ENDPOINT robots` lists
