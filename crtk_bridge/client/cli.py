@@ -126,7 +126,7 @@ JOINT_VECTOR_HELP = ("one value per joint of the namespace (--ns; default: the f
 
 
 class Parser(ArgumentParser):
-    """argparse with usage errors on one line (``crtk-ctl get: error: ... (crtk-ctl get --help)``),
+    """argparse with usage errors on one line (``crtk-ctl get: error: argument TOPIC: ...``),
     as one JSON object when ``--json`` is on the command line; an unknown argument is named before
     a missing required option (crtk_bridge/argparsing.py). Subparsers are made of the same class,
     so this holds for every subcommand."""
@@ -140,7 +140,7 @@ class Parser(ArgumentParser):
         if Parser.json_errors:
             _emit_json_error("usage", message)
             self.exit(2)
-        self.exit(2, f"{self.prog}: error: {message} ({self.prog} --help)\n")
+        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def _positive_float(text: str) -> float:
