@@ -76,7 +76,7 @@ def test_velocity_stream_ends_at_its_duration_whatever_the_rate(arm, sim_daemon,
     assert code == 0, err
     moved = at_rest(arm) - p0
     # 0.1 rad/s for 1 s, then a hold (stopped within a cycle or two, give or take a servo tick)
-    assert moved[0] == pytest.approx(0.1, abs=0.01), f"moved {moved} at --rate {rate}"
+    assert moved[0] == pytest.approx(0.1, abs=0.03), f"moved {moved} at --rate {rate}"
     assert np.all(np.abs(moved[1:]) <= QUANTUM), moved
     assert 1.0 <= elapsed <= 1.0 + SLACK_S
     assert "then hold" in out
@@ -96,7 +96,7 @@ def test_twist_stream_moves_as_far_as_its_duration_says(arm, sim_daemon, capsys)
     at_rest(arm)
     moved = arm.measured_cp_pq()[0] - x0
     # 0.02 m/s for 0.5 s: 10 mm along y (the defect: 50 mm)
-    assert moved[1] == pytest.approx(0.010, abs=0.002) and abs(moved[0]) < 0.002 and abs(moved[2]) < 0.002, moved
+    assert moved[1] == pytest.approx(0.010, abs=0.004) and abs(moved[0]) < 0.003 and abs(moved[2]) < 0.003, moved
     assert 0.5 <= elapsed <= 0.5 + SLACK_S
 
 
@@ -121,16 +121,19 @@ def test_python_stream_helper_ends_at_its_duration_and_caps_the_rate(arm):
         report = arm.stream("servo_jv", [0, 0, -0.1, 0, 0], duration=1.0, rate_hz=1000)
         elapsed = time.monotonic() - t0
     moved = at_rest(arm) - p0
-    assert moved[2] == pytest.approx(-0.1, abs=0.01), moved
+    assert moved[2] == pytest.approx(-0.1, abs=0.03), moved
     assert report.held and report.rate_hz == 200 and 2 <= report.samples <= 201
     assert 1.0 <= elapsed <= 1.0 + SLACK_S
     arm._robot.release()
 
 
 def test_ctrl_c_on_a_waited_move_holds_the_arm_and_says_so(arm, sim_daemon):
-    start = move_to(arm, np.zeros(5))
-    goal = sim_daemon.robot.goals["wide"]
-    far = int(np.argmax(np.abs(goal - start)))
+    # a long move of the slowest joint: 2.4 rad at up to 3 rad/s
+    bot = sim_daemon.robot
+    assert bot.pos_min[0] < -1.3 and bot.pos_max[0] > 1.3
+    start = move_to(arm, np.array([-1.2, 0, 0, 0, 0]))
+    goal = np.array([1.2, 0, 0, 0, 0])
+    far = 0
     proc = subprocess.Popen([sys.executable, "-m", "crtk_bridge.client.cli", "--socket", str(sim_daemon.socket_path),
                              "move_jp", *map(str, goal), "--wait"], cwd=ROOT, stdin=subprocess.DEVNULL,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -149,4 +152,4 @@ def test_ctrl_c_on_a_waited_move_holds_the_arm_and_says_so(arm, sim_daemon):
     wait_until(lambda: not arm.is_busy(), 10, what="the move ended")
     end = at_rest(arm)
     # stopped short of the goal (the defect: the arm went on to it)
-    assert abs(goal[far] - end[far]) > 0.3, f"arm at {end}, goal {goal}"
+    assert end[far] < goal[far] - 0.3, f"arm at {end}, goal {goal}"
