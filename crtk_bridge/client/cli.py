@@ -47,15 +47,14 @@ import sys
 import time
 from typing import Sequence
 
-
 from crtk_bridge import __version__, vocabulary
 from crtk_bridge.argparsing import ArgumentParser
 
 from crtk_bridge.client import calibrate, teleop
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.client.device import (
-    CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, ENDLESS_COMMANDS, FRAMES, JS_TOPICS, RELATIVE_COMMANDS,
-    Device, Robot, connect, encode_pose, list_robots)
+    CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, ENDLESS_COMMANDS, FRAMES, JS_TOPICS, Device, Robot,
+    connect, encode_pose, list_robots)
 from crtk_bridge.client.paths import SYSTEM_SOCKET_DIR, default_socket_dir
 from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
 from crtk_bridge.profile import ZENOH_LEASE_MS_DEFAULT, ZENOH_LEASE_MS_MAX, ZENOH_LEASE_MS_MIN, zenoh_lease_problem

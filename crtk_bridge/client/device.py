@@ -732,12 +732,12 @@ class Device:
                     math.isfinite(value) and value > 0):
                 raise CommandError("bad_request", f"{self.name}: {cmd} stream: {what} must be a finite "
                                    f"number > 0, got {value!r}")
+        self._check_supported(cmd)
         loop = self._robot.loop_rate_hz
         if loop is not None and rate_hz > loop:
             warnings.warn(f"{self.name}: {cmd} stream at {rate_hz:g} Hz is above {self._robot.name}'s loop "
                           f"rate: sending at {loop:g} Hz", RuntimeWarning, stacklevel=2)
             rate_hz = loop
-        self._check_supported(cmd)
         relative = cmd in RELATIVE_COMMANDS
         method = getattr(self, cmd)
         if cmd in JOINT_STREAM_COMMANDS:
