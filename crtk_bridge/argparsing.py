@@ -33,7 +33,7 @@ class ArgumentParser(argparse.ArgumentParser):
         missing and the arguments hold some this parser does not know."""
         if self._probing or self._argv is None or not message.startswith("the following arguments are required"):
             return message
-        required = [a for a in self._actions if a.required and a.option_strings]
+        required = [a for a in self._actions if a.required]  # options and positionals
         for a in required:
             a.required = False
         self._probing = True

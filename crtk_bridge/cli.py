@@ -300,7 +300,7 @@ def _init_profile(argv: list[str]) -> int:
     from .profile import shipped_profile_names, shipped_profiles_dir
 
     names = shipped_profile_names()
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="crtk-bridge init-profile",
         description="Write a new profile FILE from a shipped one, comments included, to edit for your "
                     "arm (backend.port, calibration...). Its URDF stays the shipped one (a profile's "

@@ -109,6 +109,8 @@ def test_bad_duration_is_refused_naming_the_option(value, capsys):
     ("crtk_bridge.cli", ["check", "--bogus"], "crtk-bridge check"),
     ("crtk_bridge.cli", ["--bogus"], "crtk-bridge"),
     ("crtk_bridge.cli", ["setup-servos", "--prfile", "x.yaml"], "crtk-bridge setup-servos"),
+    ("crtk_bridge.cli", ["init-profile", "--bogus"], "crtk-bridge init-profile"),
+    ("crtk_bridge.client.cli", ["--bogus"], "crtk-ctl"),
     ("crtk_bridge.client.cli", ["calibrate", "--bogus"], "crtk-ctl calibrate"),
     ("crtk_bridge.client.cli", ["teleop", "--leader", "a", "--folower", "b"], "crtk-ctl teleop")])
 def test_an_unknown_argument_is_named_before_a_missing_required_one(module, args, prog):
