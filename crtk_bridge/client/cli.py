@@ -229,7 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
     add("resume", "resume (PAUSED -> ENABLED)")
     add("list", "print namespaces, joints and commands")
     add("robots", "print the names of the robots reachable: those with a socket in the default "
-                  "directory, or with --zenoh-connect, those served on the Zenoh network")
+                  "directory, or with --zenoh-connect, those served on the Zenoh network (none: exit 2, "
+                  "saying where it looked)")
     def add_frame(p):
         p.add_argument("--frame", choices=FRAMES, default="spatial",
                        help="twists and wrenches: spatial (base axes, default) or body (tip axes)")
