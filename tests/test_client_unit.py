@@ -1205,3 +1205,27 @@ def test_robots_without_a_daemon_says_where_it_looked(sockdir, capsys, monkeypat
     os.makedirs(os.path.join(sockdir, "crtk-bridge"))
     open(os.path.join(sockdir, "crtk-bridge", "so101.sock"), "w").close()
     assert main(["robots"]) == 0 and capsys.readouterr().out == "so101\n"
+
+
+def test_ctrl_c_while_a_waited_move_is_being_sent_still_holds(fake, capsys, monkeypatch):
+    """Ctrl-C that lands while ``move_jp ... --wait`` waits for the move's reply (the daemon has
+    the move: it runs) exited 130 silently, the arm going on to its goal: the window before the
+    wait is as much the waited command's as the wait itself (issue 18 item 4; found in review)."""
+    from crtk_bridge.client.device import Device
+
+    fake.handlers["move_jp"] = lambda r, s: s.send(ok(r, {"busy_seq": 1}))
+    fake.handlers["hold"] = lambda r, s: s.send(ok(r))
+    real = Device._start_move
+
+    def interrupted_as_the_reply_comes(self, cmd, data):
+        real(self, cmd, data)  # the daemon accepted the move
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Device, "_start_move", interrupted_as_the_reply_comes)
+    assert main(["--socket", fake.path, "move_jp", "0.3", "0.4", "--wait"]) == 130
+    assert capsys.readouterr().err == "crtk-ctl: interrupted: so101 move_jp stopped with hold\n"
+    assert [r["cmd"] for r in fake.requests if r["cmd"] != "list"] == ["move_jp", "hold"]
+    # without --wait the move runs to its end, as documented: nothing is stopped
+    n = len(fake.requests)
+    assert main(["--socket", fake.path, "move_jp", "0.3", "0.4"]) == 130
+    assert not [r for r in fake.requests[n:] if r["cmd"] == "hold"]

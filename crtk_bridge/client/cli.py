@@ -620,13 +620,15 @@ def _run(args, robot: Robot) -> int:
     if cmd in ("move_jp", "move_jr", "move_cp", "move_cr"):
         if cmd in ("move_jp", "move_jr"):
             _check_len(dev, cmd, args.position)
-            handle = getattr(dev, cmd)(args.position)
+            goal = args.position
         else:
-            handle = getattr(dev, cmd)(_pose_arg(dev, cmd, args.values, cmd == "move_cr"))
+            goal = _pose_arg(dev, cmd, args.values, cmd == "move_cr")
         done = None
-        if args.wait:
-            timeout = args.timeout if args.timeout is not None else MOVE_WAIT_DEFAULT
-            with _stops_on_interrupt([dev], f"{dev.name} {cmd}"):
+        timeout = args.timeout if args.timeout is not None else MOVE_WAIT_DEFAULT
+        # --wait: Ctrl-C from the send on (the daemon may have the move before its reply) holds
+        with _stops_on_interrupt([dev], f"{dev.name} {cmd}") if args.wait else contextlib.nullcontext():
+            handle = getattr(dev, cmd)(goal)
+            if args.wait:
                 done = handle.wait(timeout=timeout)
         if out_json:
             obj = {"cmd": cmd, "ns": dev.name, "busy_seq": handle.busy_seq}
