@@ -193,8 +193,21 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
                  zenoh: tuple | None = None) -> int:
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
+    signals = 0
+
+    def on_signal() -> None:
+        # the first SIGTERM / SIGINT shuts down (a park first, if the profile says so); any later
+        # one switches torque off at once. Counted here, not only in the control process: a
+        # signal sent by pid (kill, systemd's main-process kill) reaches this process alone,
+        # while a terminal's Ctrl-C reaches both (the control process counts its own)
+        nonlocal signals
+        signals += 1
+        stop.set()
+        if signals > 1 and server.shutting_down:
+            link.send_nowait("_torque_off")
+
     for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+        loop.add_signal_handler(sig, on_signal)
     link.attach(loop, server.on_control_lost)
     services = []
     if zenoh is not None:  # before the socket: nobody can have enabled the robot if one fails
@@ -224,6 +237,8 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
     # control process first: motion stops, torque off; then the socket goes
     server.shutting_down = True
     link.send_nowait("_shutdown")
+    if signals > 1:  # two signals before the shutdown began: no park
+        link.send_nowait("_torque_off")
     # a shutdown park (profile shutdown.action: park) runs within shutdown.timeout_s before torque off
     sd = server.profile.shutdown
     limit = SHUTDOWN_TIMEOUT_S + (sd.timeout_s if sd.action == "park" else 0.0)
