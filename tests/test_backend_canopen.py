@@ -588,3 +588,38 @@ def test_master_heartbeat_keys_are_checked(key, value, message):
     data["backend"][key] = value
     with pytest.raises(ProfileError, match=message):
         Canopen402Backend(parse_profile(data))
+
+
+def _wrapped_oserror(code: int):
+    import can
+
+    try:
+        try:
+            raise OSError(code, os.strerror(code))
+        except OSError as exc:
+            raise can.CanInitializationError(f"failed to open: {exc}") from exc
+    except can.CanInitializationError as wrapped:
+        return wrapped
+
+
+@pytest.mark.parametrize("raised", ["plain", "wrapped"])
+def test_a_kernel_without_socketcan_says_what_to_use_instead(monkeypatch, raised):
+    """``[Errno 97] Address family not supported`` (no AF_CAN in this kernel, e.g. a container or
+    WSL): the one-line error says so and names the fixes, slcan or --sim."""
+    import canopen
+
+    import errno
+
+    exc = OSError(errno.EAFNOSUPPORT, os.strerror(errno.EAFNOSUPPORT)) if raised == "plain" \
+        else _wrapped_oserror(errno.EAFNOSUPPORT)
+
+    def connect(self, *args, **kwargs):
+        raise exc
+
+    monkeypatch.setattr(canopen.Network, "connect", connect)
+    backend = Canopen402Backend(load_profile(PROFILE), source=str(PROFILE))
+    with pytest.raises(BackendError) as err:
+        backend.open()
+    message = str(err.value)
+    assert "cannot open CAN interface socketcan can0" in message and "\n" not in message
+    assert "no SocketCAN" in message and "backend.interface: slcan" in message and "--sim" in message
