@@ -420,7 +420,9 @@ def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str |
         if zconfig is not None:
             # after the fork (a Zenoh session does not survive it); the robot is still DISABLED,
             # so an unreachable router just ends start-up (the finally below stops the loop)
-            zsession = open_session(zconfig, profile.name)
+            bound: list[str] = []
+            zsession = open_session(zconfig, profile.name, bound=bound)
+            zconfig = msgspec.structs.replace(zconfig, listen=bound)  # port 0: the one bound (banner)
         return asyncio.run(_serve(server, link, proc, (zsession, zconfig) if zsession is not None else None))
     finally:
         if zsession is not None:
