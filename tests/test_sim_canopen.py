@@ -254,10 +254,14 @@ def test_no_emcy_in_nmt_stopped_and_stopped_entered_while_enabled_gets_the_0x600
         sim.set_fault(1, "warning", 0x4210)  # an error while STOPPED: kept, not sent
         wait_until(lambda: sim.drive(1).snapshot()["position"] == p, 1, what="no motion")
         node.nmt.state = "PRE-OPERATIONAL"
-        assert node.sdo[0x1001].raw == 0x19  # generic, communication (0x8100), temperature (0x4210)
-        assert not node.emcy.log, node.emcy.log  # nothing was sent in STOPPED
-        if option == 1:
-            assert node.sdo[0x603F].raw == 0x8100
+        if option == 1:  # the fault (0x8100) stays until a fault reset; nothing was sent in STOPPED
+            assert node.sdo[0x1001].raw == 0x19  # generic, communication (0x8100), temperature (0x4210)
+            assert node.sdo[0x603F].raw == 0x8100 and not node.emcy.log, node.emcy.log
+        else:  # the 0x8100 warning ends as the master takes the node back: its EMCY 0x0000, the
+            # temperature warning still in 0x1001 (the only EMCY: none was sent in STOPPED)
+            _emcy(node, 0x0000)
+            assert [(e.code, e.register) for e in node.emcy.log] == [(0x0000, 0x09)]
+            assert node.sdo[0x1001].raw == 0x09
         sim.clear_faults(1)  # the warning ends: EMCY 0x0000, PRE-OPERATIONAL may send it
         _emcy(node, 0x0000)
         node.nmt.state = "OPERATIONAL"
@@ -439,6 +443,34 @@ def test_a_drive_whose_master_falls_silent_stops(bus, drive):
         node.emcy.log.clear()
 
     node.sdo[0x1016][1].raw = 0
+
+
+def test_a_lost_master_heard_again_ends_the_heartbeat_warning_with_emcy_0000(bus, drive):
+    """0x6007 = 3 (quick stop): the lost heartbeat is a warning (EMCY 0x8130, 0x1001 generic +
+    communication); when the master's heartbeat comes back the error ends: EMCY 0x0000 and the
+    master's active list (canopen's EmcyConsumer) empties."""
+    sim, net = bus
+    node = drive
+    node.sdo[0x1016][1].raw = (0x7F << 16) | 40
+    node.sdo[0x6007].raw = 3
+    node.state = "OPERATION ENABLED"
+    beat = net.send_periodic(0x77F, [5], 0.01)
+    try:
+        wait_until(lambda: 0x7F in sim.drive(1)._heartbeats, 1, what="the master's heartbeat watched")
+        beat.stop()  # the master dies: no heartbeat, no RPDO (whose controlword would resume)
+        node.rpdo[1].stop()
+        emcy = _emcy(node, 0x8130)
+        assert emcy.register == 0x11 and [e.code for e in node.emcy.active] == [0x8130]
+        wait_until(lambda: node.check_statusword() and node.state == "QUICK STOP ACTIVE", 1, what="quick stop")
+        assert node.sdo[0x1001].raw == 0x11
+        node.emcy.log.clear()
+        beat = net.send_periodic(0x77F, [5], 0.01)  # the master is back
+        assert _emcy(node, 0x0000).register == 0 and node.emcy.active == []
+        assert node.sdo[0x1001].raw == 0
+    finally:
+        node.sdo[0x1016][1].raw = 0
+        beat.stop()
+        node.sdo[0x6007].raw = 1
 
 
 def test_boot_up_message_and_a_second_drive_on_the_bus(bus):

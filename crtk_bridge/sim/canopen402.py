@@ -31,7 +31,8 @@ dictionary, but has no PDO behaviour and no device profile (canopen issue #558; 
   the drive with EMCY 0x8611 and statusword bit 13;
 - boot-up message, heartbeat producer (0x1017), EMCY producer (0x1001 / 0x603F kept in step:
   0x1001 holds the bits of the active fault and warning, and every EMCY carries it; EMCY 0x0000
-  when an error ends: fault reset, a warning gone; no EMCY in NMT STOPPED, CiA 301),
+  when an error ends: fault reset, a warning gone, a lost master heard again, NMT STOPPED left;
+  no EMCY in NMT STOPPED, CiA 301),
   heartbeat consumer (0x1016: a monitored master gone silent -> EMCY 0x8130 and the reaction
   0x6007 names: fault by default, disable voltage or quick stop), so a drive left by a dead
   master stops as a real one does; NMT STOPPED entered while the power stage is on gets the same
@@ -378,6 +379,7 @@ class Drive402:
         self._pdo_dirty = True
         self._params: dict[tuple[int, int], int] = {}
         self._heartbeats: dict[int, float] = {}  # node id -> when its last heartbeat came
+        self._lost: set[int] = set()  # monitored nodes whose heartbeat timed out, not heard since
         self._sync_cob = 0x80
         self.rx_frames = 0  # frames this drive received while not muted (bench / tests)
         self.sync_count = 0
@@ -423,7 +425,12 @@ class Drive402:
                     self._on_sync()
                 return
             if 0x701 <= can_id <= 0x77F and len(data) == 1:
-                self._heartbeats[can_id - 0x700] = self.clock()  # another node's heartbeat
+                node = can_id - 0x700
+                self._heartbeats[node] = self.clock()  # another node's heartbeat
+                if node in self._lost:  # a master heard again: its heartbeat error ends
+                    self._lost.discard(node)
+                    if not self._lost:
+                        self._end_warning(EMCY_HEARTBEAT)
                 return
             if can_id == 0x600 + self.node_id:
                 # an SDO request is always 8 bytes; others are ignored. No SDO in STOPPED (CiA 301)
@@ -440,6 +447,8 @@ class Drive402:
         if target not in (0, self.node_id):
             return
         state = self.local.nmt._state
+        if before == NMT_STOPPED and state in _EMCY_STATES:
+            self._end_warning(EMCY_COMMUNICATION)  # the master took the node back: that error ends
         if cs in (0x81, 0x82):  # reset node / communication: defaults back, boot again
             keep = range(0x1000, 0x2000) if cs == 0x82 else range(0x1000, 0x10000)
             for index in [i for i in self.local.data_store if i in keep]:
@@ -463,6 +472,7 @@ class Drive402:
         self.target_position = round(self.position)
         self.error_code = 0
         self.warnings.clear()
+        self._lost.clear()
         self.following_error = False
         self.homing, self.homing_status = ("idle", 0), 0
 
@@ -756,6 +766,12 @@ class Drive402:
         if self.local.nmt._state in _EMCY_STATES:
             self.local.emcy.send(code, self.error_register(), data)
 
+    def _end_warning(self, code: int) -> None:
+        """Warning ``code``'s cause went away: EMCY 0x0000 with 0x1001 as it is then."""
+        if code in self.warnings:
+            self.warnings.discard(code)
+            self._send_emcy(EMCY_RESET)
+
     def end_warnings(self) -> None:
         """The active warnings' causes went away: statusword bit 7 clears, EMCY 0x0000 (with
         0x1001 as it is then: an active fault's bits)."""
@@ -877,6 +893,7 @@ class Drive402:
             if not node or not limit_s or seen is None or now - seen <= limit_s:
                 continue
             del self._heartbeats[node]
+            self._lost.add(node)
             self._abort_connection(EMCY_HEARTBEAT, bytes([node]))
 
     def _abort_connection(self, code: int, data: bytes = b"") -> None:
