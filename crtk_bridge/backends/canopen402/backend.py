@@ -1028,8 +1028,9 @@ class Canopen402Backend(Actuator):
     def _reset_faults(self) -> Steps:
         """Fault reset of every drive in FAULT: bit 7 low for a cycle, then high (the rising edge,
         transition 15), until the drive leaves FAULT; its EMCY is acknowledged. Nodes that
-        rebooted are configured again (SDO, on a worker thread)."""
-        rebooted = [d for d in self.drives if d.rebooted]
+        rebooted, or whose heartbeat says they left OPERATIONAL (put in NMT STOPPED by something
+        on the bus), are configured again and started (SDO, on a worker thread)."""
+        rebooted = [d for d in self.drives if d.rebooted or d.nmt != t.NMT_OPERATIONAL]
         if rebooted:
             yield from on_worker(lambda: [self._configure_node(d) for d in rebooted], "canopen-reconfigure")
         # After a bus outage a drive may still be about to trip on the master's heartbeat it
