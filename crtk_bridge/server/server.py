@@ -11,11 +11,13 @@ import logging
 import os
 import socket
 import struct
+import time
 from pathlib import Path
 from typing import Any
 
 from .. import __version__
 from ..errors import CrtkBridgeError
+from ..profile import joint_bus_id
 from .cartesian import FRAMED, CartesianSpace
 from .link import ControlLink, ControlLost
 from .protocol import (
@@ -120,8 +122,9 @@ class Server:
         """The control process died: every client learns FAULT; the daemon exits non-zero."""
         if self.shutting_down:
             return
-        self.state = dict(self.state, state="FAULT", is_busy=False)
-        msg = {"event": "error", "data": {"stamp": 0.0, "ns": self.robot, "code": "control_process_died",
+        now = time.time()  # the control process, whose clock stamps events, is gone
+        self.state = dict(self.state, state="FAULT", is_busy=False, stamp=now)
+        msg = {"event": "error", "data": {"stamp": now, "ns": self.robot, "code": "control_process_died",
                                           "message": f"{self.robot}: the control process stopped; daemon exiting"}}
         self.on_event({"event": "operating_state", "data": self.state})
         self.on_event(msg)
@@ -383,6 +386,9 @@ class Server:
             entry = {
                 "name": ns.name,
                 "joints": list(ns.joints),
+                # each joint's id on its bus (servo id, drive node id; null: none), so that a tool
+                # can tell the daemon's robot from another profile's (crtk-ctl calibrate --profile)
+                "ids": [joint_bus_id(self.profile.joints[self.profile.joint_index(j)]) for j in ns.joints],
                 "commands": list(STATE_COMMANDS) + self.link.ns_commands[ns.name] + (cs.commands if cs else []),
                 "queries": list(JOINT_QUERIES + ROBOT_QUERIES) + cart_q,
                 "topics": list(TOPICS) + [q for q in cart_q if not q.endswith("kinematics")],
