@@ -102,3 +102,13 @@ def test_pose_shares_compose_to_the_whole_relative_pose():
         R = matrix_from_quaternion(part["orientation"]) @ R  # servo_cr pre-multiplies
     np.testing.assert_allclose(p, delta["position"], atol=1e-15)
     np.testing.assert_allclose(R, matrix_from_quaternion(delta["orientation"]), atol=1e-12)
+
+
+@pytest.mark.parametrize("duration", [1e-320, 5e-324])
+def test_a_subnormal_duration_still_ends_with_its_last_tick(duration):
+    """A duration so small that elapsed / period overflows to inf (a valid 'finite number > 0')
+    raised OverflowError after the first sample: a relative stream stopped at half its offset, with
+    a traceback (found in review)."""
+    ticks, _ = run(duration, 50, 0.001)
+    assert [(tk.index, tk.final) for _, tk in ticks] == [(0, False), (1, True)]
+    assert sum(tk.share for _, tk in ticks) == 1.0

@@ -72,7 +72,10 @@ class Pacing:
             if k == self.last:
                 return
             before = reached
-            due = math.floor((self._clock() - t0) / self.period + 1e-9)  # newest tick already due
+            elapsed = self._clock() - t0
+            # the newest tick already due (the end once the duration is over: elapsed / period
+            # would overflow for a subnormal duration)
+            due = self.last if elapsed >= self.duration else math.floor(elapsed / self.period + 1e-9)
             k = min(self.last, max(k + 1, due))
             wait = t0 + k * self.period - self._clock()
             if wait > 0:
