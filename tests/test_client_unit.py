@@ -1229,3 +1229,14 @@ def test_ctrl_c_while_a_waited_move_is_being_sent_still_holds(fake, capsys, monk
     n = len(fake.requests)
     assert main(["--socket", fake.path, "move_jp", "0.3", "0.4"]) == 130
     assert not [r for r in fake.requests[n:] if r["cmd"] == "hold"]
+
+
+def test_a_stream_of_more_samples_than_a_float_counts_is_refused_in_one_line(fake, capsys):
+    """``--duration 1e307`` at 200 Hz: duration x rate overflows, and Pacing's round(inf) raised
+    OverflowError, a traceback rather than the one-line refusal (found in review)."""
+    fake.handlers["list"] = list_with(fake, rate_hz=200.0)
+    n = len(fake.requests)
+    assert main(["--socket", fake.path, "servo_jp", "0.1", "0.2", "--duration", "1e307", "--rate", "200"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "bad_request" in err and "1e+307 s at 200 Hz" in err, err
+    assert not [r for r in fake.requests[n:] if r["cmd"] != "list"]  # nothing sent

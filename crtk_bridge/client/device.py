@@ -738,6 +738,9 @@ class Device:
             warnings.warn(f"{self.name}: {cmd} stream at {rate_hz:g} Hz is above {self._robot.name}'s loop "
                           f"rate: sending at {loop:g} Hz", RuntimeWarning, stacklevel=2)
             rate_hz = loop
+        if not math.isfinite(duration * rate_hz):
+            raise CommandError("bad_request", f"{self.name}: {cmd} stream: {duration:g} s at {rate_hz:g} Hz is "
+                               "more samples than can be counted: give a shorter duration")
         relative = cmd in RELATIVE_COMMANDS
         method = getattr(self, cmd)
         if cmd in JOINT_STREAM_COMMANDS:
