@@ -1240,3 +1240,24 @@ def test_a_stream_of_more_samples_than_a_float_counts_is_refused_in_one_line(fak
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "bad_request" in err and "1e+307 s at 200 Hz" in err, err
     assert not [r for r in fake.requests[n:] if r["cmd"] != "list"]  # nothing sent
+
+
+def test_a_stream_refused_from_its_first_sample_stops_nothing_it_did_not_start(fake, capsys):
+    """A stream whose first sample the daemon refuses started nothing; its 'hold on the way out'
+    was still sent, and since any session may stop the robot, it stopped another session's move
+    or teleop (the first sample refused ``read_only``), while crtk-ctl said only 'refused'
+    (found in review). A sample accepted before the refusal still ends with hold."""
+    fake.handlers["servo_jv"] = lambda r, s: s.send(err(r, "read_only", "so101: controlled by pid 4242 (teleop)"))
+    fake.handlers["hold"] = lambda r, s: s.send(ok(r))
+    assert main(["--socket", fake.path, "servo_jv", "0.1", "0", "--duration", "1"]) == 1
+    assert "servo_jv refused (read_only)" in capsys.readouterr().err
+    assert not [r for r in fake.requests if r["cmd"] == "hold"]
+    count = [0]
+
+    def refuse_second(r, s):
+        count[0] += 1
+        s.send(ok(r) if count[0] == 1 else err(r, "invalid_state", "so101: servo_jv refused: robot is PAUSED"))
+
+    fake.handlers["servo_jv"] = refuse_second
+    assert main(["--socket", fake.path, "servo_jv", "0.1", "0", "--duration", "1"]) == 1
+    assert fake.requests[-1]["cmd"] == "hold"

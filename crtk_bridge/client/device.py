@@ -721,7 +721,8 @@ class Device:
         command (``_jr``, ``_cr``) moves by ``values`` in total, split over the samples sent. A
         command without an end (velocity, effort) ends with ``hold`` at ``duration``, so it
         stops then, not at the servo timeout. When the stream is cut short (a refused sample,
-        ``KeyboardInterrupt``), ``hold`` is sent (best effort) before the exception goes on.
+        ``KeyboardInterrupt``), ``hold`` is sent (best effort) before the exception goes on, unless
+        the daemon refused the first sample (nothing of the stream runs).
         Raises :class:`CommandError` (``bad_request`` for a bad duration, rate or payload,
         before anything is sent)."""
         if cmd not in JOINT_STREAM_COMMANDS + POSE_STREAM_COMMANDS + DELTA_STREAM_COMMANDS + SIX_STREAM_COMMANDS:
@@ -771,8 +772,9 @@ class Device:
                 else:
                     send(tick)
                     samples += 1
-        except BaseException:
-            if not held:
+        except BaseException as exc:
+            # a first sample refused started nothing: a hold would stop another session's motion
+            if not held and not (samples == 0 and isinstance(exc, CommandError)):
                 try:
                     self.hold()
                 except Exception:  # noqa: BLE001 - the first error is the one to report
