@@ -70,3 +70,307 @@ def test_architecture_is_described_inside_the_repo():
     text = arch.read_text()
     for must in ("front process", "control process", "## Layers", "## The seam"):
         assert must in text
+
+
+# --------------------------------------------------------------------------------------------
+# Every documented command, run as a user runs it (tests/doc_commands.py)
+
+from .doc_commands import (  # noqa: E402 - this half of the module
+    Background, Command, DocEnv, How, Scenes, documented_output_pattern, parse_doc, ready_pattern, run_to_end)
+
+COMMAND_DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), ROOT / "systemd" / "README.md"]
+COMMANDS = [c for d in COMMAND_DOCS for c in parse_doc(d)]
+READY = r"serving CRTK on \S+"  # crtk-bridge's banner once its socket serves
+
+
+def _my_arm_profile(env: DocEnv) -> None:
+    """README 'First time with a real arm', step 2: copy profiles/so101.yaml to my_arm.yaml (in
+    the user's folder, outside the clone)."""
+    import shutil
+
+    shutil.copy(ROOT / "profiles" / "so101.yaml", env.cwd / "my_arm.yaml")
+
+
+def _lerobot_file(env: DocEnv) -> None:
+    """What lerobot-calibrate leaves for an arm with id my_arm (docs/calibration.md's path)."""
+    import json
+
+    from .test_calibrate_import import LEROBOT
+
+    _my_arm_profile(env)
+    path = env.home / ".cache/huggingface/lerobot/calibration/robots/so_follower/my_arm.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(LEROBOT, indent=4))
+
+
+def _imported(env: DocEnv) -> None:
+    import yaml
+
+    from .test_calibrate_import import LEROBOT
+
+    joints = {j["name"]: j for j in yaml.safe_load((env.cwd / "my_arm.yaml").read_text())["joints"]}
+    lo, hi = LEROBOT["shoulder_pan"]["range_min"], LEROBOT["shoulder_pan"]["range_max"]
+    cal = joints["shoulder_pan"]["calibration"]
+    assert cal["offset"] == (lo + hi) // 2 and list(cal["range"]) == [lo, hi], cal
+
+
+HARDWARE = "needs the arm on backend.port (/dev/ttyACM0); README's 'First time with a real arm' runs these steps on crtk-sim"
+ROS = "needs ROS 2 with rmw_zenoh (not installed here); tests/test_zenoh_ros.py checks the ROS key layout"
+PENDING_COPY = "8 (pkg: a copied profile keeps its URDF, README's 'First time' step 2 verbatim)"
+PENDING_LEADER = "9 (pkg: leader profiles so101_leader / koch_leader, --sim-able, and this example run verbatim with them)"
+
+#: Which daemons each section's commands need, by (doc, heading); a command's own SPEC entry wins.
+SCENES = {
+    ("README.md", "Driving the robot"): "so101",
+    ("docs/calibration.md", "From LeRobot: `crtk-ctl calibrate --import`"): "so101",
+    ("docs/cartesian.md", "Conventions"): "so101",
+    ("docs/zenoh.md", "Remote clients (Python and crtk-ctl)"): "zenoh",
+    ("docs/simulators.md", "`crtk-sim canopen`"): "sim-canopen",
+    ("docs/teleop.md", "Teleoperation: a leader arm drives a follower"): "teleop",
+}
+
+#: The reviewed list: how each documented command runs when not simply to exit status 0 in its
+#: section's scene, and why a command cannot run here. Keyed by (doc, the command's first line).
+SPEC: dict[tuple[str, str], How] = {
+    # README.md
+    ("README.md", "pip install . && crtk-bridge --profile profiles/so101.yaml --sim"): How(
+        "daemon", "so101", ready=READY, run="crtk-bridge --profile profiles/so101.yaml --sim",
+        why="`pip install .` is the install under test (DocEnv.bin_dir)"),
+    ("README.md", "pip install '.[test]' && python -m pytest -q"): How(
+        "skip", why="the test suite itself: CI runs it verbatim (.ci/run; test_readme_opens_with_exactly_its_two_setup_commands)"),
+    ("README.md", "crtk-ctl state"): How(scene="so101", out=(r"so101: DISABLED\s+homed: yes\s+busy: no",)),
+    ("README.md", "crtk-ctl enable"): How(scene="so101", out=(r"so101: ENABLED",)),
+    ("README.md", "crtk-ctl move_jp 0.1 0.2 0.3 0 0 --wait"): How(scene="so101", out=(r"so101: move_jp done",)),
+    ("README.md", "crtk-ctl get measured_js"): How(
+        scene="so101", out=(r"shoulder_pan\s+\+0\.(09|10)\d* rad", r"elbow_flex\s+\+0\.(29|30)\d* rad")),
+    ("README.md", "crtk-ctl echo measured_js --rate 50"): How(
+        "forever", "so101", ready=r"(?m)^\S+\s+shoulder_pan=\+0\.\d+ .*\n.*shoulder_pan=", rc=130),
+    ("README.md", "crtk-ctl --ns so101/gripper move_jp 0.5 --wait"): How(scene="so101", out=(r"so101/gripper: move_jp done",)),
+    ("README.md", "crtk-ctl get measured_cp"): How(scene="so101", out=(r"position .* m \(x y z\)", r"orientation .*\(qx qy qz qw\)")),
+    ("README.md", "crtk-ctl events"): How(
+        "forever", "so101", ready=r"status\s+state_changed\s+so101: PAUSED", rc=130,
+        trigger="crtk-ctl pause && crtk-ctl resume"),
+    ("README.md", "crtk-ctl disable"): How(scene="so101", out=(r"so101: DISABLED",)),
+    ("README.md", "crtk-ctl list"): How(scene="so101", out=(r"(?m)^so101/gripper:$", r"joints:\s+shoulder_pan, shoulder_lift")),
+    ("README.md", "crtk-bridge check --profile profiles/so101.yaml"): How(),
+    ("README.md", "crtk-bridge setup-servos --profile profiles/so101.yaml"): How("skip", why=HARDWARE),
+    ("README.md", "crtk-bridge check --profile profiles/so101.yaml --scan"): How("skip", why=HARDWARE),
+    ("README.md", "crtk-bridge check --profile profiles/so101.yaml --scan --json"): How("skip", why=HARDWARE),
+    ("README.md", "crtk-bridge --profile profiles/so101.yaml"): How("skip", why=HARDWARE),
+    # docs/calibration.md
+    ("docs/calibration.md", "crtk-ctl calibrate --profile my_arm.yaml"): How(
+        "skip", why="interactive: you move every joint by hand (tests/test_calibrate_sim.py drives it with a simulated hand)"),
+    ("docs/calibration.md", "crtk-ctl calibrate --profile my_arm.yaml --import "
+                            "~/.cache/huggingface/lerobot/calibration/robots/so_follower/my_arm.json"): How(
+        scene="so101", setup=_lerobot_file, after=_imported, item=PENDING_COPY),
+    # docs/simulators.md
+    ("docs/simulators.md", "crtk-sim feetech --profile profiles/so101.yaml --link /tmp/ttySIM --control /tmp/sim.sock"): How(
+        "forever", ready=r"crtk-sim: feetech bus ready: port=\S+/ttySIM .*ids=1,2,3,4,5,6 baud=1000000", rc=0),
+    ("docs/simulators.md", "crtk-sim canopen --profile profiles/canopen_2axis.yaml --link /tmp/ttyCAN --control /tmp/can.sock"): How(
+        "daemon", "sim-canopen"),
+    ("docs/simulators.md", "crtk-sim ur --profile profiles/ur5e.yaml --host 127.0.0.2 --control /tmp/ur.ctl"): How(
+        "forever", rc=0),
+    # docs/teleop.md: leader.yaml is a placeholder until the leader profiles ship
+    ("docs/teleop.md", "crtk-bridge --profile leader.yaml &"): How("daemon", "teleop", ready=READY, item=PENDING_LEADER),
+    ("docs/teleop.md", "crtk-bridge --profile profiles/so101.yaml &"): How("daemon", "teleop", ready=READY, item=PENDING_LEADER),
+    ("docs/teleop.md", "crtk-ctl --robot so101 enable"): How(scene="teleop", item=PENDING_LEADER),
+    ("docs/teleop.md", "crtk-ctl teleop --leader so101_leader --follower so101"): How(
+        "forever", "teleop", ready=r"ALIGNING|ENABLED", rc=130, item=PENDING_LEADER),
+    # docs/zenoh.md
+    ("docs/zenoh.md", "zenohd -l tcp/127.0.0.1:7447 --no-multicast-scouting"): How(
+        "skip", why="zenohd is not installed here (not a Python package): the Python router of the same section stands in"),
+    ("docs/zenoh.md", "import zenoh"): How("daemon", "zenoh", ready=r"doc_python: ready", start=-1),
+    ("docs/zenoh.md", "crtk-bridge --profile profiles/so101.yaml --sim --zenoh-connect tcp/127.0.0.1:7447"): How(
+        "daemon", "zenoh", ready=READY),
+    ("docs/zenoh.md", "crtk-bridge --profile profiles/koch.yaml --sim --zenoh-connect tcp/127.0.0.1:7447 "
+                      "--zenoh-listen tcp/127.0.0.1:7448"): How(
+        "daemon", "zenoh", ready=READY),
+    ("docs/zenoh.md", "crtk-bridge --profile profiles/so101.yaml --zenoh-connect tcp/127.0.0.1:7447 --ros-domain-id 3"): How(
+        "skip", why=HARDWARE + "; and a second so101 on one Zenoh network is refused (the --sim one above)"),
+    ("docs/zenoh.md", "crtk-ctl --zenoh-connect tcp/127.0.0.1:7447 robots"): How(
+        scene="zenoh", out=(r"(?m)^koch$", r"(?m)^so101$")),
+    ("docs/zenoh.md", "crtk-ctl --zenoh-connect tcp/127.0.0.1:7447 --robot so101 echo measured_js --rate 50"): How(
+        "forever", "zenoh", ready=r"shoulder_pan=.*\n.*shoulder_pan=", rc=130),
+    ("docs/zenoh.md", "ros2 run rmw_zenoh_cpp rmw_zenohd"): How("skip", why=ROS),
+    ("docs/zenoh.md", "crtk-bridge --profile profiles/so101.yaml --zenoh-connect tcp/127.0.0.1:7447"): How("skip", why=HARDWARE),
+    ("docs/zenoh.md", "export RMW_IMPLEMENTATION=rmw_zenoh_cpp"): How("skip", why=ROS),
+    ("docs/zenoh.md", "ros2 topic list"): How("skip", why=ROS),
+    ("docs/zenoh.md", "ros2 topic echo /so101/measured_js"): How("skip", why=ROS),
+    ("docs/zenoh.md", 'ros2 topic pub --once /so101/state_command crtk_msgs/msg/StringStamped "{string: enable}"'): How(
+        "skip", why=ROS),
+    ("docs/zenoh.md", "python3 my_crtk_script.py"): How("skip", why=ROS + "; the script is the user's own"),
+    ("docs/zenoh.md", "crtk-ctl --zenoh-connect tls/so101-pc.lab.example.org:7447 --zenoh-config client.json5 "
+                      "--robot so101 state"): How(
+        "skip", why="a TLS endpoint on another host, with the lab's certificates (tests/test_zenoh_client_config.py "
+                    "checks --zenoh-config)"),
+    # systemd/README.md
+    ("systemd/README.md", "journalctl -u crtk-bridge@so101 -f"): How("skip", why="the journal of an installed systemd unit"),
+    ("systemd/README.md", "journalctl -u 'crtk-bridge@*' -b"): How("skip", why="the journal of an installed systemd unit"),
+}
+
+SCENE_ORDER = ["none", "so101", "sim-canopen", "zenoh", "teleop"]
+
+
+def spec_key(cmd: Command) -> tuple[str, str]:
+    return (cmd.doc, cmd.text.split("\n", 1)[0])
+
+
+def how(cmd: Command) -> How:
+    """The command's SPEC entry, else: run to exit status 0 in its section's scene."""
+    h = SPEC.get(spec_key(cmd))
+    if h is not None:
+        return h
+    scene = SCENES.get((cmd.doc, cmd.heading))
+    if scene is None:
+        raise KeyError(f"{cmd.id}: `{cmd.text}` (section {cmd.heading!r}) has no entry in tests/test_docs.py: "
+                       "add its section to SCENES (which daemons it needs) or the command to SPEC (how it runs, "
+                       "or why it cannot)")
+    return How(scene=scene)
+
+
+def _ordered(commands: list[Command]) -> list[Command]:
+    def rank(c: Command) -> int:
+        try:
+            return SCENE_ORDER.index(how(c).scene)
+        except (KeyError, ValueError):
+            return len(SCENE_ORDER)
+    return sorted(commands, key=rank)  # stable: doc order within a scene
+
+
+def _param(cmd: Command):
+    try:
+        h = how(cmd)
+    except KeyError:
+        return pytest.param(cmd, id=cmd.id)  # fails, saying what to add
+    marks = []
+    if h.kind == "skip":
+        marks.append(pytest.mark.skip(reason=f"{cmd.id}: {h.why}"))
+    if h.item:
+        marks.append(pytest.mark.xfail(strict=True, reason=f"pending issue 18 item {h.item}"))
+    return pytest.param(cmd, id=f"{cmd.id} {cmd.text.splitlines()[0][:60]}", marks=marks)
+
+
+def test_every_documented_command_is_in_the_reviewed_list():
+    """Each command belongs to a section with a scene or has its own SPEC entry, and each SPEC
+    entry still names a documented command (a changed doc line must be reviewed again)."""
+    missing = []
+    for c in COMMANDS:
+        try:
+            how(c)
+        except KeyError as e:
+            missing.append(str(e))
+    keys = {spec_key(c) for c in COMMANDS}
+    stale = [k for k in SPEC if k not in keys]
+    assert not missing and not stale, "\n".join(missing + [f"SPEC entry for a command no doc has: {k}" for k in stale])
+    assert all(h.scene in SCENE_ORDER for h in SPEC.values()) and set(SCENES.values()) <= set(SCENE_ORDER)
+
+
+def test_command_parser_reads_notes_continuations_and_shown_output(tmp_path):
+    doc = tmp_path / "x.md"
+    doc.write_text("# T\n\n## S\n\n```sh\ncrtk-ctl state   # DISABLED\ncrtk-ctl calibrate --profile a.yaml \\\n"
+                   "    --import b.json\ncrtk-sim x --link /tmp/t\n# crtk-sim: x ready\n```\n\n"
+                   "```console\n$ crtk-ctl robots\nkoch\nso101\n```\n\n```python\nx = 1\n```\n\n```\nnot a command\n```\n")
+    got = parse_doc(doc, tmp_path)
+    assert [(c.line, c.heading, c.text, c.note, c.output) for c in got] == [
+        (6, "S", "crtk-ctl state", "DISABLED", ()),
+        (7, "S", "crtk-ctl calibrate --profile a.yaml --import b.json", "", ()),
+        (9, "S", "crtk-sim x --link /tmp/t", "", ("crtk-sim: x ready",)),
+        (14, "S", "crtk-ctl robots", "", ("koch", "so101")),
+        (20, "S", "x = 1\n", "", ())]
+    assert got[-1].lang == "python"
+
+
+def test_python_example_comments_are_checked(tmp_path):
+    """doc_python.py: an expression whose comment is a literal must evaluate to it."""
+    import subprocess
+    import sys
+
+    from .doc_commands import PYTHON_DRIVER
+
+    ok, bad = tmp_path / "ok.py", tmp_path / "bad.py"
+    ok.write_text("x = [1]   # a note\nsorted(['b', 'a'])   # ['a', 'b']\n")
+    bad.write_text("sorted(['b'])   # ['a', 'b']\n")
+    assert subprocess.run([sys.executable, str(PYTHON_DRIVER), str(ok)]).returncode == 0
+    p = subprocess.run([sys.executable, str(PYTHON_DRIVER), str(bad)], capture_output=True, text=True)
+    assert p.returncode == 1 and "gave ['b'], the comment promises ['a', 'b']" in p.stderr
+
+
+@pytest.fixture(scope="module")
+def doc_env():
+    """Where the documented commands run: the test venv's console scripts, from a folder outside
+    the clone; ``profiles/...`` paths from the clone until the install resolves them (the lead
+    overrides this fixture to run against a non-editable install). Fixed resources a parallel run
+    would share are made private: the Zenoh ports 7447 / 7448, ``/tmp/`` paths, 127.0.0.2."""
+    import shutil
+    import tempfile
+
+    from crtk_bridge.sim.loopback import free_loopback_host
+
+    from .conftest import free_port
+
+    tmp = Path(tempfile.mkdtemp(prefix="crtk-doc-"))  # short: Unix socket paths stay under 108 bytes
+    (tmp / "t").mkdir()
+    subst = {"127.0.0.1:7447": f"127.0.0.1:{free_port()}", "127.0.0.1:7448": f"127.0.0.1:{free_port()}",
+             "/tmp/": f"{tmp}/t/", "127.0.0.2": free_loopback_host((30004, 29999, 30003, 30001, 30002))}
+    yield DocEnv.create(tmp, subst=subst)
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def scenes(doc_env):
+    logs = doc_env.cwd.parent / "logs"
+    logs.mkdir(exist_ok=True)
+    s = Scenes(doc_env, COMMANDS, how, logs)
+    yield s
+    s.close()
+
+
+def _trigger_until(env: DocEnv, job: Background, h: How, deadline_s: float = 20.0) -> None:
+    """Run ``h.trigger`` until ``job`` prints ``h.ready`` (the job may subscribe after the first)."""
+    import re
+    import time
+
+    trigger = Command("(trigger)", 0, "sh", "", h.trigger)
+    deadline = time.monotonic() + deadline_s
+    while not re.search(h.ready, job.output()):
+        r = run_to_end(env, trigger, How())
+        assert r.rc == 0, f"trigger `{h.trigger}` exited {r.rc}:\n{r.output}"
+        if time.monotonic() > deadline:
+            break
+        time.sleep(0.2)
+
+
+@pytest.mark.parametrize("cmd", [_param(c) for c in _ordered(COMMANDS)])
+def test_documented_command_runs(cmd: Command, doc_env: DocEnv, scenes: Scenes):
+    """Each fenced command of README.md and docs/*.md, verbatim, on the simulators: its exit
+    status, and the output its doc shows or its SPEC entry promises."""
+    import re
+
+    h = how(cmd)
+    if h.scene != "none" or h.kind == "daemon":
+        scenes.enter(h.scene)
+    if h.setup is not None and h.kind != "daemon":
+        h.setup(doc_env)
+    if h.kind == "daemon":
+        out = scenes.daemon(cmd).output()
+    elif h.kind == "forever":
+        job = Background(doc_env, cmd, h, doc_env.cwd.parent / "logs" / f"{Path(cmd.doc).stem}-{cmd.line}.log")
+        try:
+            if h.trigger:
+                _trigger_until(doc_env, job, h)
+            job.wait_ready(ready_pattern(cmd, h, doc_env))
+        finally:
+            rc = job.interrupt()
+        out = job.output()
+        assert rc == h.rc, f"{cmd.id}: `{cmd.text}` exited {rc} on Ctrl-C (documented: {h.rc}):\n{out}"
+    else:
+        r = run_to_end(doc_env, cmd, h)
+        out = r.output
+        assert r.rc == h.rc, f"{cmd.id}: `{doc_env.text(cmd, h)}` exited {r.rc}, not {h.rc}:\n{out}"
+    for line in cmd.output:
+        assert documented_output_pattern(line, doc_env.subst).search(out), \
+            f"{cmd.id}: `{cmd.text}` did not print what the doc shows:\n  {line}\nit printed:\n{out}"
+    for pattern in h.out:
+        assert re.search(pattern, out), f"{cmd.id}: `{cmd.text}`: no /{pattern}/ in:\n{out}"
+    if h.after is not None:
+        h.after(doc_env)
