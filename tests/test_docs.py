@@ -340,6 +340,57 @@ def _trigger_until(env: DocEnv, job: Background, h: How, deadline_s: float = 20.
         time.sleep(0.2)
 
 
+def _section(doc: str, heading: str) -> str:
+    text = (ROOT / doc).read_text()
+    start = text.index(f"\n## {heading}\n")
+    end = text.find("\n## ", start + 1)
+    return text[start:end if end > 0 else None]
+
+
+def _exchange(path: Path, request: dict, frames: int = 0, timeout: float = 10.0) -> tuple[dict, list[dict]]:
+    """One request on a fresh socket session: its reply, and the first ``frames`` stream frames."""
+    import json
+    import socket
+
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.settimeout(timeout)
+        s.connect(str(path))
+        s.sendall((json.dumps({"id": 1, **request}) + "\n").encode())
+        reply, got = None, []
+        for line in s.makefile("rb"):
+            msg = json.loads(line)
+            if msg.get("id") == 1:
+                reply = msg
+            elif "topic" in msg:
+                got.append(msg)
+            if reply is not None and (not reply.get("ok") or len(got) >= frames):
+                return reply, got
+    raise AssertionError(f"no reply to {request}")
+
+
+TOPIC_WORD = re.compile(r"`((?:measured|setpoint|goal)_(?:js|cp|cv|cf)|operating_state|period_statistics)`")
+
+
+def test_protocol_subscriptions_name_every_topic_list_advertises(doc_env, scenes):
+    """docs/protocol.md, Subscriptions: the topics it names are those `list` advertises (it named
+    5 while the SO-101's arm streams 12), and each streams, twists and wrenches also from
+    ``<ns>/body`` as it says."""
+    scenes.enter("so101")
+    sock = doc_env.runtime / "crtk-bridge" / "so101.sock"
+    described, _ = _exchange(sock, {"cmd": "list"})
+    advertised = {t for ns in described["data"]["namespaces"] for t in ns["topics"]}
+    named = set(TOPIC_WORD.findall(_section("docs/protocol.md", "Subscriptions (streams)")))
+    assert advertised <= named, f"docs/protocol.md, Subscriptions, omits {sorted(advertised - named)}"
+    assert named - advertised <= {"setpoint_cf"}, sorted(named - advertised)  # effort control only: not the SO-101
+    for ns in described["data"]["namespaces"]:
+        for topic in ns["topics"]:
+            where = [ns["name"]] + ([f"{ns['name']}/body"] if topic[-2:] in ("cv", "cf") else [])
+            for name in where:
+                reply, frames = _exchange(sock, {"cmd": "subscribe", "ns": name,
+                                                 "data": {"topic": topic, "rate_hz": 50}}, frames=1)
+                assert reply["ok"] and frames[0]["topic"] == topic, (name, topic, reply)
+
+
 @pytest.mark.parametrize("cmd", [_param(c) for c in _ordered(COMMANDS)])
 def test_documented_command_runs(cmd: Command, doc_env: DocEnv, scenes: Scenes):
     """Each fenced command of README.md and docs/*.md, verbatim, on the simulators: its exit
