@@ -163,6 +163,11 @@ SPEC: dict[tuple[str, str], How] = {
     ("docs/calibration.md", "crtk-ctl calibrate --profile my_arm.yaml --import "
                             "~/.cache/huggingface/lerobot/calibration/robots/so_follower/my_arm.json"): How(
         scene="so101", setup=_lerobot_file, after=_imported, item=PENDING_COPY),
+    # docs/cartesian.md: the body frame from crtk-ctl
+    ("docs/cartesian.md", "crtk-ctl get measured_cv --frame body"): How(
+        scene="so101", out=(r"so101 measured_cv \(body\)\s+stamp \d", r"gripper_frame_link in gripper_frame_link")),
+    ("docs/cartesian.md", "crtk-ctl echo measured_cv --frame body --count 3"): How(
+        scene="so101", out=(r"\A(\d+\.\d+  v=.*  w=.*\n){3}\Z",)),
     # docs/simulators.md
     ("docs/simulators.md", "crtk-sim feetech --profile profiles/so101.yaml --link /tmp/ttySIM --control /tmp/sim.sock"): How(
         "forever", ready=r"crtk-sim: feetech bus ready: port=\S+/ttySIM .*ids=1,2,3,4,5,6 baud=1000000", rc=0),
