@@ -121,6 +121,28 @@ def parse_doc(path: Path, root: Path = ROOT) -> list[Command]:
     return out
 
 
+MESSAGE = re.compile(r"^(crtk-bridge|crtk-ctl|crtk-sim)( [\w-]+)?: ")
+
+
+def parse_messages(path: Path, root: Path = ROOT) -> list[Command]:
+    """The messages a doc quotes in unlabelled fences (``crtk-ctl: ...`` lines: what a command
+    prints when it refuses), as Commands whose ``text`` is the message (tests/test_docs.py maps
+    each to the command that prints it)."""
+    text = path.read_text()
+    doc = str(path.relative_to(root))
+    headings = [(m.start(), m.group(1)) for m in HEADING.finditer(text)]
+    out = []
+    for m in FENCE.finditer(text):
+        if m.group(1):
+            continue
+        first_line = text.count("\n", 0, m.start()) + 2
+        heading = next((h for pos, h in reversed(headings) if pos < m.start()), "")
+        for i, line in enumerate(m.group(2).split("\n")):
+            if MESSAGE.match(line):
+                out.append(Command(doc, first_line + i, "sh", heading, line.strip()))
+    return out
+
+
 def documented_output_pattern(line: str, subst: dict[str, str]) -> re.Pattern:
     """The regex a shown output line must match: verbatim (after :attr:`DocEnv.subst`), except
     what differs on every run (a pty's number)."""

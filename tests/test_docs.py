@@ -76,10 +76,12 @@ def test_architecture_is_described_inside_the_repo():
 # Every documented command, run as a user runs it (tests/doc_commands.py)
 
 from .doc_commands import (  # noqa: E402 - this half of the module
-    Background, Command, DocEnv, How, Scenes, documented_output_pattern, parse_doc, ready_pattern, run_to_end)
+    Background, Command, DocEnv, How, Scenes, documented_output_pattern, parse_doc, parse_messages, ready_pattern,
+    run_to_end)
 
 COMMAND_DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), ROOT / "systemd" / "README.md"]
 COMMANDS = [c for d in COMMAND_DOCS for c in parse_doc(d)]
+MESSAGES = [c for d in COMMAND_DOCS for c in parse_messages(d)]
 READY = r"serving CRTK on \S+"  # crtk-bridge's banner once its socket serves
 
 
@@ -213,7 +215,24 @@ SPEC: dict[tuple[str, str], How] = {
     ("systemd/README.md", "journalctl -u 'crtk-bridge@*' -b"): How("skip", why="the journal of an installed systemd unit"),
 }
 
-SCENE_ORDER = ["none", "so101", "sim-canopen", "zenoh", "teleop"]
+#: The refusals the docs quote (unlabelled fences): the command that prints each, keyed by (doc,
+#: the message's start). Scene ``bare``: no daemon at all (nothing on the Zenoh ports either).
+MESSAGE_SPEC: dict[tuple[str, str], How] = {
+    ("docs/teleop.md", "crtk-ctl teleop: error: argument --tolerance"): How(
+        run="crtk-ctl teleop --leader so101_leader --follower so101 --tolerance 0.5", rc=2, scene="bare"),
+    ("docs/teleop.md", "crtk-ctl: --rate (rate_hz): must be from 10 to 200 Hz"): How(
+        run="crtk-ctl teleop --leader so101_leader --follower so101 --rate 1000", rc=1, scene="teleop",
+        item=PENDING_LEADER),
+    ("docs/zenoh.md", "crtk-bridge: so101: cannot reach the Zenoh router"): How(
+        run="crtk-bridge --profile profiles/so101.yaml --sim --zenoh-connect tcp/127.0.0.1:7447", rc=1, scene="bare"),
+    ("docs/zenoh.md", "crtk-ctl: crtk-bridge client: cannot reach the Zenoh"): How(
+        run="crtk-ctl --zenoh-connect tcp/127.0.0.1:7447 robots", rc=2, scene="bare"),
+    ("docs/zenoh.md", "crtk-bridge: so101: transport.zenoh.listen (--zenoh-l"): How(
+        "skip", why="a daemon asked to listen on 0.0.0.0 (beyond loopback, if the refusal broke): "
+                    "test_zenoh_exposure_refusal_reads_as_documented checks the message in-process"),
+}
+
+SCENE_ORDER = ["none", "so101", "sim-canopen", "zenoh", "bare", "teleop"]
 
 
 def spec_key(cmd: Command) -> tuple[str, str]:
@@ -267,7 +286,36 @@ def test_every_documented_command_is_in_the_reviewed_list():
     keys = {spec_key(c) for c in COMMANDS}
     stale = [k for k in SPEC if k not in keys]
     assert not missing and not stale, "\n".join(missing + [f"SPEC entry for a command no doc has: {k}" for k in stale])
-    assert all(h.scene in SCENE_ORDER for h in SPEC.values()) and set(SCENES.values()) <= set(SCENE_ORDER)
+    assert all(h.scene in SCENE_ORDER for h in [*SPEC.values(), *MESSAGE_SPEC.values()])
+    assert set(SCENES.values()) <= set(SCENE_ORDER)
+
+
+def message_how(msg: Command) -> How:
+    for (doc, start), h in MESSAGE_SPEC.items():
+        if doc == msg.doc and msg.text.startswith(start):
+            return h
+    raise KeyError(f"{msg.id}: the quoted message `{msg.text[:60]}...` has no entry in MESSAGE_SPEC "
+                   "(tests/test_docs.py): name the command that prints it")
+
+
+def test_every_quoted_message_is_in_the_reviewed_list():
+    missing = []
+    for m in MESSAGES:
+        try:
+            message_how(m)
+        except KeyError as e:
+            missing.append(str(e))
+    stale = [k for k in MESSAGE_SPEC if not any(m.doc == k[0] and m.text.startswith(k[1]) for m in MESSAGES)]
+    assert not missing and not stale, "\n".join(missing + [f"MESSAGE_SPEC entry no doc quotes: {k}" for k in stale])
+
+
+def test_zenoh_exposure_refusal_reads_as_documented():
+    from crtk_bridge.transport.zenoh_session import ZenohConfig, ZenohConfigError, check_exposure
+
+    quoted = next(m.text for m in MESSAGES if "reaches beyond this PC" in m.text)
+    with pytest.raises(ZenohConfigError) as info:
+        check_exposure(ZenohConfig(listen=["tcp/0.0.0.0:7447"]), "so101")
+    assert quoted == f"crtk-bridge: {info.value}"
 
 
 def test_command_parser_reads_notes_continuations_and_shown_output(tmp_path):
@@ -430,3 +478,34 @@ def test_documented_command_runs(cmd: Command, doc_env: DocEnv, scenes: Scenes):
         assert re.search(pattern, out), f"{cmd.id}: `{cmd.text}`: no /{pattern}/ in:\n{out}"
     if h.after is not None:
         h.after(doc_env)
+
+
+def _message_param(msg: Command):
+    try:
+        h = message_how(msg)
+    except KeyError:
+        return pytest.param(msg, id=msg.id)
+    marks = [pytest.mark.skip(reason=f"{msg.id}: {h.why}")] if h.kind == "skip" else []
+    if h.item:
+        marks.append(pytest.mark.xfail(strict=True, reason=f"pending issue 18 item {h.item}"))
+    return pytest.param(msg, id=f"{msg.id} {msg.text[:50]}", marks=marks)
+
+
+def _message_rank(msg: Command) -> int:
+    try:
+        return SCENE_ORDER.index(message_how(msg).scene)
+    except (KeyError, ValueError):
+        return len(SCENE_ORDER)
+
+
+@pytest.mark.parametrize("msg", [_message_param(m) for m in sorted(MESSAGES, key=_message_rank)])
+def test_quoted_message_is_what_the_command_prints(msg: Command, doc_env: DocEnv, scenes: Scenes):
+    """Each refusal a doc quotes is, verbatim, what its command prints, with the exit status the
+    doc gives."""
+    h = message_how(msg)
+    scenes.enter(h.scene)
+    cmd = Command(msg.doc, msg.line, "sh", msg.heading, h.run, output=(msg.text,))
+    r = run_to_end(doc_env, cmd, h)
+    assert r.rc == h.rc, f"{msg.id}: `{doc_env.text(cmd, h)}` exited {r.rc}, not {h.rc}:\n{r.output}"
+    assert documented_output_pattern(msg.text, doc_env.subst).search(r.output), \
+        f"{msg.id}: `{h.run}` printed:\n{r.output}\nnot what the doc quotes:\n{msg.text}"
