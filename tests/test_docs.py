@@ -356,6 +356,12 @@ def test_python_example_comments_are_checked(tmp_path):
     assert p.returncode == 1 and "gave ['b'], the comment promises ['a', 'b']" in p.stderr
 
 
+#: Commands naming ``profiles/...`` run from the clone while that path resolves only there; True
+#: once issue 18 items 7/8 land (pkg: ``profiles/NAME.yaml`` names the shipped profile from any
+#: folder): then every command runs outside the clone (checked with the pkg branch merged).
+OUTSIDE_THE_CLONE = False
+
+
 @pytest.fixture(scope="module")
 def doc_env():
     """Where the documented commands run: the test venv's console scripts, from a folder outside
@@ -373,7 +379,7 @@ def doc_env():
     (tmp / "t").mkdir()
     subst = {"127.0.0.1:7447": f"127.0.0.1:{free_port()}", "127.0.0.1:7448": f"127.0.0.1:{free_port()}",
              "/tmp/": f"{tmp}/t/", "127.0.0.2": free_loopback_host((30004, 29999, 30003, 30001, 30002))}
-    yield DocEnv.create(tmp, subst=subst)
+    yield DocEnv.create(tmp, subst=subst, profile_cwd=tmp / "work" if OUTSIDE_THE_CLONE else ROOT)
     shutil.rmtree(tmp, ignore_errors=True)
 
 
