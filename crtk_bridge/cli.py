@@ -5,6 +5,10 @@
     crtk-bridge check --profile FILE [--scan [--all-bauds]] [--json]
     crtk-bridge find-port [--replug]
     crtk-bridge setup-servos --profile FILE [--yes] [--json] [--joint NAME]
+    crtk-bridge init-profile NAME FILE [--force]
+
+``--profile`` takes a file, or a shipped profile by name (``so101``, or ``profiles/so101.yaml`` as
+README writes it from the clone's root, from any folder once installed: profile.resolve_profile_arg).
 """
 
 from __future__ import annotations
@@ -24,7 +28,8 @@ def _run_parser() -> argparse.ArgumentParser:
         usage="%(prog)s --profile FILE [--sim] [--socket PATH] [options]\n"
               "       %(prog)s check --profile FILE [--scan [--all-bauds]] [--json]\n"
               "       %(prog)s find-port [--replug]\n"
-              "       %(prog)s setup-servos --profile FILE [--yes] [--json] [--joint NAME]",
+              "       %(prog)s setup-servos --profile FILE [--yes] [--json] [--joint NAME]\n"
+              "       %(prog)s init-profile NAME FILE [--force]",
         description="Serve the CRTK robot API for the robot a profile describes.",
         epilog="commands:\n"
                "  check --profile FILE  validate a profile without opening the bus: every key, the\n"
@@ -39,9 +44,13 @@ def _run_parser() -> argparse.ArgumentParser:
                "                        vendor / product / serial number; --replug names the one\n"
                "                        you unplug and plug back\n"
                "  setup-servos --profile FILE  one servo at a time, give each joint's servo its id\n"
-               "                        and the profile's baud rate (see setup-servos --help)",
+               "                        and the profile's baud rate (see setup-servos --help)\n"
+               "  init-profile NAME FILE  write FILE from the shipped profile NAME (so101, koch...),\n"
+               "                        to edit for your arm (see init-profile --help)",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--profile", required=True, help="robot profile (YAML), e.g. profiles/so101.yaml")
+    p.add_argument("--profile", required=True,
+                   help="robot profile (YAML), e.g. my_arm.yaml, or a shipped one by name: so101, "
+                        "profiles/so101.yaml (crtk-bridge init-profile --help lists them)")
     p.add_argument("--sim", action="store_true", help="run on the built-in simulator instead of hardware")
     p.add_argument("--socket", help="Unix socket path (default: $XDG_RUNTIME_DIR/crtk-bridge/<robot>.sock)")
     z = p.add_argument_group("Zenoh transport (off unless an endpoint is given here or in the profile's "
@@ -82,14 +91,14 @@ def _check(argv: list[str]) -> int:
         p.error("--all-bauds needs --scan")
     from .backends import create_backend
     from .core.kinematics_check import check_kinematics
-    from .profile import load_profile
+    from .profile import load_profile, resolve_profile_arg
     from .transport.zenoh_session import check_exposure, zenoh_config
 
     doc: dict = {"check_format": CHECK_FORMAT, "profile": args.profile, "ok": False, "valid": False, "error": None,
                  "robot": None, "backend": None, "joints": [], "namespaces": [], "kinematics": [],
                  "scan": None, "problems": []}
     try:
-        profile = load_profile(args.profile)
+        profile = load_profile(resolve_profile_arg(args.profile))
         backend = create_backend(profile, source=args.profile)
         cartesian = check_kinematics(profile, args.profile)
         zenoh = zenoh_config(profile)
@@ -225,7 +234,7 @@ def _setup_servos(argv: list[str]) -> int:
     args = p.parse_args(argv)
     from .backends import create_backend
     from .backends.servo_setup import EXIT_ERROR, ServoSetup
-    from .profile import load_profile
+    from .profile import load_profile, resolve_profile_arg
 
     def emit(event: dict) -> None:
         if args.json:
@@ -234,7 +243,7 @@ def _setup_servos(argv: list[str]) -> int:
             _print_setup_event(event, args.profile)
 
     try:
-        profile = load_profile(args.profile)
+        profile = load_profile(resolve_profile_arg(args.profile))
         backend = create_backend(profile, source=args.profile)
         if profile.backends is not None:
             if args.bus not in profile.bus_names:
@@ -286,8 +295,46 @@ def _print_setup_event(e: dict, source: str) -> None:
                   f"stopped (exit {e['exit_code']})", flush=True)
 
 
+def _init_profile(argv: list[str]) -> int:
+    from .profile import shipped_profile_names, shipped_profiles_dir
+
+    names = shipped_profile_names()
+    p = argparse.ArgumentParser(
+        prog="crtk-bridge init-profile",
+        description="Write a new profile FILE from a shipped one, comments included, to edit for your "
+                    "arm (backend.port, calibration...). Its URDF stays the shipped one (a profile's "
+                    "relative paths are looked up beside the profile file, then among the shipped "
+                    "profiles).",
+        epilog=f"shipped profiles: {', '.join(names)} (in {shipped_profiles_dir()})")
+    p.add_argument("name", metavar="NAME", help="a shipped profile: " + ", ".join(names))
+    p.add_argument("file", metavar="FILE", help="the profile to write, e.g. my_arm.yaml")
+    p.add_argument("--force", action="store_true", help="overwrite FILE if it exists")
+    args = p.parse_args(argv)
+    name = args.name[:-5] if args.name.endswith(".yaml") else args.name
+    if name not in names:
+        p.error(f"NAME: no shipped profile {args.name!r} (shipped: {', '.join(names)})")
+    from pathlib import Path
+
+    target = Path(args.file).expanduser()
+    if target.exists() and not args.force:
+        print(f"crtk-bridge: {target} exists: give another FILE, or --force to overwrite it", file=sys.stderr)
+        return 1
+    text = (shipped_profiles_dir() / f"{name}.yaml").read_text()
+    try:
+        target.write_text(f"# Written by `crtk-bridge init-profile {name}` from the shipped profile {name} "
+                          f"(crtk-bridge {__version__}).\n{text}")
+    except OSError as exc:
+        print(f"crtk-bridge: cannot write {target}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
+    print(f"wrote {target} from the shipped profile {name}: set backend.port (crtk-bridge find-port), then "
+          f"crtk-bridge check --profile {args.file}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "init-profile":
+        return _init_profile(argv[1:])
     if argv and argv[0] == "find-port":
         return _find_port(argv[1:])
     if argv and argv[0] == "check":
@@ -297,9 +344,13 @@ def main(argv: list[str] | None = None) -> int:
     args = _run_parser().parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     from .daemon import run
+    from .profile import resolve_profile_arg
 
+    profile = resolve_profile_arg(args.profile)
+    if str(profile) != args.profile:
+        print(f"crtk-bridge: --profile {args.profile}: using the shipped profile {profile}", file=sys.stderr)
     try:
-        return run(args.profile, sim=args.sim, socket_path=args.socket, realtime=not args.no_realtime,
+        return run(str(profile), sim=args.sim, socket_path=args.socket, realtime=not args.no_realtime,
                    zenoh_connect=args.zenoh_connect, zenoh_listen=args.zenoh_listen,
                    ros_domain_id=args.ros_domain_id)
     except CrtkBridgeError as exc:

@@ -35,6 +35,7 @@ from .profile import Profile, load_profile
 from .server.link import ControlLink
 from .server.server import Server
 from .sim.loopback import free_loopback_host
+from .spawn import module_argv, module_env
 from .transport.zenoh_session import ZenohConfig, check_exposure, open_session, zenoh_config
 
 log = logging.getLogger("crtk_bridge.daemon")
@@ -94,9 +95,10 @@ class SimulatorProcess:
             self.link = os.path.join(workdir, f"tty{tag}")
             where = ["--link", self.link]
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "crtk_bridge.sim.cli", device, "--profile", profile_path,
-             *where, "--control", self.control, *(["--bus", bus] if bus else []), "--parent-pid", str(os.getpid())],
+            module_argv("crtk_bridge.sim.cli", device, "--profile", profile_path, *where, "--control", self.control,
+                        *(["--bus", bus] if bus else []), "--parent-pid", str(os.getpid())),
             stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
+            env=module_env(),  # this package's simulator, whatever the current folder holds (spawn.py)
             start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
             # ...but a daemon killed outright must not leave it running; SIM_NICE with realtime
             preexec_fn=lambda: _simulator_child(raise_priority),

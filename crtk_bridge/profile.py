@@ -59,10 +59,20 @@ class Joint(_Strict, kw_only=True):
 CORE_JOINT_KEYS = frozenset(Joint.__struct_fields__) - {"backend"}
 
 
+def joint_bus_id(joint: Joint) -> int | None:
+    """The joint's address on its bus as its backend keys give it: a servo's ``id``, a CiA 402
+    drive's ``node_id``; None for a backend without one (a UR arm). Not validated here."""
+    for key in ("id", "node_id"):
+        value = joint.backend.get(key)
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+    return None
+
+
 class KinematicsConfig(_Strict, kw_only=True):
     """Cartesian space of a namespace (pinocchio, see core/kinematics.py)."""
 
-    urdf: str  # path to the URDF, relative to the profile file
+    urdf: str  # path to the URDF, relative to the profile file (else to the shipped profiles)
     base_frame: str  # reference frame of every pose (a link fixed to the URDF root)
     tip_frame: str  # the moving frame (tool tip)
     ik_tolerance_position: float = 1e-3  # m: IK goals not reached this close are refused
@@ -512,6 +522,56 @@ def _load_yaml(path: Path, text: str) -> Any:
         raise ProfileError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from exc
 
 
+def shipped_profiles_dir() -> Path:
+    """The folder of the shipped profiles and their URDFs: ``crtk_bridge/profiles`` in an installed
+    package (setup.py installs the repository's ``profiles/`` there), else the checkout's
+    ``profiles/`` beside the package (a source tree, an editable install)."""
+    here = Path(__file__).resolve().parent
+    installed = here / "profiles"
+    for folder in (installed, here.parent / "profiles"):
+        if (folder / "example.yaml").is_file():
+            return folder
+    return installed
+
+
+def shipped_profile_names() -> list[str]:
+    """The names ``--profile NAME`` and ``init-profile NAME`` accept: each shipped profile's file stem."""
+    return sorted(p.stem for p in shipped_profiles_dir().glob("*.yaml"))
+
+
+def resolve_profile_arg(arg: str | Path) -> Path:
+    """The profile file a ``--profile`` argument means: the file itself when it exists; else a
+    shipped profile, named bare (``so101``) or as README writes it from the clone's root
+    (``profiles/so101.yaml``), so those commands work from any folder once the package is
+    installed; else the path as given (loading it then says the file is missing)."""
+    path = Path(arg).expanduser()
+    if path.exists():
+        return path
+    text = str(arg)
+    if "/" not in text and not text.endswith((".yaml", ".yml")):
+        name = f"{text}.yaml"
+    elif len(path.parts) == 2 and path.parts[0] == "profiles":
+        name = path.name
+    else:
+        return path
+    shipped = shipped_profiles_dir() / name
+    return shipped if shipped.is_file() else path
+
+
+def profile_relative_file(profile_path: str | Path, name: str) -> tuple[Path, Path | None]:
+    """A file a profile names (a URDF), relative to the profile file first and to the shipped
+    profiles second (a copied shipped profile keeps its URDF). Returns (the path relative to the
+    profile, the existing file or None)."""
+    own = (Path(profile_path).parent / name).resolve()
+    if own.is_file():
+        return own, own
+    if not Path(name).is_absolute():
+        shipped = (shipped_profiles_dir() / name).resolve()
+        if shipped.is_file():
+            return own, shipped
+    return own, None
+
+
 def calibration_file_path(profile_path: str | Path, name: str) -> Path:
     """Where a profile's ``calibration_file`` is: relative to the profile file."""
     return (Path(profile_path).parent / name).resolve()
@@ -567,14 +627,17 @@ def load_profile(path: str | Path) -> Profile:
     if isinstance(data, dict) and data.get("calibration_file") is not None:
         data = _with_calibration_file(data, path)
     profile = parse_profile(data, str(path))
-    # URDF paths are relative to the profile file: resolve them now, so the daemon can chdir
+    # URDF paths are relative to the profile file (else to the shipped profiles): resolve them now,
+    # so the daemon can chdir
     namespaces = []
     for i, ns in enumerate(profile.namespaces):
         k = ns.kinematics
         if k is not None:
-            urdf = (path.parent / k.urdf).resolve()
-            if not urdf.is_file():
-                raise ProfileError(f"{path}: namespaces[{i}] ({ns.name}).kinematics.urdf: no file {urdf}")
+            own, urdf = profile_relative_file(path, k.urdf)
+            if urdf is None:
+                raise ProfileError(f"{path}: namespaces[{i}] ({ns.name}).kinematics.urdf: no file {own}, nor "
+                                   f"{k.urdf} among the shipped profiles' files ({shipped_profiles_dir()}): "
+                                   f"give the URDF's path, relative to the profile file")
             ns = msgspec.structs.replace(ns, kinematics=msgspec.structs.replace(k, urdf=str(urdf)))
         namespaces.append(ns)
     profile = msgspec.structs.replace(profile, namespaces=namespaces)

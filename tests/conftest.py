@@ -615,3 +615,75 @@ class RawSession:
         except OSError:
             pass
         self.sock.close()
+
+
+class Installed:
+    """crtk-bridge installed NON-editable (``pip install .``, a wheel built from a copy of this
+    tree) into its own venv in a temporary folder outside the clone. The venv reuses the test
+    venv's dependencies through a ``.pth`` (so building it takes seconds, not a download of
+    pinocchio), but not its editable crtk_bridge: ``import crtk_bridge`` finds the installed copy.
+    :meth:`run` / :meth:`popen` run its console scripts from a folder outside the clone."""
+
+    def __init__(self, base: Path):
+        self.base = base
+        self.venv = base / "venv"
+        self.bin = self.venv / "bin"
+        self.python = self.bin / "python"
+        self.runtime = base / "run"  # XDG_RUNTIME_DIR: the default sockets, apart from the user's
+        self.runtime.mkdir(mode=0o700)
+
+    def env(self, **extra: str) -> dict[str, str]:
+        env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONSAFEPATH", "VIRTUAL_ENV")}
+        env.update(PATH=f"{self.bin}{os.pathsep}{env.get('PATH', '')}", XDG_RUNTIME_DIR=str(self.runtime), **extra)
+        return env
+
+    def cwd(self, name: str) -> Path:
+        """A fresh working folder outside the clone."""
+        d = Path(tempfile.mkdtemp(prefix=f"{name}-", dir=self.base))
+        return d
+
+    def run(self, args: list[str], cwd: Path, timeout: float = 60.0, **kw) -> subprocess.CompletedProcess:
+        return subprocess.run([str(self.bin / args[0]), *args[1:]], cwd=cwd, env=self.env(), capture_output=True,
+                              text=True, timeout=timeout, stdin=subprocess.DEVNULL, **kw)
+
+    def popen(self, args: list[str], cwd: Path, log: Path) -> subprocess.Popen:
+        with open(log, "wb") as f:
+            return subprocess.Popen([str(self.bin / args[0]), *args[1:]], cwd=cwd, env=self.env(), stdout=f,
+                                    stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+
+
+def _build_installed(base: Path) -> Installed:
+    import sysconfig
+
+    inst = Installed(base)
+    src = base / "src"
+    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(
+        ".git", ".venv", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", "tests", "bench"))
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(inst.venv)], check=True, timeout=120)
+    site = Path(subprocess.run([str(inst.python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                               check=True, capture_output=True, text=True).stdout.strip())
+    # the test venv's dependencies (and its .pth hooks, e.g. cmeel's for pinocchio), not its crtk_bridge
+    ours = {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]}
+    lines = sorted(ours)
+    for d in sorted(ours):
+        for pth in sorted(Path(d).glob("*.pth")):
+            if "crtk" in pth.name or "editable" in pth.name or "distutils" in pth.name:
+                continue
+            lines += [ln for ln in pth.read_text().splitlines() if ln.startswith("import ")]
+    (site / "_crtk_test_deps.pth").write_text("\n".join(lines) + "\n")
+    # --ignore-installed: the test venv's crtk-bridge, visible through the .pth, is never touched
+    subprocess.run([sys.executable, "-m", "pip", "--python", str(inst.python), "install", "--no-deps", "-q",
+                    "--ignore-installed", "--disable-pip-version-check", str(src)], check=True, timeout=600,
+                   capture_output=True)
+    shutil.rmtree(src)
+    return inst
+
+
+@pytest.fixture(scope="session")
+def installed():
+    """:class:`Installed`, built once per session."""
+    base = Path(tempfile.mkdtemp(prefix="crtk-inst-"))
+    try:
+        yield _build_installed(base)
+    finally:
+        shutil.rmtree(base, ignore_errors=True)

@@ -23,7 +23,7 @@ from crtk_bridge.errors import BackendError
 from crtk_bridge.profile import load_profile
 from crtk_bridge.sim.control import control_request
 
-from .conftest import DaemonProcess, wait_until
+from .conftest import KOCH, DaemonProcess, wait_until
 from .test_calibrate import BOTH, COMMENT, SOURCE, Tool, arm_ns, daemon, hand_all, profile  # noqa: F401 (fixtures)
 
 TICK = 2 * math.pi / 4096
@@ -90,6 +90,39 @@ def test_import_then_the_restarted_daemon_reads_as_lerobot_does(short_tmp, profi
             robot.close()
     finally:
         again.stop()
+
+
+def test_a_profile_of_another_robot_is_refused_naming_the_difference_and_left_alone(short_tmp, profile, daemon):
+    """Issue 18 item 10: against the so101 daemon, ``--profile koch_copy.yaml`` wrote into the Koch's
+    profile and exited 0. Refused (exit 1, nothing written) when the robot name, the backend or a
+    joint's bus id differs from the daemon's."""
+    fixture = short_tmp / "so101_follower.json"
+    fixture.write_text(json.dumps(LEROBOT, indent=4))
+    so101 = profile.read_text()
+    cases = {
+        "koch_copy.yaml": (KOCH.read_text(), "is robot 'koch', the daemon serves 'so101'"),
+        "dxl_so101.yaml": (KOCH.read_text().replace("name: koch\n", "name: so101\n"),
+                           "has backend 'dynamixel', the daemon's robot 'feetech'"),
+        "ids.yaml": (so101.replace("  - name: gripper\n    id: 6\n", "  - name: gripper\n    id: 7\n"),
+                     "joint 'gripper' has id 7, on the daemon's robot id 6"),
+        "joints.yaml": (so101.replace("wrist_roll", "wrist_twist"), "has no joint 'wrist_roll'"),
+    }
+    for name, (text, why) in cases.items():
+        other = short_tmp / name
+        other.write_text(text)
+        tool = Tool(str(daemon.socket_path), "--profile", str(other), "--import", str(fixture))
+        try:
+            code = tool.finish()
+        finally:
+            tool.kill()
+        assert code == 1 and why in tool.output() and f"--profile {other}" in tool.output(), (name, tool.output())
+        assert len(tool.output().splitlines()) == 1, tool.output()
+        assert other.read_text() == text, name  # left alone
+    tool = Tool(str(daemon.socket_path), "--profile", str(profile), "--import", str(fixture))
+    try:
+        assert tool.finish() == 0, tool.output()  # the daemon's own profile (a copy) is accepted
+    finally:
+        tool.kill()
 
 
 # ---------------------------------------------------------------- the arithmetic, directly

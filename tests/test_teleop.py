@@ -6,7 +6,10 @@ leader; a leader that goes away ends teleop with an error naming it and the foll
 
 from __future__ import annotations
 
+import re
+import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -19,7 +22,7 @@ import yaml
 
 from crtk_bridge.client import connect
 from crtk_bridge.client.teleop import ALIGNING, DISABLED, ENABLED, Pair, Teleop, TeleopError, pair_namespaces
-from crtk_bridge.profile import load_profile
+from crtk_bridge.profile import load_profile, resolve_profile_arg, shipped_profiles_dir
 from crtk_bridge.sim.control import control_request
 
 from .conftest import ROOT, SO101, DaemonProcess, _counts_per_rad, profile_data, wait_until
@@ -331,3 +334,96 @@ def test_an_ill_typed_rate_or_tolerance_is_a_teleop_error_naming_the_option(opti
         Teleop(_Daemon("lead", 200.0), _Daemon("follow", 200.0), **kwargs)
     assert str(refused.value) == f"{option}: expected a number, got {shown}"
     assert Teleop(_Daemon("lead", 200.0), _Daemon("follow", 200.0), rate_hz=np.int64(20)).period == pytest.approx(0.05)
+
+
+def _fenced_sh(doc: Path, first_line: str) -> list[str]:
+    """The lines of the ```sh block of ``doc`` that starts with ``first_line``."""
+    blocks = re.findall(r"```sh\n(.*?)```", doc.read_text(), re.S)
+    block = next(b for b in blocks if b.startswith(first_line))
+    return [ln for ln in block.splitlines() if ln.strip()]
+
+
+@pytest.mark.parametrize("pair", ["so101", "koch"])
+def test_docs_teleop_example_runs_verbatim_from_the_installed_package_with_the_shipped_leaders(installed, pair):
+    """docs/teleop.md's example, each line run as written (the Koch pair with its names swapped in)
+    from a folder outside the clone on a non-editable install: both daemons on --sim, the follower
+    enabled, teleop started; turning the leader simulator's joints by hand moves the follower."""
+    lines = _fenced_sh(ROOT / "docs" / "teleop.md", "crtk-bridge --profile profiles/so101_leader.yaml")
+    assert len(lines) == 4
+    if pair == "koch":
+        lines = [ln.replace("so101", "koch") for ln in lines]
+    cwd = installed.cwd(f"teleop-{pair}")
+    runtime = installed.runtime / "crtk-bridge"
+    procs: list[subprocess.Popen] = []
+    logs: list[Path] = []
+    try:
+        for k, line in enumerate(lines):
+            command = shlex.split(line, comments=True)
+            if command[-1] == "&":  # a daemon in the background: wait for its socket
+                logs.append(cwd / f"daemon{k}.log")
+                procs.append(installed.popen(command[:-1], cwd, logs[-1]))
+                robot = load_profile(resolve_profile_arg(command[2])).name
+                wait_until(lambda: (runtime / f"{robot}.sock").exists() or procs[-1].poll() is not None, 60,
+                           what=f"{robot}'s daemon socket")
+                assert procs[-1].poll() is None, logs[-1].read_text()
+            elif command[1] == "teleop":  # runs until Ctrl-C
+                logs.append(cwd / "teleop.log")
+                procs.append(installed.popen(command, cwd, logs[-1]))
+            else:
+                done = installed.run(command, cwd)
+                assert done.returncode == 0, done.stdout + done.stderr
+        teleop, leader_log = procs[-1], logs[0]
+        wait_until(lambda: "teleop ENABLED" in logs[-1].read_text() or teleop.poll() is not None, 20,
+                   what="crtk-ctl teleop ENABLED")
+        assert teleop.poll() is None, logs[-1].read_text()
+        leader_profile = load_profile(shipped_profiles_dir() / f"{pair}_leader.yaml")
+        sim = next(ln.rsplit(" ", 1)[-1].rstrip(")") for ln in leader_log.read_text().splitlines()
+                   if "simulator control socket" in ln)
+        joint = next(j for j in leader_profile.joints if j.name == "wrist_flex")
+        now = control_request(sim, {"cmd": "read", "id": joint.backend["id"], "register": "Present_Position"})["value"]
+        target = int(round(now + 0.3 * _counts_per_rad(joint)))
+        assert control_request(sim, {"cmd": "hand", "id": joint.backend["id"], "position": target, "speed": 3000})["ok"]
+        with connect(socket=str(runtime / f"{pair}.sock")) as fol:
+            arm = fol.device(pair)
+            wait_until(lambda: abs(arm.measured_jp()[0][3] - 0.3) < 0.03, 10,
+                       what=f"the follower {pair}'s wrist_flex at the leader's +0.3 rad")
+        teleop.send_signal(signal.SIGINT)
+        assert teleop.wait(10) == 130, logs[-1].read_text()
+    finally:
+        for proc in reversed(procs):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT if proc is procs[-1] else signal.SIGTERM)
+                try:
+                    proc.wait(20)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+
+
+def test_koch_leader_trigger_commands_of_its_profile_torque_the_gripper_only_in_current_based_position(short_tmp):
+    """profiles/koch_leader.yaml's comments give the commands that make its gripper a spring-loaded
+    trigger (LeRobot's koch_leader): run as written, the arm's servos end torque off (moved by hand)
+    and the gripper's torqued in current-based position mode (5), at the commanded rest."""
+    path = shipped_profiles_dir() / "koch_leader.yaml"
+    commands = [shlex.split(ln.lstrip("# "), comments=True) for ln in path.read_text().splitlines()
+                if ln.startswith("#   crtk-ctl --robot koch_leader")]
+    assert len(commands) == 3
+    d = DaemonProcess(["--profile", str(path), "--sim"], short_tmp / "kl.sock", short_tmp / "kl.log")
+    try:
+        for command in commands:
+            assert command[:3] == ["crtk-ctl", "--robot", "koch_leader"]
+            done = subprocess.run([sys.executable, "-m", "crtk_bridge.client.cli", "--socket", str(d.socket_path),
+                                   *command[3:]], capture_output=True, text=True, cwd=ROOT, timeout=30)
+            assert done.returncode == 0, done.stdout + done.stderr
+        sim = d.sim_control_path()
+
+        def reg(sid: int, name: str) -> int:
+            return control_request(sim, {"cmd": "read", "id": sid, "register": name})["value"]
+
+        assert [reg(i, "Torque_Enable") for i in range(1, 7)] == [0, 0, 0, 0, 0, 1]
+        assert reg(6, "Operating_Mode") == 5 and reg(1, "Operating_Mode") == 4
+        with connect(socket=str(d.socket_path)) as leader:
+            assert leader.device("koch_leader").operating_state() == "ENABLED"
+            assert abs(leader.device("koch_leader/gripper").measured_jp()[0][0] - 0.6) < 0.02
+    finally:
+        d.stop()

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 from ..errors import CommandError, CrtkBridgeError
+from ..profile import joint_bus_id, load_profile
 from ..profile_write import write_calibration
 
 BAR_WIDTH = 41  # characters for one turn of a joint, the middle pose at the centre
@@ -139,6 +140,33 @@ def summary(calibration: dict[str, dict]) -> list[str]:
     return out
 
 
+def profile_mismatch(info: dict, profile_path: Path) -> str | None:
+    """Why the profile at ``profile_path`` is not the daemon's robot (``info``: its ``list``
+    reply), naming the first difference: robot name, backend, a joint, or a joint's bus id;
+    None when they agree. Raises ProfileError when the profile does not load."""
+    profile = load_profile(profile_path)
+    where = f"--profile {profile_path}"
+    if profile.name != info.get("robot"):
+        return f"{where} is robot {profile.name!r}, the daemon serves {info.get('robot')!r}"
+    if profile.backend_type != info.get("backend"):
+        return f"{where} has backend {profile.backend_type!r}, the daemon's robot {info.get('backend')!r}"
+    ours = {j.name: joint_bus_id(j) for j in profile.joints}
+    namespaces = info.get("namespaces", [])
+    has_ids = all("ids" in ns for ns in namespaces)  # a daemon older than the ids says none
+    theirs: dict[str, Any] = {}
+    for ns in namespaces:
+        theirs.update(zip(ns.get("joints", []), ns.get("ids") or [None] * len(ns.get("joints", []))))
+    for name in theirs:
+        if name not in ours:
+            return f"{where} has no joint {name!r}, a joint of the daemon's robot"
+    for name, bus_id in ours.items():
+        if name not in theirs:
+            return f"{where} has a joint {name!r} the daemon's robot does not have"
+        if has_ids and bus_id != theirs[name]:
+            return f"{where}: joint {name!r} has id {bus_id}, on the daemon's robot id {theirs[name]}"
+    return None
+
+
 def run(robot: Any, profile: str, grippers: list[str] | None, import_path: str | None,
         stdin_fd: int, out: TextIO) -> int:
     """``crtk-ctl calibrate``. Returns the exit status; raises CommandError (the daemon refused),
@@ -149,6 +177,9 @@ def run(robot: Any, profile: str, grippers: list[str] | None, import_path: str |
     profile_path = Path(profile)
     if not profile_path.is_file():
         raise CrtkBridgeError(f"calibrate: --profile {profile}: no such file (the daemon's profile, to write into)")
+    mismatch = profile_mismatch(info, profile_path)  # never write one robot's calibration into another's
+    if mismatch is not None:
+        raise CrtkBridgeError(f"calibrate: {mismatch}: give the profile the daemon runs (or a copy of it)")
     if import_path is not None:
         try:
             data = json.loads(Path(import_path).read_text())

@@ -16,6 +16,7 @@ from typing import Any
 
 from .. import __version__
 from ..errors import CrtkBridgeError
+from ..profile import joint_bus_id
 from .cartesian import FRAMED, CartesianSpace
 from .link import ControlLink, ControlLost
 from .protocol import (
@@ -384,6 +385,9 @@ class Server:
             entry = {
                 "name": ns.name,
                 "joints": list(ns.joints),
+                # each joint's id on its bus (servo id, drive node id; null: none), so that a tool
+                # can tell the daemon's robot from another profile's (crtk-ctl calibrate --profile)
+                "ids": [joint_bus_id(self.profile.joints[self.profile.joint_index(j)]) for j in ns.joints],
                 "commands": list(STATE_COMMANDS) + self.link.ns_commands[ns.name] + (cs.commands if cs else []),
                 "queries": list(JOINT_QUERIES + ROBOT_QUERIES) + cart_q,
                 "topics": list(TOPICS) + [q for q in cart_q if not q.endswith("kinematics")],

@@ -30,7 +30,7 @@ import sys
 
 from .. import __version__
 from ..errors import CrtkBridgeError, ProfileError
-from ..profile import load_profile
+from ..profile import load_profile, resolve_profile_arg
 from . import simulator_class
 
 _SIGNALS = {signal.SIGTERM, signal.SIGINT}
@@ -168,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     _parent_pid = args.parent_pid
     logging.basicConfig(level=args.log_level.upper(), format="crtk-sim: %(levelname)s %(message)s")
     try:
+        args.profile = str(resolve_profile_arg(args.profile))  # a file, or a shipped profile's name
         profile = load_profile(args.profile)
     except ProfileError as exc:
         print(f"crtk-sim: {exc}", file=sys.stderr)

@@ -174,16 +174,16 @@ class SimServo(BusServo):
         self._put("Operating_Mode", int(T.OperatingMode.POSITION))
         self._put("Protocol_Type", 2)
         self._put("Moving_Threshold", 10)
-        self._put("Temperature_Limit", 70 if m == "xl330-m288" else 80)
-        self._put("Max_Voltage_Limit", 70 if m == "xl330-m288" else 140)
-        self._put("Min_Voltage_Limit", 35 if m == "xl330-m288" else 60)
+        self._put("Temperature_Limit", 70 if m.startswith("xl330") else 80)
+        self._put("Max_Voltage_Limit", 70 if m.startswith("xl330") else 140)
+        self._put("Min_Voltage_Limit", 35 if m.startswith("xl330") else 60)
         self._put("PWM_Limit", 885)
         if "Current_Limit" in self.table:
             self._put("Current_Limit", T.CURRENT_LIMIT_DEFAULT[m])
         self._put("Velocity_Limit", T.VELOCITY_LIMIT_DEFAULT[m])
         self._put("Max_Position_Limit", 4095)
         self._put("Min_Position_Limit", 0)
-        self._put("Shutdown", 53 if m == "xl330-m288" else 52)
+        self._put("Shutdown", 53 if m.startswith("xl330") else 52)
 
     def _ram_defaults(self) -> None:
         """Power-on / reboot RAM state: torque off, goal = present position, no error."""
@@ -195,7 +195,7 @@ class SimServo(BusServo):
         self._put("Velocity_I_Gain", 1000)
         if "Goal_Current" in self.table:
             self._put("Goal_Current", self._get("Current_Limit"))
-        self._put("Present_Input_Voltage", 50 if self.model == "xl330-m288" else 120)
+        self._put("Present_Input_Voltage", 50 if self.model.startswith("xl330") else 120)
         self._put("Present_Temperature", 30)
         self._vel = 0.0
         self._put("Goal_Position", round(self._pos) + self._get("Homing_Offset"))

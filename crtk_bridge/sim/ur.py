@@ -40,15 +40,14 @@ import signal
 import socket
 import struct
 import subprocess
-import sys
 import tempfile
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 
 from ..profile import Profile
+from ..spawn import module_argv, module_env
 from . import SimulatorError
 from .control import ControlServer, control_request
 from .loopback import free_loopback_host
@@ -816,15 +815,14 @@ class URSimulator:
                     raise
 
     def _spawn(self, timeout_s: float) -> None:
-        root = str(Path(__file__).resolve().parents[2])
-        env = dict(os.environ)
-        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        env = module_env()  # this package's simulator, whatever the current folder holds (spawn.py)
         t = self.timings
-        argv = [sys.executable, "-m", "crtk_bridge.sim.cli", "ur", "--profile", self.profile_path,
-                "--host", self.host, "--control", self.control_path, "--log-level", "info",
-                "--power-on-s", str(t.power_on_s), "--brake-release-s", str(t.brake_release_s),
-                "--unlock-delay-s", str(t.unlock_delay_s), *(["--series", self.series] if self.series else []),
-                "--parent-pid", str(os.getpid())]  # it also stops once this process is gone
+        argv = module_argv(
+            "crtk_bridge.sim.cli", "ur", "--profile", self.profile_path,
+            "--host", self.host, "--control", self.control_path, "--log-level", "info",
+            "--power-on-s", str(t.power_on_s), "--brake-release-s", str(t.brake_release_s),
+            "--unlock-delay-s", str(t.unlock_delay_s), *(["--series", self.series] if self.series else []),
+            "--parent-pid", str(os.getpid()))  # it also stops once this process is gone
         with open(self.log_path, "ab") as logf:
             self.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=logf, stderr=logf, env=env,
                                          start_new_session=True, preexec_fn=_die_with_parent)

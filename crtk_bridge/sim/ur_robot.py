@@ -41,11 +41,13 @@ import pinocchio as pin
 import ruckig
 
 from ..backends.ur.tables import RobotMode, RuntimeState, SafetyMode  # noqa: F401 - re-exported
+from ..profile import shipped_profiles_dir
 
 log = logging.getLogger(__name__)
 
 #: the arm model this controller simulates (written from UR's published DH parameters)
-UR5E_URDF = Path(__file__).resolve().parents[2] / "profiles" / "urdf" / "ur5e.urdf"
+#: (the shipped profiles' URDF: installed with the package, profile.shipped_profiles_dir)
+UR5E_URDF = shipped_profiles_dir() / "urdf" / "ur5e.urdf"
 TIP_FRAME = "tool0"
 N = 6
 JOINT_SPEED_MAX = math.pi  # rad/s, every UR5e joint (180 deg/s)

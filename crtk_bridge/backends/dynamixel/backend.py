@@ -1,4 +1,4 @@
-"""Dynamixel X-series backend (Protocol 2.0; XL330-M288, XL430-W250, XM430-W350), e.g. the Koch v1.1.
+"""Dynamixel X-series backend (Protocol 2.0; XL330-M288 / -M077, XL430-W250, XM430-W350), e.g. the Koch v1.1.
 
 Uses the vendor SDK (``dynamixel_sdk`` 4.x, pip ``dynamixel-sdk``) for packet framing (CRC-16,
 byte stuffing) with the shared port fixes of :mod:`..serial_servo`. One cycle is normally two

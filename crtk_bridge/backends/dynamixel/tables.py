@@ -1,8 +1,8 @@
 """Dynamixel Protocol 2.0 constants and the X-series control table, as data.
 
 Sources: ROBOTIS e-Manual, Protocol 2.0 (https://emanual.robotis.com/docs/en/dxl/protocol2/) and
-the X-series pages (https://emanual.robotis.com/docs/en/dxl/x/xl330-m288/, .../xl430-w250/,
-.../xm430-w350/); dynamixel-sdk 4.1.0; see shared/reference/servos.md sections 5-6.
+the X-series pages (https://emanual.robotis.com/docs/en/dxl/x/xl330-m288/, .../xl330-m077/,
+.../xl430-w250/, .../xm430-w350/); dynamixel-sdk 4.1.0; see shared/reference/servos.md sections 5-6.
 Multi-byte values are little-endian; signed registers are two's complement of their size.
 
 Plain data shared by the backend and the simulator (a device table is a fact, not logic).
@@ -144,30 +144,32 @@ _CURRENT_REGS: dict[str, Register] = {
 # per model: name -> Register
 CONTROL_TABLES: dict[str, dict[str, Register]] = {
     "xl330-m288": {**_X_COMMON, **_CURRENT_REGS},
+    "xl330-m077": {**_X_COMMON, **_CURRENT_REGS},  # the Koch leader's: the M288's table, 77.5:1 gears
     "xm430-w350": {**_X_COMMON, **_CURRENT_REGS, "Acceleration_Limit": Register(40, 4, True)},
     # XL430: no current sensing; 126 is Present_Load (0.1 % of max torque, signed)
     "xl430-w250": {**_X_COMMON, "Present_Load": Register(126, 2, False, False, True)},
 }
-MODEL_NUMBERS: dict[str, int] = {"xl330-m288": 1200, "xl430-w250": 1060, "xm430-w350": 1020}
+MODEL_NUMBERS: dict[str, int] = {"xl330-m288": 1200, "xl330-m077": 1190, "xl430-w250": 1060, "xm430-w350": 1020}
 MODEL_NAMES: dict[int, str] = {v: k for k, v in MODEL_NUMBERS.items()}
 RESOLUTION: dict[str, int] = {m: 4096 for m in MODEL_NUMBERS}  # pulses per turn, 0.088 deg
 OPERATING_MODES: dict[str, tuple[OperatingMode, ...]] = {
     "xl330-m288": tuple(OperatingMode),
+    "xl330-m077": tuple(OperatingMode),
     "xm430-w350": tuple(OperatingMode),
     "xl430-w250": (OperatingMode.VELOCITY, OperatingMode.POSITION, OperatingMode.EXTENDED_POSITION,
                    OperatingMode.PWM),
 }
 # Present_Current / Goal_Current LSB in A (None: the model has no current sensing)
-CURRENT_UNIT_A: dict[str, float | None] = {"xl330-m288": 0.001, "xm430-w350": 0.00269, "xl430-w250": None}
+CURRENT_UNIT_A: dict[str, float | None] = {"xl330-m288": 0.001, "xl330-m077": 0.001, "xm430-w350": 0.00269, "xl430-w250": None}
 # factory Current_Limit (raw) where the model has one
-CURRENT_LIMIT_DEFAULT: dict[str, int] = {"xl330-m288": 1750, "xm430-w350": 1193}
+CURRENT_LIMIT_DEFAULT: dict[str, int] = {"xl330-m288": 1750, "xl330-m077": 1750, "xm430-w350": 1193}
 LOAD_UNIT = 0.001  # XL430 Present_Load LSB: 0.1 % of maximum torque
 VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * math.pi / 60.0  # Goal/Present_Velocity LSB: 0.229 rev/min
-VELOCITY_LIMIT_DEFAULT: dict[str, int] = {"xl330-m288": 445, "xm430-w350": 128, "xl430-w250": 265}
+VELOCITY_LIMIT_DEFAULT: dict[str, int] = {"xl330-m288": 445, "xl330-m077": 1620, "xm430-w350": 128, "xl430-w250": 265}
 # Fast Sync Read (0x8A) needs this firmware (Firmware_Version, register 6) or newer
-FAST_SYNC_READ_FIRMWARE: dict[str, int] = {"xl330-m288": 46, "xl430-w250": 45, "xm430-w350": 45}
+FAST_SYNC_READ_FIRMWARE: dict[str, int] = {"xl330-m288": 46, "xl330-m077": 46, "xl430-w250": 45, "xm430-w350": 45}
 # factory position P gains (Position_P_Gain, 84)
-POSITION_P_DEFAULT: dict[str, int] = {"xl330-m288": 400, "xl430-w250": 640, "xm430-w350": 800}
+POSITION_P_DEFAULT: dict[str, int] = {"xl330-m288": 400, "xl330-m077": 400, "xl430-w250": 640, "xm430-w350": 800}
 POSITION_EXTENDED_LIMIT = 1_048_575  # extended position mode goal range (+-256 rev)
 
 # The present-state block read once per cycle: Present_Current (or Present_Load on XL430) 126,

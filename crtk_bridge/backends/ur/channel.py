@@ -52,12 +52,12 @@ import signal
 import socket
 import struct
 import subprocess
-import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import msgspec
+
+from ...spawn import module_argv, module_env
 
 #: the RTDE outputs read every package (a small recipe: ur_rtde's default asks for ~58)
 VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actual_TCP_force", "robot_mode",
@@ -141,14 +141,12 @@ class WorkerHandle:
         try:
             os.ftruncate(fd, STATE_BYTES)
             self.mem = mmap.mmap(fd, STATE_BYTES)
-            root = str(Path(__file__).resolve().parents[3])  # the package's own tree, installed or not
-            env = dict(os.environ)
-            env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+            # this package's worker, whatever the current folder holds (spawn.py)
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "crtk_bridge.backends.ur.worker", "--sock", str(theirs.fileno()),
-                 "--state", str(fd), "--host", self.host, "--rate", repr(self.rate_hz),
-                 "--parent", str(os.getpid()), "--rt-priority", str(self.rt_priority)],
-                pass_fds=(theirs.fileno(), fd), stdin=subprocess.DEVNULL, env=env, close_fds=True)
+                module_argv("crtk_bridge.backends.ur.worker", "--sock", str(theirs.fileno()),
+                            "--state", str(fd), "--host", self.host, "--rate", repr(self.rate_hz),
+                            "--parent", str(os.getpid()), "--rt-priority", str(self.rt_priority)),
+                pass_fds=(theirs.fileno(), fd), stdin=subprocess.DEVNULL, env=module_env(), close_fds=True)
         finally:
             theirs.close()  # the worker's end lives in the worker only: its death closes the socket
             os.close(fd)
