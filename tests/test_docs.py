@@ -86,11 +86,10 @@ READY = r"serving CRTK on \S+"  # crtk-bridge's banner once its socket serves
 
 
 def _my_arm_profile(env: DocEnv) -> None:
-    """README 'First time with a real arm', step 2: copy profiles/so101.yaml to my_arm.yaml (in
-    the user's folder, outside the clone)."""
-    import shutil
-
-    shutil.copy(ROOT / "profiles" / "so101.yaml", env.cwd / "my_arm.yaml")
+    """README 'First time with a real arm', step 2: ``crtk-bridge init-profile so101 my_arm.yaml``
+    (in the user's folder, outside the clone)."""
+    r = run_to_end(env, Command("README.md", 0, "sh", "", "crtk-bridge init-profile so101 my_arm.yaml --force"), How())
+    assert r.rc == 0 and (env.cwd / "my_arm.yaml").is_file(), r.output
 
 
 def _lerobot_file(env: DocEnv) -> None:
@@ -118,8 +117,6 @@ def _imported(env: DocEnv) -> None:
 
 HARDWARE = "needs the arm on backend.port (/dev/ttyACM0); README's 'First time with a real arm' runs these steps on crtk-sim"
 ROS = "needs ROS 2 with rmw_zenoh (not installed here); tests/test_zenoh_ros.py checks the ROS key layout"
-PENDING_COPY = "8 (pkg: a copied profile keeps its URDF, README's 'First time' step 2 verbatim)"
-PENDING_LEADER = "9 (pkg: leader profiles so101_leader / koch_leader, --sim-able, and this example run verbatim with them)"
 
 #: Which daemons each section's commands need, by (doc, heading); a command's own SPEC entry wins.
 SCENES = {
@@ -164,7 +161,7 @@ SPEC: dict[tuple[str, str], How] = {
         "skip", why="interactive: you move every joint by hand (tests/test_calibrate_sim.py drives it with a simulated hand)"),
     ("docs/calibration.md", "crtk-ctl calibrate --profile my_arm.yaml --import "
                             "~/.cache/huggingface/lerobot/calibration/robots/so_follower/my_arm.json"): How(
-        scene="so101", setup=_lerobot_file, after=_imported, item=PENDING_COPY),
+        scene="so101", setup=_lerobot_file, after=_imported),
     # docs/cartesian.md: the body frame from crtk-ctl
     ("docs/cartesian.md", "crtk-ctl get measured_cv --frame body"): How(
         scene="so101", out=(r"so101 measured_cv \(body\)\s+stamp \d", r"gripper_frame_link in gripper_frame_link")),
@@ -231,7 +228,7 @@ MESSAGE_SPEC: dict[tuple[str, str], How] = {
 
 #: Scenes whose commands wait for another item of issue 18: xfail(strict=True), so they flip (and
 #: fail as XPASS, to be removed from here) once that item is merged.
-PENDING_SCENES = {"teleop": PENDING_LEADER}
+PENDING_SCENES: dict[str, str] = {}  # e.g. {"teleop": "9 (pkg: leader profiles)"}, until it merged
 
 SCENE_ORDER = ["none", "so101", "sim-canopen", "zenoh", "bare", "teleop"]
 
@@ -356,18 +353,13 @@ def test_python_example_comments_are_checked(tmp_path):
     assert p.returncode == 1 and "gave ['b'], the comment promises ['a', 'b']" in p.stderr
 
 
-#: Commands naming ``profiles/...`` run from the clone while that path resolves only there; True
-#: once issue 18 items 7/8 land (pkg: ``profiles/NAME.yaml`` names the shipped profile from any
-#: folder): then every command runs outside the clone (checked with the pkg branch merged).
-OUTSIDE_THE_CLONE = False
-
-
 @pytest.fixture(scope="module")
-def doc_env():
-    """Where the documented commands run: the test venv's console scripts, from a folder outside
-    the clone; ``profiles/...`` paths from the clone until the install resolves them (the lead
-    overrides this fixture to run against a non-editable install). Fixed resources a parallel run
-    would share are made private: the Zenoh ports 7447 / 7448, ``/tmp/`` paths, 127.0.0.2."""
+def doc_env(installed):
+    """Where the documented commands run, as a user runs them: the console scripts of the
+    non-editable install (tests/conftest.py ``installed``), from a folder outside the clone (also
+    the commands naming ``profiles/...``: the shipped profiles resolve from any folder). Fixed
+    resources a parallel run would share are made private: the Zenoh ports 7447 / 7448, ``/tmp/``
+    paths, 127.0.0.2."""
     import shutil
     import tempfile
 
@@ -379,7 +371,7 @@ def doc_env():
     (tmp / "t").mkdir()
     subst = {"127.0.0.1:7447": f"127.0.0.1:{free_port()}", "127.0.0.1:7448": f"127.0.0.1:{free_port()}",
              "/tmp/": f"{tmp}/t/", "127.0.0.2": free_loopback_host((30004, 29999, 30003, 30001, 30002))}
-    yield DocEnv.create(tmp, subst=subst, profile_cwd=tmp / "work" if OUTSIDE_THE_CLONE else ROOT)
+    yield DocEnv.create(tmp, bin_dir=installed.bin, profile_cwd=tmp / "work", subst=subst)
     shutil.rmtree(tmp, ignore_errors=True)
 
 
