@@ -169,8 +169,10 @@ class How:
     """How one documented command is run (``SPEC`` in tests/test_docs.py).
 
     kind: ``run`` to completion, exit status ``rc``, stdout+stderr searched for each of ``out``
-    (regexes); ``daemon``: started in the background for its ``scene`` (the commands of that scene
-    run while it serves), up once its output matches ``ready``; ``forever``: runs until Ctrl-C:
+    (regexes); ``daemon``: started in the background when its ``scene`` is entered (the commands of
+    that scene run while it serves), up once its output matches ``ready``; ``job``: a ``cmd &``
+    line, started in the background when reached, up once its output matches ``ready``, serving
+    until its scene ends; ``forever``: runs until Ctrl-C:
     up once its output matches ``ready``, then SIGINT, then exit status ``rc``; ``skip``: not run,
     ``why`` says why (hardware, sudo, a tool not installed); ``pending``: expected to fail until
     issue 18's ``item`` lands (xfail, strict: it flips when it passes).
@@ -201,14 +203,14 @@ class DocEnv:
     """Where and with what the documented commands run.
 
     bin_dir: the install's console scripts (and its ``python``); cwd: the folder commands run in
-    (outside the clone); profile_cwd: where a command naming a repository path (``profiles/...``)
-    runs: the clone while such paths resolve only there, ``cwd`` once the install resolves them
-    (the lead sets it); home, runtime: ``$HOME`` and ``$XDG_RUNTIME_DIR``; subst: fixed resources
-    mapped to private ones."""
+    (outside the clone; a fresh one per scene, :meth:`folder`); profile_cwd: where a command naming
+    a repository path (``profiles/...``) runs, ``None``: ``cwd`` too (the install resolves
+    ``profiles/NAME.yaml`` from any folder), else e.g. the clone; home, runtime: ``$HOME`` and
+    ``$XDG_RUNTIME_DIR``; subst: fixed resources mapped to private ones."""
 
     bin_dir: Path
     cwd: Path
-    profile_cwd: Path
+    profile_cwd: Path | None
     home: Path
     runtime: Path
     subst: dict[str, str] = field(default_factory=dict)
@@ -221,7 +223,14 @@ class DocEnv:
             d.mkdir(parents=True, exist_ok=True)
         runtime.chmod(0o700)
         return cls(bin_dir=bin_dir or Path(sys.executable).parent, cwd=cwd,
-                   profile_cwd=profile_cwd or ROOT, home=home, runtime=runtime, subst=dict(subst or {}))
+                   profile_cwd=profile_cwd, home=home, runtime=runtime, subst=dict(subst or {}))
+
+    def folder(self, name: str) -> Path:
+        """Run from here on in a fresh folder ``name`` beside the first one (each scene is a user
+        starting afresh: README's ``init-profile ... my_arm.yaml`` meets no file of another section)."""
+        self.cwd = self.cwd.parent / name
+        self.cwd.mkdir(exist_ok=True)
+        return self.cwd
 
     def environ(self) -> dict[str, str]:
         env = {k: v for k, v in os.environ.items()
@@ -231,7 +240,9 @@ class DocEnv:
         return env
 
     def where(self, text: str) -> Path:
-        return self.profile_cwd if re.search(r"(^|[\s=])profiles/", text) else self.cwd
+        if self.profile_cwd is not None and re.search(r"(^|[\s=])profiles/", text):
+            return self.profile_cwd
+        return self.cwd
 
     def argv(self, cmd: Command, text: str, stay: bool = False) -> list[str]:
         if cmd.lang == "python":
@@ -242,7 +253,7 @@ class DocEnv:
 
     def text(self, cmd: Command, how: How) -> str:
         text = apply_subst(how.run if how.run is not None else cmd.text, self.subst)
-        if how.kind == "daemon" and cmd.lang == "sh" and text.endswith("&"):
+        if how.kind in ("daemon", "job") and cmd.lang == "sh" and text.endswith("&"):
             text = text[:-1].rstrip()  # `cmd &`: a job in the background, as Background runs it
         return text
 
@@ -324,10 +335,13 @@ class Scenes:
         self.daemons: list[Background] = []
         self.error: str | None = None
 
-    def enter(self, name: str) -> list[Background]:
+    def enter(self, name: str, jobs: bool = False) -> list[Background]:
+        """Make ``name`` the live scene; ``jobs``: also start its ``cmd &`` jobs now, in doc order,
+        unless running (for a check after the section ran, where its jobs are its first lines)."""
         if name != self.name:
             self.close()
             self.name = name
+            self.env.folder(f"work-{name}")
             try:
                 mine = [c for c in self.commands if self.spec(c).kind == "daemon" and self.spec(c).scene == name]
                 for cmd in sorted(mine, key=lambda c: self.spec(c).start):  # stable: doc order within
@@ -341,10 +355,23 @@ class Scenes:
                 self.error = str(e)
         if self.error:
             raise AssertionError(f"scene {name!r} did not start: {self.error}")
+        if jobs:
+            running = {d.cmd for d in self.daemons if d.proc.poll() is None}
+            for cmd in self.commands:
+                how = self.spec(cmd)
+                if how.kind == "job" and how.scene == name and cmd not in running:
+                    self.job(cmd, how)
         return self.daemons
 
     def daemon(self, cmd: Command) -> Background:
         return next(d for d in self.daemons if d.cmd == cmd)
+
+    def job(self, cmd: Command, how: How) -> Background:
+        """Start ``cmd &`` in the current scene (it serves until the scene ends), once it is up."""
+        d = Background(self.env, cmd, how, self.logs / f"{Path(cmd.doc).stem}-{cmd.line}.log")
+        self.daemons.append(d)
+        d.wait_ready(ready_pattern(cmd, how, self.env))
+        return d
 
     def close(self) -> None:
         for d in reversed(self.daemons):

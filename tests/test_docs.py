@@ -6,6 +6,7 @@ cannot), printing what the doc shows; every refusal a doc quotes is what its com
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
@@ -95,12 +96,17 @@ def _my_arm_profile(env: DocEnv) -> None:
 
 
 def _lerobot_file(env: DocEnv) -> None:
+    """my_arm.yaml (README step 2), and what lerobot-calibrate leaves for that arm."""
+    _my_arm_profile(env)
+    _lerobot_json(env)
+
+
+def _lerobot_json(env: DocEnv) -> None:
     """What lerobot-calibrate leaves for an arm with id my_arm (docs/calibration.md's path)."""
     import json
 
     from .test_calibrate_import import LEROBOT
 
-    _my_arm_profile(env)
     path = env.home / ".cache/huggingface/lerobot/calibration/robots/so_follower/my_arm.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(LEROBOT, indent=4))
@@ -125,6 +131,7 @@ ROS = "needs ROS 2 with rmw_zenoh (not installed here); tests/test_zenoh_ros.py 
 SCENES = {
     ("README.md", "Driving the robot"): "so101",
     ("docs/calibration.md", "From LeRobot: `crtk-ctl calibrate --import`"): "so101",
+    ("README.md", "First time with a real arm"): "first-time",
     ("docs/cartesian.md", "Conventions"): "so101",
     ("docs/zenoh.md", "Remote clients (Python and crtk-ctl)"): "zenoh",
     ("docs/simulators.md", "`crtk-sim canopen`"): "sim-canopen",
@@ -154,6 +161,11 @@ SPEC: dict[tuple[str, str], How] = {
         trigger="crtk-ctl pause && crtk-ctl resume"),
     ("README.md", "crtk-ctl disable"): How(scene="so101", out=(r"so101: DISABLED",)),
     ("README.md", "crtk-ctl list"): How(scene="so101", out=(r"(?m)^so101/gripper:$", r"joints:\s+shoulder_pan, shoulder_lift")),
+    ("README.md", "crtk-bridge check --profile my_arm.yaml --scan"): How(
+        scene="first-time", out=(r"6 servos answered", r"id\s+6\s+gripper\s+sts3215")),
+    ("README.md", "crtk-ctl calibrate --profile my_arm.yaml --import "
+                  "~/.cache/huggingface/lerobot/calibration/robots/so_follower/my_arm.json"): How(
+        scene="first-time", setup=_lerobot_json, after=_imported),
     ("README.md", "crtk-bridge check --profile profiles/so101.yaml"): How(),
     ("README.md", "crtk-bridge setup-servos --profile profiles/so101.yaml"): How("skip", why=HARDWARE),
     ("README.md", "crtk-bridge check --profile profiles/so101.yaml --scan"): How("skip", why=HARDWARE),
@@ -233,7 +245,7 @@ MESSAGE_SPEC: dict[tuple[str, str], How] = {
 #: fail as XPASS, to be removed from here) once that item is merged.
 PENDING_SCENES: dict[str, str] = {}  # e.g. {"teleop": "9 (pkg: leader profiles)"}, until it merged
 
-SCENE_ORDER = ["none", "so101", "sim-canopen", "zenoh", "bare", "teleop"]
+SCENE_ORDER = ["none", "so101", "first-time", "sim-canopen", "zenoh", "bare", "teleop"]
 
 
 def spec_key(cmd: Command) -> tuple[str, str]:
@@ -241,17 +253,22 @@ def spec_key(cmd: Command) -> tuple[str, str]:
 
 
 def how(cmd: Command) -> How:
-    """The command's SPEC entry, else: run to exit status 0 in its section's scene."""
+    """The command's SPEC entry (in its section's scene, if the section has one), else: run to exit
+    status 0 in its section's scene."""
     h = SPEC.get(spec_key(cmd))
-    if h is not None:
-        return h
     scene = SCENES.get((cmd.doc, cmd.heading))
+    if h is not None:
+        # the same command in two sections (README's `crtk-ctl state`) runs in each one's scene
+        return dataclasses.replace(h, scene=scene) if scene and h.kind in ("run", "forever") else h
     if scene is None:
         raise KeyError(f"{cmd.id}: `{cmd.text}` (section {cmd.heading!r}) has no entry in tests/test_docs.py: "
                        "add its section to SCENES (which daemons it needs) or the command to SPEC (how it runs, "
                        "or why it cannot)")
-    if cmd.lang == "sh" and cmd.text.startswith("crtk-bridge ") and cmd.text.endswith("&"):
-        return How("daemon", scene, ready=READY)  # a daemon the section starts in the background
+    if cmd.lang == "sh" and cmd.text.endswith("&"):  # a job the section starts in the background
+        if cmd.text.startswith("crtk-bridge "):
+            return How("job", scene, ready=READY)
+        if cmd.text.startswith("crtk-sim "):
+            return How("job", scene, ready=r"crtk-sim: .* ready: ")
     return How(scene=scene)
 
 
@@ -374,7 +391,7 @@ def doc_env(installed):
     (tmp / "t").mkdir()
     subst = {"127.0.0.1:7447": f"127.0.0.1:{free_port()}", "127.0.0.1:7448": f"127.0.0.1:{free_port()}",
              "/tmp/": f"{tmp}/t/", "127.0.0.2": free_loopback_host((30004, 29999, 30003, 30001, 30002))}
-    yield DocEnv.create(tmp, bin_dir=installed.bin, profile_cwd=tmp / "work", subst=subst)
+    yield DocEnv.create(tmp, bin_dir=installed.bin, subst=subst)
     shutil.rmtree(tmp, ignore_errors=True)
 
 
@@ -464,6 +481,8 @@ def test_documented_command_runs(cmd: Command, doc_env: DocEnv, scenes: Scenes):
         h.setup(doc_env)
     if h.kind == "daemon":
         out = scenes.daemon(cmd).output()
+    elif h.kind == "job":
+        out = scenes.job(cmd, h).output()
     elif h.kind == "forever":
         job = Background(doc_env, cmd, h, doc_env.cwd.parent / "logs" / f"{Path(cmd.doc).stem}-{cmd.line}.log")
         try:
@@ -510,7 +529,7 @@ def test_quoted_message_is_what_the_command_prints(msg: Command, doc_env: DocEnv
     """Each refusal a doc quotes is, verbatim, what its command prints, with the exit status the
     doc gives."""
     h = message_how(msg)
-    scenes.enter(h.scene)
+    scenes.enter(h.scene, jobs=True)
     cmd = Command(msg.doc, msg.line, "sh", msg.heading, h.run, output=(msg.text,))
     r = run_to_end(doc_env, cmd, h)
     assert r.rc == h.rc, f"{msg.id}: `{doc_env.text(cmd, h)}` exited {r.rc}, not {h.rc}:\n{r.output}"
