@@ -327,9 +327,26 @@ def _init_profile(argv: list[str]) -> int:
     except OSError as exc:
         print(f"crtk-bridge: cannot write {target}: {exc.strerror or exc}", file=sys.stderr)
         return 1
-    print(f"wrote {target} from the shipped profile {name}: set backend.port (crtk-bridge find-port), then "
+    print(f"wrote {target} from the shipped profile {name}: set {_where_the_robot_is(text)}, then "
           f"crtk-bridge check --profile {args.file}")
     return 0
+
+
+#: the backend keys that say where a robot of each backend type is found
+_WHERE = {"ur": "backend.host", "canopen402": "backend.interface and backend.channel"}
+
+
+def _where_the_robot_is(text: str) -> str:
+    """The keys to set in a profile written from the shipped ``text``: a serial bus's port, a UR's
+    host, a CAN bus's interface and channel; one per bus of a several-bus profile."""
+    import yaml
+
+    data = yaml.safe_load(text) or {}
+    buses = data.get("backends")
+    if isinstance(buses, dict) and buses:
+        return " and ".join(f"backends.{bus}.port" for bus in buses)
+    kind = (data.get("backend") or {}).get("type")
+    return _WHERE.get(kind, "backend.port (crtk-bridge find-port)")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -192,3 +192,20 @@ def test_init_profile_refuses_an_unknown_name_listing_the_shipped_ones_and_overw
     assert load_profile(tmp_path / "a.yaml").name == "koch_leader"
     assert bridge_main(["init-profile", "so101", str(tmp_path / "no" / "dir.yaml")]) == 1
     assert "cannot write" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name, key", [("so101", "backend.port (crtk-bridge find-port)"),
+                                       ("koch_leader", "backend.port (crtk-bridge find-port)"),
+                                       ("bimanual_so101", "backends.left.port and backends.right.port"),
+                                       ("ur5e", "backend.host"),
+                                       ("canopen_2axis", "backend.interface and backend.channel")])
+def test_init_profile_names_the_key_to_set_for_the_profiles_backend(tmp_path, capsys, name, key):
+    """``init-profile ur5e`` said "set backend.port (crtk-bridge find-port)": a UR has no port but
+    a host, a CiA 402 bus an interface and channel, the bimanual profile one port per bus (found
+    in review)."""
+    from crtk_bridge.cli import main as bridge_main
+
+    assert bridge_main(["init-profile", name, str(tmp_path / "mine.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert f"set {key}, then" in out, out
+    assert out.count("backend") == key.count("backend"), out
