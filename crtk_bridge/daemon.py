@@ -29,9 +29,11 @@ from .client.paths import default_socket_path
 from .core.actuator import SimWiring
 from .core.kinematics_check import check_kinematics
 from .core.loop import control_main
+from .core.samples import SampleRing, ring_slots
 from .core.snapshot import Layout, SnapshotBuffer
 from .errors import CrtkBridgeError
 from .profile import Profile, load_profile
+from .recording.recorder import Recorder
 from .server.link import ControlLink
 from .server.server import Server
 from .sim.loopback import free_loopback_host
@@ -167,11 +169,12 @@ def check_socket_path(path: str, robot: str) -> None:
 
 
 def _control_process(profile: Profile, source: str, chan: socket.socket, front: socket.socket,
-                     snap: SnapshotBuffer, realtime: bool) -> None:
+                     snap: SnapshotBuffer, realtime: bool, samples: SampleRing | None = None) -> None:
     # the fork copied the front's end of the pair: close it, or the loop would never see EOF
     # when the front process dies (and would keep the robot enabled with nobody in charge)
     front.close()
-    code = control_main(profile, lambda: create_backend(profile, source=source), chan, snap, realtime=realtime)
+    code = control_main(profile, lambda: create_backend(profile, source=source), chan, snap, realtime=realtime,
+                        samples=samples)
     sys.exit(code)
 
 
@@ -198,6 +201,8 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
     link.attach(loop, server.on_control_lost)
+    if server.recorder is not None:  # the black box runs from the start
+        server.recorder.start()
     services = []
     if zenoh is not None:  # before the socket: nobody can have enabled the robot if one fails
         session, config = zenoh
@@ -237,6 +242,8 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
         status = 1
     elif proc.exitcode not in (0, None) and status == 0:
         status = 1
+    if server.recorder is not None:  # after the loop's last cycles: recordings hold the stop
+        await server.recorder.close()
     await _close_services(server, services)
     await server.close()
     for t in (stop_wait, lost_wait):
@@ -329,11 +336,15 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
         else:
             profile = _simulate_buses(profile, str(profile_path), workdir, simulators, realtime)
 
-    snap = SnapshotBuffer(Layout(len(profile.joints), len(profile.namespaces)), create=True)
+    layout = Layout(len(profile.joints), len(profile.namespaces))
+    snap = SnapshotBuffer(layout, create=True)
+    # every cycle's sample for recordings and the black box (core/samples.py); the ring covers
+    # RING_SECONDS at the profile's rate (a backend pacing the loop runs at its own, slower or not)
+    samples = SampleRing(layout, ring_slots(max(profile.loop.rate_hz, 1.0)), create=True)
     zsession = None
     front, back = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     ctx = multiprocessing.get_context("fork")  # forked before any thread or event loop exists
-    proc = ctx.Process(target=_control_process, args=(profile, source, back, front, snap, realtime),
+    proc = ctx.Process(target=_control_process, args=(profile, source, back, front, snap, realtime, samples),
                        name=f"crtk-bridge-{profile.name}-control")
     try:
         proc.start()
@@ -357,6 +368,7 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
                 proc.kill()
             raise CrtkBridgeError(str(exc)) from None
         server = Server(link, ready["commands"], socket_path)
+        server.recorder = Recorder(server, samples, source)
         holder["server"] = server
         for msg in early:
             server.on_event(msg)
@@ -373,6 +385,7 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
             proc.join(SHUTDOWN_TIMEOUT_S)
         front.close()
         snap.close(unlink=True)
+        samples.close(unlink=True)
         for simulator in simulators:
             simulator.stop()
         if workdir:
