@@ -19,11 +19,12 @@ import logging
 import sys
 
 from . import __version__
+from .argparsing import ArgumentParser
 from .errors import CrtkBridgeError
 
 
 def _run_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="crtk-bridge",
         usage="%(prog)s --profile FILE [--sim] [--socket PATH] [options]\n"
               "       %(prog)s check --profile FILE [--scan [--all-bauds]] [--json]\n"
@@ -71,7 +72,7 @@ def _run_parser() -> argparse.ArgumentParser:
 
 
 def _check(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="crtk-bridge check", description="Validate a robot profile; exit 0 if valid.")
+    p = ArgumentParser(prog="crtk-bridge check", description="Validate a robot profile; exit 0 if valid.")
     p.add_argument("--profile", required=True)
     p.add_argument("--scan", action="store_true",
                    help="also open each bus (the daemon must not be running) and ping every id at "
@@ -185,7 +186,7 @@ def _scan(profile, backend, source: str, all_bauds: bool, quiet: bool = False) -
 
 
 def _find_port(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="crtk-bridge find-port",
         description="List serial ports: device, /dev/serial/by-id names, USB vendor:product, serial "
                     "number. Put a by-id path or {serial_number: ...} in the profile's backend.port "
@@ -208,7 +209,7 @@ def _find_port(argv: list[str]) -> int:
 
 
 def _setup_servos(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="crtk-bridge setup-servos",
         description="Give each joint's servo its id and the profile's baud rate, one servo at a time "
                     "(as lerobot-setup-motors): for each joint, in reverse profile order, connect ONLY "
@@ -299,7 +300,7 @@ def _init_profile(argv: list[str]) -> int:
     from .profile import shipped_profile_names, shipped_profiles_dir
 
     names = shipped_profile_names()
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="crtk-bridge init-profile",
         description="Write a new profile FILE from a shipped one, comments included, to edit for your "
                     "arm (backend.port, calibration...). Its URDF stays the shipped one (a profile's "

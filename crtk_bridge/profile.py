@@ -42,6 +42,24 @@ class JointLimits(_Strict, kw_only=True):
     acceleration_max: float
     jerk_max: float
     effort_max: float | None = None
+    #: rad/s^2: what a stop (hold, pause, a stream's watchdog, client loss, the shutdown's first
+    #: stop) brakes at, jerk-unlimited; None: :func:`stop_deceleration`'s default
+    stop_deceleration_max: float | None = None
+
+
+#: the default stop deceleration, in multiples of ``acceleration_max`` (bounded by the hardware)
+STOP_DECELERATION_FACTOR = 4.0
+
+
+def stop_deceleration(limits: JointLimits, hardware_max: float = math.inf) -> float:
+    """rad/s^2 a stop brakes this joint at: ``limits.stop_deceleration_max`` when the profile gives
+    it, else ``STOP_DECELERATION_FACTOR * acceleration_max`` bounded by ``hardware_max`` (what the
+    backend says the joint can do, :meth:`~crtk_bridge.core.actuator.Actuator.deceleration_limit`).
+    A trajectory's acceleration is chosen for smooth motion; a stop needs the shortest distance
+    the hardware allows (docs/protocol.md, Safety: stopping distances)."""
+    if limits.stop_deceleration_max is not None:
+        return limits.stop_deceleration_max
+    return min(STOP_DECELERATION_FACTOR * limits.acceleration_max, hardware_max)
 
 
 class Joint(_Strict, kw_only=True):
@@ -51,7 +69,9 @@ class Joint(_Strict, kw_only=True):
 
     name: str
     limits: JointLimits
-    home: float = 0.0  # rad: the position `home` moves to
+    #: rad: the position `home` moves to. No default: a joint's zero is not always a safe pose (a
+    #: UR's zero is the arm stretched out), so `home` is refused while a joint has none
+    home: float | None = None
     backend: dict[str, Any] = {}
 
 
@@ -281,6 +301,23 @@ def _named_path(path: str, data: Any) -> str:
 
 def _struct_keys_at(root: type, path: str) -> list[str] | None:
     """The keys the struct at ``path`` (a msgspec error path below ``root``) accepts, or None."""
+    info = _type_at(root, path)
+    if isinstance(info, msgspec.inspect.StructType):
+        return [f.encode_name for f in info.fields]
+    return None
+
+
+def _literal_values_at(root: type, path: str) -> list[str] | None:
+    """The values a key of a fixed set of values (a ``Literal``) at ``path`` accepts, or None."""
+    info = _type_at(root, path)
+    if isinstance(info, msgspec.inspect.LiteralType):
+        return [str(v) for v in info.values]
+    return None
+
+
+def _type_at(root: type, path: str) -> Any:
+    """msgspec's type info of the value at ``path`` (a msgspec error path below ``root``), an
+    optional one unwrapped, or None."""
     info: Any = msgspec.inspect.type_info(root)
     for m in _PATH_TOKEN.finditer(path):
         while isinstance(info, msgspec.inspect.UnionType):  # optional sections: X | None
@@ -297,9 +334,7 @@ def _struct_keys_at(root: type, path: str) -> list[str] | None:
     while isinstance(info, msgspec.inspect.UnionType):
         inner = [t for t in info.types if not isinstance(t, msgspec.inspect.NoneType)]
         info = inner[0] if len(inner) == 1 else None
-    if isinstance(info, msgspec.inspect.StructType):
-        return [f.encode_name for f in info.fields]
-    return None
+    return info
 
 
 def unknown_key_message(key: str, valid: list[str], owner: str = "") -> str:
@@ -320,6 +355,11 @@ def _format_msgspec_error(exc: msgspec.ValidationError, data: Any = None, root: 
             key = unknown.group(1)
             named = _named_path(path, data)
             return f"{named + '.' if named else ''}{key}: {unknown_key_message(key, valid)}"
+    wrong = re.fullmatch(r"Invalid enum value (.*)", text)
+    if wrong and root is not None:
+        valid = _literal_values_at(root, path)
+        if valid is not None:  # say what the key takes (shutdown.action: torque_off or park)
+            text = f"{wrong.group(1)} is not a valid value; valid: {', '.join(valid)}"
     if not path and text == str(exc):
         return text
     return f"{_named_path(path, data) or '(top level)'}: {text}"
@@ -353,12 +393,13 @@ def _check(profile: Profile) -> list[str]:
         lim = j.limits
         if not lim.position_min < lim.position_max:
             problems.append(f"{key}.limits: position_min must be < position_max")
-        for field in ("velocity_max", "acceleration_max", "jerk_max"):
+        for field in ("velocity_max", "acceleration_max", "jerk_max", "stop_deceleration_max"):
             v = getattr(lim, field)
-            if not (v > 0 and math.isfinite(v)):
+            if v is not None and not (v > 0 and math.isfinite(v)):
                 problems.append(f"{key}.limits.{field}: must be a finite number > 0, got {v}")
-        if not lim.position_min <= j.home <= lim.position_max:
-            problems.append(f"{key}.home: {j.home} is outside the position limits")
+        if j.home is not None and not lim.position_min <= j.home <= lim.position_max:
+            problems.append(f"{key}.home: {j.home} is outside the position limits "
+                            f"[{lim.position_min}, {lim.position_max}]")
     used: dict[str, str] = {}
     ns_names = set()
     if not profile.namespaces:
@@ -413,7 +454,9 @@ def _check_safety(profile: Profile) -> list[str]:
     bounded("cartesian_rotation_step_max", sf.cartesian_rotation_step_max, math.pi, "rad")
     bounded("cartesian_velocity_max", sf.cartesian_velocity_max, 5.0, "m/s")
     bounded("cartesian_angular_velocity_max", sf.cartesian_angular_velocity_max, 2 * math.pi, "rad/s")
-    most = max(1, int(BUS_ERRORS_MAX_S * profile.loop.rate_hz)) if 0 < profile.loop.rate_hz <= 10000 else 1
+    if not 0 < profile.loop.rate_hz <= 10000:
+        return problems  # loop.rate_hz is said to be wrong; the bound below follows from it
+    most = max(1, int(BUS_ERRORS_MAX_S * profile.loop.rate_hz))
     if not 1 <= sf.bus_errors_max <= most:
         problems.append(f"safety.bus_errors_max: {sf.bus_errors_max} is not in [1, {most}] (at most "
                         f"{BUS_ERRORS_MAX_S:g} s of failed bus cycles at loop.rate_hz {profile.loop.rate_hz:g})")

@@ -5,9 +5,11 @@ that says what to type, JSON errors under --json, messages that neither repeat t
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -88,6 +90,43 @@ def test_bad_rate_is_a_usage_error(capsys):
     assert code == 2 and "argument --rate: must be a finite number > 0, got -5" in err
 
 
+def test_unknown_query_is_one_line_listing_the_valid_ones():
+    line = one_line_error(run("crtk_bridge.client.cli", "--socket", "/nonexistent/x.sock", "get", "measured_jz"))
+    assert line.startswith("crtk-ctl get: error: argument TOPIC: invalid choice: 'measured_jz'")
+    assert "'measured_js', 'setpoint_js', 'goal_js', 'measured_cp'" in line and "period_statistics" in line
+    assert "<" not in line and "Topic." not in line  # no Python enum reprs
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "0", "-1", "soon"])
+def test_bad_duration_is_refused_naming_the_option(value, capsys):
+    # validated before any connection: nothing is sent (nan was accepted and sent once)
+    code, _, err = ctl(capsys, "--socket", "/nonexistent/x.sock", "servo_jv", "0.1", "0", "0", "0", "0",
+                       "--duration", value)
+    assert code == 2 and err.count("\n") == 1
+    assert err.startswith("crtk-ctl servo_jv: error: argument --duration: ")
+    assert "needs --duration" not in err
+
+
+@pytest.mark.parametrize("module, args, prog", [
+    ("crtk_bridge.cli", ["check", "--bogus"], "crtk-bridge check"),
+    ("crtk_bridge.cli", ["--bogus"], "crtk-bridge"),
+    ("crtk_bridge.cli", ["setup-servos", "--prfile", "x.yaml"], "crtk-bridge setup-servos"),
+    ("crtk_bridge.cli", ["init-profile", "--bogus"], "crtk-bridge init-profile"),
+    ("crtk_bridge.client.cli", ["--bogus"], "crtk-ctl"),
+    ("crtk_bridge.client.cli", ["calibrate", "--bogus"], "crtk-ctl calibrate"),
+    ("crtk_bridge.client.cli", ["teleop", "--leader", "a", "--folower", "b"], "crtk-ctl teleop")])
+def test_an_unknown_argument_is_named_before_a_missing_required_one(module, args, prog):
+    proc = run(module, *args)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    unknown = " ".join(a for a in args if a.startswith("--") and a not in ("--leader",))
+    assert last.startswith(f"{prog}: error: unrecognized arguments: {unknown}"), proc.stderr
+    assert "required" not in proc.stderr
+    # with nothing unknown, the missing option is still named
+    proc = run("crtk_bridge.cli", "check")
+    assert "the following arguments are required: --profile" in proc.stderr
+
+
 def test_json_usage_error_is_json(capsys):
     code, out, err = ctl(capsys, "--json", "--timeout", "-1", "state")
     assert code == 2 and out == ""
@@ -120,6 +159,14 @@ def test_event_line_names_the_robot_once():
     # a message that does not name its namespace gets it in front
     ev = Event("warning", {"stamp": 1.0, "ns": "so101/gripper", "code": "x", "message": "held"})
     assert _fmt_event(ev) == "1.000  warning x  so101/gripper: held"
+
+
+def test_event_without_a_stamp_prints_when_it_was_received():
+    ev = Event("error", {"stamp": 0.0, "ns": "so101", "code": "control_process_died",
+                         "message": "so101: the control process stopped; daemon exiting"})
+    assert _fmt_event(ev, received=1795710792.8914) == (
+        "1795710792.891  error   control_process_died  so101: the control process stopped; daemon exiting")
+    assert _fmt_event(ev._replace(data={**ev.data, "stamp": 12.5}), received=99.0).startswith("12.500  error")
 
 
 # ---------------------------------------------------------------- against a daemon
@@ -247,3 +294,30 @@ def test_every_shipped_profile_passes_check_with_its_kinematics(profile, capsys)
     out = capsys.readouterr().out
     if "kinematics:" in profile.read_text():
         assert "; kinematics " in out
+
+
+def test_a_failed_sim_start_leaves_no_folder_it_created(short_tmp, monkeypatch):
+    """A simulator that does not start: the daemon stops, removing the socket folders it created
+    and its --sim work folder (with what the simulator left in it); a folder that was there stays."""
+    import tempfile
+
+    from crtk_bridge import daemon
+    from crtk_bridge.errors import CrtkBridgeError
+
+    tmp = short_tmp / "tmp"
+    tmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp))  # where mkdtemp puts the --sim work folder
+
+    def failing(self, profile_path, device, workdir, **kwargs):
+        (Path(workdir) / "sim.sock").write_text("")  # what a simulator that died leaves behind
+        raise CrtkBridgeError("--sim: the simulator exited with status 1")
+
+    monkeypatch.setattr(daemon.SimulatorProcess, "__init__", failing)
+    for parent, kept in ((short_tmp / "run" / "crtk-bridge", None), (short_tmp / "there", short_tmp / "there")):
+        if kept is not None:
+            kept.mkdir()
+        with pytest.raises(CrtkBridgeError, match="exited with status 1"):
+            daemon.run(str(SO101), sim=True, socket_path=str(parent / "so101.sock"))
+        assert os.listdir(tmp) == []
+        assert not (short_tmp / "run").exists()
+        assert kept is None or kept.is_dir()

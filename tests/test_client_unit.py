@@ -662,8 +662,10 @@ def test_cli_new_stream_commands_hold_free(fake, capsys):
     assert "servo_jv needs --duration" in capsys.readouterr().err
     assert not [r for r in fake.requests[n:] if r["cmd"] == "servo_jv"]
     assert main(["--socket", fake.path, "servo_jv", "0.1", "-0.1", "--duration", "0.02"]) == 0
-    assert fake.requests[-1]["data"] == {"velocity": [0.1, -0.1]}
-    assert "servo_jv sent" in capsys.readouterr().out
+    # the first sample at once, then at the end, a stop (not the servo timeout, nor the disconnect)
+    assert [(r["cmd"], r.get("data")) for r in fake.requests[-2:]] == [
+        ("servo_jv", {"velocity": [0.1, -0.1]}), ("hold", None)]
+    assert "servo_jv sent: 1 samples" in capsys.readouterr().out
     assert main(["--socket", fake.path, "interpolate_jp", "0.5", "0.25", "--json"]) == 0
     assert json.loads(capsys.readouterr().out) == {"cmd": "interpolate_jp", "ns": "so101", "ok": True}
     assert fake.requests[-1]["data"] == {"position": [0.5, 0.25]}
@@ -671,7 +673,9 @@ def test_cli_new_stream_commands_hold_free(fake, capsys):
     t0 = time.monotonic()
     assert main(["--socket", fake.path, "interpolate_jv", "0", "0", "--duration", "0.2", "--rate", "50"]) == 0
     assert time.monotonic() - t0 >= 0.18
-    assert len([r for r in fake.requests[n:] if r["cmd"] == "interpolate_jv"]) == 11
+    # ticks at 0, 20, ..., 200 ms (one late reply on a loaded host skips a tick): the last is the hold
+    sent = [r["cmd"] for r in fake.requests[n:] if r["cmd"] != "list"]
+    assert 5 <= len(sent) <= 11 and sent == ["interpolate_jv"] * (len(sent) - 1) + ["hold"]
     assert main(["--socket", fake.path, "hold"]) == 0
     assert fake.requests[-1]["cmd"] == "hold"
     assert main(["--socket", fake.path, "free"]) == 0
@@ -970,7 +974,7 @@ def test_cli_cartesian_commands(fake, cart, capsys):
 
     for cmd in ("move_cp", "move_cr"):
         fake.handlers[cmd] = move
-    for cmd in ("servo_cp", "servo_cv", "servo_cr"):
+    for cmd in ("servo_cp", "servo_cv", "servo_cr", "hold"):
         fake.handlers[cmd] = lambda r, s: s.send(ok(r))
     s = ["--socket", fake.path]
     assert main(s + ["move_cp", "0.3", "0", "0.2", "0", "0.7071", "0", "0.7071", "--wait", "--json"]) == 0
@@ -989,9 +993,11 @@ def test_cli_cartesian_commands(fake, cart, capsys):
     assert "servo_cv needs --duration" in capsys.readouterr().err
     assert main(s + ["servo_cv", "0", "0", "0.02", "0", "0", "0", "--frame", "body", "--json",
                      "--duration", "0.02"]) == 0
-    assert json.loads(capsys.readouterr().out) == {"cmd": "servo_cv", "ns": "so101", "ok": True, "frame": "body"}
-    assert fake.requests[-1]["ns"] == "so101/body"
-    assert fake.requests[-1]["data"] == {"linear": [0.0, 0.0, 0.02], "angular": [0.0, 0.0, 0.0]}
+    assert json.loads(capsys.readouterr().out) == {"cmd": "servo_cv", "ns": "so101", "ok": True, "frame": "body",
+                                                   "samples": 1, "rate_hz": 50.0, "held": True}
+    assert fake.requests[-2]["ns"] == "so101/body"
+    assert fake.requests[-2]["data"] == {"linear": [0.0, 0.0, 0.02], "angular": [0.0, 0.0, 0.0]}
+    assert (fake.requests[-1]["cmd"], fake.requests[-1]["ns"]) == ("hold", "so101")  # the stream's end
     assert main(s + ["servo_cv", "0", "0", "0.02"]) == 1  # 3 values: refused locally
     assert "bad_request" in capsys.readouterr().err
     assert main(s + ["move_cr", "0", "0", "0", "1"]) == 1
@@ -1038,3 +1044,164 @@ def test_success_reply_without_id_is_ignored_not_recorded_as_an_error(fake, robo
     assert wait_until(lambda: robot.connection.event_count == 1)
     assert [(e.kind, e.data["code"]) for e in robot.connection.events] == [("error", "bad_request")]
     assert robot.connection.request("list")["robot"] == "so101"
+
+
+# -- timed streams, interrupts and words (issue 18) ---------------------------------------------
+
+
+def list_with(fake, rate_hz=None, gripper_commands=("move_jp",)):
+    """The fake's ``list`` with the daemon's loop rate and the gripper's commands."""
+    def handler(r, s):
+        data = {"robot": fake.robot, "protocol_version": PROTOCOL_VERSION, "daemon_version": "0.1.0",
+                "namespaces": [
+                    {"name": "so101", "joints": JOINTS, "commands": ARM_COMMANDS,
+                     "queries": ["measured_js"], "topics": ["measured_js"]},
+                    {"name": "so101/gripper", "joints": ["gripper"], "commands": list(gripper_commands),
+                     "queries": ["measured_js"], "topics": ["measured_js"]}]}
+        if rate_hz is not None:
+            data["rate_hz"] = rate_hz
+        s.send(ok(r, data))
+    return handler
+
+
+def test_stream_helper_ends_on_time_and_totals_a_relative_offset_with_slow_replies(fake):
+    def slow(r, s):  # a reply per control cycle, as the daemon answers
+        time.sleep(0.005)
+        s.send(ok(r))
+
+    fake.handlers["servo_jr"] = slow
+    fake.handlers["hold"] = lambda r, s: s.send(ok(r))
+    with connect(socket=fake.path, timeout=3.0) as robot:
+        n = len(fake.requests)
+        t0 = time.monotonic()
+        report = robot.device("so101").stream("servo_jr", [0.05, -0.03], duration=0.3, rate_hz=1000)
+        elapsed = time.monotonic() - t0
+    sent = [r for r in fake.requests[n:] if r["cmd"] == "servo_jr"]
+    assert report.samples == len(sent) and not report.held
+    assert 2 <= len(sent) <= 62  # ticks missed while a reply came are skipped (the defect: 301 sent)
+    total = np.sum([r["data"]["position"] for r in sent], axis=0)
+    np.testing.assert_allclose(total, [0.05, -0.03], rtol=0, atol=1e-12)
+    assert 0.3 <= elapsed <= 0.3 + 3.0  # generous: a loaded host
+
+
+def test_cli_caps_the_rate_at_the_loop_rate_saying_so_once(fake, capsys):
+    fake.handlers["list"] = list_with(fake, rate_hz=200.0)
+    fake.handlers["servo_jp"] = lambda r, s: s.send(ok(r))
+    n = len(fake.requests)
+    assert main(["--socket", fake.path, "servo_jp", "0.1", "0.2", "--duration", "0.1", "--rate", "5000"]) == 0
+    out, err = capsys.readouterr()
+    assert err.splitlines() == ["crtk-ctl: --rate 5000 Hz is above so101's loop rate (200 Hz): streaming at 200 Hz"]
+    assert "at up to 200 Hz" in out
+    assert 2 <= len([r for r in fake.requests[n:] if r["cmd"] == "servo_jp"]) <= 21
+    # under --json: one JSON object on stderr, the result on stdout
+    assert main(["--socket", fake.path, "--json", "servo_jp", "0.1", "0.2", "--duration", "0.02", "--rate",
+                 "1000"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(err)["warning"] == "rate_capped" and json.loads(out)["rate_hz"] == 200.0
+    # at or below the loop rate: nothing said
+    assert main(["--socket", fake.path, "servo_jp", "0.1", "0.2", "--duration", "0.02", "--rate", "200"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_stream_helper_caps_the_rate_with_a_warning(fake):
+    fake.handlers["list"] = list_with(fake, rate_hz=100.0)
+    fake.handlers["servo_jp"] = lambda r, s: s.send(ok(r))
+    with connect(socket=fake.path, timeout=3.0) as robot:
+        with pytest.warns(RuntimeWarning, match="above so101's loop rate: sending at 100 Hz"):
+            report = robot.device("so101").stream("servo_jp", [0.1, 0.2], duration=0.05, rate_hz=500)
+    assert report.rate_hz == 100.0
+    with connect(socket=fake.path, timeout=3.0) as robot:
+        dev = robot.device("so101")
+        for bad in (0, -1.0, float("nan"), float("inf")):
+            with pytest.raises(CommandError, match="duration must be a finite number > 0"):
+                dev.stream("servo_jp", [0.1, 0.2], duration=bad)
+        with pytest.raises(CommandError, match="not a stream command"):
+            dev.stream("move_jp", [0.1, 0.2], duration=1.0)
+
+
+def test_ctrl_c_during_a_stream_holds_and_says_so(fake, capsys, monkeypatch):
+    from crtk_bridge.client.device import Device
+
+    fake.handlers["servo_jv"] = lambda r, s: s.send(ok(r))
+    fake.handlers["hold"] = lambda r, s: s.send(ok(r))
+    calls = [0]
+    real = Device.servo_jv
+
+    def interrupted_third(self, v):
+        calls[0] += 1
+        if calls[0] == 3:
+            raise KeyboardInterrupt
+        real(self, v)
+
+    monkeypatch.setattr(Device, "servo_jv", interrupted_third)
+    assert main(["--socket", fake.path, "servo_jv", "0.1", "0", "--duration", "5"]) == 130
+    assert capsys.readouterr().err == "crtk-ctl: interrupted: so101 servo_jv stream stopped with hold\n"
+    cmds = [r["cmd"] for r in fake.requests if r["cmd"] != "list"]
+    assert cmds[:2] == ["servo_jv", "servo_jv"] and set(cmds[2:]) == {"hold"}
+
+
+def test_a_refused_sample_ends_the_stream_with_hold(fake, capsys):
+    count = [0]
+
+    def refuse_third(r, s):
+        count[0] += 1
+        s.send(ok(r) if count[0] < 3 else err(r, "step_too_large", "so101: servo_jr step too large"))
+
+    fake.handlers["servo_jr"] = refuse_third
+    fake.handlers["hold"] = lambda r, s: s.send(ok(r))
+    assert main(["--socket", fake.path, "servo_jr", "0.1", "0", "--duration", "1"]) == 1
+    assert "servo_jr refused (step_too_large)" in capsys.readouterr().err
+    assert fake.requests[-1]["cmd"] == "hold"
+
+
+def test_ctrl_c_during_home_holds_every_namespace_it_moves(fake, capsys, monkeypatch):
+    from crtk_bridge.client.device import Device
+
+    fake.handlers["list"] = list_with(fake, gripper_commands=("move_jp", "hold"))
+    fake.handlers["hold"] = lambda r, s: s.send(ok(r))
+
+    def interrupted(self, timeout):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Device, "home", interrupted)
+    assert main(["--socket", fake.path, "home"]) == 130
+    assert capsys.readouterr().err == "crtk-ctl: interrupted: so101 home stopped with hold (so101, so101/gripper)\n"
+    assert [(r["cmd"], r.get("ns")) for r in fake.requests if r["cmd"] == "hold"] == [
+        ("hold", "so101"), ("hold", "so101/gripper")]
+
+
+def test_ctrl_c_without_a_motion_to_stop_stays_quiet(fake, capsys, monkeypatch):
+    from crtk_bridge.client.device import Device
+
+    def interrupted(self, timeout):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Device, "enable", interrupted)
+    assert main(["--socket", fake.path, "enable"]) == 130
+    assert capsys.readouterr().err == ""
+    assert not [r for r in fake.requests if r["cmd"] == "hold"]
+
+
+def test_ns_naming_a_frame_points_at_frame_option(fake, capsys):
+    assert main(["--socket", fake.path, "--ns", "so101/body", "get", "measured_js"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "use --ns so101 --frame body" in err
+    with connect(socket=fake.path, timeout=3.0) as robot:
+        with pytest.raises(KeyError, match="use so101 with frame='body'"):
+            robot.device("so101/body")
+
+
+def test_robots_without_a_daemon_says_where_it_looked(sockdir, capsys, monkeypatch):
+    import crtk_bridge.client.cli as cli
+    import crtk_bridge.client.paths as paths
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", sockdir)
+    nowhere = os.path.join(sockdir, "run-crtk-bridge")
+    monkeypatch.setattr(paths, "SYSTEM_SOCKET_DIR", nowhere)
+    monkeypatch.setattr(cli, "SYSTEM_SOCKET_DIR", nowhere)
+    assert main(["robots"]) == 2
+    assert capsys.readouterr().err == (f"crtk-ctl: no crtk-bridge daemon running: no *.sock in {sockdir}/crtk-bridge "
+                                       f"nor {nowhere} (start one: crtk-bridge --profile FILE [--sim])\n")
+    os.makedirs(os.path.join(sockdir, "crtk-bridge"))
+    open(os.path.join(sockdir, "crtk-bridge", "so101.sock"), "w").close()
+    assert main(["robots"]) == 0 and capsys.readouterr().out == "so101\n"

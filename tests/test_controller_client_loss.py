@@ -60,11 +60,19 @@ def test_endless_commands_stop_and_hold_on_client_loss(rig):  # noqa: F811
     assert req("servo_jv", "so101", velocity=[0.5, 0, 0, 0, 0])["ok"]
     cycle(10)
     assert _lost(c) == ["control_released"]
+    m = c.namespaces["so101"]
+    assert m.mode is Mode.STOP  # an integrated velocity brakes at the stop deceleration
+    at_loss = act.pos.copy()
+    cycle(50)
+    assert m.mode is Mode.HOLD
+    v, d = 0.5, c.stop_dec[0]
+    assert 0 < act.pos[0] - at_loss[0] <= v * v / (2 * d) + v * c.dt  # stopped within its stopping distance
     held = act.pos.copy()
     cycle(50)
-    assert c.namespaces["so101"].mode is Mode.HOLD
-    np.testing.assert_allclose(act.pos, held)
+    np.testing.assert_allclose(act.pos, held)  # then holds
     assert req("interpolate_jv", "so101", velocity=[0.5, 0, 0, 0, 0])["ok"]
     cycle(10)
     assert _lost(c) == ["control_released"]
-    assert c.namespaces["so101"].mode is Mode.HOLD
+    assert m.mode is Mode.STOP
+    cycle(50)
+    assert m.mode is Mode.HOLD

@@ -356,7 +356,7 @@ def test_pause_refuses_motion_and_holds_hold_stops_a_move(rig, sim_robot):
     bot = sim_robot
     start = measured(arm)
     goal = start.copy()
-    goal[0] = bot.pos_max[0] - 0.12  # jerk-limited braking from v_max takes ~0.6 rad
+    goal[0] = bot.pos_max[0] - 0.12  # braking at the stop deceleration takes ~0.15 rad
     h = arm.move_jp(goal)
     wait_until(lambda: measured(arm)[0] - start[0] > 0.1, 5, what="arm moving")
     assert arm.pause(5.0) and arm.is_paused()
@@ -366,11 +366,12 @@ def test_pause_refuses_motion_and_holds_hold_stops_a_move(rig, sim_robot):
     # a device that stops itself on pause (CiA 402 quick stop) is still before core's braking
     # ramp ends; until it does, a hold is a stop (never refused)
     wait_until(lambda: not np.any(arm.setpoint_jv()[0]), 3, what="the braking setpoint at rest")
-    for call in (lambda: arm.move_jp(goal), lambda: arm.servo_jp(stopped), lambda: arm.interpolate_jp(stopped),
-                 lambda: arm.hold()):
+    for call in (lambda: arm.move_jp(goal), lambda: arm.servo_jp(stopped), lambda: arm.interpolate_jp(stopped)):
         with pytest.raises(CommandError) as err:
             call()
         assert err.value.code == "invalid_state" and "PAUSED" in err.value.message
+    arm.hold()  # a stop is never refused: of a paused arm at rest, a no-op
+    assert arm.is_paused()
     assert settled(arm, 0.3) is not None
     np.testing.assert_allclose(measured(arm), stopped, atol=TOL)  # held while paused
 
@@ -389,6 +390,48 @@ def test_pause_refuses_motion_and_holds_hold_stops_a_move(rig, sim_robot):
     assert held[0] > back[0] + 0.3
     assert fields(arm.setpoint_js()) == (True, False, False)
     assert settled(arm, 0.3) is not None
+
+
+def _stop_deceleration(bot, j: int) -> float:
+    """rad/s^2 the daemon brakes arm joint ``j`` at: the profile's, or its default bounded by
+    what the backend says the hardware follows (profile.stop_deceleration)."""
+    from crtk_bridge.backends import create_backend
+    from crtk_bridge.profile import load_profile, stop_deceleration
+
+    p = load_profile(bot.profile)
+    i = p.joint_index(bot.joint_names[j])
+    return stop_deceleration(p.joints[i].limits, create_backend(p).deceleration_limit(i))
+
+
+def test_hold_during_a_fast_move_stops_within_the_stopping_distance(rig, sim_robot):
+    """issue 18 item 2: hold sent during a fast move_jp brakes at the joint's stop deceleration,
+    not at the move's acceleration and jerk (which let the SO-101 travel ~0.87 rad further). From
+    the braking setpoint seen just after the hold (speed v), the arm comes to rest within
+    v^2 / (2 d) + one cycle (docs/protocol.md, Safety: <= 0.25 rad for the SO-101 from 3 rad/s)."""
+    robot, arm, raw, sim = rig
+    bot = sim_robot
+    d, v_max, dt = _stop_deceleration(bot, 0), bot.vel_max[0], 1.0 / bot.rate_hz
+    start = measured(arm)
+    start[0] = bot.pos_min[0] + 0.1
+    assert arm.move_jp(start).wait(timeout=10.0)
+    goal = start.copy()
+    goal[0] = bot.pos_max[0] - 0.1
+    h = arm.move_jp(goal)
+    def fast() -> bool:
+        v = arm.setpoint_jv()[0]
+        return len(v) > 0 and abs(v[0]) >= 0.95 * v_max
+
+    wait_until(fast, 5, what="joint 0 near velocity_max")
+    arm.hold()
+    assert h.wait(timeout=2.0)
+    p1, v1, _, _ = arm.setpoint_js()  # braking already (or at rest on a slow host)
+    wait_until(lambda: not np.any(arm.setpoint_jv()[0]), 3, what="the braking setpoint at rest")
+    rest = arm.setpoint_jp()[0]
+    bound = v1[0] ** 2 / (2 * d) + abs(v1[0]) * dt + 1e-6
+    assert 0.0 <= rest[0] - p1[0] <= bound, (rest[0] - p1[0], bound, v1[0])
+    assert rest[0] < goal[0] - 0.3  # stopped well short of the goal
+    held = wait_still(arm, 3, "arm still after hold")
+    np.testing.assert_allclose(held, rest, atol=TOL)  # the arm itself is where the setpoint stopped
 
 
 def test_free_torques_off_the_namespace_and_move_resumes_without_a_jump(rig, sim_robot):

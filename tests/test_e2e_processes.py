@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 
 import pytest
 import yaml
@@ -77,10 +78,16 @@ def test_control_process_killed_front_reports_fault_and_exits_nonzero(sim_daemon
     try:
         ctl_pid = _control_pid(sim_daemon.proc.pid)
         mark = robot.connection.event_count
+        before = time.time()
         os.kill(ctl_pid, signal.SIGKILL)
         wait_until(lambda: any(e.data.get("code") == "control_process_died"
                                for e in robot.connection.events_since(mark)), 5, what="control_process_died event")
-        assert (robot.connection.operating_state or {}).get("state") == "FAULT"
+        st = robot.connection.operating_state or {}
+        assert st.get("state") == "FAULT"
+        # stamped as every event is (s since the epoch), not 0: `crtk-ctl events` printed '-' (issue 18)
+        died = next(e for e in robot.connection.events_since(mark) if e.data.get("code") == "control_process_died")
+        assert before - 1 <= died.data["stamp"] <= time.time() + 1
+        assert before - 1 <= st["stamp"] <= time.time() + 1
     finally:
         robot.close()
     assert sim_daemon.proc.wait(10) == 1

@@ -100,8 +100,7 @@ def test_crtk_ctl_twist_stream_moves_the_tip_as_far_as_the_twist_says(sim_daemon
 
         linear = ["0", "0", "0"]
         linear[axis] = "0.02"
-        # 0.02 m/s for 1 s, streamed at crtk-ctl's 50 Hz; crtk-ctl's exit ends the stream (the
-        # daemon holds when the controlling session disconnects)
+        # 0.02 m/s for 1 s, streamed at crtk-ctl's 50 Hz; the stream ends with a hold at 1 s
         clock = controller_clock(sim_daemon)
         w0, c0 = time.monotonic(), clock() if clock else 0.0
         with SpeedSampler(sock, ns, axis) if native else contextlib.nullcontext() as speeds:
@@ -114,7 +113,7 @@ def test_crtk_ctl_twist_stream_moves_the_tip_as_far_as_the_twist_says(sim_daemon
         d = p1 - p0
         if native:
             # the controller integrates the twist (speedL) on its own clock, from the first sample
-            # it gets until the daemon, noticing crtk-ctl gone, holds (later on a loaded host):
+            # it gets until the daemon passes crtk-ctl's hold on (later on a loaded host):
             # the speed it ran at is the twist's, and the distance is at least the stream's
             # second's and at most that plus the servo watchdog's (servo_timeout_s) bound
             steady = [v for v in speeds.samples if v > 0.01]

@@ -182,6 +182,9 @@ class CompositeActuator(Actuator):
     def joint_capabilities(self, i: int) -> Capabilities:
         return self._joint_caps[i]
 
+    def deceleration_limit(self, i: int) -> float:
+        return self.parts[self._owner[i]].deceleration_limit(int(self._local[i]))
+
     def cartesian_namespaces(self) -> list[str]:
         """Every bus's natively cartesian namespaces, bus after bus (the rows of the robot's
         CartesianCommand / CartesianFeedback)."""

@@ -353,6 +353,22 @@ class SerialServoBackend(Actuator):
         # calibration sweep (backends/calibration.py): followed in the vendors' _read
         self._cal: RangeWatch | None = None
         self._cal_homing: list[int | None] = [None] * self.n
+        self._check_stop_deceleration(profile, source)
+
+    #: the backend key of the servos' own acceleration limit (:meth:`deceleration_limit`)
+    ACCELERATION_KEY: ClassVar[str] = ""
+
+    def _check_stop_deceleration(self, profile: Profile, source: str) -> None:
+        """A profile's ``stop_deceleration_max`` above what the servo follows as configured would
+        be a longer stop than the profile says: refused, naming both keys."""
+        for i, j in enumerate(profile.joints):
+            want, most = j.limits.stop_deceleration_max, self.deceleration_limit(i)
+            if want is not None and want > most:
+                key = self.ACCELERATION_KEY
+                raise ProfileError(
+                    f"{source}: joints[{i}] ({j.name}).limits.stop_deceleration_max: {want:g} rad/s^2 is above "
+                    f"what the servo follows with backend.{key} {getattr(self.config, key)} ({most:.2f} rad/s^2); "
+                    f"lower it, or raise backend.{key} (0 = unlimited)")
 
     # ------------------------------------------------------------------ hooks
     def _check_joint(self, i: int, key: str, j: ServoJoint, problems: list[str]) -> None:

@@ -20,13 +20,16 @@ rotation). Twists are VX VY VZ (m/s) WX WY WZ (rad/s), wrenches FX FY FZ (N) TX 
 the spatial frame (base axes) or, with --frame body, the tip frame's axes.
 
 When crtk-ctl leaves, a move or position goal it sent runs to its end; a velocity or effort
-command has no end and stops, so it needs --duration (docs/protocol.md, Client loss). With
---duration a relative command (_jr, _cr) is split over the samples: it moves by the offset given.
+command has no end and stops, so it needs --duration (docs/protocol.md, Client loss). A
+--duration stream ends at its duration on the wall clock whatever --rate (capped at the loop
+rate), a velocity or effort stream with hold; a relative command (_jr, _cr) is split over the
+samples: it moves by the offset given.
 
 Exit status: 0 on success; 1 when the daemon refuses a command (one line on stderr with the
 error code and the daemon's message), a wait times out or a state is not reached; 2 when no
 daemon answers (the line names the socket path, or the Zenoh endpoint with --zenoh-connect) or
-the arguments are wrong; 130 on Ctrl-C.
+the arguments are wrong; 130 on Ctrl-C (a move waited on, a home or a stream is stopped with
+hold first, said in one line).
 
 Across machines: `crtk-ctl --zenoh-connect tcp/127.0.0.1:7447 --robot so101 state` reaches the
 daemon through a Zenoh router (docs/zenoh.md); `crtk-ctl --zenoh-connect ENDPOINT robots` lists
@@ -36,6 +39,7 @@ the robots served there.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import re
@@ -43,20 +47,20 @@ import sys
 import time
 from typing import Sequence
 
-import numpy as np
-
 from crtk_bridge import __version__, vocabulary
+from crtk_bridge.argparsing import ArgumentParser
 
 from crtk_bridge.client import calibrate, teleop
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.client.device import (
-    CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, FRAMES, JS_TOPICS, Device, Robot, connect, encode_pose,
-    list_robots)
+    CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, ENDLESS_COMMANDS, FRAMES, JS_TOPICS, Device, Robot,
+    connect, encode_pose, list_robots)
+from crtk_bridge.client.paths import SYSTEM_SOCKET_DIR, default_socket_dir
 from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
 from crtk_bridge.profile import ZENOH_LEASE_MS_DEFAULT, ZENOH_LEASE_MS_MAX, ZENOH_LEASE_MS_MIN, zenoh_lease_problem
 
 PROG = "crtk-ctl"
-GET_TOPICS = (*JS_TOPICS, *CARTESIAN_TOPICS, *vocabulary.ROBOT_TOPICS)
+GET_TOPICS = tuple(str(t) for t in (*JS_TOPICS, *CARTESIAN_TOPICS, *vocabulary.ROBOT_TOPICS))
 #: Default wait (s) per state command when --timeout is not given.
 WAIT_DEFAULTS = {"enable": 5.0, "disable": 5.0, "pause": 5.0, "resume": 5.0,
                  "home": 30.0, "unhome": 5.0}
@@ -90,16 +94,15 @@ CART_STREAM_COMMANDS = {
                        "wrench"),
 }
 
-#: stream commands without an end: the daemon stops them when crtk-ctl disconnects (client loss),
-#: so sent once they would do nothing; they need --duration
-ENDLESS_COMMANDS = ("servo_jv", "servo_jf", "interpolate_jv", "interpolate_jf",
-                    "servo_cv", "interpolate_cv", "servo_cf", "interpolate_cf")
-#: relative stream commands: with --duration each sample carries its share of the offset, so the
-#: whole stream moves by the given offset in total
-RELATIVE_COMMANDS = ("servo_jr", "interpolate_jr", "servo_cr", "interpolate_cr")
-_DURATION_HELP = ("send the command at --rate for S seconds (default: send once). A relative command "
-                  "(_jr, _cr) moves by the given offset in total; a velocity or effort command needs "
-                  "it (it has no end: the daemon stops it when crtk-ctl disconnects)")
+# ENDLESS_COMMANDS (velocity, effort: no end) need --duration: sent once, the daemon would stop
+# them as crtk-ctl disconnects (client loss); with it their stream ends with hold. A stream of
+# RELATIVE_COMMANDS (_jr, _cr) moves by the offset given, in total (Device.stream).
+_DURATION_HELP = ("send the command at --rate for S seconds on the wall clock (default: send once); the "
+                  "stream ends at S whatever the rate. A relative command (_jr, _cr) moves by the given "
+                  "offset in total; a velocity or effort command needs it (it has no end) and stops "
+                  "with hold at S")
+_RATE_HELP = ("samples per second with --duration (default 50; above the daemon's loop rate: capped to "
+              "it, said on stderr)")
 
 
 class Failure(CrtkBridgeError):
@@ -110,23 +113,33 @@ class UsageError(CrtkBridgeError):
     """The arguments cannot do what was asked (exit 2, one line on stderr)."""
 
 
+class Interrupted(CrtkBridgeError):
+    """Ctrl-C during a command that moves the robot: what it started was stopped, or not (exit
+    130, one line on stderr saying which)."""
+
+
 #: help of every joint-vector argument: how many values, in which order
 JOINT_VECTOR_HELP = ("one value per joint of the namespace (--ns; default: the first), in the order "
                      "`crtk-ctl list` prints its joints, e.g. on the SO-101 arm: shoulder_pan "
                      "shoulder_lift elbow_flex wrist_flex wrist_roll")
 
 
-class Parser(argparse.ArgumentParser):
-    """argparse with usage errors as one JSON line on stderr when ``--json`` is on the command
-    line (subparsers are made of the same class, so this holds for every subcommand)."""
+class Parser(ArgumentParser):
+    """argparse with usage errors on one line (``crtk-ctl get: error: argument TOPIC: ...``),
+    as one JSON object when ``--json`` is on the command line; an unknown argument is named before
+    a missing required option (crtk_bridge/argparsing.py). Subparsers are made of the same class,
+    so this holds for every subcommand."""
 
     json_errors = False
 
     def error(self, message: str):
+        if self._probing:
+            super().error(message)  # raises: probing for unknown arguments
+        message = _one_line(self.unknown_first(message))
         if Parser.json_errors:
             _emit_json_error("usage", message)
             self.exit(2)
-        super().error(message)
+        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def _positive_float(text: str) -> float:
@@ -216,7 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
     add("resume", "resume (PAUSED -> ENABLED)")
     add("list", "print namespaces, joints and commands")
     add("robots", "print the names of the robots reachable: those with a socket in the default "
-                  "directory, or with --zenoh-connect, those served on the Zenoh network")
+                  "directory, or with --zenoh-connect, those served on the Zenoh network (none: exit 2, "
+                  "saying where it looked)")
     def add_frame(p):
         p.add_argument("--frame", choices=FRAMES, default="spatial",
                        help="twists and wrenches: spatial (base axes, default) or body (tip axes)")
@@ -237,9 +251,8 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (what, meta) in STREAM_COMMANDS.items():
         p = add(name, what)
         p.add_argument("values", nargs="+", type=float, metavar=meta, help=JOINT_VECTOR_HELP)
-        p.add_argument("--duration", metavar="S", type=float, default=0.0, help=_DURATION_HELP)
-        p.add_argument("--rate", metavar="HZ", type=_positive_float, default=50.0,
-                       help="repeat rate with --duration (default 50)")
+        p.add_argument("--duration", metavar="S", type=_positive_float, default=None, help=_DURATION_HELP)
+        p.add_argument("--rate", metavar="HZ", type=_positive_float, default=50.0, help=_RATE_HELP)
     p = add("move_cp", "move the tip to the pose X Y Z (m) QX QY QZ QW (IK, then a joint "
                        "trajectory)")
     p.add_argument("values", nargs="+", type=float, metavar="POSE",
@@ -262,9 +275,8 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("values", nargs="+", type=float, metavar=meta, help=helptext)
         if kind in ("twist", "wrench"):
             add_frame(p)
-        p.add_argument("--duration", metavar="S", type=float, default=0.0, help=_DURATION_HELP)
-        p.add_argument("--rate", metavar="HZ", type=_positive_float, default=50.0,
-                       help="repeat rate with --duration (default 50)")
+        p.add_argument("--duration", metavar="S", type=_positive_float, default=None, help=_DURATION_HELP)
+        p.add_argument("--rate", metavar="HZ", type=_positive_float, default=50.0, help=_RATE_HELP)
     p = add("fk", "forward kinematics: print the tip pose for joint positions J (rad)")
     p.add_argument("values", nargs="+", type=float, metavar="J", help=JOINT_VECTOR_HELP)
     p = add("ik", "inverse kinematics: print the joint positions for the pose X Y Z QX QY QZ QW "
@@ -432,34 +444,86 @@ def _pose_arg(dev: Device, cmd: str, values: Sequence[float], relative: bool) ->
     return values[:3], values[3:]
 
 
-def _samples(args) -> int:
-    """How many times a stream command is sent: once, or at --rate over --duration (both ends)."""
-    if args.command in ENDLESS_COMMANDS and args.duration <= 0:
-        raise UsageError(f"{args.command} needs --duration S: a velocity or effort command has no end, "
-                         "and the daemon stops it when crtk-ctl disconnects")
-    return 1 + int(round(max(0.0, args.duration) * args.rate))
+def _stream_rate(args, robot: Robot) -> float:
+    """--rate, capped at the daemon's loop rate (said once on stderr): a sample is a request the
+    control loop answers in its next cycle, so it cannot take more."""
+    loop = robot.loop_rate_hz
+    if loop is None or args.rate <= loop:
+        return args.rate
+    note = (f"--rate {args.rate:g} Hz is above {robot.name}'s loop rate ({loop:g} Hz): "
+            f"streaming at {loop:g} Hz")
+    if args.json:
+        print(json.dumps({"warning": "rate_capped", "message": note}, separators=(",", ":")),
+              file=sys.stderr, flush=True)
+    else:
+        _err(note)
+    return loop
 
 
-def _repeat(send, n: int, rate: float) -> None:
-    """Call ``send()`` ``n`` times at ``rate`` Hz, the first at once."""
-    t0 = time.monotonic()
-    for k in range(n):
-        time.sleep(max(0.0, t0 + k / rate - time.monotonic()))
-        send()
+@contextlib.contextmanager
+def _stops_on_interrupt(devices: Sequence[Device], what: str):
+    """Ctrl-C while ``what`` (a move waited on, a stream, a home) runs: hold every device it moves,
+    then :class:`Interrupted` says whether that worked. A move sent without --wait is not
+    concerned: it runs to its end once crtk-ctl leaves (docs/protocol.md, Client loss)."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        failed = []
+        for dev in devices:
+            try:
+                dev.hold()
+            except KeyboardInterrupt:
+                raise Interrupted(f"interrupted twice: {what} not stopped, hold of {dev.name} not "
+                                  "confirmed; `crtk-ctl hold` stops it") from None
+            except (CrtkBridgeError, ConnectionError, TimeoutError) as exc:
+                failed.append(f"{dev.name}: {exc}")
+        if failed:
+            raise Interrupted(f"interrupted: {what} may still run, hold failed ({'; '.join(failed)})") from None
+        held = f" ({', '.join(d.name for d in devices)})" if len(devices) > 1 else ""
+        raise Interrupted(f"interrupted: {what} stopped with hold{held}") from None
 
 
-def _pose_share(delta: tuple, n: int) -> tuple:
-    """One ``n``-th of a relative pose: the translation divided by ``n``, the rotation's angle
-    too (same axis), so ``n`` of them in a row make ``delta``."""
-    dp, dq = np.asarray(delta[0], float), np.asarray(delta[1], float)
-    dq = dq / np.linalg.norm(dq)
-    if dq[3] < 0:
-        dq = -dq
-    s = float(np.linalg.norm(dq[:3]))
-    angle = 2.0 * math.atan2(s, float(dq[3])) / n
-    axis = dq[:3] / s if s > 0 else np.zeros(3)
-    q = [*(axis * math.sin(angle / 2)), math.cos(angle / 2)]
-    return (dp / n).tolist(), q
+def _stream(args, robot: Robot, dev: Device) -> int:
+    """A stream command: sent once, or with --duration at --rate until then (Device.stream)."""
+    cmd = args.command
+    kind = "joint" if cmd in STREAM_COMMANDS else CART_STREAM_COMMANDS[cmd][1]
+    if kind == "joint":
+        _check_len(dev, cmd, args.values)
+        payload = args.values
+    elif kind in ("pose", "delta"):
+        payload = _pose_arg(dev, cmd, args.values, kind == "delta")
+    else:
+        if len(args.values) != 6:
+            raise CommandError("bad_request", f"{dev.name}: {cmd} needs 6 values "
+                               f"({'VX VY VZ WX WY WZ' if kind == 'twist' else 'FX FY FZ TX TY TZ'}), "
+                               f"got {len(args.values)}")
+        payload = args.values
+    frame = getattr(args, "frame", "spatial")
+    report = None
+    if args.duration is None:
+        if cmd in ENDLESS_COMMANDS:
+            raise UsageError(f"{cmd} needs --duration S: a velocity or effort command has no end, "
+                             "and the daemon stops it when crtk-ctl disconnects")
+        method = getattr(dev, cmd)
+        method(payload, frame=frame) if kind in ("twist", "wrench") else method(payload)
+    else:
+        rate = _stream_rate(args, robot)
+        with _stops_on_interrupt([dev], f"{dev.name} {cmd} stream"):
+            report = dev.stream(cmd, payload, args.duration, rate, frame=frame)
+    obj = {"cmd": cmd, "ns": dev.name, "ok": True}
+    if kind in ("twist", "wrench"):
+        obj["frame"] = frame
+    if report is not None:
+        obj.update(samples=report.samples, rate_hz=report.rate_hz, held=report.held)
+    if args.json:
+        _emit_json(obj)
+    else:
+        line = f"{dev.name}: {cmd} sent" + (f" ({frame})" if "frame" in obj else "")
+        if report is not None:
+            line += (f": {report.samples} samples in {report.elapsed_s:.2f} s at up to {report.rate_hz:g} Hz"
+                     + (", then hold" if report.held else ""))
+        print(line)
+    return 0
 
 
 def _last_error(robot: Robot, since: int) -> str:
@@ -473,6 +537,10 @@ def _last_error(robot: Robot, since: int) -> str:
 def _run(args, robot: Robot) -> int:
     if args.command in ("record", "blackbox"):
         return _record(args, robot)
+    base, _, frame = (args.ns or "").rpartition("/")
+    if args.ns not in robot.namespaces and frame in FRAMES and base in robot.namespaces:
+        raise UsageError(f"--ns {args.ns}: {frame} is a frame, not a namespace: use --ns {base} --frame {frame} "
+                         "(twists and wrenches in the tip's axes; docs/cartesian.md)")
     dev = robot.device(args.ns)
     cmd = args.command
     out_json = args.json
@@ -485,7 +553,12 @@ def _run(args, robot: Robot) -> int:
     if cmd in WAIT_DEFAULTS:
         timeout = args.timeout if args.timeout is not None else WAIT_DEFAULTS[cmd]
         n_events = len(robot.connection.events)
-        reached = getattr(dev, cmd)(timeout)
+        if cmd == "home":  # moves every namespace: Ctrl-C holds them all
+            moved = [d for d in map(robot.device, robot.namespaces) if d.supports("hold")]
+            with _stops_on_interrupt(moved, f"{robot.name} home"):
+                reached = dev.home(timeout)
+        else:
+            reached = getattr(dev, cmd)(timeout)
         st = dev.operating_state_full()
         if out_json:
             _emit_json({"cmd": cmd, "reached": reached, **st})
@@ -568,7 +641,8 @@ def _run(args, robot: Robot) -> int:
         done = None
         if args.wait:
             timeout = args.timeout if args.timeout is not None else MOVE_WAIT_DEFAULT
-            done = handle.wait(timeout=timeout)
+            with _stops_on_interrupt([dev], f"{dev.name} {cmd}"):
+                done = handle.wait(timeout=timeout)
         if out_json:
             obj = {"cmd": cmd, "ns": dev.name, "busy_seq": handle.busy_seq}
             if done is not None:
@@ -587,39 +661,13 @@ def _run(args, robot: Robot) -> int:
                 print(f"{dev.name}: {cmd} done ({state})")
         return 0
 
-    if cmd in STREAM_COMMANDS or cmd in ("hold", "free"):
-        if cmd in STREAM_COMMANDS:
-            _check_len(dev, cmd, args.values)
-            n = _samples(args)
-            values = [v / n for v in args.values] if cmd in RELATIVE_COMMANDS else args.values
-            _repeat(lambda: getattr(dev, cmd)(values), n, args.rate)
-        else:
-            getattr(dev, cmd)()
+    if cmd in STREAM_COMMANDS or cmd in CART_STREAM_COMMANDS:
+        return _stream(args, robot, dev)
+
+    if cmd in ("hold", "free"):
+        getattr(dev, cmd)()
         _emit_json({"cmd": cmd, "ns": dev.name, "ok": True}) if out_json else print(
             f"{dev.name}: {cmd} sent")
-        return 0
-
-    if cmd in CART_STREAM_COMMANDS:
-        kind = CART_STREAM_COMMANDS[cmd][1]
-        if kind in ("pose", "delta"):
-            payload = _pose_arg(dev, cmd, args.values, kind == "delta")
-            n = _samples(args)
-            if cmd in RELATIVE_COMMANDS:
-                payload = _pose_share(payload, n)
-            send = lambda: getattr(dev, cmd)(payload)  # noqa: E731
-        else:
-            if len(args.values) != 6:
-                raise CommandError("bad_request", f"{dev.name}: {cmd} needs 6 values "
-                                   f"({'VX VY VZ WX WY WZ' if kind == 'twist' else 'FX FY FZ TX TY TZ'}), "
-                                   f"got {len(args.values)}")
-            n = _samples(args)
-            send = lambda: getattr(dev, cmd)(args.values, frame=args.frame)  # noqa: E731
-        _repeat(send, n, args.rate)
-        obj = {"cmd": cmd, "ns": dev.name, "ok": True}
-        if kind in ("twist", "wrench"):
-            obj["frame"] = args.frame
-        _emit_json(obj) if out_json else print(f"{dev.name}: {cmd} sent"
-                                               + (f" ({args.frame})" if "frame" in obj else ""))
         return 0
 
     if cmd == "fk":
@@ -696,11 +744,14 @@ def _record(args, robot: Robot) -> int:
     return 0
 
 
-def _fmt_event(ev) -> str:
+def _fmt_event(ev, received: float | None = None) -> str:
+    """One event as a line: its stamp, or when it has none (0), the time it was ``received``."""
     d = ev.data
     extra = "".join(f"  {k}={d[k]}" for k in ("joint", "register", "value") if k in d)
     stamp = d.get("stamp")
-    when = f"{stamp:.3f}" if isinstance(stamp, (int, float)) and stamp else "-"
+    if not (isinstance(stamp, (int, float)) and not isinstance(stamp, bool) and stamp > 0):
+        stamp = received
+    when = f"{stamp:.3f}" if stamp else "-"
     message = _one_line(d.get("message", ""))
     ns = d.get("ns")
     # messages name their robot (or namespace) already: do not say it twice
@@ -715,14 +766,14 @@ def _events(robot: Robot, args) -> int:
     import queue
 
     q: queue.Queue = queue.Queue()
-    robot.connection.listen_events(q.put)
+    robot.connection.listen_events(lambda ev: q.put((ev, time.time())))  # stamped as received
     kinds = set(args.kind or ("status", "warning", "error"))
     count = 0
     if args.count is not None and args.count <= 0:
         return 0
     while True:
         try:
-            ev = q.get(timeout=0.5)
+            ev, received = q.get(timeout=0.5)
         except queue.Empty:
             if robot.connection.closed:
                 raise DaemonConnectionError(f"crtk-bridge at {robot.connection.path} went away")
@@ -732,7 +783,7 @@ def _events(robot: Robot, args) -> int:
         if args.json:
             _emit_json({"event": ev.kind, "data": ev.data})
         else:
-            print(_fmt_event(ev), flush=True)
+            print(_fmt_event(ev, received), flush=True)
         count += 1
         if args.count is not None and count >= args.count:
             return 0
@@ -813,6 +864,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         request_timeout = args.timeout if args.timeout is not None else 5.0
         if args.command == "robots":
             names = list_robots(args.zenoh_connect, request_timeout, args.zenoh_config, args.zenoh_lease_ms)
+            if not names:
+                where = (f"on the Zenoh network at {', '.join(args.zenoh_connect)}" if args.zenoh_connect else
+                         f"no *.sock in {default_socket_dir()} nor {SYSTEM_SOCKET_DIR}")
+                raise DaemonConnectionError(f"no crtk-bridge daemon running: {where} "
+                                            "(start one: crtk-bridge --profile FILE [--sim])")
             _emit_json({"robots": names}) if args.json else print("\n".join(names))
             return 0
         if args.command == "teleop":
@@ -823,6 +879,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _run(args, robot)
     except KeyboardInterrupt:
         return 130
+    except Interrupted as exc:
+        return fail("interrupted", str(exc), 130)
     except CommandError as exc:
         what = getattr(exc, "cmd", None) or args.command
         return fail(exc.code, f"{what} refused ({exc.code}): {_without_refused(exc.message)}", 1, what,

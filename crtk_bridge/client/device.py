@@ -22,12 +22,16 @@ import math
 import os
 import queue
 import threading
+import time
+import warnings
+from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
 import numpy as np
 
 from crtk_bridge.client.connection import (
     PROTOCOL_VERSION, Connection, DaemonConnectionError, Event, encode_vector)
+from crtk_bridge.client.pacing import Pacing
 from crtk_bridge.client.paths import (
     SYSTEM_SOCKET_DIR, default_socket_dir, default_socket_path, find_sockets)
 from crtk_bridge import vocabulary
@@ -50,6 +54,19 @@ CARTESIAN_TOPICS = CP_TOPICS + CV_TOPICS + CF_TOPICS
 #: Reference frames of twists and wrenches (docs/cartesian.md): ``spatial`` = the base frame's
 #: axes (namespace ``<ns>``), ``body`` = the tip frame's axes (namespace ``<ns>/body``).
 FRAMES = ("spatial", "body")
+
+#: stream commands :meth:`Device.stream` sends, by payload: a joint vector, a pose, a relative
+#: pose, a twist or wrench
+JOINT_STREAM_COMMANDS = ("servo_jp", "servo_jr", "servo_jv", "servo_jf",
+                         "interpolate_jp", "interpolate_jr", "interpolate_jv", "interpolate_jf")
+POSE_STREAM_COMMANDS = ("servo_cp", "interpolate_cp")
+DELTA_STREAM_COMMANDS = ("servo_cr", "interpolate_cr")
+SIX_STREAM_COMMANDS = ("servo_cv", "interpolate_cv", "servo_cf", "interpolate_cf")
+#: stream commands without an end (velocity, effort): a stream of them ends with ``hold``
+ENDLESS_COMMANDS = ("servo_jv", "servo_jf", "interpolate_jv", "interpolate_jf",
+                    "servo_cv", "interpolate_cv", "servo_cf", "interpolate_cf")
+#: relative stream commands: a stream of them moves by the offset given, in total
+RELATIVE_COMMANDS = ("servo_jr", "interpolate_jr", "servo_cr", "interpolate_cr")
 
 
 def joint_state(data: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -182,6 +199,36 @@ def encode_pose(pose, what: str = "pose") -> dict:
         raise CommandError("bad_request", f"{what}: orientation must be a unit quaternion [x, y, z, w] "
                            f"(norm {n:.3g})")
     return {"position": p, "orientation": [v / n for v in q]}
+
+
+def pose_share(delta: dict, before: float, reached: float) -> dict:
+    """The part of a relative pose ``delta`` (wire form, as :func:`encode_pose` returns) between
+    the fractions ``before`` and ``reached`` of it: that part of the translation, and of the
+    rotation's angle about the same axis, so the parts of ``0 .. 1`` in a row make ``delta``."""
+    dp = np.asarray(delta["position"], float)
+    dq = np.asarray(delta["orientation"], float)
+    dq = dq / np.linalg.norm(dq)
+    if dq[3] < 0:
+        dq = -dq
+    s = float(np.linalg.norm(dq[:3]))
+    angle = 2.0 * math.atan2(s, float(dq[3]))
+    axis = dq[:3] / s if s > 0 else np.zeros(3)
+    part = angle * reached - angle * before
+    return {"position": (dp * reached - dp * before).tolist(),
+            "orientation": [*(axis * math.sin(part / 2)).tolist(), math.cos(part / 2)]}
+
+
+@dataclass(frozen=True)
+class StreamReport:
+    """What :meth:`Device.stream` did: ``samples`` of ``cmd`` sent at up to ``rate_hz`` (after the
+    cap at the loop rate) over ``elapsed_s`` on the wall clock; ``held``: it ended with ``hold``
+    (not counted in ``samples``)."""
+
+    cmd: str
+    samples: int
+    rate_hz: float
+    elapsed_s: float
+    held: bool
 
 
 def encode_six(values, a: str, b: str, what: str) -> dict:
@@ -658,6 +705,78 @@ class Device:
         setpoint when no move runs."""
         return self._move("move_jr", goal)
 
+    # -- timed streams -----------------------------------------------------------------------
+
+    def stream(self, cmd: str, values, duration: float, rate_hz: float = 50.0,
+               frame: str = "spatial") -> StreamReport:
+        """Send the stream command ``cmd`` (``servo_jp``/``jr``/``jv``/``jf``, ``interpolate_j*``,
+        ``servo_cp``/``cr``/``cv``/``cf``, ``interpolate_c*``) with ``values`` (its payload, as
+        the method of that name takes it; ``frame`` for twists and wrenches) at ``rate_hz`` for
+        ``duration`` s, and return a :class:`StreamReport`.
+
+        The stream ends at ``duration`` on the wall clock whatever the rate: samples are paced
+        on the clock (first at once, last at ``duration``), and one whose reply comes late is
+        followed by the newest one due, those missed are skipped (client/pacing.py). A rate
+        above the daemon's loop rate is capped to it (a ``RuntimeWarning`` says so). A relative
+        command (``_jr``, ``_cr``) moves by ``values`` in total, split over the samples sent. A
+        command without an end (velocity, effort) ends with ``hold`` at ``duration``, so it
+        stops then, not at the servo timeout. When the stream is cut short (a refused sample,
+        ``KeyboardInterrupt``), ``hold`` is sent (best effort) before the exception goes on.
+        Raises :class:`CommandError` (``bad_request`` for a bad duration, rate or payload,
+        before anything is sent)."""
+        if cmd not in JOINT_STREAM_COMMANDS + POSE_STREAM_COMMANDS + DELTA_STREAM_COMMANDS + SIX_STREAM_COMMANDS:
+            raise CommandError("bad_request", f"{self.name}: {cmd!r} is not a stream command (servo_*, "
+                               "interpolate_*)")
+        for what, value in (("duration", duration), ("rate_hz", rate_hz)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                    math.isfinite(value) and value > 0):
+                raise CommandError("bad_request", f"{self.name}: {cmd} stream: {what} must be a finite "
+                                   f"number > 0, got {value!r}")
+        self._check_supported(cmd)
+        loop = self._robot.loop_rate_hz
+        if loop is not None and rate_hz > loop:
+            warnings.warn(f"{self.name}: {cmd} stream at {rate_hz:g} Hz is above {self._robot.name}'s loop "
+                          f"rate: sending at {loop:g} Hz", RuntimeWarning, stacklevel=2)
+            rate_hz = loop
+        relative = cmd in RELATIVE_COMMANDS
+        method = getattr(self, cmd)
+        if cmd in JOINT_STREAM_COMMANDS:
+            vec = np.asarray(self._vec(values, f"{cmd} stream"), dtype=float)
+
+            def send(tick):
+                method((vec * tick.reached - vec * tick.before).tolist() if relative else vec.tolist())
+        elif cmd in SIX_STREAM_COMMANDS:
+            a, b = ("linear", "angular") if cmd.endswith("_cv") else ("force", "torque")
+            encode_six(values, a, b, f"{self._frame_ns(frame)}: {cmd}")  # refused before sending
+
+            def send(tick):
+                method(values, frame=frame)
+        else:
+            pose = encode_pose(values, f"{self.name}: {cmd}")
+
+            def send(tick):
+                method(pose_share(pose, tick.before, tick.reached) if relative else pose)
+        endless = cmd in ENDLESS_COMMANDS
+        pacing = Pacing(duration, rate_hz)
+        held, samples = False, 0
+        t0 = time.monotonic()
+        try:
+            for tick in pacing:
+                if tick.final and endless:
+                    self.hold()  # the end of a velocity or effort stream is a stop
+                    held = True
+                else:
+                    send(tick)
+                    samples += 1
+        except BaseException:
+            if not held:
+                try:
+                    self.hold()
+                except Exception:  # noqa: BLE001 - the first error is the one to report
+                    pass
+            raise
+        return StreamReport(cmd, samples, float(rate_hz), time.monotonic() - t0, held)
+
     # -- cartesian space (docs/cartesian.md) -------------------------------------------------
     #
     # Poses are the tip frame in the base frame (``list`` -> ``cartesian``: ``base_frame``,
@@ -917,13 +1036,27 @@ class Robot:
             dev = self._devices.get(name)
             if dev is None:
                 if name not in self._ns_info:
+                    base, _, frame = name.rpartition("/")
+                    hint = ""
+                    if frame in FRAMES and base in self._ns_info:
+                        hint = (f"; {frame} is a frame of {base}'s twists and wrenches: use {base} with "
+                                f"frame={frame!r} (docs/cartesian.md)")
                     raise KeyError(f"robot {self.name!r} has no namespace {name!r} "
-                                   f"(namespaces: {', '.join(self.namespaces)})")
+                                   f"(namespaces: {', '.join(self.namespaces)}){hint}")
                 dev = self._devices[name] = Device(self, name, self._ns_info[name])
             return dev
 
     def __getitem__(self, name: str) -> Device:
         return self.device(name)
+
+    @property
+    def loop_rate_hz(self) -> float | None:
+        """The daemon's control loop rate (Hz) from ``list``, or None when it does not say."""
+        rate = self.info.get("rate_hz")
+        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not (
+                math.isfinite(rate) and rate > 0):
+            return None
+        return float(rate)
 
     def __getattr__(self, attr: str):
         if attr.startswith("_"):

@@ -606,6 +606,12 @@ class Actuator(abc.ABC):
         knows per joint (a current-sensing servo beside one without) overrides it."""
         return self.capabilities
 
+    def deceleration_limit(self, i: int) -> float:
+        """rad/s^2: the most joint ``i``'s hardware decelerates at as configured (a servo's own
+        acceleration register), bounding the default stop deceleration
+        (:func:`~crtk_bridge.profile.stop_deceleration`). Default: unbounded (inf)."""
+        return float("inf")
+
     def capabilities_of(self, joints: Sequence[int]) -> Capabilities:
         """What the joints ``joints`` (indices) can do together, e.g. one namespace's."""
         return combine_capabilities([self.joint_capabilities(i) for i in joints])

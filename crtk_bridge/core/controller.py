@@ -40,7 +40,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..errors import BackendError, CommandError, fmt_number
-from ..profile import Profile
+from ..profile import Profile, stop_deceleration
 from .actuator import (
     Actuator,
     Capabilities,
@@ -134,9 +134,12 @@ class Controller:
         #: what each namespace's joints can do together: commands are offered and refused per namespace
         self.ns_caps = {ns.name: actuator.capabilities_of([profile.joint_index(j) for j in ns.joints])
                         for ns in profile.namespaces}
+        #: rad/s^2 each joint's stops brake at (the profile's, or its default bounded by the hardware)
+        self.stop_dec = np.array([stop_deceleration(j.limits, actuator.deceleration_limit(i))
+                                  for i, j in enumerate(profile.joints)])
         self.namespaces: dict[str, NamespaceMotion] = {
             ns.name: NamespaceMotion(ns.name, [profile.joint_index(j) for j in ns.joints], profile, self.dt,
-                                     self.ns_caps[ns.name])
+                                     self.ns_caps[ns.name], self.stop_dec[[profile.joint_index(j) for j in ns.joints]])
             for ns in profile.namespaces
         }
         # servo_cv / interpolate_cv, mapped every cycle (core/twist.py); namespaces with kinematics
@@ -433,7 +436,7 @@ class Controller:
             # relative to the current goal while a move runs, else to the setpoint
             return self._move(m, (m.goal_p if m.mode is Mode.MOVE else m.setpoint_p) + vec)
         elif cmd == "hold":
-            m.stop() if m.mode is Mode.MOVE else m.hold()
+            m.stop()  # what moves brakes at the stop deceleration; position streams hold at once
             if m.level is None:  # nothing commanded yet: hold the measured position
                 m.setpoint_p[:] = self.feedback.position[m.idx]
                 m.level = Mode.HOLD
@@ -446,11 +449,12 @@ class Controller:
 
     def _hold_anyway(self, ns: str) -> bool:
         """``hold`` where motion commands are refused (homing, a lifecycle transition under way,
-        not homed, PAUSED with something moving): a stop is never refused. What moves there is robot-wide (home, a
-        shutdown park), so it all stops; a native home is aborted. True: handled (reply ok)."""
+        not homed, PAUSED): a stop is never refused. What moves there is robot-wide (home, a
+        shutdown park, a pause's braking), so it all stops; a native home is aborted; a paused arm
+        at rest is held already (a no-op). True: handled (reply ok)."""
         if self.state is OperatingState.PAUSED:
             if not self.in_motion():
-                return False  # nothing moves: refused as every motion command ("resume it first")
+                return True  # nothing moves: already stopped, a stop is never refused
         elif self.state is not OperatingState.ENABLED:
             return False  # torque is off or going off: nothing to stop, refused as before
         run = self._running
@@ -739,6 +743,11 @@ class Controller:
             return self._start(self.actuator.begin(Lifecycle.HOME), homed, self._failed("home"))
         if not all(c.position for c in self.ns_caps.values()):
             raise Refused("unsupported", f"{self.robot}: home unsupported without position control")
+        missing = [name for m in self.namespaces.values() for name in m.no_home]
+        if missing:  # a joint's zero is not always a safe pose (a UR's is the arm stretched out)
+            raise Refused("unsupported", f"{self.robot}: home refused: no home pose in the profile for joint"
+                          f"{'s' if len(missing) > 1 else ''} {', '.join(map(repr, missing))} (key `home`, "
+                          f"rad, beside the joint's limits); add a safe pose, or move_jp there")
         now = self.clock()
         for m in self.namespaces.values():
             if m.mode is Mode.FREE:

@@ -15,7 +15,7 @@ Levels and what they produce each cycle (crtk-spec 4.1.1, setpoint fields per 4.
 | INTERP_V | setpoint velocity ramps to each interpolate_jv goal at the acceleration limit | v (+p) | velocity or position |
 | INTERP_F | linear ramp to each interpolate_jf goal over one estimated command period | f | effort |
 | MOVE     | ruckig jerk-limited trajectory to the move goal, ending at rest | p, v | position |
-| STOP     | ruckig decelerates to rest (pause, hold, client loss), then HOLD | p, v | position |
+| STOP     | brakes to rest at the joints' stop deceleration (pause, hold, client loss, watchdog), then HOLD | p, v | position |
 | HOLD     | the last position setpoint | p | position |
 | FREE     | nothing: torque off on these joints (`free`) | – | free |
 
@@ -25,6 +25,16 @@ clipped to each joint's ``velocity_max``, and the position setpoint never moves 
 ``velocity_max``: servo_jp / servo_jr targets are followed at most ``velocity_max * dt`` per
 cycle (a 500 Hz stream is otherwise bounded only per message by ``safety.servo_step_max``),
 interpolate_jp likewise, velocity integration clips its velocity, ruckig plans within the limits.
+
+Stops (``stop``: hold, pause, a stream's watchdog, client loss): a stop is not a trajectory. What
+moves with a velocity of its own (a move, an integrated servo_jv / interpolate_jv or twist stream)
+brakes at each joint's stop deceleration (``limits.stop_deceleration_max``, default a few times
+``acceleration_max`` bounded by the hardware: ``profile.stop_deceleration``), jerk-unlimited,
+every joint reaching rest at the same instant (each decelerates at ``|v| / T``, T the longest
+joint's braking time), so the joints keep their direction of motion while braking. Position
+streams (servo_jp / interpolate_jp) hold the setpoint where it is: it never passes the client's
+own positions. The stopping distance from ``velocity_max`` is ``v^2 / (2 d)`` plus one cycle
+(docs/protocol.md, Safety).
 
 Interpolation latency: an interpolate_jp goal is reached one estimated command period after it
 arrives (an exponential average of the inter-arrival times, clamped to [loop period,
@@ -38,7 +48,7 @@ import enum
 import numpy as np
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig
 
-from ..profile import Profile
+from ..profile import Profile, stop_deceleration
 from .actuator import Capabilities, CommandMode, JointCommand, ruckig_update
 
 
@@ -70,7 +80,8 @@ _INTEGRATE_MAX_PERIODS = 3.0
 class NamespaceMotion:
     """Setpoints, goals and trajectory generator of one namespace. All vectors in rad, rad/s, N*m."""
 
-    def __init__(self, name: str, indices: list[int], profile: Profile, dt: float, caps: Capabilities):
+    def __init__(self, name: str, indices: list[int], profile: Profile, dt: float, caps: Capabilities,
+                 stop_dec: np.ndarray | None = None):
         self.name = name
         #: an error the controller reports (and clears) after the cycle's step: a failed plan
         self.error: str | None = None
@@ -86,7 +97,13 @@ class NamespaceMotion:
         self.vel_max = np.array([j.limits.velocity_max for j in joints])
         self.acc_max = np.array([j.limits.acceleration_max for j in joints])
         self.eff_max = np.array([j.limits.effort_max if j.limits.effort_max is not None else np.inf for j in joints])
-        self.home = np.array([j.home for j in joints])
+        #: rad/s^2 a stop brakes each joint at (the controller passes the hardware-bounded values)
+        self.stop_dec = (np.asarray(stop_dec, dtype=float) if stop_dec is not None
+                         else np.array([stop_deceleration(j.limits) for j in joints]))
+        self._brake_dec = np.zeros(n)  # rad/s^2 each joint decelerates at in the running stop
+        #: the pose `home` moves to; None: a joint of the profile has no `home` key
+        self.home = (np.array([j.home for j in joints]) if all(j.home is not None for j in joints) else None)
+        self.no_home = [j.name for j in joints if j.home is None]
         self.mode = Mode.HOLD
         self.level: Mode | None = None  # command level that produced the setpoint (None: invalid)
         self.setpoint_p = np.zeros(n)
@@ -254,9 +271,9 @@ class NamespaceMotion:
 
     def start_move(self, goal: np.ndarray, now: float) -> None:
         inp = self.inp
-        if self.mode is Mode.MOVE or self.mode is Mode.STOP:
+        if self.mode is Mode.MOVE:
             pass  # re-plan from the trajectory's current state (kept in inp by pass_to_input)
-        else:
+        else:  # a stream, or a stop braking: from the setpoint and the velocity it really has
             inp.current_position = self.setpoint_p
             # start from the current setpoint velocity (a servo/interpolate stream in progress)
             inp.current_velocity = self.carried_velocity()
@@ -286,12 +303,10 @@ class NamespaceMotion:
         return np.clip(src, -self.vel_max, self.vel_max)
 
     def stop(self) -> None:
-        """Come to rest: a move decelerates (jerk-limited), streams hold where they are."""
-        if self.mode is Mode.MOVE:
-            self.inp.control_interface = ControlInterface.Velocity
-            self.inp.target_velocity = self._zeros
-            self.inp.target_acceleration = self._zeros
-            self.mode = Mode.STOP
+        """Come to rest: a move and an integrated velocity stream brake at the stop deceleration
+        (:meth:`brake`); position streams hold where they are."""
+        if self.mode is Mode.MOVE or (self.mode in VELOCITY_MODES and not self.caps.velocity):
+            self.brake()
         elif self.mode in (Mode.SERVO_P, Mode.INTERP_P, Mode.SERVO_V, Mode.INTERP_V):
             self.hold()
         elif self.mode in EFFORT_MODES:
@@ -299,6 +314,22 @@ class NamespaceMotion:
                 self.hold()  # the position setpoint follows the joint in effort modes
             else:
                 self.setpoint_f[:] = 0.0
+
+    def brake(self) -> None:
+        """Brake the position setpoint from the velocity it has to rest (mode STOP, then HOLD):
+        jerk-unlimited at the stop deceleration, every joint at rest at the same instant (the
+        slowest joint's braking time T; each decelerates at |v| / T, within its own)."""
+        v = self.carried_velocity()
+        t = float(np.max(np.abs(v) / self.stop_dec)) if self.n else 0.0
+        if not t > 0.0:
+            self.hold()
+            return
+        self.setpoint_v[:] = v
+        np.divide(np.abs(v), t, out=self._brake_dec)
+        self.has_v_ff = False
+        self.setpoint_f[:] = 0.0
+        self.mode = Mode.STOP
+        self.level = Mode.STOP
 
     def hold(self) -> None:
         """Servo to the current position setpoint (dVRK `hold`)."""
@@ -334,6 +365,9 @@ class NamespaceMotion:
             elif mode in VELOCITY_MODES and self.caps.velocity and not self.caps.position:
                 self.setpoint_v[:] = 0.0
                 msg += "velocity set to zero"
+            elif mode in VELOCITY_MODES and not self.caps.velocity:
+                self.brake()  # an integrated velocity: brake at the stop deceleration, then hold
+                msg += "braking to rest, then holding position"
             else:
                 if mode in VELOCITY_MODES and self.caps.velocity:
                     self.setpoint_p[:] = measured_p  # native velocity: hold where the joint is
@@ -341,8 +375,10 @@ class NamespaceMotion:
                 msg += "holding position"
             self.last_cmd_time = now  # say it once
             mode = self.mode
-        if mode is Mode.MOVE or mode is Mode.STOP:
+        if mode is Mode.MOVE:
             self._step_trajectory(now)
+        elif mode is Mode.STOP:
+            self._step_brake(now)
         elif mode is Mode.INTERP_P:
             self._step_interpolate_p(now)
         elif mode is Mode.SERVO_P:
@@ -425,13 +461,30 @@ class NamespaceMotion:
         self.setpoint_stamp = now
         self.out.pass_to_input(self.inp)
         if result is Result.Finished:
-            was_stop = self.mode is Mode.STOP
             self.mode = Mode.HOLD
             self.setpoint_v[:] = 0.0
-            if was_stop:
-                self.level = Mode.HOLD
             return True
         return False
+
+    def _step_brake(self, now: float) -> None:
+        """One cycle of a stop (:meth:`brake`): each joint's speed down by its deceleration * dt,
+        the position by the mean velocity over the cycle; at rest: HOLD."""
+        v = self.setpoint_v
+        v0 = self._tmp
+        v0[:] = v
+        speed = np.abs(v) - self._brake_dec * self.dt
+        np.maximum(speed, 0.0, out=speed)
+        np.copysign(speed, v0, out=v)
+        p = self.setpoint_p
+        lo, hi = self._bounds(p)  # a stop never carries a joint past its limit
+        p += 0.5 * (v0 + v) * self.dt
+        at_limit = (p <= lo) | (p >= hi)
+        np.clip(p, lo, hi, out=p)
+        v[at_limit] = 0.0
+        self.setpoint_stamp = now
+        if not np.any(v):
+            self.mode = Mode.HOLD
+            self.level = Mode.HOLD
 
     def fill(self, cmd: JointCommand) -> None:
         """Write this namespace's setpoints into the native command, in the hardware's terms."""

@@ -11,6 +11,7 @@ import logging
 import os
 import socket
 import struct
+import time
 from pathlib import Path
 from typing import Any
 
@@ -128,8 +129,9 @@ class Server:
         """The control process died: every client learns FAULT; the daemon exits non-zero."""
         if self.shutting_down:
             return
-        self.state = dict(self.state, state="FAULT", is_busy=False)
-        msg = {"event": "error", "data": {"stamp": 0.0, "ns": self.robot, "code": "control_process_died",
+        now = time.time()  # the control process, whose clock stamps events, is gone
+        self.state = dict(self.state, state="FAULT", is_busy=False, stamp=now)
+        msg = {"event": "error", "data": {"stamp": now, "ns": self.robot, "code": "control_process_died",
                                           "message": f"{self.robot}: the control process stopped; daemon exiting"}}
         self.on_event({"event": "operating_state", "data": self.state})
         self.on_event(msg)

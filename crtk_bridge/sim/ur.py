@@ -729,7 +729,7 @@ def profile_options(profile: Profile) -> dict:
         raise SimulatorError(f"{profile.name}: a UR arm has {N} joints, the profile has {len(profile.joints)}")
     backend = profile.backend or {}
     return {
-        "q0": [j.home for j in profile.joints],
+        "q0": [0.0 if j.home is None else j.home for j in profile.joints],
         "lower": [j.limits.position_min for j in profile.joints],
         "upper": [j.limits.position_max for j in profile.joints],
         "series": str(backend.get("series", "e-series")),

@@ -157,6 +157,7 @@ class DynamixelBackend(SerialServoBackend):
                                 measures_effort=False, needs_homing=False, can_free=True)
     extra = "dynamixel"
     vendor = "dynamixel"
+    ACCELERATION_KEY = "profile_acceleration"
     SOFTWARE_DRIVE_MODE = False  # the servo's Drive_Mode register reverses it (LeRobot writes it there)
     simulator = SimWiring("dynamixel")  # crtk-sim dynamixel; --sim sets backend.port to its pty
     Config = Config
@@ -325,6 +326,15 @@ class DynamixelBackend(SerialServoBackend):
         self._disable_hook()
         for i in range(self.n):
             self._configure_servo(i)
+
+    def deceleration_limit(self, i: int) -> float:
+        """Profile_Acceleration (``backend.profile_acceleration``, 214.577 rev/min^2 units in the
+        velocity-based profile; 0 = no on-servo profile) bounds how fast the servo follows a
+        braking setpoint: the default stop deceleration's bound (core/motion.py, Stops)."""
+        acc = self.config.profile_acceleration
+        if acc == 0:
+            return float("inf")
+        return acc * T.PROFILE_ACCELERATION_RAD_S2
 
     def _configure_servo(self, i: int) -> None:
         cfg = self.config

@@ -165,6 +165,8 @@ CURRENT_UNIT_A: dict[str, float | None] = {"xl330-m288": 0.001, "xl330-m077": 0.
 CURRENT_LIMIT_DEFAULT: dict[str, int] = {"xl330-m288": 1750, "xl330-m077": 1750, "xm430-w350": 1193}
 LOAD_UNIT = 0.001  # XL430 Present_Load LSB: 0.1 % of maximum torque
 VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * math.pi / 60.0  # Goal/Present_Velocity LSB: 0.229 rev/min
+#: Profile_Acceleration LSB in the velocity-based profile (Drive_Mode bit 2 clear): 214.577 rev/min^2
+PROFILE_ACCELERATION_RAD_S2 = 214.577 * 2.0 * math.pi / 3600.0
 VELOCITY_LIMIT_DEFAULT: dict[str, int] = {"xl330-m288": 445, "xl330-m077": 1620, "xm430-w350": 128, "xl430-w250": 265}
 # Fast Sync Read (0x8A) needs this firmware (Firmware_Version, register 6) or newer
 FAST_SYNC_READ_FIRMWARE: dict[str, int] = {"xl330-m288": 46, "xl330-m077": 46, "xl430-w250": 45, "xm430-w350": 45}

@@ -126,6 +126,7 @@ class FeetechBackend(SerialServoBackend):
     MODEL_NUMBERS = tables.MODEL_NUMBERS
     RESOLUTION = tables.RESOLUTION
     MAX_ID = 253
+    ACCELERATION_KEY = "acceleration"
     SUPPORTED_BAUDS = SUPPORTED_BAUDS
     BAUD_CODES = tables.BAUD_CODES
     FACTORY_BAUD = 1_000_000  # STS3215 (servos.md section 2)
@@ -157,6 +158,15 @@ class FeetechBackend(SerialServoBackend):
         self._sync_write: GroupSyncWrite | None = None
 
     # ------------------------------------------------------------------ hooks
+    def deceleration_limit(self, i: int) -> float:
+        """The servo's own Acceleration register (``backend.acceleration`` x 100 ticks/s^2, 0 =
+        unlimited) bounds how fast it follows a braking setpoint: 254 is 38.96 rad/s^2 on a
+        4096-tick servo, the default stop deceleration's bound (core/motion.py, Stops)."""
+        acc = self.config.acceleration
+        if acc == 0:  # (computed from the config only: the base __init__ checks the profile with it)
+            return float("inf")
+        return acc * 100.0 * abs(float(self._rad_per_tick[i]))
+
     def _make_port(self, margin_ms: float) -> FastPortHandler:
         return FastPortHandler(self._port_path, margin_ms=margin_ms)
 
