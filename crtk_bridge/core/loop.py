@@ -2,7 +2,8 @@
 
 Each cycle, at the ONE effective period (:func:`~crtk_bridge.core.actuator.effective_period_s`:
 the profile's rate, or the hardware's when the backend paces the cycle): read -> requests + state machine -> motion -> limits -> write
--> publish snapshot -> send replies and events. It asks for SCHED_FIFO and mlockall (and says once,
+-> publish snapshot -> push the cycle's sample into the ring (core/samples.py: recording, black
+box) -> send replies and events. It asks for SCHED_FIFO and mlockall (and says once,
 with a ``realtime_unavailable`` warning, when it cannot), freezes the GC after start-up, and keeps
 logging, allocation-heavy work and blocking I/O out of the cycle.
 

@@ -273,7 +273,8 @@ class Recorder:
         self._ids = iter(range(1, 1 << 62))
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._drain_loop, name=f"recording drain {self.robot}", daemon=True)
-        self._dump: tuple[str, int, asyncio.Future | None] | None = None  # (path, after cycle, future)
+        #: black boxes to write, in order: (path, once drained beyond this cycle, the request's future)
+        self._dumps: deque[tuple[str, int, asyncio.Future | None]] = deque()
         self._dumping: threading.Thread | None = None
         self._lost_said = 0.0
         self._lost_unsaid = 0
@@ -343,7 +344,7 @@ class Recorder:
             if state == "FAULT" and self._state != "FAULT" and self.blackbox is not None:
                 stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
                 path = os.path.join(self.blackbox_dir, f"{self.robot}-fault-{stamp}-{int(time.time_ns() % 10**9):09d}")
-                self._dump = (path, self.ring.head(), None)
+                self._dumps.append((path, self.ring.head(), None))
             self._state = state
 
     def on_command(self, session: Any, cmd: str, ns: str | None, data: Any) -> None:
@@ -413,10 +414,10 @@ class Recorder:
         bag, _ = bag_path(path)
         if bag.exists():
             raise ProtocolError("bad_request", f"{self.robot}: blackbox refused: {bag} exists already; give another path")
-        if self._dump is not None and self._dump[2] is not None:
-            raise ProtocolError("bad_request", f"{self.robot}: blackbox refused: a black box is being written")
+        if any(bag_path(d[0])[0] == bag for d in self._dumps):
+            raise ProtocolError("bad_request", f"{self.robot}: blackbox refused: {bag} is being written already")
         fut = self.loop.create_future()
-        self._dump = (path, self.ring.head(), fut)
+        self._dumps.append((path, self.ring.head(), fut))
         result = await fut
         if "error" in result:
             raise ProtocolError("internal", result["error"])
@@ -454,9 +455,9 @@ class Recorder:
             for r in self._active:
                 if not r.stopping:
                     r.offer(("rows", rows))
-        dump = self._dump
+        dump = self._dumps[0] if self._dumps else None
         if dump is not None and self.reader.next > dump[1] and (self._dumping is None or not self._dumping.is_alive()):
-            self._dump = None
+            self._dumps.popleft()
             snap = self.blackbox.snapshot()
             self._dumping = threading.Thread(target=self._write_dump, args=(dump[0], snap, dump[2]),
                                              name=f"black box {self.robot}", daemon=True)
