@@ -222,6 +222,7 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
     link.attach(loop, server.on_control_lost)
     if server.recorder is not None:  # the black box runs from the start
         server.recorder.start()
+        await server.recorder.start_recording()  # --record / recording.dir: before anyone can enable
     services = []
     if zenoh is not None:  # before the socket: nobody can have enabled the robot if one fails
         session, config = zenoh
@@ -342,7 +343,7 @@ def _remove_dir(path: str | None) -> None:
 
 def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None, realtime: bool = True,
         zenoh_connect: list[str] | None = None, zenoh_listen: list[str] | None = None,
-        ros_domain_id: int | None = None) -> int:
+        ros_domain_id: int | None = None, record_dir: str | None = None) -> int:
     """Run the daemon in the foreground until SIGTERM / SIGINT. Returns the exit status.
     ``zenoh_connect`` / ``zenoh_listen`` / ``ros_domain_id`` (the command line's) turn on and
     configure the Zenoh transport over the profile's ``transport.zenoh`` section. A start that
@@ -350,7 +351,8 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
     created: list[str] = []
     try:
         return _run(profile_path, created, sim=sim, socket_path=socket_path, realtime=realtime,
-                    zenoh_connect=zenoh_connect, zenoh_listen=zenoh_listen, ros_domain_id=ros_domain_id)
+                    zenoh_connect=zenoh_connect, zenoh_listen=zenoh_listen, ros_domain_id=ros_domain_id,
+                    record_dir=record_dir)
     except BaseException:
         for folder in created:  # innermost first; one another daemon now uses is not empty: kept
             try:
@@ -361,7 +363,8 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
 
 
 def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str | None, realtime: bool,
-         zenoh_connect: list[str] | None, zenoh_listen: list[str] | None, ros_domain_id: int | None) -> int:
+         zenoh_connect: list[str] | None, zenoh_listen: list[str] | None, ros_domain_id: int | None,
+         record_dir: str | None = None) -> int:
     """:func:`run`, adding to ``created`` the folders it creates for the socket."""
     profile = load_profile(profile_path)
     zconfig = zenoh_config(profile, zenoh_connect, zenoh_listen, ros_domain_id)
@@ -427,7 +430,7 @@ def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str |
                 proc.kill()
             raise CrtkBridgeError(str(exc)) from None
         server = Server(link, ready["commands"], socket_path)
-        server.recorder = Recorder(server, samples, source)
+        server.recorder = Recorder(server, samples, source, record_dir)
         holder["server"] = server
         for msg in early:
             server.on_event(msg)

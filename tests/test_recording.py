@@ -249,6 +249,35 @@ def test_a_killed_daemons_recording_loses_at_most_a_second(tmp_path_factory):
         d.stop()
 
 
+def test_recording_from_start_up_rotates_bags_without_a_gap(tmp_path_factory):
+    import tempfile
+    tmp = Path(tempfile.mkdtemp(prefix="crtk-rot-"))
+    folder = tmp / "bags"
+    prof = _profile(tmp, rotate_s=1.0)
+    d = DaemonProcess(["--profile", str(prof), "--sim", "--record", str(folder)], tmp / "so101.sock", tmp / "log")
+    try:
+        assert f"recording every cycle into {folder}" in d.output()
+        wait_until(lambda: len(list(folder.glob("*/metadata.yaml"))) >= 2, 30, what="two closed bags")
+        assert d.terminate() == 0  # a normal stop closes the bag being written
+    finally:
+        d.stop()
+    bags = sorted(folder.iterdir())
+    assert len(bags) >= 3 and all((b / "metadata.yaml").exists() for b in bags)
+    spans = []
+    for b in bags:
+        meta = yaml.safe_load((b / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        custom = meta["custom_data"]
+        first, last = int(custom["first_cycle"]), int(custom["last_cycle"])
+        js = _messages(b / f"{b.name}.mcap", "/so101/measured_js")
+        assert len(js) == last - first + 1 == int(custom["samples"]) and custom["lost"] == "0"
+        assert len(_messages(b / f"{b.name}.mcap", "/robot_description")) == 1  # each bag stands alone
+        assert len(_messages(b / f"{b.name}.mcap", "/so101/operating_state")) >= 1
+        spans.append((first, last, js[0][0], js[-1][0]))
+    for (_, last, _, t_last), (first, _, t_first, _) in zip(spans, spans[1:]):
+        assert first == last + 1 and t_first > t_last  # the next bag starts at the next cycle
+    assert all(t1 - t0 < 1.0e9 for _, _, t0, t1 in spans)  # at most rotate_s of cycles each
+
+
 def test_a_write_error_stops_the_recording_not_the_robot(robot, daemon):
     arm = robot.device("so101")
     robot.enable()

@@ -35,6 +35,7 @@ import numpy as np
 
 from .. import __version__
 from ..core.samples import MARKER, STAMP, SampleReader, SampleRing
+from ..errors import CrtkBridgeError
 from ..server.protocol import ProtocolError
 from .bag import BagWriter, bag_path, urdf_text
 
@@ -113,8 +114,12 @@ class Recording:
     """One recording: its bag, its writer thread and the bounded queue feeding it."""
 
     def __init__(self, rid: int, recorder: "Recorder", path: str, session: Any, duration_s: float | None,
-                 namespaces: list[str]):
+                 namespaces: list[str], rotate_s: float | None = None):
+        """``rotate_s``: ``path`` is a folder; a new bag ``<robot>-<UTC time>`` in it every
+        ``rotate_s`` seconds of cycles (the start-up recording)."""
         self.id = rid
+        self.rotate_s = rotate_s
+        self.segments: list[dict] = []  # the bags closed so far (rotation)
         self.recorder = recorder
         self.path = path
         self.session = session
@@ -158,17 +163,26 @@ class Recording:
             pass  # the loop is closed: the daemon is stopping
 
     # ---------------------------------------------------------------- writer thread
+    def _open(self, t0: int) -> BagWriter:
+        """A new bag (the next segment, with rotation), its description and the current state first."""
+        rec = self.recorder
+        path = self.path
+        if self.rotate_s is not None:
+            os.makedirs(self.path, exist_ok=True)
+            when = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(t0 * 1e-9))
+            path = os.path.join(self.path, f"{rec.robot}-{when}-{t0 % 10**9:09d}")
+        bag = BagWriter(path, rec.link, rec.robot, self.namespaces, self._spaces, rec.custom_data())
+        if rec.urdf is not None:
+            bag.robot_description(rec.urdf, t0)
+        bag.event({"event": "operating_state", "data": rec.server.state}, t0)
+        return bag
+
     def _run(self) -> None:
         rec = self.recorder
-        spaces = {}
+        spaces = self._spaces = {}
         try:
-            spaces = {ns: rec.server.cartesian_space(ns) for ns in self.namespaces if ns in rec.server.cartesian}
-            self.bag = BagWriter(self.path, rec.link, rec.robot, self.namespaces, spaces, rec.custom_data())
-            t0 = time.time_ns()
-            urdf = rec.urdf
-            if urdf is not None:
-                self.bag.robot_description(urdf, t0)
-            self.bag.event({"event": "operating_state", "data": rec.server.state}, t0)
+            spaces.update({ns: rec.server.cartesian_space(ns) for ns in self.namespaces if ns in rec.server.cartesian})
+            self.bag = self._open(time.time_ns())
         except Exception as exc:
             for cs in spaces.values():
                 cs.close()
@@ -196,7 +210,6 @@ class Recording:
         self._done(self.finished, result)
 
     def _write_until_stopped(self) -> None:
-        bag = self.bag
         last_flush = time.monotonic()
         end_ns = None
         while True:
@@ -211,28 +224,46 @@ class Recording:
                 t = time.perf_counter()
                 if kind == "rows":
                     rows = item[1]
-                    if self.duration_s is not None and len(rows):
+                    if self.rotate_s is not None and len(rows):
+                        self._rotating(rows)
+                    elif self.duration_s is not None and len(rows):
                         if end_ns is None:
                             end_ns = int(rows[0, STAMP] * 1e9) + int(self.duration_s * 1e9)
                         keep = (rows[:, STAMP] * 1e9).astype(np.int64) < end_ns
-                        bag.rows(rows[keep])
+                        self.bag.rows(rows[keep])
                         if not keep.all():
                             return  # its duration is over
                     else:
-                        bag.rows(rows)
+                        self.bag.rows(rows)
                 elif kind == "event":
-                    bag.event(item[2], item[1])
+                    self.bag.event(item[2], item[1])
                 elif kind == "command":
-                    bag.command(item[2], item[1])
+                    self.bag.command(item[2], item[1])
                 self.max_write_s = max(self.max_write_s, time.perf_counter() - t)
             if self.stopping and self.queue.empty():
                 return
             now = time.monotonic()
             if now - last_flush >= FLUSH_PERIOD_S:
                 t = time.perf_counter()
-                bag.flush()
+                self.bag.flush()
                 self.max_write_s = max(self.max_write_s, time.perf_counter() - t)
                 last_flush = now
+
+    def _rotating(self, rows: np.ndarray) -> None:
+        """Write ``rows``, closing the bag and opening the next one where a segment's
+        ``rotate_s`` seconds of cycles end."""
+        while len(rows):
+            bag = self.bag
+            if bag.samples == 0:
+                self._segment_end = int(rows[0, STAMP] * 1e9) + int(self.rotate_s * 1e9)
+            keep = (rows[:, STAMP] * 1e9).astype(np.int64) < self._segment_end
+            n = int(np.count_nonzero(keep))  # a prefix: the stamps increase
+            bag.rows(rows[:n])
+            rows = rows[n:]
+            if len(rows):
+                size = bag.close(self._stats_custom())
+                self.segments.append(self.result(size))
+                self.bag = self._open(int(rows[0, STAMP] * 1e9))
 
     def _stats_custom(self) -> dict[str, str]:
         b = self.bag
@@ -241,15 +272,18 @@ class Recording:
 
     def result(self, size: int) -> dict:
         b = self.bag
-        return {"recording": self.id, "path": str(b.file), "bag": str(b.dir), "samples": b.samples,
-                "first_cycle": b.first_cycle, "last_cycle": b.last_cycle, "lost": self.lost,
-                "messages": b.messages, "bytes": size, "max_write_s": self.max_write_s}
+        out = {"recording": self.id, "path": str(b.file), "bag": str(b.dir), "samples": b.samples,
+               "first_cycle": b.first_cycle, "last_cycle": b.last_cycle, "lost": self.lost,
+               "messages": b.messages, "bytes": size, "max_write_s": self.max_write_s}
+        if self.rotate_s is not None:
+            out["segments"] = len(self.segments) + 1
+        return out
 
 
 class Recorder:
     """The front's recording service: started by the daemon after the server, closed before it."""
 
-    def __init__(self, server: Any, ring: SampleRing, source: str | None = None):
+    def __init__(self, server: Any, ring: SampleRing, source: str | None = None, record_dir: str | None = None):
         self.server = server
         self.link = server.link
         self.profile = server.profile
@@ -265,6 +299,12 @@ class Recorder:
         if source and not os.path.isabs(os.path.expanduser(where)):
             where = os.path.join(os.path.dirname(os.path.abspath(source)), where)
         self.blackbox_dir = os.path.expanduser(where)
+        #: the start-up recording's folder (``--record`` or recording.dir), rotated every rotate_s
+        where = record_dir or rc.dir
+        if where and source and not record_dir and not os.path.isabs(os.path.expanduser(where)):
+            where = os.path.join(os.path.dirname(os.path.abspath(source)), where)
+        self.record_dir = os.path.abspath(os.path.expanduser(where)) if where else None
+        self.rotate_s = rc.rotate_s
         self.urdf = urdf_text(self.profile)
         self.loop: asyncio.AbstractEventLoop | None = None
         self.recordings: dict[int, Recording] = {}
@@ -293,8 +333,27 @@ class Recorder:
         self.server.detach_listeners.append(self.on_detach)
         self._thread.start()
 
+    async def start_recording(self) -> None:
+        """The start-up recording (``--record DIR`` / recording.dir), if asked: every namespace,
+        a new bag every ``recording.rotate_s``, until the daemon stops. Raises CrtkBridgeError
+        naming the folder when it cannot start (start-up ends, the robot DISABLED)."""
+        if self.record_dir is None:
+            return
+        r = Recording(next(self._ids), self, self.record_dir, None, None, list(self.link.ns_index),
+                      rotate_s=self.rotate_s)
+        self.recordings[r.id] = r
+        r.start()
+        problem = await r.opened
+        if problem is not None:
+            self.recordings.pop(r.id, None)
+            raise CrtkBridgeError(f"{problem} (--record or profile recording.dir)")
+        self._active = self._active + (r,)
+        print(f"crtk-bridge: recording every cycle into {self.record_dir} (a new bag every "
+              f"{self.rotate_s:g} s; docs/recording.md)", flush=True)
+
     async def close(self) -> None:
-        """Stop every recording (their bags closed) and the drain thread."""
+        """Stop every recording (their bags closed, holding the loop's last cycles) and the drain thread."""
+        await self.loop.run_in_executor(None, self._wait_drained, 2.0)
         for r in list(self.recordings.values()):
             r.stop()
         for r in list(self.recordings.values()):
@@ -306,6 +365,12 @@ class Recorder:
         await self.loop.run_in_executor(None, self._thread.join, 5.0)
         if self._dumping is not None:
             await self.loop.run_in_executor(None, self._dumping.join, 30.0)
+
+    def _wait_drained(self, timeout_s: float) -> None:
+        """Until the drain thread took every cycle the (stopped) loop pushed."""
+        deadline = time.monotonic() + timeout_s
+        while self.reader.next <= self.ring.head() and self._thread.is_alive() and time.monotonic() < deadline:
+            time.sleep(DRAIN_PERIOD_S / 2)
 
     def forget(self, r: Recording) -> None:
         """Any thread: ``r`` takes no more samples."""
