@@ -33,7 +33,6 @@ from .core.samples import SampleRing, ring_slots
 from .core.snapshot import Layout, SnapshotBuffer
 from .errors import CrtkBridgeError
 from .profile import Profile, load_profile
-from .recording.recorder import Recorder
 from .server.link import ControlLink
 from .server.server import Server
 from .sim.loopback import free_loopback_host
@@ -430,6 +429,9 @@ def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str |
                 proc.kill()
             raise CrtkBridgeError(str(exc)) from None
         server = Server(link, ready["commands"], socket_path)
+        # imported after the fork: the control process never loads the recorder (rosbags, zenoh)
+        from .recording.recorder import Recorder
+
         server.recorder = Recorder(server, samples, source, record_dir)
         holder["server"] = server
         for msg in early:
