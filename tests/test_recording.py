@@ -23,6 +23,7 @@ from crtk_bridge.client import connect
 from crtk_bridge.client.cli import main as ctl_main
 from crtk_bridge.core.samples import MARKER, STAMP, SampleReader, SampleRing
 from crtk_bridge.core.snapshot import Layout
+from crtk_bridge.errors import CommandError
 from crtk_bridge.transport.ros.types import TYPESTORE
 
 from .conftest import DaemonProcess, RemoteSim, so101_data, wait_until
@@ -54,6 +55,19 @@ def test_ring_counts_overwritten_samples_and_never_returns_a_torn_one():
         assert lost == 1 and len(rows) == 0 and reader.next == 21
     finally:
         ring.close(unlink=True)
+
+
+@pytest.mark.parametrize("key, value", [("blackbox_s", -1.0), ("blackbox_s", 601.0), ("rotate_s", 0.5)])
+def test_recording_keys_out_of_range_are_refused_naming_the_key(tmp_path, key, value):
+    from crtk_bridge.errors import ProfileError
+    from crtk_bridge.profile import load_profile
+
+    data = so101_data()
+    data["recording"] = {key: value}
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ProfileError, match=rf"recording\.{key}: {value} is not in"):
+        load_profile(path)
 
 
 # ---------------------------------------------------------------- a daemon at 1 kHz
@@ -170,7 +184,16 @@ def test_crtk_ctl_record_and_blackbox(robot, daemon, capsys):
     with open(daemon.tmp / "ctl" / "ctl.mcap", "rb") as f:
         topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
     assert "/so101/gripper/measured_js" in topics and "/so101/measured_js" not in topics
-    # on request: the last BLACKBOX_S seconds, every cycle
+    # refusals name what is wrong
+    with pytest.raises(CommandError, match="unknown namespace 'nope'") as info:
+        robot.record(str(daemon.tmp / "nope.mcap"), namespaces=["nope"])
+    assert info.value.code == "unknown_namespace" and not (daemon.tmp / "nope").exists()
+    with pytest.raises(CommandError, match="exists already") as info:
+        robot.record(str(daemon.tmp / "ctl.mcap"))
+    assert info.value.code == "bad_request"
+    # on request: the last BLACKBOX_S seconds (of cycles: the window is in cycles), every cycle
+    wait_until(lambda: robot.period_statistics()["cycles"] > BLACKBOX_S * RATE_HZ + 100, 30,
+               what="a black box's worth of cycles")
     assert ctl_main(["--socket", sock, "blackbox", str(daemon.tmp / "asked")]) == 0
     js = _messages(daemon.tmp / "asked" / "asked.mcap", "/so101/measured_js")
     assert len(js) == int(BLACKBOX_S * RATE_HZ)
@@ -184,7 +207,8 @@ def test_crtk_ctl_record_and_blackbox(robot, daemon, capsys):
 def test_the_black_box_is_written_on_a_fault(robot, daemon):
     sim = RemoteSim(daemon.sim_control_path())
     robot.enable()
-    time.sleep(BLACKBOX_S)  # the daemon has run longer than the window before the fault (a setup, not a timing)
+    wait_until(lambda: robot.period_statistics()["cycles"] > BLACKBOX_S * RATE_HZ + 100, 30,
+               what="a black box's worth of cycles")
     mark = robot.connection.event_count
     t_fault = time.time()
     sim.set_fault(4, "error_bits", 0x04)  # overheat: FAULT at once
