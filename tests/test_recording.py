@@ -57,6 +57,43 @@ def test_ring_counts_overwritten_samples_and_never_returns_a_torn_one():
         ring.close(unlink=True)
 
 
+def test_overwritten_samples_are_said_and_counted_in_each_recording(tmp_path):
+    """The drain thread (one pass, in-process): cycles the loop overwrote before the front read
+    them become a samples_lost warning and each running recording's ``lost``; the black box
+    keeps what was read."""
+    from types import SimpleNamespace
+
+    from crtk_bridge.profile import load_profile
+    from crtk_bridge.recording.recorder import Recorder
+
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(so101_data()))
+    profile = load_profile(path)
+    ring = SampleRing(Layout(len(profile.joints), len(profile.namespaces)), 16, create=True)
+    try:
+        link = SimpleNamespace(period_s=0.001, ns_index={"so101": 0, "so101/gripper": 1})
+        server = SimpleNamespace(link=link, profile=profile, robot="so101", state={"state": "DISABLED"})
+        rec = Recorder(server, ring)
+        said = []
+        rec.say = lambda kind, code, message, **extra: said.append((kind, code, message, extra))
+        running = SimpleNamespace(lost=0, stopping=False, offered=[], offer=lambda item: running.offered.append(item))
+        rec._active = (running,)
+        state = np.zeros(ring.state)
+        ring.push(0, 1.0, state)
+        rec._drain_once()
+        for i in range(1, 41):  # 40 cycles into 16 slots: 24 overwritten
+            ring.push(i, 1.0 + i * 1e-3, state)
+        rec._drain_once()
+        assert running.lost == 24 and rec.lost == 24
+        assert [(k, c, e) for k, c, _, e in said] == [("warning", "samples_lost", {"value": 24})]
+        assert "24 cycles' samples were overwritten" in said[0][2]
+        rows = np.concatenate([item[1] for item in running.offered])
+        assert rows[:, MARKER].tolist() == [0] + list(range(25, 41))
+        assert rec.blackbox.count == 17
+    finally:
+        ring.close(unlink=True)
+
+
 @pytest.mark.parametrize("key, value", [("blackbox_s", -1.0), ("blackbox_s", 601.0), ("rotate_s", 0.5)])
 def test_recording_keys_out_of_range_are_refused_naming_the_key(tmp_path, key, value):
     from crtk_bridge.errors import ProfileError
@@ -202,6 +239,14 @@ def test_crtk_ctl_record_and_blackbox(robot, daemon, capsys):
     assert ctl_main(["--socket", sock, "blackbox", str(daemon.tmp / "asked")]) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "exists already" in err and str(daemon.tmp / "asked") in err
+
+
+def test_a_recording_ends_with_the_session_that_started_it(daemon):
+    other = connect(socket=str(daemon.socket_path), timeout=10.0)
+    started = other.record(str(daemon.tmp / "orphan.mcap"))
+    other.close()  # a client that goes away leaves no recording running: the bag is closed
+    wait_until(lambda: (daemon.tmp / "orphan" / "metadata.yaml").exists(), 20, what="the bag closed")
+    assert len(_messages(Path(started["path"]), "/so101/measured_js")) > 0
 
 
 def test_the_black_box_is_written_on_a_fault(robot, daemon):
