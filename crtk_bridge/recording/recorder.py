@@ -54,6 +54,11 @@ NOT_COMMANDS = frozenset(("measured_js", "setpoint_js", "goal_js", "operating_st
 
 
 def default_blackbox_dir() -> str:
+    """``$STATE_DIRECTORY/blackbox`` under the systemd unit (StateDirectory=crtk-bridge), else
+    ``$XDG_STATE_HOME/crtk-bridge/blackbox`` (``~/.local/state/...``)."""
+    unit = os.environ.get("STATE_DIRECTORY")
+    if unit:
+        return os.path.join(unit.split(":")[0], "blackbox")
     state = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
     return os.path.join(state, "crtk-bridge", "blackbox")
 
