@@ -94,6 +94,16 @@ def test_overwritten_samples_are_said_and_counted_in_each_recording(tmp_path):
         ring.close(unlink=True)
 
 
+def test_black_boxes_go_to_the_units_state_directory(monkeypatch, tmp_path):
+    from crtk_bridge.recording.recorder import default_blackbox_dir
+
+    monkeypatch.delenv("STATE_DIRECTORY", raising=False)
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
+    assert default_blackbox_dir() == str(tmp_path / "crtk-bridge" / "blackbox")
+    monkeypatch.setenv("STATE_DIRECTORY", "/var/lib/crtk-bridge")  # systemd's StateDirectory=crtk-bridge
+    assert default_blackbox_dir() == "/var/lib/crtk-bridge/blackbox"
+
+
 @pytest.mark.parametrize("key, value", [("blackbox_s", -1.0), ("blackbox_s", 601.0), ("rotate_s", 0.5)])
 def test_recording_keys_out_of_range_are_refused_naming_the_key(tmp_path, key, value):
     from crtk_bridge.errors import ProfileError
