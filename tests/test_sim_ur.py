@@ -368,7 +368,8 @@ def test_safeguard_stop_pauses_and_resumes(sim, ready, recv):
     assert not ready.moveJ((q + 0.1).tolist())  # the program cannot run a move while paused
     sim.release("safeguard")
     wait_until(lambda: recv.getSafetyMode() == 1 and recv.getRuntimeState() == 2, 2, what="resumed")
-    assert ready.isProgramRunning()
+    # the control interface learns it from its own RTDE link, a package after the receive link
+    wait_until(ready.isProgramRunning, 2, what="the control interface seeing the program run")
 
 
 def test_safeguard_release_resumes_the_interrupted_servo_stream(sim, ready, recv):
