@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import os
-import time
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -33,7 +32,6 @@ JOINT_TOPICS = ("measured_js", "setpoint_js", "goal_js")
 CARTESIAN_TOPICS = ("measured_cp", "setpoint_cp")
 EVENT_TOPICS = ("error", "warning", "status")
 
-_ZERO = QosTime(sec=0, nsec=0)
 _INFINITE = QosTime(sec=2147483647, nsec=4294967295)
 
 
@@ -197,7 +195,3 @@ class BagWriter:
             self.writer.abort()
         except Exception:
             pass
-
-
-def now_ns() -> int:
-    return time.time_ns()
