@@ -136,6 +136,7 @@ SCENES = {
     ("docs/zenoh.md", "Remote clients (Python and crtk-ctl)"): "zenoh",
     ("docs/simulators.md", "`crtk-sim canopen`"): "sim-canopen",
     ("docs/teleop.md", "Teleoperation: a leader arm drives a follower"): "teleop",
+    ("docs/recording.md", "Commands"): "so101",
 }
 
 #: The reviewed list: how each documented command runs when not simply to exit status 0 in its
@@ -220,6 +221,17 @@ SPEC: dict[tuple[str, str], How] = {
                       "--robot so101 state"): How(
         "skip", why="a TLS endpoint on another host, with the lab's certificates (tests/test_zenoh_client_config.py "
                     "checks --zenoh-config)"),
+    # recording (README.md, docs/recording.md)
+    ("README.md", "crtk-ctl record demo.mcap --duration 2"): How(
+        scene="so101", out=(r"demo/demo\.mcap: \d+ cycles \(cycles \d+\.\.\d+\), lost 0",)),
+    ("docs/recording.md", "crtk-ctl record run1.mcap"): How(
+        "forever", "so101", ready=r"recording \S+/run1/run1\.mcap \(Ctrl-C to stop\)", rc=0),
+    ("docs/recording.md", "crtk-ctl record run2.mcap --duration 2"): How(
+        scene="so101", out=(r"run2/run2\.mcap: \d+ cycles \(cycles \d+\.\.\d+\), lost 0",)),
+    ("docs/recording.md", "crtk-ctl blackbox now.mcap"): How(
+        scene="so101", out=(r"now/now\.mcap: \d+ cycles \(cycles \d+\.\.\d+, \d+\.\d s\)",)),
+    ("docs/recording.md", "crtk-bridge --profile profiles/so101.yaml --record /data/so101"): How(
+        "skip", why=HARDWARE + "; tests/test_recording.py runs --record on --sim"),
     # systemd/README.md
     ("systemd/README.md", "journalctl -u crtk-bridge@so101 -f"): How("skip", why="the journal of an installed systemd unit"),
     ("systemd/README.md", "journalctl -u 'crtk-bridge@*' -b"): How("skip", why="the journal of an installed systemd unit"),

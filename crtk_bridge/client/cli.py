@@ -324,6 +324,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--count", metavar="N", type=int, default=None, help="stop after N events")
     p.add_argument("--kind", choices=("status", "warning", "error"), action="append",
                    help="only events of this kind (repeatable; default: all)")
+    p = add("record", "record every control cycle (joint states, poses, state, events, commands) into the "
+                      "rosbag2 MCAP bag OUT (OUT.mcap or OUT: the folder OUT/ holding OUT/OUT.mcap), written "
+                      "by the daemon, until Ctrl-C or --duration (docs/recording.md)")
+    p.add_argument("out", metavar="OUT.mcap", help="the bag to write (must not exist)")
+    p.add_argument("--duration", metavar="S", type=_positive_float, default=None,
+                   help="record S seconds of cycles, then print the result (default: until Ctrl-C)")
+    ns_option = getattr(p, "_option_string_actions", {}).get("--ns")  # argparse internals: --ns takes
+    if ns_option is not None:                                         # several namespaces here
+        ns_option.nargs, ns_option.metavar = "+", "NS"
+        ns_option.help = "record these namespaces only (default: every namespace)"
+    p = add("blackbox", "write the black box (the last recording.blackbox_s seconds of every cycle, kept "
+                        "by the daemon) into the rosbag2 MCAP bag OUT (docs/recording.md)")
+    p.add_argument("out", metavar="OUT.mcap", help="the bag to write (must not exist)")
     return parser
 
 
@@ -522,6 +535,8 @@ def _last_error(robot: Robot, since: int) -> str:
 
 
 def _run(args, robot: Robot) -> int:
+    if args.command in ("record", "blackbox"):
+        return _record(args, robot)
     base, _, frame = (args.ns or "").rpartition("/")
     if args.ns not in robot.namespaces and frame in FRAMES and base in robot.namespaces:
         raise UsageError(f"--ns {args.ns}: {frame} is a frame, not a namespace: use --ns {base} --frame {frame} "
@@ -696,6 +711,39 @@ def _run(args, robot: Robot) -> int:
         return _events(robot, args)
 
     raise AssertionError(f"unhandled command {cmd}")  # argparse choices make this unreachable
+
+
+def _record_line(r: dict) -> str:
+    seconds = r.get("seconds")
+    span = f", {seconds:.1f} s" if seconds is not None else ""
+    lost = f", lost {r['lost']}" if "lost" in r else ""
+    return (f"{r['path']}: {r['samples']} cycles (cycles {r['first_cycle']}..{r['last_cycle']}{span}){lost}, "
+            f"{r['bytes'] / 1e6:.2f} MB")
+
+
+def _record(args, robot: Robot) -> int:
+    """``record`` and ``blackbox``: the daemon writes the bag; Ctrl-C stops a recording."""
+    if args.command == "blackbox":
+        r = robot.blackbox(args.out, timeout=args.timeout or 120.0)
+        _emit_json(r) if args.json else print(_record_line(r))
+        return 0
+    ns = args.ns if isinstance(args.ns, list) else ([args.ns] if args.ns else None)
+    started = robot.record(args.out, duration_s=args.duration, namespaces=ns)
+    if not args.json:
+        print(f"recording {started['path']}" + (f" for {args.duration:g} s" if args.duration else
+                                                 " (Ctrl-C to stop)"), flush=True)
+    try:
+        if args.duration is not None:
+            r = robot.record_stop(started["recording"], wait=True, timeout=args.duration + 60.0)
+        else:
+            while True:
+                time.sleep(3600)
+    except KeyboardInterrupt:
+        r = robot.record_stop(started["recording"], timeout=60.0)
+    if "error" in r:
+        raise Failure(r["error"])
+    _emit_json(r) if args.json else print(_record_line(r))
+    return 0
 
 
 def _fmt_event(ev, received: float | None = None) -> str:
