@@ -360,3 +360,42 @@ def test_dynamixel_bounds_the_stop_deceleration_by_its_profile_acceleration():
     del data["joints"][1]["limits"]["stop_deceleration_max"]
     b = create_backend(parse_profile(data, "<koch>"))
     assert b.deceleration_limit(1) == pytest.approx(50 * 214.577 * 2 * math.pi / 3600)
+
+
+@pytest.mark.parametrize("source", ["profile", "hardware"])
+def test_a_stop_never_carries_a_move_past_its_goal(source):
+    """A stop deceleration below the move's own acceleration (a profile's stop_deceleration_max,
+    or the default bounded by a servo's low acceleration register) braked a hold that came as the
+    move neared its goal over a longer distance than the move had left: the arm went ~0.2 rad past
+    the goal it was sent to (found in review). Braking ends at the move's goal at the latest."""
+    if source == "profile":
+        p = _so101_with(stop_deceleration_max=2.0)  # acceleration_max 10
+        act = FakeActuator(p)
+    else:
+        p = PROFILE
+
+        class SlowServo(FakeActuator):  # e.g. a Feetech at backend.acceleration 13: 2 rad/s^2
+            def deceleration_limit(self, i):
+                return 2.0
+
+        act = SlowServo(p)
+    c, act, cycle, req = rig_for(act, p)
+    assert c.stop_dec[0] == pytest.approx(2.0)
+    assert req("enable")["ok"]
+    assert req("move_jp", "so101", position=[1.0, 0, 0, 0, 0])["ok"]
+    m = c.namespaces["so101"]
+    for _ in range(5000):  # until the move decelerates near its goal, still fast
+        cycle()
+        if m.setpoint_v[0] > 0.5 and 1.0 - m.setpoint_p[0] < 0.06:
+            break
+    assert m.mode is Mode.MOVE and m.setpoint_v[0] > 0.5
+    assert req("hold", "so101")["ok"]
+    _travel_until_rest(c, act, cycle)
+    assert m.setpoint_p[0] <= 1.0 + 1e-9 and act.pos[0] <= 1.0 + 1e-9, m.setpoint_p[0]
+    # braking that does not reach the goal is untouched: a hold early in the move stops short
+    assert req("move_jp", "so101", position=[-1.0, 0, 0, 0, 0])["ok"]
+    cycle(30)
+    assert m.mode is Mode.MOVE and m.setpoint_v[0] < -0.5
+    assert req("hold", "so101")["ok"]
+    travel, _, _ = _travel_until_rest(c, act, cycle)
+    assert m.setpoint_p[0] > -1.0 and travel > 0.05

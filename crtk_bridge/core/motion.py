@@ -31,7 +31,9 @@ moves with a velocity of its own (a move, an integrated servo_jv / interpolate_j
 brakes at each joint's stop deceleration (``limits.stop_deceleration_max``, default a few times
 ``acceleration_max`` bounded by the hardware: ``profile.stop_deceleration``), jerk-unlimited,
 every joint reaching rest at the same instant (each decelerates at ``|v| / T``, T the longest
-joint's braking time), so the joints keep their direction of motion while braking. Position
+joint's braking time), so the joints keep their direction of motion while braking; a stopped
+move's joints end at its goal at the latest (a stop deceleration below the move's acceleration
+would brake past it). Position
 streams (servo_jp / interpolate_jp) hold the setpoint where it is: it never passes the client's
 own positions. The stopping distance from ``velocity_max`` is ``v^2 / (2 d)`` plus one cycle
 (docs/protocol.md, Safety).
@@ -101,6 +103,9 @@ class NamespaceMotion:
         self.stop_dec = (np.asarray(stop_dec, dtype=float) if stop_dec is not None
                          else np.array([stop_deceleration(j.limits) for j in joints]))
         self._brake_dec = np.zeros(n)  # rad/s^2 each joint decelerates at in the running stop
+        # where the running stop ends at the latest, per joint: a move's goal (brake)
+        self._brake_lo = np.full(n, -np.inf)
+        self._brake_hi = np.full(n, np.inf)
         #: the pose `home` moves to; None: a joint of the profile has no `home` key
         self.home = (np.array([j.home for j in joints]) if all(j.home is not None for j in joints) else None)
         self.no_home = [j.name for j in joints if j.home is None]
@@ -326,6 +331,16 @@ class NamespaceMotion:
             return
         self.setpoint_v[:] = v
         np.divide(np.abs(v), t, out=self._brake_dec)
+        # a move's stop ends at its goal at the latest: a stop deceleration below the move's own
+        # acceleration (the profile's, or a servo's low acceleration register) must not carry a
+        # joint that heads for its goal past it (one moving away, as a move started against the
+        # stream it replaced does at first, brakes as any stop)
+        self._brake_lo.fill(-np.inf)
+        self._brake_hi.fill(np.inf)
+        if self.mode is Mode.MOVE:
+            p, goal = self.setpoint_p, self.goal_p
+            np.copyto(self._brake_hi, goal, where=(v > 0) & (goal >= p))
+            np.copyto(self._brake_lo, goal, where=(v < 0) & (goal <= p))
         self.has_v_ff = False
         self.setpoint_f[:] = 0.0
         self.mode = Mode.STOP
@@ -476,7 +491,9 @@ class NamespaceMotion:
         np.maximum(speed, 0.0, out=speed)
         np.copysign(speed, v0, out=v)
         p = self.setpoint_p
-        lo, hi = self._bounds(p)  # a stop never carries a joint past its limit
+        lo, hi = self._bounds(p)  # a stop never carries a joint past its limit, nor a move's goal
+        np.maximum(lo, self._brake_lo, out=lo)
+        np.minimum(hi, self._brake_hi, out=hi)
         p += 0.5 * (v0 + v) * self.dt
         at_limit = (p <= lo) | (p >= hi)
         np.clip(p, lo, hi, out=p)
