@@ -50,14 +50,14 @@ from typing import Sequence
 from crtk_bridge import __version__, vocabulary
 from crtk_bridge.argparsing import ArgumentParser
 
-from crtk_bridge.client import calibrate, teleop
+from crtk_bridge.client import teleop
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.client.device import (
     CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, ENDLESS_COMMANDS, FRAMES, JS_TOPICS, Device, Robot,
     connect, encode_pose, list_robots)
 from crtk_bridge.client.paths import SYSTEM_SOCKET_DIR, default_socket_dir
 from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
-from crtk_bridge.profile import ZENOH_LEASE_MS_DEFAULT, ZENOH_LEASE_MS_MAX, ZENOH_LEASE_MS_MIN, zenoh_lease_problem
+from crtk_bridge.zenoh_lease import ZENOH_LEASE_MS_DEFAULT, ZENOH_LEASE_MS_MAX, ZENOH_LEASE_MS_MIN, zenoh_lease_problem
 
 PROG = "crtk-ctl"
 GET_TOPICS = tuple(str(t) for t in (*JS_TOPICS, *CARTESIAN_TOPICS, *vocabulary.ROBOT_TOPICS))
@@ -555,6 +555,8 @@ def _run(args, robot: Robot) -> int:
         return 0
 
     if cmd == "calibrate":
+        # here, not at the top: the profile model and its YAML writer are for this command only
+        from crtk_bridge.client import calibrate
         return calibrate.run(robot, args.profile, args.gripper, args.import_path, sys.stdin.fileno(), sys.stdout)
 
     if cmd == "list":
