@@ -1,0 +1,65 @@
+"""python-can's ``slcan`` interface, reading the adapter's bytes as they come rather than one by one.
+
+python-can 4.6's ``slcanBus._read`` takes one byte per ``Serial.read(1)`` (a ``select`` and a
+``read`` system call each, and the Python around them), and when nothing is waiting it polls at the
+serial timeout, 1 ms by default. A CANopen cycle at 250 Hz brings ~100 bytes from the adapter (the
+drives' TPDOs, the adapter's ``z`` acknowledgements of the SYNC and RPDOs), so the notifier thread
+took ~25 % of a core reading them byte by byte and polling between cycles (issue 23,
+bench/bench_cpu.py). python-can's own fix (reading everything waiting at once, hardbyte/python-can
+#2028) is not in a release yet; this is the same idea on python-can's public pieces: the serial
+port blocks for the first byte (its timeout, the notifier's cycle, not 1 ms), then one read takes
+all that is waiting, and the lines are handed out one at a time from the bus's own buffer.
+
+Everything else (opening, bitrate, sending, frame parsing) is python-can's.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import serial
+from can.exceptions import error_check
+from can.interfaces.slcan import slcanBus
+
+#: the serial timeout when the profile's ``backend.options`` name none: how long one read blocks
+#: while the bus is silent (the notifier's recv timeout is the same 50 ms; a byte that arrives
+#: ends the wait at once)
+SERIAL_TIMEOUT_S = 0.05
+
+
+class SlcanBus(slcanBus):
+    """``slcanBus`` whose receive reads what is waiting in one go (see the module docstring)."""
+
+    def __init__(self, channel, *args, timeout: float = SERIAL_TIMEOUT_S, **kwargs):
+        super().__init__(channel, *args, timeout=timeout, **kwargs)
+
+    def _line(self) -> Optional[str]:
+        """The first complete line in the buffer (with its CR or BEL), taken out of it; or None."""
+        buf = self._buffer
+        ends = [i for i in (buf.find(self._OK), buf.find(self._ERROR)) if i >= 0]
+        if not ends:
+            return None
+        n = min(ends) + 1
+        line = buf[:n].decode()
+        del buf[:n]
+        return line
+
+    def _read(self, timeout: Optional[float]) -> Optional[str]:
+        line = self._line()
+        if line is not None:
+            return line
+        expiry = serial.Timeout(timeout)
+        port = self.serialPortOrig
+        with error_check("Could not read from serial device"):
+            while True:
+                first = port.read(1)  # blocks up to the port's timeout
+                if first:
+                    self._buffer += first
+                    waiting = port.in_waiting
+                    if waiting:
+                        self._buffer += port.read(waiting)
+                    line = self._line()
+                    if line is not None:
+                        return line
+                if expiry.expired():
+                    return None
