@@ -3,8 +3,8 @@ named before a missing required option.
 
 argparse checks the required options before it looks at what is left over, so ``crtk-bridge
 check --bogus`` said ``the following arguments are required: --profile`` and never named
-``--bogus``, the user's actual mistake (a misspelt ``--profil``, say). Standard library only:
-the client's tools import it too.
+``--bogus``, the user's actual mistake (a misspelt ``--profil``, say). The standard library and
+crtk_bridge.errors only: the client's tools import it too.
 """
 
 from __future__ import annotations
@@ -12,8 +12,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .errors import CrtkBridgeError
 
-class _Probing(Exception):
+
+class _Probing(CrtkBridgeError):
     """An error while probing for unknown arguments: the original message stands."""
 
 

@@ -128,16 +128,22 @@ class SimulatorProcess:
                 self.proc.wait()
 
 
-def check_socket_path(path: str, robot: str) -> None:
+def check_socket_path(path: str, robot: str) -> list[str]:
     """Fail at once, in one line, when the daemon could not serve ``path``: too long for AF_UNIX,
     a file that is not a socket, a directory that cannot be created, or another daemon already
-    answering there. Creates the directory (mode 0750). Blocks for at most one local connect.
+    answering there. Creates the directory (mode 0750) and returns the directories it created,
+    innermost first (removed again when the start fails). Blocks for at most one local connect.
     Called before the simulator and the control process start. Raises CrtkBridgeError."""
     size = len(os.fsencode(path))
     if size > AF_UNIX_PATH_MAX:
         raise CrtkBridgeError(f"{robot}: socket path {path} is {size} bytes, longer than the AF_UNIX "
                               f"limit of {AF_UNIX_PATH_MAX}: give a shorter --socket")
     parent = os.path.dirname(os.path.abspath(path))
+    created = []
+    missing = parent
+    while not os.path.isdir(missing) and os.path.dirname(missing) != missing:
+        created.append(missing)
+        missing = os.path.dirname(missing)
     try:
         os.makedirs(parent, mode=0o750, exist_ok=True)
     except OSError as exc:
@@ -148,7 +154,7 @@ def check_socket_path(path: str, robot: str) -> None:
     try:
         mode = os.lstat(path).st_mode
     except FileNotFoundError:
-        return
+        return created
     except OSError as exc:
         raise CrtkBridgeError(f"{robot}: cannot use the socket path {path}: {exc.strerror or exc}") from None
     if not stat.S_ISSOCK(mode):
@@ -161,7 +167,7 @@ def check_socket_path(path: str, robot: str) -> None:
         except TimeoutError:
             pass  # a daemon too busy to accept is still a daemon
         except OSError:
-            return  # a stale socket left by a daemon that died: the server replaces it
+            return created  # a stale socket left by a daemon that died: the server replaces it
     raise CrtkBridgeError(f"{robot}: another daemon is already serving {path} (stop it, or give "
                           f"another --socket)")
 
@@ -195,8 +201,21 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
                  zenoh: tuple | None = None) -> int:
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
+    signals = 0
+
+    def on_signal() -> None:
+        # the first SIGTERM / SIGINT shuts down (a park first, if the profile says so); any later
+        # one switches torque off at once. Counted here, not only in the control process: a
+        # signal sent by pid (kill, systemd's main-process kill) reaches this process alone,
+        # while a terminal's Ctrl-C reaches both (the control process counts its own)
+        nonlocal signals
+        signals += 1
+        stop.set()
+        if signals > 1 and server.shutting_down:
+            link.send_nowait("_torque_off")
+
     for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+        loop.add_signal_handler(sig, on_signal)
     link.attach(loop, server.on_control_lost)
     services = []
     if zenoh is not None:  # before the socket: nobody can have enabled the robot if one fails
@@ -226,6 +245,8 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
     # control process first: motion stops, torque off; then the socket goes
     server.shutting_down = True
     link.send_nowait("_shutdown")
+    if signals > 1:  # two signals before the shutdown began: no park
+        link.send_nowait("_torque_off")
     # a shutdown park (profile shutdown.action: park) runs within shutdown.timeout_s before torque off
     sd = server.profile.shutdown
     limit = SHUTDOWN_TIMEOUT_S + (sd.timeout_s if sd.action == "park" else 0.0)
@@ -297,12 +318,44 @@ def _simulate_buses(profile: Profile, profile_path: str, workdir: str,
     return msgspec.structs.replace(profile, backends=backends)
 
 
+def _remove_dir(path: str | None) -> None:
+    """Remove ``path`` and the files in it (the --sim work folder), quietly."""
+    if not path:
+        return
+    for name in os.listdir(path) if os.path.isdir(path) else []:
+        try:
+            os.unlink(os.path.join(path, name))
+        except OSError:
+            pass
+    try:
+        os.rmdir(path)
+    except OSError:
+        pass
+
+
 def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None, realtime: bool = True,
         zenoh_connect: list[str] | None = None, zenoh_listen: list[str] | None = None,
         ros_domain_id: int | None = None) -> int:
     """Run the daemon in the foreground until SIGTERM / SIGINT. Returns the exit status.
     ``zenoh_connect`` / ``zenoh_listen`` / ``ros_domain_id`` (the command line's) turn on and
-    configure the Zenoh transport over the profile's ``transport.zenoh`` section."""
+    configure the Zenoh transport over the profile's ``transport.zenoh`` section. A start that
+    fails leaves no folder behind that it created (the socket's, the --sim work folder)."""
+    created: list[str] = []
+    try:
+        return _run(profile_path, created, sim=sim, socket_path=socket_path, realtime=realtime,
+                    zenoh_connect=zenoh_connect, zenoh_listen=zenoh_listen, ros_domain_id=ros_domain_id)
+    except BaseException:
+        for folder in created:  # innermost first; one another daemon now uses is not empty: kept
+            try:
+                os.rmdir(folder)
+            except OSError:
+                break
+        raise
+
+
+def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str | None, realtime: bool,
+         zenoh_connect: list[str] | None, zenoh_listen: list[str] | None, ros_domain_id: int | None) -> int:
+    """:func:`run`, adding to ``created`` the folders it creates for the socket."""
     profile = load_profile(profile_path)
     zconfig = zenoh_config(profile, zenoh_connect, zenoh_listen, ros_domain_id)
     if zconfig is not None:
@@ -312,22 +365,28 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
     create_backend(profile, source=source)
     check_kinematics(profile, source)  # a wrong frame or joint name, said with its profile key
     socket_path = socket_path or profile.server.socket or default_socket_path(profile.name)
-    check_socket_path(socket_path, profile.name)  # before the simulator and the control process
+    created.extend(check_socket_path(socket_path, profile.name))  # before the simulator and the control process
 
     workdir = None
     simulators: list[SimulatorProcess] = []
     if sim:
         workdir = tempfile.mkdtemp(prefix=f"crtk-bridge-{profile.name}-sim-")
-        if profile.backends is None:
-            wiring = _sim_wiring(profile.backend_type, source)
-            simulator = SimulatorProcess(str(profile_path), wiring.device, workdir, host_ports=wiring.host_ports,
-                                         raise_priority=realtime)
-            simulators.append(simulator)
-            profile = backend_class(profile.backend_type, source).sim_profile(profile, simulator.link)
-            print(f"crtk-bridge: simulated {profile.backend_type} bus on {simulator.link} "
-                  f"(simulator control socket {simulator.control})", flush=True)
-        else:
-            profile = _simulate_buses(profile, str(profile_path), workdir, simulators, realtime)
+        try:
+            if profile.backends is None:
+                wiring = _sim_wiring(profile.backend_type, source)
+                simulator = SimulatorProcess(str(profile_path), wiring.device, workdir, host_ports=wiring.host_ports,
+                                             raise_priority=realtime)
+                simulators.append(simulator)
+                profile = backend_class(profile.backend_type, source).sim_profile(profile, simulator.link)
+                print(f"crtk-bridge: simulated {profile.backend_type} bus on {simulator.link} "
+                      f"(simulator control socket {simulator.control})", flush=True)
+            else:
+                profile = _simulate_buses(profile, str(profile_path), workdir, simulators, realtime)
+        except BaseException:  # a simulator that did not start: the others stopped, the work folder gone
+            for simulator in simulators:
+                simulator.stop()
+            _remove_dir(workdir)
+            raise
 
     snap = SnapshotBuffer(Layout(len(profile.joints), len(profile.namespaces)), create=True)
     zsession = None
@@ -363,7 +422,9 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
         if zconfig is not None:
             # after the fork (a Zenoh session does not survive it); the robot is still DISABLED,
             # so an unreachable router just ends start-up (the finally below stops the loop)
-            zsession = open_session(zconfig, profile.name)
+            bound: list[str] = []
+            zsession = open_session(zconfig, profile.name, bound=bound)
+            zconfig = msgspec.structs.replace(zconfig, listen=bound)  # port 0: the one bound (banner)
         return asyncio.run(_serve(server, link, proc, (zsession, zconfig) if zsession is not None else None))
     finally:
         if zsession is not None:
@@ -375,13 +436,4 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
         snap.close(unlink=True)
         for simulator in simulators:
             simulator.stop()
-        if workdir:
-            for name in os.listdir(workdir):
-                try:
-                    os.unlink(os.path.join(workdir, name))
-                except OSError:
-                    pass
-            try:
-                os.rmdir(workdir)
-            except OSError:
-                pass
+        _remove_dir(workdir)

@@ -269,6 +269,23 @@ def _named_path(path: str, data: Any) -> str:
 
 def _struct_keys_at(root: type, path: str) -> list[str] | None:
     """The keys the struct at ``path`` (a msgspec error path below ``root``) accepts, or None."""
+    info = _type_at(root, path)
+    if isinstance(info, msgspec.inspect.StructType):
+        return [f.encode_name for f in info.fields]
+    return None
+
+
+def _literal_values_at(root: type, path: str) -> list[str] | None:
+    """The values a key of a fixed set of values (a ``Literal``) at ``path`` accepts, or None."""
+    info = _type_at(root, path)
+    if isinstance(info, msgspec.inspect.LiteralType):
+        return [str(v) for v in info.values]
+    return None
+
+
+def _type_at(root: type, path: str) -> Any:
+    """msgspec's type info of the value at ``path`` (a msgspec error path below ``root``), an
+    optional one unwrapped, or None."""
     info: Any = msgspec.inspect.type_info(root)
     for m in _PATH_TOKEN.finditer(path):
         while isinstance(info, msgspec.inspect.UnionType):  # optional sections: X | None
@@ -285,9 +302,7 @@ def _struct_keys_at(root: type, path: str) -> list[str] | None:
     while isinstance(info, msgspec.inspect.UnionType):
         inner = [t for t in info.types if not isinstance(t, msgspec.inspect.NoneType)]
         info = inner[0] if len(inner) == 1 else None
-    if isinstance(info, msgspec.inspect.StructType):
-        return [f.encode_name for f in info.fields]
-    return None
+    return info
 
 
 def unknown_key_message(key: str, valid: list[str], owner: str = "") -> str:
@@ -308,6 +323,11 @@ def _format_msgspec_error(exc: msgspec.ValidationError, data: Any = None, root: 
             key = unknown.group(1)
             named = _named_path(path, data)
             return f"{named + '.' if named else ''}{key}: {unknown_key_message(key, valid)}"
+    wrong = re.fullmatch(r"Invalid enum value (.*)", text)
+    if wrong and root is not None:
+        valid = _literal_values_at(root, path)
+        if valid is not None:  # say what the key takes (shutdown.action: torque_off or park)
+            text = f"{wrong.group(1)} is not a valid value; valid: {', '.join(valid)}"
     if not path and text == str(exc):
         return text
     return f"{_named_path(path, data) or '(top level)'}: {text}"
@@ -399,7 +419,9 @@ def _check_safety(profile: Profile) -> list[str]:
     bounded("cartesian_rotation_step_max", sf.cartesian_rotation_step_max, math.pi, "rad")
     bounded("cartesian_velocity_max", sf.cartesian_velocity_max, 5.0, "m/s")
     bounded("cartesian_angular_velocity_max", sf.cartesian_angular_velocity_max, 2 * math.pi, "rad/s")
-    most = max(1, int(BUS_ERRORS_MAX_S * profile.loop.rate_hz)) if 0 < profile.loop.rate_hz <= 10000 else 1
+    if not 0 < profile.loop.rate_hz <= 10000:
+        return problems  # loop.rate_hz is said to be wrong; the bound below follows from it
+    most = max(1, int(BUS_ERRORS_MAX_S * profile.loop.rate_hz))
     if not 1 <= sf.bus_errors_max <= most:
         problems.append(f"safety.bus_errors_max: {sf.bus_errors_max} is not in [1, {most}] (at most "
                         f"{BUS_ERRORS_MAX_S:g} s of failed bus cycles at loop.rate_hz {profile.loop.rate_hz:g})")

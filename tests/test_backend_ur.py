@@ -569,3 +569,50 @@ def test_a_move_cp_no_plan_reaches_stays_on_its_path_start_and_never_jumps_to_th
         np.testing.assert_allclose(p, p0)  # the path's start, not its goal
         np.testing.assert_allclose(r, r0, atol=1e-12)
     assert mv.failed and mv.finished and mv.otg.calls == 5  # the plan and its four nudged retries, once
+
+
+@pytest.mark.parametrize("peer", ["closes at once", "nothing listens"])
+def test_an_unreachable_controller_is_said_with_what_to_check(peer):
+    """Something at the address that closes the connection (ur_rtde: ``read: End of file``), or
+    nothing listening: one line naming the host and what to check, not only the socket's words."""
+    import socket
+    import threading
+
+    from crtk_bridge.errors import BackendError
+    from crtk_bridge.sim.loopback import free_loopback_host
+
+    host = free_loopback_host((30004, 29999))
+    server = None
+    if peer == "closes at once":
+        server = socket.socket()
+        server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        server.bind((host, 30004))
+        server.listen(4)
+
+        def serve():
+            while True:
+                try:
+                    conn, _ = server.accept()
+                except OSError:
+                    return
+                conn.settimeout(2.0)
+                try:
+                    conn.recv(4096)  # the client's request read: the close is a clean EOF
+                except OSError:
+                    pass
+                conn.close()
+
+        threading.Thread(target=serve, daemon=True).start()
+    profile = load_profile(UR5E)
+    profile = msgspec.structs.replace(profile, backend={**profile.backend, "host": host})
+    backend = UrBackend(profile, source=str(UR5E))
+    try:
+        with pytest.raises(BackendError) as err:
+            backend.open()
+    finally:
+        backend.close()
+        if server is not None:
+            server.close()
+    message = str(err.value)
+    assert f"the UR controller at {host} did not answer RTDE (port 30004)" in message, message
+    assert "backend.host" in message and "remote control" in message and "\n" not in message

@@ -5,9 +5,11 @@ that says what to type, JSON errors under --json, messages that neither repeat t
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -292,3 +294,30 @@ def test_every_shipped_profile_passes_check_with_its_kinematics(profile, capsys)
     out = capsys.readouterr().out
     if "kinematics:" in profile.read_text():
         assert "; kinematics " in out
+
+
+def test_a_failed_sim_start_leaves_no_folder_it_created(short_tmp, monkeypatch):
+    """A simulator that does not start: the daemon stops, removing the socket folders it created
+    and its --sim work folder (with what the simulator left in it); a folder that was there stays."""
+    import tempfile
+
+    from crtk_bridge import daemon
+    from crtk_bridge.errors import CrtkBridgeError
+
+    tmp = short_tmp / "tmp"
+    tmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp))  # where mkdtemp puts the --sim work folder
+
+    def failing(self, profile_path, device, workdir, **kwargs):
+        (Path(workdir) / "sim.sock").write_text("")  # what a simulator that died leaves behind
+        raise CrtkBridgeError("--sim: the simulator exited with status 1")
+
+    monkeypatch.setattr(daemon.SimulatorProcess, "__init__", failing)
+    for parent, kept in ((short_tmp / "run" / "crtk-bridge", None), (short_tmp / "there", short_tmp / "there")):
+        if kept is not None:
+            kept.mkdir()
+        with pytest.raises(CrtkBridgeError, match="exited with status 1"):
+            daemon.run(str(SO101), sim=True, socket_path=str(parent / "so101.sock"))
+        assert os.listdir(tmp) == []
+        assert not (short_tmp / "run").exists()
+        assert kept is None or kept.is_dir()

@@ -131,27 +131,27 @@ def test_hostile_framing_gets_bad_request_and_the_session_lives(daemon, raw):
     assert code(raw.call("enable")) == "ok"
     before = goals(daemon)
     deep = b"[" * 1000 + b"0" + b"]" * 1000
-    lines = [
-        b'{"id":5,"cmd":"move_jp","ns":"so101","data":{"position":' + deep + b"}}\n",  # 1000 levels, 2 KB
-        b'{"id":' + deep + b',"cmd":"list"}\n',  # and where the id would be recovered from
-        deep + b"\n",
-        b'{"id":"7","cmd":"list"}\n',  # an id of another type: the reply's id is null
-        b'{"id":7.5,"cmd":"list"}\n',
-        b'{"id":[7],"cmd":"list"}\n',
-        b'{"id":true,"cmd":"list"}\n',
-        b'{"id":8,"cmd":5}\n',
-        b'{"id":8,"ns":"so101"}\n',
-        b'{"id":8,"cmd":"list","ns":["so101"]}\n',
-        b'{"id":8,"cmd":"list"\n',
-        b'\xff\xfe{"id":8,"cmd":"list"}\n',  # invalid UTF-8
-        b'{"id":8,"cmd":"\xc3\x28"}\n',
-        b"[1,2,3]\n",
-        b"null\n",
+    lines = [  # (line, the reply's id: the request's whenever an integer id can be read)
+        (b'{"id":5,"cmd":"move_jp","ns":"so101","data":{"position":' + deep + b"}}\n", 5),  # 1000 levels, 2 KB
+        (b'{"id":' + deep + b',"cmd":"list"}\n', None),  # where the id would be read from
+        (deep + b"\n", None),
+        (b'{"id":"7","cmd":"list"}\n', None),  # an id of another type is not echoed
+        (b'{"id":7.5,"cmd":"list"}\n', None),
+        (b'{"id":[7],"cmd":"list"}\n', None),
+        (b'{"id":true,"cmd":"list"}\n', None),
+        (b'{"id":8,"cmd":5}\n', 8),
+        (b'{"id":8,"ns":"so101"}\n', 8),
+        (b'{"id":8,"cmd":"list","ns":["so101"]}\n', 8),
+        (b'{"id":8,"cmd":"list"\n', None),  # not JSON
+        (b'\xff\xfe{"id":8,"cmd":"list"}\n', None),  # invalid UTF-8, and so not JSON
+        (b'{"id":8,"cmd":"\xc3\x28"}\n', 8),
+        (b"[1,2,3]\n", None),
+        (b"null\n", None),
     ]
-    for line in lines:
+    for line, rid in lines:
         raw.send(line)
         r = raw.reply()
-        assert code(r) == "bad_request" and r["id"] is None, (line[:60], r)
+        assert code(r) == "bad_request" and r["id"] == rid, (line[:60], r)
         assert raw.call("operating_state", rid=1)["ok"]  # the session lives
     # a valid envelope with a malformed payload: bad_request (never internal), with its id
     for rid, data in ((11, [1]), (12, {"position": [[0.1] * 5]}), (13, 5), (14, "x")):
@@ -169,6 +169,54 @@ def test_hostile_framing_gets_bad_request_and_the_session_lives(daemon, raw):
     assert raw.call("operating_state", rid=22)["ok"] and not raw.replies
     assert raw.call("operating_state", rid=23)["data"]["state"] == "ENABLED"
     assert np.abs(goals(daemon) - before).max() <= 1
+
+
+# ------------------------------------------------ issue 18 item 11: the reply carries the id it can read
+RID = 31
+#: (request line, the field its message names); each has the integer id RID, every other field
+#: valid where the line does not make it wrong
+WRONG_FIELDS = [
+    *((b'{"id":31,"cmd":%s,"ns":"so101"}' % v, "`cmd`") for v in (b"5", b"5.5", b"true", b"null", b'["list"]',
+                                                                  b'{"c":"list"}')),
+    (b'{"id":31,"ns":"so101"}', "`cmd`"),  # missing
+    *((b'{"id":31,"cmd":"measured_js","ns":%s}' % v, "`ns`") for v in (b"5", b"true", b'["so101"]', b'{"n":1}')),
+    *((b'{"id":31,"cmd":"move_jp","ns":"so101","data":%s}' % v, "`data") for v in (b'"x"', b"5", b"true",
+                                                                                  b"[1]", b'{"position":7}')),
+    (b'{"id":31,"cmd":"move_jp","ns":"so101","data":{"position":' + b"[" * 40 + b"0" + b"]" * 40 + b"}}",
+     "nested deeper than 32 levels"),
+    # strings that are not UTF-8: the field named, never the decoder's own words
+    (b'{"id":31,"cmd":"\xc3\x28","ns":"so101"}', "`cmd` is not valid UTF-8"),
+    (b'{"id":31,"cmd":"measured_js","ns":"so\xff101"}', "`ns` is not valid UTF-8"),
+    (b'{"id":31,"cmd":"move_jp","ns":"so101","data":{"position":[0,"\xe2\x82",0,0,0]}}',
+     "`data.position[1]` is not valid UTF-8"),
+    (b'{"id":31,"cmd":"move_jp","ns":"so101","data":{"posi\xfftion":[0,0,0,0,0]}}', "a key of `data` is not valid UTF-8"),
+    (b'{"id":31,"cmd":"list","note":"\xff"}', "`note` is not valid UTF-8"),  # a field the envelope ignores
+    (b'{"id":31,"\xff":1,"cmd":"list"}', "a key of the request is not valid UTF-8"),
+]
+#: an id that cannot be read as an integer: null (never an id the client did not send)
+NO_ID = [
+    (b'{"id":"31","cmd":"list"}', "`id`"), (b'{"id":31.0,"cmd":"list"}', "`id`"),
+    (b'{"id":true,"cmd":"list"}', "`id`"), (b'{"id":[31],"cmd":"list"}', "`id`"),
+    (b'{"id":{"n":31},"cmd":"list"}', "`id`"), (b'{"id":null,"cmd":"list"}', "`id`"),
+    (b'{"cmd":"list"}', "`id`"), (b'{"id":"\xff","cmd":"list"}', "`id` is not valid UTF-8"),
+    (b'{"id":31,"cmd":"list"', "invalid JSON"), (b'\xff{"id":31,"cmd":"list"}', "the line is not valid UTF-8"),
+    (b'[31,"list"]', "object"),
+]
+
+
+def test_a_wrong_envelope_is_answered_with_the_id_it_can_read_naming_the_field(daemon, raw):
+    assert code(raw.call("enable")) == "ok"
+    before = goals(daemon)
+    for cases, rid in ((WRONG_FIELDS, RID), (NO_ID, None)):
+        for line, says in cases:
+            raw.send(line + b"\n")
+            r = raw.reply()
+            assert code(r) == "bad_request" and r["id"] == rid, (line, r)
+            message = r["error"]["message"]
+            assert says in message, (line, r)
+            assert "codec" not in message and "decode" not in message, (line, r)
+    assert raw.call("operating_state", rid=99)["data"]["state"] == "ENABLED"  # the session lives
+    assert np.abs(goals(daemon) - before).max() <= 1  # and nothing moved
 
 
 # ---------------------------------------------------------------- defect 4: a stop is never refused

@@ -6,6 +6,7 @@ what the servos did during and after the daemon's shutdown can be read from it."
 from __future__ import annotations
 
 import math
+import signal
 import threading
 import time
 
@@ -16,7 +17,7 @@ from crtk_bridge.client import connect
 from crtk_bridge.profile import load_profile
 from crtk_bridge.sim.control import control_request
 
-from .conftest import DaemonProcess, wait_until
+from .conftest import DaemonProcess, only_on, wait_until
 from .conftest import standalone_sim as conftest_standalone_sim
 
 # the park's rest pose needs shutdown.action: park; the servos are sampled through the serial
@@ -124,5 +125,45 @@ def test_sigterm_while_enabled_parks_then_switches_torque_off(standalone_sim, sh
         out = daemon.output()
         assert "parking at the rest pose" in out and "parked at the rest pose" in out, out
         assert "shutdown_park_timeout" not in out
+    finally:
+        daemon.stop()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["TERM+TERM", "INT+INT"])
+@only_on("so101-feetech")
+def test_a_second_signal_by_pid_switches_torque_off_without_finishing_the_park(standalone_sim, short_tmp,
+                                                                                sim_robot, sig):
+    """``kill -TERM`` (or ``-INT``) twice to the daemon's pid, as systemd or a script sends it (not
+    a terminal's Ctrl-C to the whole group): the second cuts the park short, torque off at once."""
+    profile, control = standalone_sim
+    prof = load_profile(profile)
+    ids = [str(sim_robot.servo_id[j.name]) for j in prof.joints]
+    rest = np.array([prof.shutdown.rest[j.name] for j in prof.joints])
+    daemon = DaemonProcess(["--profile", str(profile)], short_tmp / "d.sock", short_tmp / "d.log")
+    try:
+        robot = connect(socket=str(daemon.socket_path))
+        arm = robot.device(sim_robot.arm)
+        assert arm.enable(5.0)
+        far = sim_robot.vec(shoulder_lift=1.4, elbow_flex=-1.4)  # ~3 rad from the rest pose
+        assert arm.move_jp(far).wait(timeout=10.0)
+        start = positions(control_request(control, {"cmd": "dump"})["servos"], ids)
+        rec = Recorder(control)
+        wait_until(lambda: len(rec.samples) > 2, 5, what="simulator samples")
+        daemon.proc.send_signal(sig)
+        # the park is under way: the arm has left where it was, torque on
+        wait_until(lambda: any(np.max(np.abs(positions(s, ids) - start)) > 0.1 for _, s in rec.samples[-3:]),
+                   10, what="the park to move the arm")
+        daemon.proc.send_signal(sig)
+        assert daemon.proc.wait(15) == 0, daemon.output()
+        samples = rec.stop()
+        robot.close()
+        final = control_request(control, {"cmd": "dump"})["servos"]
+        samples.append((time.monotonic(), final))
+        assert all(final[i]["torque_enable"] == 0 for i in ids), final
+        first_off = next(s for _, s in samples if any(s[i]["torque_enable"] == 0 for i in ids))
+        assert np.max(np.abs(positions(first_off, ids) - rest)) > 0.5  # torque off well before the rest pose
+        out = daemon.output()
+        assert "park cut short by a second signal" in out, out
+        assert "parked at the rest pose" not in out, out
     finally:
         daemon.stop()

@@ -451,3 +451,20 @@ def test_safety_thresholds_at_their_bounds_load(tmp_path, base):
     path.write_text(yaml.safe_dump(base))
     sf = load_profile(path).safety
     assert (sf.servo_timeout_s, sf.bus_errors_max, sf.tracking_error_max) == (10.0, 100, 0.01)
+
+
+# ---------------------------------------------------------------- issue 18 item 14: words
+def test_a_key_of_fixed_values_lists_them(tmp_path, base):
+    base["shutdown"]["action"] = "parc"
+    msg = load_bad(tmp_path, base)
+    assert msg.endswith("shutdown.action: 'parc' is not a valid value; valid: park, torque_off"), msg
+
+
+@pytest.mark.parametrize("rate", [0, -5.0, float("nan"), 20000])
+def test_a_wrong_loop_rate_is_one_error_not_a_cascade(tmp_path, base, rate):
+    """bus_errors_max's bound follows from loop.rate_hz: a wrong rate is said once, not again as a
+    bus_errors_max 'not in [1, 1]' the user never got wrong."""
+    base["loop"]["rate_hz"] = rate
+    msg = load_bad(tmp_path, base)
+    assert "loop.rate_hz:" in msg and "(0, 10000]" in msg
+    assert "bus_errors_max" not in msg, msg

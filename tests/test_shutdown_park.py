@@ -261,6 +261,32 @@ def test_a_second_signal_or_a_stop_cuts_the_park_short(loop_rig):
     assert "DISABLED" in r.events("shutdown_park_aborted")[0]["message"]
 
 
+def test_the_fronts_second_signal_cuts_the_park_short(loop_rig):
+    """A second signal sent by pid reaches the front process alone: it says ``_torque_off``."""
+    r = loop_rig()
+    enable_and_move(r)
+    r.front.send(_enc({"id": None, "cmd": "_shutdown"}))
+    wait_until(lambda: r.events("shutdown_park"), 5, what="park started")
+    r.front.send(_enc({"id": None, "cmd": "_torque_off"}))
+    r.end()
+    assert not r.act.torque and np.abs(r.act.pos - REST).max() > 0.3
+    assert "second signal" in r.events("shutdown_park_aborted")[0]["message"]
+
+
+def test_one_ctrl_c_to_the_group_parks_whichever_process_hears_it_first(loop_rig):
+    """A terminal's Ctrl-C reaches both processes: the front's ``_shutdown`` read before the
+    control process's own SIGINT is still one signal, and the park runs to its end."""
+    r = loop_rig()
+    enable_and_move(r)
+    r.front.send(_enc({"id": None, "cmd": "_shutdown"}))
+    wait_until(lambda: r.events("shutdown_park"), 5, what="park started")
+    r.loop.request_stop()  # the same Ctrl-C, as the control process's SIGINT
+    r.end()
+    assert not r.act.torque
+    np.testing.assert_allclose(r.act.pos, REST, atol=1e-6)
+    assert r.events("shutdown_parked") and not r.events("shutdown_park_aborted")
+
+
 def test_shutdown_while_disabled_or_with_torque_off_moves_nothing(loop_rig):
     r = loop_rig()
     r.front.send(_enc({"cmd": "_shutdown"}))

@@ -23,6 +23,7 @@ from crtk_bridge.sim.canopen402 import (
     EMCY_FOLLOWING_ERROR,
     EMCY_PDO_LENGTH,
     CanopenSimulator,
+    error_register,
     make_object_dictionary,
 )
 
@@ -185,10 +186,91 @@ def test_following_error_faults_with_emcy_8611(bus, drive):
     node.sdo[0x6065].raw = 2000  # following error window, counts
     sim.set_fault(1, "jam")  # the shaft is blocked
     _move(node, node.tpdo_values[0x6064] + 10_000)
-    _emcy(node, EMCY_FOLLOWING_ERROR)
+    assert _emcy(node, EMCY_FOLLOWING_ERROR).register == 0x21  # generic + device profile (not communication)
     wait_until(lambda: node.state == "FAULT", 1, what="FAULT")
     assert node.statusword & 0x2000  # CSP bit 13: following error
     assert node.sdo[0x603F].raw == EMCY_FOLLOWING_ERROR
+
+
+# CiA 301 error register bits: 0 generic, 1 current, 2 voltage, 3 temperature, 4 communication,
+# 5 device profile specific, 7 manufacturer specific; by the EMCY code's class / group
+@pytest.mark.parametrize("code,register", [
+    (0x1000, 0x01), (0x2310, 0x03), (0x2220, 0x03), (0x3210, 0x05), (0x4310, 0x09), (0x5000, 0x01),
+    (0x6320, 0x01), (0x7121, 0x01), (0x8110, 0x11), (0x8130, 0x11), (0x8210, 0x11), (0x8400, 0x21),
+    (0x8611, 0x21), (0x8612, 0x21), (0x9000, 0x01), (0xFF00, 0x81), (0x0000, 0x00),
+])
+def test_the_error_register_bit_of_each_emcy_code_follows_its_class(code, register):
+    assert error_register(code) == register
+
+
+def test_a_warning_emcy_agrees_with_0x1001_and_its_end_clears_the_masters_active_list(bus, drive):
+    """canopen's EmcyConsumer as an independent master: the warning is in its active list with
+    the error register 0x1001 reads, and leaves it with the EMCY 0x0000 sent when it ends."""
+    sim, _ = bus
+    node = drive
+    node.state = "OPERATION ENABLED"
+    sim.set_fault(1, "warning", 0x4310)  # drive temperature: a warning, the drive runs on
+    emcy = _emcy(node, 0x4310)
+    assert emcy.register == 0x09  # generic + temperature
+    assert [e.code for e in node.emcy.active] == [0x4310]
+    assert node.sdo[0x1001].raw == emcy.register
+    assert node.sdo[0x6041].raw & 0x80 and node.state == "OPERATION ENABLED"  # statusword bit 7
+    sim.clear_faults(1)  # the drive cooled down
+    reset = _emcy(node, 0x0000)
+    assert reset.register == 0 and node.emcy.active == []
+    assert node.sdo[0x1001].raw == 0 and not node.sdo[0x6041].raw & 0x80
+
+    # a fault on top of a warning: 0x1001 carries both; the fault reset acknowledges both
+    node.emcy.log.clear()
+    sim.set_fault(1, "warning", 0x3220)
+    sim.set_fault(1, "emcy", 0x2310)
+    assert _emcy(node, 0x2310).register == 0x07  # generic + current + voltage
+    wait_until(lambda: node.state == "FAULT", 1, what="FAULT")
+    assert node.sdo[0x1001].raw == 0x07
+    node.controlword = 0
+    node.check_statusword()
+    node.state = "SWITCH ON DISABLED"  # fault reset
+    assert _emcy(node, 0x0000).register == 0 and node.emcy.active == []
+    assert node.sdo[0x1001].raw == 0
+
+
+def test_no_emcy_in_nmt_stopped_and_stopped_entered_while_enabled_gets_the_0x6007_reaction(bus, drive):
+    """CiA 301: EMCY only in PRE-OPERATIONAL and OPERATIONAL. CiA 402 0x6007: "NMT stopped
+    entered" gets the reaction a lost master heartbeat gets (here 1, fault; then 3, quick stop)."""
+    sim, _ = bus
+    node = drive
+    for option, state in ((1, "FAULT"), (3, "QUICK_STOP_ACTIVE")):
+        node.sdo[0x6007].raw = option
+        node.state = "OPERATION ENABLED"
+        node.op_mode = "CYCLIC SYNCHRONOUS VELOCITY"
+        node.sdo[0x60FF].raw = 20_000  # counts/s
+        wait_until(lambda: abs(node.tpdo_values[0x606C] - 20_000) < 200, 2, what="CSV speed")
+        node.emcy.log.clear()
+        node.nmt.state = "STOPPED"  # by this master or another one
+        wait_until(lambda: sim.drive(1).snapshot()["velocity"] == 0, 2, what="the drive stopped")
+        snap = sim.drive(1).snapshot()
+        assert snap["nmt"] == "STOPPED" and snap["state"] == state, snap
+        p = snap["position"]
+        sim.set_fault(1, "warning", 0x4210)  # an error while STOPPED: kept, not sent
+        wait_until(lambda: sim.drive(1).snapshot()["position"] == p, 1, what="no motion")
+        node.nmt.state = "PRE-OPERATIONAL"
+        if option == 1:  # the fault (0x8100) stays until a fault reset; nothing was sent in STOPPED
+            assert node.sdo[0x1001].raw == 0x19  # generic, communication (0x8100), temperature (0x4210)
+            assert node.sdo[0x603F].raw == 0x8100 and not node.emcy.log, node.emcy.log
+        else:  # the 0x8100 warning ends as the master takes the node back: its EMCY 0x0000, the
+            # temperature warning still in 0x1001 (the only EMCY: none was sent in STOPPED)
+            _emcy(node, 0x0000)
+            assert [(e.code, e.register) for e in node.emcy.log] == [(0x0000, 0x09)]
+            assert node.sdo[0x1001].raw == 0x09
+        sim.clear_faults(1)  # the warning ends: EMCY 0x0000, PRE-OPERATIONAL may send it
+        _emcy(node, 0x0000)
+        node.nmt.state = "OPERATIONAL"
+        node.sdo[0x60FF].raw = 0
+        node.controlword = 0
+        node.check_statusword()
+        node.state = "SWITCH ON DISABLED"
+        node.rpdo[1][0x607A].raw = sim.drive(1).snapshot()["position"]
+        node.rpdo[1].update()
 
 
 def test_csv_cst_and_quick_stop(bus, drive):
@@ -361,6 +443,34 @@ def test_a_drive_whose_master_falls_silent_stops(bus, drive):
         node.emcy.log.clear()
 
     node.sdo[0x1016][1].raw = 0
+
+
+def test_a_lost_master_heard_again_ends_the_heartbeat_warning_with_emcy_0000(bus, drive):
+    """0x6007 = 3 (quick stop): the lost heartbeat is a warning (EMCY 0x8130, 0x1001 generic +
+    communication); when the master's heartbeat comes back the error ends: EMCY 0x0000 and the
+    master's active list (canopen's EmcyConsumer) empties."""
+    sim, net = bus
+    node = drive
+    node.sdo[0x1016][1].raw = (0x7F << 16) | 40
+    node.sdo[0x6007].raw = 3
+    node.state = "OPERATION ENABLED"
+    beat = net.send_periodic(0x77F, [5], 0.01)
+    try:
+        wait_until(lambda: 0x7F in sim.drive(1)._heartbeats, 1, what="the master's heartbeat watched")
+        beat.stop()  # the master dies: no heartbeat, no RPDO (whose controlword would resume)
+        node.rpdo[1].stop()
+        emcy = _emcy(node, 0x8130)
+        assert emcy.register == 0x11 and [e.code for e in node.emcy.active] == [0x8130]
+        wait_until(lambda: node.check_statusword() and node.state == "QUICK STOP ACTIVE", 1, what="quick stop")
+        assert node.sdo[0x1001].raw == 0x11
+        node.emcy.log.clear()
+        beat = net.send_periodic(0x77F, [5], 0.01)  # the master is back
+        assert _emcy(node, 0x0000).register == 0 and node.emcy.active == []
+        assert node.sdo[0x1001].raw == 0
+    finally:
+        node.sdo[0x1016][1].raw = 0
+        beat.stop()
+        node.sdo[0x6007].raw = 1
 
 
 def test_boot_up_message_and_a_second_drive_on_the_bus(bus):

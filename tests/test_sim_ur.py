@@ -159,6 +159,25 @@ def test_dashboard_power_on_and_brake_release(sim, recv, dash, powered):
     assert not dash.running()
 
 
+def test_brake_release_from_power_off_powers_on_and_proceeds_to_running(sim, recv, dash, powered):
+    """As the controller: ``brake release`` from POWER_OFF powers the arm on and releases the
+    brakes once powered; ``power on`` and ``brake release`` sent back to back end RUNNING too."""
+    for sequence in ((dash.brakeRelease,), (dash.powerOn, dash.brakeRelease)):
+        dash.powerOff()
+        wait_until(lambda: recv.getRobotMode() == 3, 5, what="robot mode POWER_OFF after power off")
+        seen = set()
+        for command in sequence:
+            command()
+
+        def running() -> bool:
+            seen.add(recv.getRobotMode())
+            return 7 in seen
+
+        wait_until(running, 5, what=f"robot mode RUNNING after {[c.__name__ for c in sequence]}")
+        assert dash.robotmode() == "Robotmode: RUNNING" and recv.getRobotStatus() & 1
+    powered()
+
+
 def test_control_interface_uploads_its_script(ready, recv, dash):
     assert ready.isProgramRunning()
     # (isProgramRunning reads the control interface's own RTDE link; this receive interface is a
@@ -349,7 +368,8 @@ def test_safeguard_stop_pauses_and_resumes(sim, ready, recv):
     assert not ready.moveJ((q + 0.1).tolist())  # the program cannot run a move while paused
     sim.release("safeguard")
     wait_until(lambda: recv.getSafetyMode() == 1 and recv.getRuntimeState() == 2, 2, what="resumed")
-    assert ready.isProgramRunning()
+    # the control interface learns it from its own RTDE link, a package after the receive link
+    wait_until(ready.isProgramRunning, 2, what="the control interface seeing the program run")
 
 
 def test_safeguard_release_resumes_the_interrupted_servo_stream(sim, ready, recv):

@@ -6,6 +6,8 @@ under the same control rules (one controller across transports, stops from anyon
 from __future__ import annotations
 
 import json
+import re
+import socket
 import subprocess
 import sys
 import time
@@ -63,6 +65,11 @@ def test_lists_both_robots(lab):
     endpoint, so101, koch = lab
     assert list_robots(zenoh_connect=endpoint) == ["koch", "so101"]
     assert "serving CRTK on" in so101.output() and f"Zenoh (connected to {endpoint}" in so101.output()
+    # --zenoh-connect alone listens on loopback port 0: the banner tells the port the system gave
+    port = int(re.search(r"listening on tcp/127\.0\.0\.1:(\d+)", so101.output())[1])
+    assert port != 0, so101.output()
+    with socket.create_connection(("127.0.0.1", port), timeout=5):
+        pass
     done = subprocess.run([sys.executable, "-m", "crtk_bridge.client.cli", "--zenoh-connect", endpoint, "--json",
                            "robots"], cwd=ROOT, capture_output=True, text=True, timeout=30)
     assert (done.returncode, json.loads(done.stdout)) == (0, {"robots": ["koch", "so101"]})

@@ -15,6 +15,7 @@ import yaml
 from .conftest import ROOT, SO101, free_port, so101_data
 from crtk_bridge.profile import ZenohTls, load_profile
 from crtk_bridge.transport.zenoh_session import (
+    bound_listen,
     ZenohConfig, ZenohConfigError, ZenohConnectError, check_exposure, is_loopback, open_session,
     session_config, zenoh_config)
 
@@ -107,6 +108,24 @@ def test_unreachable_router_and_busy_port_errors():
         busy = taken.getsockname()[1]
         with pytest.raises(ZenohConnectError, match=rf"^so101: cannot listen on tcp/127.0.0.1:{busy} .*in use"):
             open_session(ZenohConfig(listen=[f"tcp/127.0.0.1:{busy}"]), "so101")
+
+
+def test_a_listen_on_port_0_is_told_with_the_port_bound():
+    """What the daemon's banner says: tcp/127.0.0.1:0 is the port the system gave, one a peer can
+    connect to; an endpoint with its own port is kept as written."""
+    fixed = f"tcp/127.0.0.1:{free_port()}"
+    bound: list[str] = []
+    session = open_session(ZenohConfig(listen=["tcp/127.0.0.1:0", fixed]), "so101", bound=bound)
+    try:
+        assert len(bound) == 2 and bound[1] == fixed
+        assert bound[0].startswith("tcp/127.0.0.1:") and bound[0] != "tcp/127.0.0.1:0", bound
+        with socket.create_connection(("127.0.0.1", int(bound[0].rsplit(":", 1)[1])), timeout=5):
+            pass  # the session listens there
+    finally:
+        session.close()
+    # the query part stays; a host not matched keeps its 0
+    assert bound_listen(["tcp/127.0.0.1:0?iface=lo", "udp/127.0.0.3:0"], {("tcp", "127.0.0.1", 4711)}) == \
+        ["tcp/127.0.0.1:4711?iface=lo", "udp/127.0.0.3:0"]
 
 
 def _daemon(args: list[str], timeout: float = 30.0) -> subprocess.CompletedProcess:

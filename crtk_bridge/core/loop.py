@@ -119,6 +119,7 @@ class ControlLoop:
         self._park_deadline: float | None = None  # perf_counter time limit of a shutdown park
         self._park_t0 = 0.0
         self.abort_park = False  # a second signal: torque off now
+        self._signals = 0  # SIGTERM / SIGINT received by this process (request_stop)
         ns = list(self.controller.namespaces.values())
         self._ns = ns
         self._native_rows = [(k, self.controller.native_cartesian[m.name].row, self.controller.native_cartesian[m.name])
@@ -171,6 +172,10 @@ class ControlLoop:
             except (msgspec.DecodeError, ValueError):
                 continue  # cannot happen with the front's size limit; never a reason to fault
             if msg.get("cmd") == "_shutdown":
+                self.running = False
+                return
+            if msg.get("cmd") == "_torque_off":  # the front's second signal: no park, or cut it short
+                self.abort_park = True
                 self.running = False
                 return
             if self._park_deadline is not None and msg.get("cmd") not in _STOPS:
@@ -337,8 +342,14 @@ class ControlLoop:
         return False
 
     def request_stop(self) -> None:
-        """SIGTERM / SIGINT: end the loop; a second one during the park: torque off now."""
-        if not self.running:
+        """SIGTERM / SIGINT to this process: end the loop; a second one: torque off now.
+
+        Counts this process's own signals, not ``running``: a terminal's Ctrl-C (or systemd's
+        control-group kill) reaches the front process too, whose ``_shutdown`` may be read first,
+        and must not count as the second signal. A second signal sent to the front process alone
+        arrives as its ``_torque_off``."""
+        self._signals += 1
+        if self._signals > 1:
             self.abort_park = True
         self.running = False
 
@@ -368,11 +379,11 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
     Opens and configures the backend (lifecycle path, may block), tells the front process it is
     ready (or why not), then runs the loop.
     """
-    stop = {"flag": False}
+    signals = {"count": 0}  # SIGTERM / SIGINT received, the loop's or not
     loop_ref: dict[str, Any] = {}
 
     def on_signal(signum: int, frame: Any) -> None:
-        stop["flag"] = True
+        signals["count"] += 1
         if "loop" in loop_ref:
             loop_ref["loop"].request_stop()
 
@@ -408,8 +419,8 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
         "namespace_capabilities": {ns: as_dict(cap) for ns, cap in c.ns_caps.items()},
         "native_cartesian": list(c.native_cartesian),  # namespaces whose backend does cartesian control
     }}
-    if stop["flag"]:
-        loop.running = False
+    for _ in range(signals["count"] - loop._signals):  # those that came before the loop existed
+        loop.request_stop()
     try:
         return loop.run(ready)
     except Exception:

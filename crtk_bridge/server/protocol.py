@@ -4,12 +4,16 @@ A request line is decoded in two typed stages, both by msgspec:
 
 1. the envelope (:class:`Request`): an object with an integer ``id``, a string ``cmd``, an
    optional string ``ns``; ``data`` is kept raw. A line that is not such an object gets a
-   ``bad_request`` reply with ``"id": null``.
+   ``bad_request`` reply carrying the line's ``id`` when an integer one can be read from it (a
+   JSON object with an integer ``id``, as JSON-RPC), else ``"id": null``.
 2. the payload, by the command's Struct in :data:`PAYLOADS` (strict: a number field takes a JSON
    number only, never a boolean, a string, null or a nested array; unknown fields are refused).
    The reply carries the request's id; the message names the field (``data.position[0]``).
 
-Nesting deeper than :data:`MAX_DEPTH` is refused before decoding (no decoder recursion).
+Nesting deeper than :data:`MAX_DEPTH` is refused before decoding (no decoder recursion; the
+reply's id is read from the line with its nested values flattened). A line that is not valid
+UTF-8 is refused naming the field whose string is not (``cmd``, ``data.position[0]``, a key of
+``data``), never with the decoder's own text.
 """
 
 from __future__ import annotations
@@ -157,15 +161,94 @@ def nesting_depth(line: bytes) -> int:
     return int(np.cumsum(steps, dtype=np.int64).max(initial=0))
 
 
-def decode_request(line: bytes) -> Request:
-    """Parse one request line's envelope. Raises ProtocolError("bad_request"), id None."""
+class _IdOnly(msgspec.Struct):
+    """A request line read for its ``id`` alone (other fields skipped, their strings not decoded)."""
+    id: int
+
+
+_id_only = msgspec.json.Decoder(_IdOnly)
+_as_object = msgspec.json.Decoder(dict[str, msgspec.Raw])
+_as_array = msgspec.json.Decoder(list[msgspec.Raw])
+
+
+def _flatten(line: bytes) -> bytes:
+    """``line`` with every array or object inside the top-level value replaced by ``""`` (never
+    an integer): the top-level keys and scalars kept verbatim, so a too-deep line's ``id`` can be
+    read without recursion."""
+    blank = _STRINGS.sub(lambda m: b'"' + b" " * (len(m[0]) - 2) + b'"', line)  # same length
+    steps = _OPEN[np.frombuffer(blank, np.uint8)]
+    before = np.cumsum(steps, dtype=np.int64) - steps  # depth before each byte
+    ends = ((steps == 1) & (before == 1)) | ((steps == -1) & (before == 2))  # of a nested value
+    out = np.frombuffer(line, np.uint8).copy()
+    out[ends] = ord('"')
+    return out[(before <= 1) | ends].tobytes()
+
+
+def read_id(line: bytes) -> int | None:
+    """The integer ``id`` of a request line that is a JSON object, however wrong its other fields
+    are; None when none can be read (not JSON, not an object, no id, an id of another type)."""
     if nesting_depth(line) > MAX_DEPTH:
-        raise ProtocolError("bad_request", f"invalid request: nested deeper than {MAX_DEPTH} levels")
+        line = _flatten(line)
+    try:
+        return _id_only.decode(line).id
+    except (msgspec.ValidationError, msgspec.DecodeError, UnicodeDecodeError, RecursionError):
+        return None
+
+
+def _path(base: str, key: str | int) -> str:
+    if isinstance(key, int):
+        return f"{base}[{key}]"
+    return f"{base}.{key}" if base else key
+
+
+def _utf8(raw: bytes) -> bool:
+    try:
+        raw.decode()
+        return True
+    except UnicodeDecodeError:
+        return False
+
+
+def not_utf8_at(raw: bytes, path: str = "") -> str:
+    """Which field of JSON text ``raw`` (found at ``path``: "" for a whole request line) holds a
+    string that is not valid UTF-8, said for a reply: "`data.position[0]` is not valid UTF-8",
+    "a key of `data` is not ...", or "the line is not ..." when it cannot be attributed (the
+    bytes are outside any string: not JSON). Descends at most :data:`MAX_DEPTH` levels."""
+    for _ in range(MAX_DEPTH + 1):
+        try:
+            items = list(_as_object.decode(raw).items())
+        except UnicodeDecodeError:
+            return f"a key of `{path}` is not valid UTF-8" if path else "a key of the request is not valid UTF-8"
+        except msgspec.ValidationError:
+            try:
+                items = list(enumerate(_as_array.decode(raw)))
+            except msgspec.ValidationError:
+                break  # a scalar: the string at path
+            except msgspec.DecodeError:
+                break
+        except msgspec.DecodeError:
+            break
+        bad = next(((k, bytes(v)) for k, v in items if not _utf8(bytes(v))), None)
+        if bad is None:
+            break
+        path, raw = _path(path, bad[0]), bad[1]
+    return f"`{path}` is not valid UTF-8" if path else "the line is not valid UTF-8"
+
+
+def decode_request(line: bytes) -> Request:
+    """Parse one request line's envelope. Raises ProtocolError("bad_request") carrying the id
+    :func:`read_id` finds (None when there is none), its message naming the field at fault."""
+    if nesting_depth(line) > MAX_DEPTH:
+        raise ProtocolError("bad_request", f"invalid request: nested deeper than {MAX_DEPTH} levels",
+                            read_id(line))
+    if not _utf8(line):  # any string, also of a field the envelope ignores (the framing is UTF-8)
+        raise ProtocolError("bad_request", f"invalid request: {not_utf8_at(line)}", read_id(line))
     try:
         return _envelope.decode(line)
     except msgspec.ValidationError as exc:
-        raise ProtocolError("bad_request", f"invalid request: {exc}") from None
-    except (msgspec.DecodeError, UnicodeDecodeError, RecursionError) as exc:
+        text = str(exc).replace("`$.", "`")
+        raise ProtocolError("bad_request", f"invalid request: {text}", read_id(line)) from None
+    except (msgspec.DecodeError, RecursionError) as exc:
         raise ProtocolError("bad_request", f"invalid JSON: {exc}") from None
 
 
@@ -179,7 +262,10 @@ def decode_payload(req: Request, who: str) -> dict:
         return {}
     try:
         payload = _payload_decoders[kind].decode(raw)
-    except (msgspec.ValidationError, msgspec.DecodeError, UnicodeDecodeError, RecursionError) as exc:
+    except UnicodeDecodeError:  # (a line from decode_request was checked whole)
+        raise ProtocolError("bad_request", f"{who}: {req.cmd} refused: {not_utf8_at(raw, 'data')}",
+                            req.id) from None
+    except (msgspec.ValidationError, msgspec.DecodeError, RecursionError) as exc:
         text = str(exc).replace("`$", "`data")
         if " - at " not in text:
             text += " - at `data`"

@@ -274,7 +274,8 @@ class Server:
         return ns, "spatial"
 
     async def _dispatch(self, s: Session, rid: int, cmd: str, ns: str | None, data: Any) -> Any:
-        ns, frame = self._frame(cmd, ns)
+        # a subscription's frame is its topic's (_subscribe: ``so101/body`` for measured_cv), not the command's
+        ns, frame = (ns, "spatial") if cmd == "subscribe" else self._frame(cmd, ns)
         cs = self.cartesian.get(ns) if ns else None
         if cs is not None and (cmd in cs.queries or cmd in cs.commands):
             if cmd == "forward_kinematics":
@@ -369,12 +370,12 @@ class Server:
         while not s.closed:
             if topic in JOINT_QUERIES:
                 data = self.link.joint_state(topic, ns)
-            elif cs is not None:
-                data = cs.query(topic, self.link.ns_arrays(base), frame)
-            elif topic == "operating_state":
+            elif topic == "operating_state":  # robot-wide, with or without a (cartesian) ns
                 data = self.state
-            else:
+            elif topic == "period_statistics":
                 data = self.link.period_statistics()
+            else:
+                data = cs.query(topic, self.link.ns_arrays(base), frame)
             s.send_frame({"topic": topic, "ns": ns, "sub": sub, "data": data})
             next_t = await sleep_until_next(next_t, period)
 

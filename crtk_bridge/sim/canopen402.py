@@ -29,10 +29,14 @@ dictionary, but has no PDO behaviour and no device profile (canopen issue #558; 
   positive limit switch at 0x6099:1, taking time), statusword bits 10 / 12 / 13 as CiA 402 says;
 - following error: in CSP, |0x607A - 0x6064| above 0x6065 for longer than 0x6066 ms faults
   the drive with EMCY 0x8611 and statusword bit 13;
-- boot-up message, heartbeat producer (0x1017), EMCY producer (0x1001 / 0x603F kept in step),
+- boot-up message, heartbeat producer (0x1017), EMCY producer (0x1001 / 0x603F kept in step:
+  0x1001 holds the bits of the active fault and warning, and every EMCY carries it; EMCY 0x0000
+  when an error ends: fault reset, a warning gone, a lost master heard again, NMT STOPPED left;
+  no EMCY in NMT STOPPED, CiA 301),
   heartbeat consumer (0x1016: a monitored master gone silent -> EMCY 0x8130 and the reaction
   0x6007 names: fault by default, disable voltage or quick stop), so a drive left by a dead
-  master stops as a real one does.
+  master stops as a real one does; NMT STOPPED entered while the power stage is on gets the same
+  0x6007 reaction (error 0x8100, kept in 0x603F / 0x1001: no EMCY in STOPPED).
 
 :class:`CanopenSimulator` is several drives on one bus in the shape of the serial simulators
 (``from_profile``, ``start``, ``stop``, ``port``, fault injection, a control socket). Each drive
@@ -80,14 +84,27 @@ EMCY_PDO_LENGTH = 0x8210  # PDO not processed due to length error
 EMCY_PDO_TOO_LONG = 0x8220  # PDO length exceeded
 EMCY_FOLLOWING_ERROR = 0x8611
 EMCY_HEARTBEAT = 0x8130  # life guard / heartbeat error
+EMCY_COMMUNICATION = 0x8100  # communication, generic: here "NMT STOPPED entered" (0x6007)
 EMCY_RESET = 0x0000
-#: error register 0x1001 bits by EMCY code class (CiA 301 table "Error register")
-_ERROR_REGISTER_BITS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08, 0x8: 0x10}
+#: NMT states in which the EMCY producer may send (CiA 301 "EMCY object": PRE-OPERATIONAL and
+#: OPERATIONAL only; an error in STOPPED is kept in 0x1001 / 0x603F, not sent)
+_EMCY_STATES = (NMT_PRE_OPERATIONAL, NMT_OPERATIONAL)
+#: error register 0x1001 bits (CiA 301 "Error register": 0 generic, 1 current, 2 voltage,
+#: 3 temperature, 4 communication, 5 device profile specific, 7 manufacturer specific) by the
+#: EMCY code's group (its high byte) or class (its high nibble) in CiA 301 table "Emergency
+#: error codes" and CiA 402-2's codes: the drive monitoring groups 0x83-0x8A (torque, velocity,
+#: position, positioning controller (0x8611 following error), sync, winding, process data,
+#: control) are device profile specific, not communication (0x81 communication, 0x82 protocol)
+_REGISTER_BY_GROUP = {0x81: 0x10, 0x82: 0x10, **{g: 0x20 for g in range(0x83, 0x8B)}, 0xFF: 0x80}
+_REGISTER_BY_CLASS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08}
 
 
 def error_register(code: int) -> int:
-    """0x1001 for an active error with EMCY ``code``: bit 0 (generic) plus its class bit."""
-    return 0 if code == 0 else 0x01 | _ERROR_REGISTER_BITS.get(code >> 12, 0)
+    """0x1001 for an active error with EMCY ``code``: bit 0 (generic) plus its class bit (none
+    for a class without one: generic, hardware, software, modules, monitoring, external)."""
+    if code == 0:
+        return 0
+    return 0x01 | _REGISTER_BY_GROUP.get(code >> 8, _REGISTER_BY_CLASS.get(code >> 12, 0))
 
 
 # --- CiA 402 ------------------------------------------------------------------------------
@@ -344,8 +361,8 @@ class Drive402:
         self.target_position = int(options.position)
         self.target_velocity = 0
         self.target_torque = 0
-        self.error_code = 0
-        self.warning = False
+        self.error_code = 0  # the active fault's EMCY code (0x603F)
+        self.warnings: set[int] = set()  # the active warnings' EMCY codes (statusword bit 7)
         self.following_error = False
         self.homing: tuple[str, int] = ("idle", 0)  # (phase, direction)
         self.homing_status = 0  # statusword bits 10/12/13 in HM
@@ -362,6 +379,7 @@ class Drive402:
         self._pdo_dirty = True
         self._params: dict[tuple[int, int], int] = {}
         self._heartbeats: dict[int, float] = {}  # node id -> when its last heartbeat came
+        self._lost: set[int] = set()  # monitored nodes whose heartbeat timed out, not heard since
         self._sync_cob = 0x80
         self.rx_frames = 0  # frames this drive received while not muted (bench / tests)
         self.sync_count = 0
@@ -407,7 +425,12 @@ class Drive402:
                     self._on_sync()
                 return
             if 0x701 <= can_id <= 0x77F and len(data) == 1:
-                self._heartbeats[can_id - 0x700] = self.clock()  # another node's heartbeat
+                node = can_id - 0x700
+                self._heartbeats[node] = self.clock()  # another node's heartbeat
+                if node in self._lost:  # a master heard again: its heartbeat error ends
+                    self._lost.discard(node)
+                    if not self._lost:
+                        self._end_warning(EMCY_HEARTBEAT)
                 return
             if can_id == 0x600 + self.node_id:
                 # an SDO request is always 8 bytes; others are ignored. No SDO in STOPPED (CiA 301)
@@ -424,6 +447,8 @@ class Drive402:
         if target not in (0, self.node_id):
             return
         state = self.local.nmt._state
+        if before == NMT_STOPPED and state in _EMCY_STATES:
+            self._end_warning(EMCY_COMMUNICATION)  # the master took the node back: that error ends
         if cs in (0x81, 0x82):  # reset node / communication: defaults back, boot again
             keep = range(0x1000, 0x2000) if cs == 0x82 else range(0x1000, 0x10000)
             for index in [i for i in self.local.data_store if i in keep]:
@@ -435,6 +460,10 @@ class Drive402:
         elif state == NMT_OPERATIONAL and before != NMT_OPERATIONAL:
             self._pdo_dirty = True
             self._load_pdos()  # CiA 301: the PDO configuration takes effect on start
+        elif state == NMT_STOPPED and before != NMT_STOPPED:
+            self._advance(self.clock())
+            if self.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):
+                self._abort_connection(EMCY_COMMUNICATION)  # CiA 402 0x6007: "NMT stopped entered"
 
     def _reset_application(self) -> None:
         now = self.clock()
@@ -442,7 +471,9 @@ class Drive402:
         self.controlword = self.mode = self.target_velocity = self.target_torque = 0
         self.target_position = round(self.position)
         self.error_code = 0
-        self.warning = self.following_error = False
+        self.warnings.clear()
+        self._lost.clear()
+        self.following_error = False
         self.homing, self.homing_status = ("idle", 0), 0
 
     def _on_sync(self) -> None:
@@ -546,7 +577,7 @@ class Drive402:
         if index == 0x603F:
             return self.error_code
         if index == 0x1001:
-            return error_register(self.error_code)
+            return self.error_register()
         if index == 0x60F4:
             return self.target_position - round(self.position)
         if index == 0x6040:
@@ -625,7 +656,7 @@ class Drive402:
             sw |= SW_VOLTAGE_ENABLED
         if self.state is not State.QUICK_STOP_ACTIVE:
             sw |= SW_QUICK_STOP
-        if self.warning:
+        if self.warnings:
             sw |= SW_WARNING
         enabled = self.state is State.OPERATION_ENABLED
         if self.mode == Mode.HOMING:
@@ -644,12 +675,13 @@ class Drive402:
         homing_start = cw & CW_HOMING_START and not self.controlword & CW_HOMING_START
         self.controlword = cw
         if self.state is State.FAULT:
-            if rising:  # 15: fault reset
+            if rising:  # 15: fault reset, which also acknowledges the warnings
                 self.state = State.SWITCH_ON_DISABLED
                 self.error_code = 0
+                self.warnings.clear()
                 self.following_error = False
                 self._ferr_since = None
-                self.local.emcy.reset()
+                self._send_emcy(EMCY_RESET)
             return
         new = command_transition(self.state, cw)
         if new is State.OPERATION_ENABLED and self.state is not State.OPERATION_ENABLED:
@@ -708,16 +740,45 @@ class Drive402:
             self.homed = False
         self.velocity = 0.0
 
+    def error_register(self) -> int:
+        """0x1001: the bits of the active fault and of every active warning."""
+        register = error_register(self.error_code)
+        for code in self.warnings:
+            register |= error_register(code)
+        return register
+
     def _emcy(self, code: int, fault: bool, data: bytes = b"") -> None:
-        """Send EMCY ``code``; with ``fault``, the drive enters FAULT REACTION ACTIVE (13/14)."""
+        """Error ``code`` occurs: kept as the active fault (0x603F; the drive enters FAULT
+        REACTION ACTIVE, 13/14) or, without ``fault``, an active warning (statusword bit 7);
+        then the EMCY, carrying 0x1001 as it now is."""
         if fault:
             self.error_code = code
             if self.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 self._enable_at = None
                 self._set_state(State.FAULT_REACTION_ACTIVE)
         else:
-            self.warning = True
-        self.local.emcy.send(code, error_register(code), data)
+            self.warnings.add(code)
+        self._send_emcy(code, data)
+
+    def _send_emcy(self, code: int, data: bytes = b"") -> None:
+        """The EMCY producer: ``code`` with 0x1001, only in PRE-OPERATIONAL and OPERATIONAL
+        (CiA 301); ``EMCY_RESET`` says an error ended (a master clears its active list)."""
+        if self.local.nmt._state in _EMCY_STATES:
+            self.local.emcy.send(code, self.error_register(), data)
+
+    def _end_warning(self, code: int) -> None:
+        """Warning ``code``'s cause went away: EMCY 0x0000 with 0x1001 as it is then."""
+        if code in self.warnings:
+            self.warnings.discard(code)
+            self._send_emcy(EMCY_RESET)
+
+    def end_warnings(self) -> None:
+        """The active warnings' causes went away: statusword bit 7 clears, EMCY 0x0000 (with
+        0x1001 as it is then: an active fault's bits)."""
+        with self.lock:
+            if self.warnings:
+                self.warnings.clear()
+                self._send_emcy(EMCY_RESET)
 
     def _advance(self, now: float) -> None:
         """Run the drive's internal control at :data:`PHYSICS_DT_S` up to ``now``."""
@@ -832,14 +893,21 @@ class Drive402:
             if not node or not limit_s or seen is None or now - seen <= limit_s:
                 continue
             del self._heartbeats[node]
-            option = self._param(0x6007, 0)
-            self._emcy(EMCY_HEARTBEAT, fault=option == 1, data=bytes([node]))
-            if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE, State.NOT_READY_TO_SWITCH_ON):
-                continue  # a fault stays until the master resets it: neither command leaves it
-            if option == 2:  # the disable voltage command (transitions 7, 9, 10, 12)
-                self._set_state(State.SWITCH_ON_DISABLED)
-            elif option == 3 and self.state is State.OPERATION_ENABLED:  # quick stop (11)
-                self._set_state(State.QUICK_STOP_ACTIVE)
+            self._lost.add(node)
+            self._abort_connection(EMCY_HEARTBEAT, bytes([node]))
+
+    def _abort_connection(self, code: int, data: bytes = b"") -> None:
+        """The connection to the master is lost (heartbeat, NMT STOPPED entered): error ``code``
+        (its EMCY where NMT allows one), then the reaction 0x6007 says (CiA 402 "abort
+        connection option code": 0 none, 1 fault, 2 disable voltage, 3 quick stop)."""
+        option = self._param(0x6007, 0)
+        self._emcy(code, fault=option == 1, data=data)
+        if self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE, State.NOT_READY_TO_SWITCH_ON):
+            return  # a fault stays until the master resets it: neither command leaves it
+        if option == 2:  # the disable voltage command (transitions 7, 9, 10, 12)
+            self._set_state(State.SWITCH_ON_DISABLED)
+        elif option == 3 and self.state is State.OPERATION_ENABLED:  # quick stop (11)
+            self._set_state(State.QUICK_STOP_ACTIVE)
 
     # ------------------------------------------------------------------ inspection / injection
     def send_emcy(self, code: int, fault: bool = True, data: bytes = b"") -> None:
@@ -885,8 +953,8 @@ class Drive402:
         stays there until the master's fault reset, as a real one does."""
         with self.lock:
             self.jammed = False
-            self.warning = False
             self.set_muted(False)
+            self.end_warnings()
             self.set_heartbeat_stopped(False)
 
     def snapshot(self) -> dict:
@@ -900,7 +968,8 @@ class Drive402:
                 "position": round(self.position), "velocity": round(self.velocity),
                 "torque": round(self.torque), "target_position": self.target_position,
                 "target_velocity": self.target_velocity, "target_torque": self.target_torque,
-                "error_code": self.error_code, "homed": self.homed, "muted": self.network.muted,
+                "error_code": self.error_code, "warnings": sorted(self.warnings),
+                "error_register": self.error_register(), "homed": self.homed, "muted": self.network.muted,
                 "heartbeat_stopped": self.heartbeat_stopped, "jammed": self.jammed,
             }
 

@@ -10,7 +10,9 @@ robot_status_bits, safety_status_bits) and dashboard server manual; see
 ``../shared/reference/canopen-ur.md`` part B, section 6. How the modes move:
 
 - ``power on`` (dashboard): POWER_OFF -> POWER_ON -> IDLE after ``power_on_s``;
-  ``brake release``: IDLE -> RUNNING after ``brake_release_s``; ``power off``: POWER_OFF at once.
+  ``brake release``: IDLE -> RUNNING after ``brake_release_s``; from POWER_OFF (or while powering
+  on) it powers the arm on first and releases the brakes once IDLE, as the controller does (so a
+  script may send ``power on`` and ``brake release`` back to back); ``power off``: POWER_OFF at once.
 - Protective stop (injected, the script's ``protective_stop()``, or a joint leaving its safety
   limits): safety PROTECTIVE_STOP, the arm stops, the program stops; ``unlock protective stop``
   is refused until ``unlock_delay_s`` (5 s on a real controller) after the stop.
@@ -333,6 +335,7 @@ class URRobot:
         self.script = None  # the rtde_control behaviour while its program runs (ur_script)
         self.last_error = ""
         self._mode_at: tuple[float, RobotMode] | None = None  # a pending robot mode change
+        self._release_when_idle = False  # a brake release asked for while powering on
         self._stopped_at = -math.inf  # clock of the last protective stop
 
     # ---- derived state ----
@@ -380,6 +383,9 @@ class URRobot:
             self._mode_at = None
             if self.robot_mode == RobotMode.POWER_ON:
                 self._mode_at = (now + self.timings.power_on_s, RobotMode.IDLE)
+            elif self.robot_mode == RobotMode.IDLE and self._release_when_idle:
+                self._release_when_idle = False
+                self.brake_release()
         if self.script is not None and self.runtime_state == RuntimeState.PLAYING:
             self.script.tick(now)
         if self.teach_mode and isinstance(self.motion, Hand):
@@ -412,13 +418,25 @@ class URRobot:
             self._mode_at = (self.clock() + self.timings.power_on_s, RobotMode.IDLE)
 
     def brake_release(self) -> None:
-        if self.robot_mode == RobotMode.IDLE and self._mode_at is None and self.safety_mode in _MOVING_SAFETY:
+        """Dashboard ``brake release``: IDLE -> RUNNING after ``brake_release_s``. As on the
+        controller, from POWER_OFF it powers the arm on, and while powering on it proceeds once
+        IDLE. Nothing happens while a safety stop other than reduced mode holds the arm."""
+        if self.safety_mode not in _MOVING_SAFETY:
+            return
+        if self.robot_mode == RobotMode.POWER_OFF:
+            self.power_on()
+        powering = self.robot_mode in (RobotMode.BOOTING, RobotMode.POWER_ON) or (
+            self._mode_at is not None and self._mode_at[1] in (RobotMode.POWER_ON, RobotMode.IDLE))
+        if powering:
+            self._release_when_idle = True
+        elif self.robot_mode == RobotMode.IDLE and self._mode_at is None:
             self._mode_at = (self.clock() + self.timings.brake_release_s, RobotMode.RUNNING)
 
     def power_off(self) -> None:
         self.stop_program("power off")
         self.robot_mode = RobotMode.POWER_OFF
         self._mode_at = None
+        self._release_when_idle = False
         self.teach_mode = False
 
     def inject_stop(self, kind: str, cause: str) -> None:

@@ -179,18 +179,98 @@ def session_config(config: ZenohConfig, extra: dict[str, Any] | None = None,
     return conf
 
 
+#: /proc/net tables of this process's sockets, by the kind of endpoint they carry, and the state
+#: of a listening socket in each (include/net/tcp_states.h: TCP_LISTEN 0x0A; an unconnected UDP
+#: socket is TCP_CLOSE 0x07)
+_PROC_NET = {"tcp": (("tcp", "tcp6"), "0A"), "udp": (("udp", "udp6"), "07")}
+#: the socket kind of each endpoint protocol that binds a port
+_PORT_KIND = {"tcp": "tcp", "tls": "tcp", "ws": "tcp", "udp": "udp", "quic": "udp"}
+
+
+def _proc_address(hex_address: str) -> tuple[str, int]:
+    """A /proc/net address ``0100007F:1F90`` -> (``127.0.0.1``, 8080); IPv6 too."""
+    import socket
+
+    addr, port = hex_address.split(":")
+    raw = bytes.fromhex(addr)
+    raw = b"".join(raw[i:i + 4][::-1] for i in range(0, len(raw), 4))  # host order per 32-bit word
+    family = socket.AF_INET if len(raw) == 4 else socket.AF_INET6
+    return socket.inet_ntop(family, raw), int(port, 16)
+
+
+def listening_ports() -> set[tuple[str, str, int]]:
+    """The ports this process listens on now: (kind "tcp" / "udp", host, port). Linux (/proc);
+    empty elsewhere."""
+    import os
+
+    try:
+        inodes = set()
+        for fd in os.listdir("/proc/self/fd"):
+            try:
+                link = os.readlink(f"/proc/self/fd/{fd}")
+            except OSError:
+                continue
+            if link.startswith("socket:["):
+                inodes.add(link[8:-1])
+        found = set()
+        for kind, (tables, state) in _PROC_NET.items():
+            for table in tables:
+                try:
+                    with open(f"/proc/self/net/{table}") as f:
+                        next(f)
+                        for line in f:
+                            cols = line.split()
+                            if cols[3] == state and cols[9] in inodes:
+                                found.add((kind, *_proc_address(cols[1])))
+                except OSError:
+                    continue
+        return found
+    except OSError:
+        return set()
+
+
+def bound_listen(listen: Iterable[str], new: set[tuple[str, str, int]]) -> list[str]:
+    """``listen`` with each endpoint on port 0 given the port its listener was bound on (one of
+    ``new``, the ports that appeared when the session opened, by kind and host); an endpoint
+    whose port cannot be found is kept as it is."""
+    out = []
+    left = sorted(new)
+    for endpoint in listen:
+        proto, host = endpoint_host(endpoint)
+        base, _, query = endpoint.partition("?")
+        kind = _PORT_KIND.get(proto)
+        if kind is None or not base.endswith(":0"):
+            out.append(endpoint)
+            continue
+        match = next((p for p in left if p[0] == kind and p[1] == host), None) or \
+            next((p for p in left if p[0] == kind and p[1] in ("0.0.0.0", "::")), None)
+        if match is None:
+            out.append(endpoint)
+            continue
+        left.remove(match)
+        out.append(f"{base[:-1]}{match[2]}" + (f"?{query}" if query else ""))
+    return out
+
+
 def open_session(config: ZenohConfig, robot: str, extra: dict[str, Any] | None = None,
-                 hint: str = "--zenoh-connect / transport.zenoh.connect", base: str | None = None) -> "zenoh.Session":
+                 hint: str = "--zenoh-connect / transport.zenoh.connect", base: str | None = None,
+                 bound: list[str] | None = None) -> "zenoh.Session":
     """Open the Zenoh session ``config`` describes. Blocks until every connect endpoint answered
     (at most ``connect_timeout_s``). ``robot`` prefixes errors (a robot name, or the client);
     ``hint`` names where the connect endpoints were set; ``base``: see :func:`session_config`.
-    Raises ZenohConnectError in one line naming the endpoint and what to do (start a router,
-    check the address, free the port), ZenohConfigError on a configuration Zenoh refuses."""
+    ``bound``: filled with the listen endpoints as bound, a port 0 replaced by the one the system
+    gave (what to tell a peer). Raises ZenohConnectError in one line naming the endpoint and what
+    to do (start a router, check the address, free the port), ZenohConfigError on a configuration
+    Zenoh refuses."""
     import zenoh
 
     conf = session_config(config, extra, base)
+    before = listening_ports() if bound is not None else set()
     try:
-        return zenoh.open(conf)
+        session = zenoh.open(conf)
+        if bound is not None:
+            bound[:] = bound_listen(config.listen if config.mode == "peer" else [], listening_ports() - before)
+        return session
     except zenoh.ZError as exc:
         text = _first_line(exc)
         if "connect" in text.lower() and config.connect:

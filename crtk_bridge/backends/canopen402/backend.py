@@ -54,6 +54,7 @@ gear_ratio)`` for ``unit: rad`` (``1 / (...)`` for ``unit: m``):
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import struct
@@ -105,7 +106,23 @@ _CSP, _CSV, _CST, _HM = (int(Mode.CYCLIC_SYNC_POSITION), int(Mode.CYCLIC_SYNC_VE
                          int(Mode.CYCLIC_SYNC_TORQUE), int(Mode.HOMING))
 
 
+def _open_hint(exc: BaseException) -> str:
+    """What to do about a CAN interface that would not open, from its errno (the OSError, or the
+    one python-can wrapped), or ""."""
+    while exc is not None and not isinstance(exc, OSError):
+        exc = exc.__cause__ or exc.__context__
+    code = getattr(exc, "errno", None)
+    if code == errno.EAFNOSUPPORT:
+        return ("; this kernel has no SocketCAN (AF_CAN): use a USB-CAN adapter over slcan "
+                "(backend.interface: slcan, backend.channel: /dev/ttyACM0) or run with --sim")
+    if code == errno.ENODEV:
+        return ("; no such network interface: see `ip link` (a CAN interface is brought up with "
+                "`ip link set can0 up type can bitrate 1000000`), or run with --sim")
+    return ""
+
+
 # ---------------------------------------------------------------- profile keys
+
 class Homing(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     """A joint's CiA 402 homing (mode 6), run by ``home``; absent = absolute encoder."""
 
@@ -398,7 +415,7 @@ class Canopen402Backend(Actuator):
             self._open_bus(network)
         except (can.CanError, OSError, ValueError, TypeError, ImportError) as exc:
             raise BackendError(f"{self.robot}: cannot open CAN interface {self._where} "
-                               f"(backend.interface / backend.channel): {exc}") from exc
+                               f"(backend.interface / backend.channel): {exc}{_open_hint(exc)}") from exc
         network.notifier.add_listener(_BusWatch(self))
         return network
 
@@ -1042,8 +1059,9 @@ class Canopen402Backend(Actuator):
     def _reset_faults(self) -> Steps:
         """Fault reset of every drive in FAULT: bit 7 low for a cycle, then high (the rising edge,
         transition 15), until the drive leaves FAULT; its EMCY is acknowledged. Nodes that
-        rebooted are configured again (SDO, on a worker thread)."""
-        rebooted = [d for d in self.drives if d.rebooted]
+        rebooted, or whose heartbeat says they left OPERATIONAL (put in NMT STOPPED by something
+        on the bus), are configured again and started (SDO, on a worker thread)."""
+        rebooted = [d for d in self.drives if d.rebooted or d.nmt != t.NMT_OPERATIONAL]
         if rebooted:
             yield from on_worker(lambda: [self._configure_node(d) for d in rebooted], "canopen-reconfigure")
         # After a bus outage a drive may still be about to trip on the master's heartbeat it

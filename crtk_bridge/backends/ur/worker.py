@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import mmap
 import os
+import re
 import socket
 import sys
 import threading
@@ -45,6 +46,23 @@ from .channel import (COMMAND, CTL_CONNECTED, CTL_RUNNING, CTL_UP, EXIT_CONTROL_
 #: a package not seen for this long with the link said up is a link that will not come back
 #: here (the backend's own link_timeout_s, shorter, has faulted the robot long before)
 _SILENT_S = 2.0
+
+
+#: what ur_rtde (boost.asio) says when nothing, or something that is not a UR controller, is
+#: at the address: the connection refused, reset, closed at once ("read: End of file"), timed out
+_UNREACHABLE = re.compile(r"connect|read:|write:|end of file|refused|reset by peer|timed out|unreachable|"
+                          r"no route|host is down|broken pipe", re.IGNORECASE)
+
+
+def unreachable(host: str, service: str, port: int, exc: BaseException) -> str | None:
+    """The one-line error for a controller that did not answer ``service`` at ``host:port``
+    (ur_rtde's own words kept at the end), or None when ``exc`` is not about reaching it."""
+    text = " ".join(str(exc).split())
+    if not _UNREACHABLE.search(text):
+        return None
+    return (f"the UR controller at {host} did not answer {service} (port {port}): check backend.host "
+            f"(the arm's IP address), the network to it, and that the arm is in remote control "
+            f"(pendant: Settings > System > Remote Control) ({text})")
 
 
 class Worker:
@@ -78,14 +96,16 @@ class Worker:
         try:
             self.rcv = rtde_receive.RTDEReceiveInterface(self.host, self.rate_hz, VARIABLES)
         except RuntimeError as exc:
-            self.send(encode(b"H", f"cannot open RTDE to the UR controller at {self.host}:30004 at "
-                                   f"{self.rate_hz:g} Hz (backend.series / rate_hz): {exc}"))
+            self.send(encode(b"H", unreachable(self.host, "RTDE", 30004, exc) or (
+                f"cannot open RTDE to the UR controller at {self.host}:30004 at "
+                f"{self.rate_hz:g} Hz (backend.series / rate_hz): {exc}")))
             os._exit(EXIT_OPEN_FAILED)
         try:
             dash = dashboard_client.DashboardClient(self.host)
             dash.connect()
         except RuntimeError as exc:
-            self.send(encode(b"H", f"cannot reach the UR dashboard server at {self.host}:29999: {exc}"))
+            self.send(encode(b"H", unreachable(self.host, "the dashboard server", 29999, exc)
+                             or f"cannot reach the UR dashboard server at {self.host}:29999: {exc}"))
             os._exit(EXIT_OPEN_FAILED)
         self.dash = dash
         self.publish()  # the first package before hello: the backend reads a state at once
