@@ -69,10 +69,13 @@ def test_a_silent_bus_is_waited_on_not_polled_every_millisecond(bus_and_adapter)
     assert len(reads) <= 0.5 / SERIAL_TIMEOUT_S + 2, len(reads)
 
 
-def test_sending_is_python_cans(bus_and_adapter):
+def test_sending_is_python_cans_without_waiting_for_the_port_to_drain(bus_and_adapter):
+    """A send writes the line and returns: no tcdrain (Serial.flush) in the control cycle."""
     bus, master, _ = bus_and_adapter
+    drains = []
+    bus.serialPortOrig.flush = lambda: drains.append(1)
     bus.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
     out = b""
     while not out.endswith(b"\r"):  # a closing CR, or the test's timeout
         out += os.read(master, 64)
-    assert out.endswith(b"t0800\r")
+    assert out.endswith(b"t0800\r") and drains == []

@@ -10,7 +10,12 @@ bench/bench_cpu.py). python-can's own fix (reading everything waiting at once, h
 port blocks for the first byte (its timeout, the notifier's cycle, not 1 ms), then one read takes
 all that is waiting, and the lines are handed out one at a time from the bus's own buffer.
 
-Everything else (opening, bitrate, sending, frame parsing) is python-can's.
+Sending: python-can's ``_write`` follows every line with ``Serial.flush()``, a ``tcdrain`` that
+waits until the port has transmitted it (on a USB adapter, the USB transfer): in the control
+cycle, once per SYNC and RPDO. Here a line is written and the cycle goes on; the kernel sends it,
+in order, as it would after the wait.
+
+Everything else (opening, bitrate, frame formatting and parsing) is python-can's.
 """
 
 from __future__ import annotations
@@ -32,6 +37,10 @@ class SlcanBus(slcanBus):
 
     def __init__(self, channel, *args, timeout: float = SERIAL_TIMEOUT_S, **kwargs):
         super().__init__(channel, *args, timeout=timeout, **kwargs)
+
+    def _write(self, string: str) -> None:
+        with error_check("Could not write to serial device"):
+            self.serialPortOrig.write(string.encode() + self.LINE_TERMINATOR)
 
     def _line(self) -> Optional[str]:
         """The first complete line in the buffer (with its CR or BEL), taken out of it; or None."""
