@@ -6,9 +6,11 @@ serial timeout, 1 ms by default. A CANopen cycle at 250 Hz brings ~100 bytes fro
 drives' TPDOs, the adapter's ``z`` acknowledgements of the SYNC and RPDOs), so the notifier thread
 took ~25 % of a core reading them byte by byte and polling between cycles (issue 23,
 bench/bench_cpu.py). python-can's own fix (reading everything waiting at once, hardbyte/python-can
-#2028) is not in a release yet; this is the same idea on python-can's public pieces: the serial
-port blocks for the first byte (its timeout, the notifier's cycle, not 1 ms), then one read takes
-all that is waiting, and the lines are handed out one at a time from the bus's own buffer.
+#2028) is not in a release yet; this is the same idea on python-can's pieces: one ``select`` on
+the port waits for the adapter (up to the serial timeout, the notifier's cycle, not 1 ms), one
+``read`` takes all that is waiting (pyserial opens a tty non-blocking), and the lines are handed
+out one at a time from the bus's own buffer. A pyserial URL (``socket://``...) has no descriptor:
+it is read with its own ``read``, the first byte then what is waiting.
 
 Sending: python-can's ``_write`` follows every line with ``Serial.flush()``, a ``tcdrain`` that
 waits until the port has transmitted it (on a USB adapter, the USB transfer): in the control
@@ -20,6 +22,8 @@ Everything else (opening, bitrate, frame formatting and parsing) is python-can's
 
 from __future__ import annotations
 
+import os
+import select
 from typing import Optional
 
 import serial
@@ -59,16 +63,22 @@ class SlcanBus(slcanBus):
             return line
         expiry = serial.Timeout(timeout)
         port = self.serialPortOrig
+        fd = port.fd if isinstance(port, serial.Serial) and port.fd is not None else None
         with error_check("Could not read from serial device"):
             while True:
-                first = port.read(1)  # blocks up to the port's timeout
-                if first:
-                    self._buffer += first
-                    waiting = port.in_waiting
-                    if waiting:
-                        self._buffer += port.read(waiting)
-                    line = self._line()
-                    if line is not None:
-                        return line
+                if fd is not None:  # a tty: one select and one read per wake-up
+                    if select.select([fd], [], [], port.timeout)[0]:
+                        data = os.read(fd, 4096)  # pyserial opens the port non-blocking
+                        if not data:  # what pyserial's read says of a USB adapter pulled out
+                            raise serial.SerialException("device reports readiness to read but returned "
+                                                         "no data (device disconnected?)")
+                        self._buffer += data
+                else:  # a pyserial URL (socket://, loop://...): its own read
+                    data = port.read(1)  # blocks up to the port's timeout
+                    if data:
+                        self._buffer += data + port.read(port.in_waiting)
+                line = self._line()
+                if line is not None:
+                    return line
                 if expiry.expired():
                     return None
