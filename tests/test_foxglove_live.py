@@ -110,6 +110,17 @@ def test_a_foxglove_client_gets_measured_js_and_the_urdf(daemon):
     assert "<robot" in urdf and "shoulder_pan" in urdf
     state = TYPESTORE.deserialize_cdr(got["/so101/operating_state"][-1][1], "crtk_msgs/msg/OperatingState")
     assert state.state == "ENABLED"
+    # the shipped layout (docs/foxglove/) reads topics the live view advertises
+    import re
+    layout = json.loads((ROOT / "docs" / "foxglove" / "so101_layout.json").read_text())
+    used = set(re.findall(r'"(/[a-z0-9_/]+?)(?:\.[a-z_\[\]0-9.]+)?"', json.dumps(layout["configById"])))
+    assert "/so101/measured_js" in used and "/robot_description" in used and "/so101/error" in used
+    assert used <= set(channels), used - set(channels)
+    assert set(layout["configById"]) == _panels(layout["layout"])
+
+
+def _panels(node) -> set:
+    return {node} if isinstance(node, str) else _panels(node["first"]) | _panels(node["second"])
 
 
 def _start(args: list[str], tmp: Path) -> subprocess.CompletedProcess:

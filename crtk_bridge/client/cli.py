@@ -13,6 +13,8 @@
     crtk-ctl calibrate --profile my_arm.yaml           (by hand, robot DISABLED; docs/calibration.md)
     crtk-ctl calibrate --profile my_arm.yaml --import ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm.json
     crtk-ctl teleop --leader so101_leader --follower so101   (follower ENABLED first; docs/teleop.md)
+    crtk-ctl record run1.mcap --duration 2      crtk-ctl replay run1.mcap --yes      (docs/recording.md)
+    crtk-ctl plot run1.mcap -o run1.png         (pip install 'crtk-bridge[plot]')
 
 Cartesian poses are X Y Z (m) then the unit quaternion QX QY QZ QW, the tip frame in the base
 frame; relative commands (_cr) take DX DY DZ [QX QY QZ QW] in the base frame (no quaternion: no
