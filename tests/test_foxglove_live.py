@@ -87,7 +87,7 @@ async def _subscribe(port: int, topics: list[str], wanted: dict[str, int], timeo
 
 
 def test_a_foxglove_client_gets_measured_js_and_the_urdf(daemon):
-    topics = ["/so101/measured_js", "/robot_description", "/so101/operating_state"]
+    topics = ["/so101/measured_js", "/robot_description", "/so101/operating_state", "/tf"]
     with connect(socket=str(daemon.socket_path), timeout=10.0) as robot:
         robot.enable()
         robot.device("so101").move_jp([0.2, 0.1, -0.1, 0.0, 0.1])
@@ -110,8 +110,12 @@ def test_a_foxglove_client_gets_measured_js_and_the_urdf(daemon):
     assert "<robot" in urdf and "shoulder_pan" in urdf
     state = TYPESTORE.deserialize_cdr(got["/so101/operating_state"][-1][1], "crtk_msgs/msg/OperatingState")
     assert state.state == "ENABLED"
-    # the shipped layout (docs/foxglove/) reads topics the live view advertises
+    # /tf: base -> the tip (the graph's) and base -> every URDF link, so the 3D panel poses the arm
     import re
+    tf = TYPESTORE.deserialize_cdr(got["/tf"][-1][1], "tf2_msgs/msg/TFMessage")
+    links = set(re.findall(r'<link name="([^"]+)"', urdf)) - {"base_link"}
+    assert {t.child_frame_id for t in tf.transforms} == links and {t.header.frame_id for t in tf.transforms} == {"base_link"}
+    # the shipped layout (docs/foxglove/) reads topics the live view advertises
     layout = json.loads((ROOT / "docs" / "foxglove" / "so101_layout.json").read_text())
     used = set(re.findall(r'"(/[a-z0-9_/]+?)(?:\.[a-z_\[\]0-9.]+)?"', json.dumps(layout["configById"])))
     assert "/so101/measured_js" in used and "/robot_description" in used and "/so101/error" in used

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.samples import STAMP
+from ..core.samples import STAMP, STATE
 from ..errors import CrtkBridgeError
 from ..transport.ros import types as T
 from .bag import BagWriter
@@ -44,6 +44,9 @@ class LiveWriter(BagWriter):
         self._context = context
         super().__init__("live", link, robot, namespaces, spaces)
         self.channels = dict(self._conns)
+        # /tf: the graph's base -> tip, plus base -> every URDF link at the measured positions (what
+        # robot_state_publisher adds on a ROS system), so that Foxglove's 3D panel poses the arm
+        self._links_tf, self._tf = self._tf, None
 
     def _open_storage(self, custom: dict[str, str] | None) -> None:
         self.writer = None
@@ -60,9 +63,32 @@ class LiveWriter(BagWriter):
         conn.log(bytes(data), log_time=t_ns)
         self.messages += 1
 
+    def rows(self, rows: np.ndarray) -> None:
+        super().rows(rows)
+        if self._links_tf is None:
+            return
+        link = self.link
+        for row in rows:
+            buf = row[STATE:]
+            poses = []
+            for ns, cs, _ in self._cart:
+                st = link.ns_arrays(ns, buf)
+                tip = cs.query("measured_cp", st, "spatial")
+                poses.append(tip)
+                kin = getattr(cs, "kin", None)
+                if kin is None or not st["measured_stamp"] > 0:
+                    continue
+                for name, p, q in kin.link_poses(st["measured_p"]):
+                    if name != tip["child_frame_id"]:
+                        poses.append({"stamp": tip["stamp"], "frame_id": tip["frame_id"], "child_frame_id": name,
+                                      "position": p, "orientation": q})
+            if poses:
+                self._write(self._links_tf, int(row[STAMP] * 1e9), self.enc.tf(poses))
+
     def watched(self) -> bool:
         """Whether a client is subscribed to any periodic topic."""
-        return any(conn.has_sinks() for _, _, conn in self._js) or (self._tf is not None and self._tf.has_sinks()) \
+        return any(conn.has_sinks() for _, _, conn in self._js) or \
+            (self._links_tf is not None and self._links_tf.has_sinks()) \
             or any(conn.has_sinks() for _, _, topics in self._cart for _, conn in topics)
 
 
