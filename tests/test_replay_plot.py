@@ -133,6 +133,45 @@ def test_replay_of_another_robot_or_other_joints_is_refused_naming_the_differenc
         replay.plan(rec, "so101", "so101", "setpoint_js", ARM)
 
 
+class _FakeArm:
+    """What replay.stream sends, on a clock it drives (no daemon)."""
+
+    def __init__(self, refuse_at: int | None = None):
+        self.now = 0.0
+        self.sent: list[tuple[float, list]] = []
+        self.held = False
+        self.refuse_at = refuse_at
+
+    def interpolate_jp(self, q):
+        from crtk_bridge.errors import CommandError
+        if self.refuse_at is not None and len(self.sent) == self.refuse_at:
+            raise CommandError("step_too_large", "so101: interpolate_jp: too far")
+        self.sent.append((self.now, q))
+
+    def hold(self):
+        self.held = True
+
+    def sleep(self, s):
+        self.now += s
+
+
+def test_replay_keeps_the_recorded_timing_scaled_by_speed_and_holds_on_a_refused_sample():
+    t = np.linspace(0.0, 2.0, 2001)  # 2 s at 1 kHz: joint 0 ramps 0 -> 1 rad
+    p = replay.Plan("so101", "setpoint_js", ["a", "b"], t, np.stack([t / 2.0, np.zeros_like(t)], axis=1))
+    for speed in (1.0, 2.0, 0.5):
+        arm = _FakeArm()
+        report = replay.stream(arm, p, speed, 50.0, clock=lambda: arm.now, sleep=arm.sleep)
+        assert report.samples == len(arm.sent) == round(2.0 / speed * 50) + 1
+        for when, q in arm.sent:  # each sample: the recorded position at (wall time x speed)
+            assert q[0] == pytest.approx(min(1.0, when * speed / 2.0), abs=1e-9) and q[1] == 0.0
+        assert arm.sent[-1][1][0] == pytest.approx(1.0) and arm.sent[-1][0] == pytest.approx(2.0 / speed)
+        assert not arm.held
+    arm = _FakeArm(refuse_at=5)
+    with pytest.raises(Exception, match="too far"):
+        replay.stream(arm, p, 1.0, 50.0, clock=lambda: arm.now, sleep=arm.sleep)
+    assert arm.held and len(arm.sent) == 5
+
+
 def test_replay_asks_first_and_holds_on_ctrl_c(daemon, recorded, capsys, monkeypatch):
     sock = str(daemon.socket_path)
     with connect(socket=sock, timeout=10.0) as robot:  # then released: crtk-ctl's session takes control
@@ -210,23 +249,34 @@ def _chromium() -> str:
     pytest.fail("headless Chromium is needed (.ci/run installs Debian's chromium package)")
 
 
-def test_plot_html_renders_in_headless_chromium_without_console_errors(recorded, tmp_path):
-    pytest.importorskip("matplotlib")
-    out = tmp_path / "run.html"
-    assert ctl_main(["plot", str(recorded), "-o", str(out)]) == 0
-    shot = tmp_path / "shot.png"
+def _render(page: Path, tmp: Path) -> tuple[list[str], Path]:
+    """Headless Chromium renders ``page``: (its console messages, a screenshot)."""
+    shot = tmp / f"{page.stem}.shot.png"
     proc = subprocess.run(
         [_chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--enable-logging=stderr", "--v=0",
-         "--window-size=1200,1600", f"--screenshot={shot}", out.as_uri()],
-        capture_output=True, text=True, timeout=120, env={**os.environ, "HOME": str(tmp_path)})
-    console = [line for line in proc.stderr.splitlines() if "CONSOLE" in line]
+         "--window-size=1200,1600", f"--screenshot={shot}", page.as_uri()],
+        capture_output=True, text=True, timeout=120, env={**os.environ, "HOME": str(tmp)})
     assert proc.returncode == 0 and shot.exists(), proc.stderr[-2000:]
-    assert console == []
+    return [line for line in proc.stderr.splitlines() if ":CONSOLE" in line], shot
+
+
+def test_plot_html_renders_in_headless_chromium_without_console_errors(recorded, tmp_path):
+    pytest.importorskip("matplotlib")
     from matplotlib.image import imread
+
+    out = tmp_path / "run.html"
+    assert ctl_main(["plot", str(recorded), "-o", str(out)]) == 0
+    console, shot = _render(out, tmp_path)
+    assert console == []
     assert imread(shot)[:, :, :3].std() > 0.05  # the page drew something
     page = subprocess.run([_chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--dump-dom", out.as_uri()],
                           capture_output=True, text=True, timeout=120, env={**os.environ, "HOME": str(tmp_path)})
     assert "<svg" in page.stdout and "so101" in page.stdout
+    # the check sees console errors: a page with one is caught
+    bad = tmp_path / "bad.html"
+    bad.write_text("<!DOCTYPE html><html><head><title>x</title></head><body><script>undefinedFn();</script></body></html>")
+    console, _ = _render(bad, tmp_path)
+    assert any("undefinedFn is not defined" in line for line in console), console
 
 
 def test_plot_without_matplotlib_names_the_extra(recorded, tmp_path, capsys, monkeypatch):

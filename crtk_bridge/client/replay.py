@@ -21,6 +21,7 @@ import numpy as np
 
 from crtk_bridge.client.bagfile import BagError, JointSeries, Recording
 from crtk_bridge.client.pacing import Pacing
+from crtk_bridge.errors import CommandError, CrtkBridgeError
 
 RATE_DEFAULT_HZ = 50.0
 
@@ -95,7 +96,14 @@ def stream(dev, p: Plan, speed: float, rate_hz: float,
     t0 = time.monotonic()
     for tick in pacing:
         at = min(p.duration, tick.index * pacing.period * speed)
-        dev.interpolate_jp(p.at(at).tolist())
+        try:
+            dev.interpolate_jp(p.at(at).tolist())
+        except CommandError:  # a sample refused (step_too_large, a FAULT...): the arm holds, as Device.stream's
+            try:
+                dev.hold()
+            except (CrtkBridgeError, ConnectionError, TimeoutError):
+                pass
+            raise
     return Report(pacing.sent, duration, time.monotonic() - t0)
 
 
