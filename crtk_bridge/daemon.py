@@ -377,7 +377,11 @@ def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str |
 
         live = check_live(foxglove_listen, profile, str(profile_path))
         import importlib.util
-        if importlib.util.find_spec("foxglove") is None:
+        try:
+            found = importlib.util.find_spec("foxglove") is not None  # not imported: the fork comes first
+        except (ImportError, ValueError):
+            found = False
+        if not found:
             raise CrtkBridgeError(f"{profile.name}: --foxglove-listen needs foxglove-sdk, an optional extra: "
                                   "pip install 'crtk-bridge[foxglove]'")
     source = str(profile_path)

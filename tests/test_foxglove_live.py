@@ -150,6 +150,16 @@ def test_beyond_loopback_is_refused_without_the_tls_and_access_control_opt_in(tm
     assert out.returncode == 1 and "give HOST:PORT, e.g. 127.0.0.1:8765" in out.stderr, out.stderr
 
 
+def test_without_foxglove_sdk_the_option_names_the_extra(tmp_path):
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(so101_data()))
+    code = ("import sys; sys.modules['foxglove'] = None; from crtk_bridge.cli import main; "
+            f"sys.exit(main(['--profile', {str(tmp_path / 'p.yaml')!r}, '--sim', '--foxglove-listen', '127.0.0.1:0', "
+            f"'--socket', {str(tmp_path / 'x.sock')!r}]))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert out.returncode == 1 and out.stderr.strip() == ("crtk-bridge: so101: --foxglove-listen needs foxglove-sdk, "
+                                                          "an optional extra: pip install 'crtk-bridge[foxglove]'")
+
+
 def test_the_exposure_rule_accepts_loopback_and_the_opt_in():
     from types import SimpleNamespace
 
