@@ -26,6 +26,8 @@ from .conftest import ROOT, DaemonProcess, free_port, so101_data
 websockets = pytest.importorskip("websockets")  # in the test extra: CI has it
 pytest.importorskip("foxglove")
 
+# what the Foxglove app offers: foxglove-sdk 0.30 accepts only its foxglove.sdk.v1 (HTTP 400 to a client
+# offering foxglove.websocket.v1 alone), whose messages are ws-protocol's
 SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
 
 
