@@ -219,20 +219,24 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, on_signal)
     link.attach(loop, server.on_control_lost)
-    if server.recorder is not None:  # the black box runs from the start
-        server.recorder.start()
-        await server.recorder.start_recording()  # --record / recording.dir: before anyone can enable
     services = []
-    if zenoh is not None:  # before the socket: nobody can have enabled the robot if one fails
-        session, config = zenoh
-        try:
+    try:
+        if server.recorder is not None:  # the black box runs from the start
+            server.recorder.start()
+            await server.recorder.start_recording()  # --record / recording.dir: before anyone can enable
+        if zenoh is not None:  # before the socket: nobody can have enabled the robot if one fails
+            session, config = zenoh
             for service in zenoh_services(server, session, config):
                 await service.start()
                 services.append(service)
-        except BaseException:
-            await _close_services(server, services)
-            raise
-    await server.start()
+        await server.start()
+    except BaseException:
+        # a start-up that fails (a Zenoh twin, a socket already served) ends what it started: the
+        # drain thread before run() unlinks the ring it reads
+        await _close_services(server, services)
+        if server.recorder is not None:
+            await server.recorder.close()
+        raise
     live = server.recorder.live if server.recorder is not None else None
     print(f"crtk-bridge: {server.robot} ({server.profile.backend_type}, {len(server.profile.joints)} joints) "
           f"serving CRTK on {server.socket_path}"

@@ -152,6 +152,20 @@ def test_beyond_loopback_is_refused_without_the_tls_and_access_control_opt_in(tm
     assert out.returncode == 1 and "give HOST:PORT, e.g. 127.0.0.1:8765" in out.stderr, out.stderr
 
 
+def test_a_port_taken_ends_start_up_in_one_line(tmp_path):
+    import socket
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(so101_data()))
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        out = _start(["--profile", str(tmp_path / "p.yaml"), "--sim", "--foxglove-listen", f"127.0.0.1:{port}"], tmp_path)
+    err = [line for line in out.stderr.splitlines() if line.startswith("crtk-bridge: so101")]
+    assert out.returncode == 1 and len(err) == 1, out.stderr
+    assert err[0].startswith(f"crtk-bridge: so101: --foxglove-listen 127.0.0.1:{port}: the Foxglove server did not start")
+    assert "Traceback" not in out.stderr and not (tmp_path / "x.sock").exists()
+
+
 def test_without_foxglove_sdk_the_option_names_the_extra(tmp_path):
     (tmp_path / "p.yaml").write_text(yaml.safe_dump(so101_data()))
     code = ("import sys; sys.modules['foxglove'] = None; from crtk_bridge.cli import main; "

@@ -377,7 +377,8 @@ class Recorder:
             except asyncio.TimeoutError:
                 log.error("%s: recording %s did not close in 10 s", self.robot, r.path)
         self._stop.set()
-        await self.loop.run_in_executor(None, self._thread.join, 5.0)
+        if self._thread.ident is not None:  # started (a start-up that failed early may not have)
+            await self.loop.run_in_executor(None, self._thread.join, 5.0)
         if self.live is not None:
             await self.loop.run_in_executor(None, self.live.close)
         if self._dumping is not None:
