@@ -29,6 +29,7 @@ from .client.paths import default_socket_path
 from .core.actuator import SimWiring
 from .core.kinematics_check import check_kinematics
 from .core.loop import control_main
+from .core.samples import SampleRing, ring_slots
 from .core.snapshot import Layout, SnapshotBuffer
 from .errors import CrtkBridgeError
 from .profile import Profile, load_profile
@@ -173,11 +174,12 @@ def check_socket_path(path: str, robot: str) -> list[str]:
 
 
 def _control_process(profile: Profile, source: str, chan: socket.socket, front: socket.socket,
-                     snap: SnapshotBuffer, realtime: bool) -> None:
+                     snap: SnapshotBuffer, realtime: bool, samples: SampleRing | None = None) -> None:
     # the fork copied the front's end of the pair: close it, or the loop would never see EOF
     # when the front process dies (and would keep the robot enabled with nobody in charge)
     front.close()
-    code = control_main(profile, lambda: create_backend(profile, source=source), chan, snap, realtime=realtime)
+    code = control_main(profile, lambda: create_backend(profile, source=source), chan, snap, realtime=realtime,
+                        samples=samples)
     sys.exit(code)
 
 
@@ -218,19 +220,28 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
         loop.add_signal_handler(sig, on_signal)
     link.attach(loop, server.on_control_lost)
     services = []
-    if zenoh is not None:  # before the socket: nobody can have enabled the robot if one fails
-        session, config = zenoh
-        try:
+    try:
+        if server.recorder is not None:  # the black box runs from the start
+            server.recorder.start()
+            await server.recorder.start_recording()  # --record / recording.dir: before anyone can enable
+        if zenoh is not None:  # before the socket: nobody can have enabled the robot if one fails
+            session, config = zenoh
             for service in zenoh_services(server, session, config):
                 await service.start()
                 services.append(service)
-        except BaseException:
-            await _close_services(server, services)
-            raise
-    await server.start()
+        await server.start()
+    except BaseException:
+        # a start-up that fails (a Zenoh twin, a socket already served) ends what it started: the
+        # drain thread before run() unlinks the ring it reads
+        await _close_services(server, services)
+        if server.recorder is not None:
+            await server.recorder.close()
+        raise
+    live = server.recorder.live if server.recorder is not None else None
     print(f"crtk-bridge: {server.robot} ({server.profile.backend_type}, {len(server.profile.joints)} joints) "
           f"serving CRTK on {server.socket_path}"
-          + (f" and Zenoh ({_zenoh_where(zenoh[1])})" if zenoh else ""), flush=True)
+          + (f" and Zenoh ({_zenoh_where(zenoh[1])})" if zenoh else "")
+          + (f"; Foxglove live view on {live.url} (read-only)" if live is not None else ""), flush=True)
     systemd.ready(f"serving {server.socket_path}")
     watchdog = systemd.watchdog_period()
     watchdog_task = loop.create_task(_watchdog(link, watchdog)) if watchdog else None
@@ -258,6 +269,8 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
         status = 1
     elif proc.exitcode not in (0, None) and status == 0:
         status = 1
+    if server.recorder is not None:  # after the loop's last cycles: recordings hold the stop
+        await server.recorder.close()
     await _close_services(server, services)
     await server.close()
     for t in (stop_wait, lost_wait):
@@ -335,7 +348,7 @@ def _remove_dir(path: str | None) -> None:
 
 def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None, realtime: bool = True,
         zenoh_connect: list[str] | None = None, zenoh_listen: list[str] | None = None,
-        ros_domain_id: int | None = None) -> int:
+        ros_domain_id: int | None = None, record_dir: str | None = None, foxglove_listen: str | None = None) -> int:
     """Run the daemon in the foreground until SIGTERM / SIGINT. Returns the exit status.
     ``zenoh_connect`` / ``zenoh_listen`` / ``ros_domain_id`` (the command line's) turn on and
     configure the Zenoh transport over the profile's ``transport.zenoh`` section. A start that
@@ -343,7 +356,8 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
     created: list[str] = []
     try:
         return _run(profile_path, created, sim=sim, socket_path=socket_path, realtime=realtime,
-                    zenoh_connect=zenoh_connect, zenoh_listen=zenoh_listen, ros_domain_id=ros_domain_id)
+                    zenoh_connect=zenoh_connect, zenoh_listen=zenoh_listen, ros_domain_id=ros_domain_id,
+                    record_dir=record_dir, foxglove_listen=foxglove_listen)
     except BaseException:
         for folder in created:  # innermost first; one another daemon now uses is not empty: kept
             try:
@@ -354,12 +368,26 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
 
 
 def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str | None, realtime: bool,
-         zenoh_connect: list[str] | None, zenoh_listen: list[str] | None, ros_domain_id: int | None) -> int:
+         zenoh_connect: list[str] | None, zenoh_listen: list[str] | None, ros_domain_id: int | None,
+         record_dir: str | None = None, foxglove_listen: str | None = None) -> int:
     """:func:`run`, adding to ``created`` the folders it creates for the socket."""
     profile = load_profile(profile_path)
     zconfig = zenoh_config(profile, zenoh_connect, zenoh_listen, ros_domain_id)
     if zconfig is not None:
         check_exposure(zconfig, profile.name)  # refused before anything starts
+    live = None
+    if foxglove_listen is not None:  # loopback, or the Zenoh transport's TLS + access control opt-in
+        from .recording.exposure import check as check_live
+
+        live = check_live(foxglove_listen, profile, str(profile_path))
+        import importlib.util
+        try:
+            found = importlib.util.find_spec("foxglove") is not None  # not imported: the fork comes first
+        except (ImportError, ValueError):
+            found = False
+        if not found:
+            raise CrtkBridgeError(f"{profile.name}: --foxglove-listen needs foxglove-sdk, an optional extra: "
+                                  "pip install 'crtk-bridge[foxglove]'")
     source = str(profile_path)
     # validate the backend section (and that its SDK is installed) before anything starts
     create_backend(profile, source=source)
@@ -388,11 +416,15 @@ def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str |
             _remove_dir(workdir)
             raise
 
-    snap = SnapshotBuffer(Layout(len(profile.joints), len(profile.namespaces)), create=True)
+    layout = Layout(len(profile.joints), len(profile.namespaces))
+    snap = SnapshotBuffer(layout, create=True)
+    # every cycle's sample for recordings and the black box (core/samples.py); the ring covers
+    # RING_SECONDS at the profile's rate (a backend pacing the loop runs at its own, slower or not)
+    samples = SampleRing(layout, ring_slots(max(profile.loop.rate_hz, 1.0)), create=True)
     zsession = None
     front, back = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     ctx = multiprocessing.get_context("fork")  # forked before any thread or event loop exists
-    proc = ctx.Process(target=_control_process, args=(profile, source, back, front, snap, realtime),
+    proc = ctx.Process(target=_control_process, args=(profile, source, back, front, snap, realtime, samples),
                        name=f"crtk-bridge-{profile.name}-control")
     try:
         proc.start()
@@ -416,6 +448,10 @@ def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str |
                 proc.kill()
             raise CrtkBridgeError(str(exc)) from None
         server = Server(link, ready["commands"], socket_path)
+        # imported after the fork: the control process never loads the recorder (rosbags, zenoh)
+        from .recording.recorder import Recorder
+
+        server.recorder = Recorder(server, samples, source, record_dir, live)
         holder["server"] = server
         for msg in early:
             server.on_event(msg)
@@ -434,6 +470,7 @@ def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str |
             proc.join(SHUTDOWN_TIMEOUT_S)
         front.close()
         snap.close(unlink=True)
+        samples.close(unlink=True)
         for simulator in simulators:
             simulator.stop()
         _remove_dir(workdir)

@@ -141,6 +141,21 @@ class Shutdown(_Strict, kw_only=True):
     rest: dict[str, float] = {}  # joint name -> rad: the rest pose (required for park); others stay put
 
 
+#: longest black box window (s): the front keeps this many seconds of every cycle in memory
+BLACKBOX_MAX_S = 600.0
+#: bounds of recording.rotate_s (s): one bag per second at most, one a day at least
+ROTATE_MIN_S, ROTATE_MAX_S = 1.0, 86400.0
+
+
+class Recording(_Strict, kw_only=True):
+    """Recording and the black box (docs/recording.md)."""
+
+    blackbox_s: float = 30.0  # s of every cycle kept in memory, written on FAULT; 0: no black box
+    blackbox_dir: str | None = None  # default: $XDG_STATE_HOME (~/.local/state)/crtk-bridge/blackbox
+    dir: str | None = None  # record every cycle from start-up into this folder (also: crtk-bridge --record)
+    rotate_s: float = 300.0  # ...a new bag every rotate_s seconds of cycles
+
+
 class Server(_Strict, kw_only=True):
     socket: str | None = None  # default: $XDG_RUNTIME_DIR/crtk-bridge/<name>.sock
 
@@ -187,6 +202,7 @@ class Profile(_Strict, kw_only=True):
     server: Server = Server()
     transport: Transport = Transport()
     shutdown: Shutdown = Shutdown()
+    recording: Recording = Recording()
     joints: list[Joint]
     namespaces: list[Namespace]
     # a YAML file (relative to the profile) of joint name -> calibration keys, replacing those
@@ -394,6 +410,12 @@ def _check(profile: Profile) -> list[str]:
     problems += _check_buses(profile)
     problems += _check_safety(profile)
     problems += _check_shutdown(profile)
+    if not 0.0 <= profile.recording.blackbox_s <= BLACKBOX_MAX_S:
+        problems.append(f"recording.blackbox_s: {profile.recording.blackbox_s} is not in [0, {BLACKBOX_MAX_S:g}] "
+                        "(seconds of every cycle kept for the black box; 0: none)")
+    if not ROTATE_MIN_S <= profile.recording.rotate_s <= ROTATE_MAX_S:
+        problems.append(f"recording.rotate_s: {profile.recording.rotate_s} is not in [{ROTATE_MIN_S:g}, "
+                        f"{ROTATE_MAX_S:g}] (seconds of cycles per bag of the start-up recording)")
     problems += _check_zenoh(profile.transport.zenoh)
     return problems
 

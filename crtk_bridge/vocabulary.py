@@ -85,6 +85,13 @@ class MaintenanceCommand(StrEnum):
     CALIBRATE = "calibrate"
 
 
+class RecordingCommand(StrEnum):
+    """Recording and the black box, served by the front process (docs/recording.md)."""
+    RECORD = "record"
+    RECORD_STOP = "record_stop"
+    BLACKBOX = "blackbox"
+
+
 class Topic(StrEnum):
     """Queries that can also be streamed (``subscribe``); cartesian ones in :class:`CartesianTopic`."""
     MEASURED_JS = "measured_js"
@@ -183,6 +190,11 @@ class EventCode(StrEnum):
     COMMAND_FAILED = "command_failed"
     WORKER_DIED = "worker_died"  # the UR backend's ur_rtde worker process died (backends/ur/worker.py)
     WORKER_STALLED = "worker_stalled"  # ...or took no command for a channel's worth
+    # recording and the black box (recording/recorder.py, docs/recording.md)
+    SAMPLES_LOST = "samples_lost"
+    RECORDING_FAILED = "recording_failed"
+    BLACKBOX_WRITTEN = "blackbox_written"
+    BLACKBOX_FAILED = "blackbox_failed"
 
 
 #: accepted from any session, whoever holds control: a stop is never refused (as on the dVRK)

@@ -321,12 +321,20 @@ def sim_robot_params(metafunc) -> list:
 
 
 def pytest_configure(config):
+    # every daemon a test faults writes its black box (docs/recording.md) under $XDG_STATE_HOME:
+    # a folder of the test run's, never the user's ~/.local/state
+    config._crtk_state_home = os.environ["XDG_STATE_HOME"] = tempfile.mkdtemp(prefix="crtk-test-state-")
     config.pluginmanager.register(in_child, "crtk-in-child")  # the in_child marker (tests/in_child.py)
     config.addinivalue_line("markers", "requires(*capabilities): the simulated robots a test using sim_robot "
                             "runs on (tests/conftest.py robot_capabilities); none given: servo_bus")
     config.addinivalue_line("markers", "reuse_daemon: the test leaves its robot as it found it, or in a state "
                             "sim_daemon can restore (DISABLED, at its start pose, no fault): one daemon per "
                             "robot per module serves every such test (tests/conftest.py SharedDaemons)")
+
+
+def pytest_unconfigure(config):
+    if hasattr(config, "_crtk_state_home"):
+        shutil.rmtree(config._crtk_state_home, ignore_errors=True)
 
 
 def pytest_generate_tests(metafunc):

@@ -153,8 +153,8 @@ def load_bad(tmp_path: Path, data: Any, name: str = "bad.yaml") -> str:
 def test_unknown_top_level_key(tmp_path, base):
     base["colour"] = "red"
     msg = load_bad(tmp_path, base)
-    assert msg.endswith("bad.yaml: colour: unknown key; valid keys, nearest first: loop, calibration_file, transport, "
-                        "description, "
+    assert msg.endswith("bad.yaml: colour: unknown key; valid keys, nearest first: loop, recording, calibration_file, "
+                        "transport, description, "
                         "server, joints, backend, backends, shutdown, namespaces, name, safety")
 
 

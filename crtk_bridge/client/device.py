@@ -1100,6 +1100,34 @@ class Robot:
         DISABLED, naming the state)."""
         return self.connection.request("calibrate", None, {"action": action, **data}, timeout=timeout)
 
+    def record(self, path: str, duration_s: float | None = None, namespaces: list[str] | None = None) -> dict:
+        """Start recording every control cycle into the rosbag2 MCAP bag ``path`` (``run1.mcap``
+        or ``run1`` -> ``run1/run1.mcap``), written by the daemon on its machine (a relative path
+        is made absolute here). Returns ``{"recording", "path", "bag"}`` once the file is open;
+        the recording runs until :meth:`record_stop`, its ``duration_s``, or this connection's
+        end (docs/recording.md). Takes no control."""
+        data: dict[str, Any] = {"path": os.path.abspath(os.path.expanduser(path))}
+        if duration_s is not None:
+            data["duration_s"] = duration_s
+        if namespaces:
+            data["namespaces"] = list(namespaces)
+        return self.connection.request("record", None, data)
+
+    def record_stop(self, recording: int | None = None, wait: bool = False, timeout: float | None = None) -> dict:
+        """Stop a recording (default: this connection's latest) and return its result once the bag
+        is closed: ``path``, ``samples``, ``first_cycle``, ``last_cycle``, ``lost``, ``bytes``...
+        ``wait=True``: a recording with a duration runs to its end first."""
+        data: dict[str, Any] = {"wait": wait}
+        if recording is not None:
+            data["recording"] = recording
+        return self.connection.request("record_stop", None, data, timeout=timeout)
+
+    def blackbox(self, path: str, timeout: float | None = None) -> dict:
+        """Write the black box (the last ``recording.blackbox_s`` seconds of every cycle) to the
+        bag ``path`` now; returns ``{"path", "samples", "seconds", ...}``."""
+        return self.connection.request("blackbox", None, {"path": os.path.abspath(os.path.expanduser(path))},
+                                       timeout=timeout)
+
     def acquire(self) -> None:
         """Take control explicitly; raises :class:`CommandError` ``read_only`` if another
         session holds it."""

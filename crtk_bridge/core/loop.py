@@ -2,7 +2,8 @@
 
 Each cycle, at the ONE effective period (:func:`~crtk_bridge.core.actuator.effective_period_s`:
 the profile's rate, or the hardware's when the backend paces the cycle): read -> requests + state machine -> motion -> limits -> write
--> publish snapshot -> send replies and events. It asks for SCHED_FIFO and mlockall (and says once,
+-> publish snapshot -> push the cycle's sample into the ring (core/samples.py: recording, black
+box) -> send replies and events. It asks for SCHED_FIFO and mlockall (and says once,
 with a ``realtime_unavailable`` warning, when it cannot), freezes the GC after start-up, and keeps
 logging, allocation-heavy work and blocking I/O out of the cycle.
 
@@ -33,6 +34,7 @@ from ..errors import CrtkBridgeError
 from ..profile import Profile
 from .actuator import Actuator, Fault, Lifecycle, effective_period_s
 from .controller import Controller
+from .samples import SampleRing
 from .snapshot import RING, SnapshotBuffer
 from .state import OperatingState
 
@@ -103,8 +105,10 @@ class ControlLoop:
     """Owns the backend, the controller and the loop. Runs in the control process."""
 
     def __init__(self, profile: Profile, actuator: Actuator, chan: socket.socket, snapshot: SnapshotBuffer,
-                 realtime: bool = True):
+                 realtime: bool = True, samples: SampleRing | None = None):
         self.profile = profile
+        #: every cycle's sample for the front (recording, black box): core/samples.py
+        self.samples = samples
         self.actuator = actuator
         self.chan = chan
         self.snap = snapshot
@@ -246,6 +250,12 @@ class ControlLoop:
         c.on_read(self.feedback, fault)
         c._push_state()
         self._publish()
+        samples = self.samples
+        # the cycle's stamp in the ring: the steady epoch clock of the cycle's start
+        epoch = time.time() - time.perf_counter()
+        state = self.snap.data[:samples.state] if samples is not None else None
+        if samples is not None:
+            samples.push(0, epoch + time.perf_counter(), state)
         if ready is not None:
             c.outbox.append(ready)
         self._flush()
@@ -291,6 +301,8 @@ class ControlLoop:
             cycles[0] = i
             ring_index[0] = slot
             self._publish()
+            if samples is not None:  # a copy into pre-allocated shared memory, never blocks
+                samples.push(i, epoch + t0, state)
             self._flush()
             # -- schedule the next cycle; after an overrun, skip ahead instead of bursting --
             # (paced: the next beat is expected one period after this one started)
@@ -373,7 +385,7 @@ class ControlLoop:
 
 
 def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: socket.socket,
-                 snapshot: SnapshotBuffer, realtime: bool = True) -> int:
+                 snapshot: SnapshotBuffer, realtime: bool = True, samples: SampleRing | None = None) -> int:
     """Entry point of the control process (forked by the daemon). Returns its exit status.
 
     Opens and configures the backend (lifecycle path, may block), tells the front process it is
@@ -401,7 +413,7 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
         chan.send(_encode({"event": "_startup_failed", "data": {"message": f"{profile.name}: {exc!r}"}}))
         return 1
     caps = actuator.capabilities
-    loop = ControlLoop(profile, actuator, chan, snapshot, realtime=realtime)
+    loop = ControlLoop(profile, actuator, chan, snapshot, realtime=realtime, samples=samples)
     loop_ref["loop"] = loop
     c = loop.controller
 

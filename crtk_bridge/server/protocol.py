@@ -27,12 +27,13 @@ import numpy as np
 from ..errors import CommandError, one_line
 from ..vocabulary import (  # noqa: F401 - the protocol's words, re-exported for the server
     JOINT_TOPICS as JOINT_QUERIES, PROTOCOL_VERSION, ROBOT_TOPICS as ROBOT_QUERIES, STOP_COMMANDS, ErrorCode,
-    MaintenanceCommand, SessionCommand, StateCommand, Topic,
+    MaintenanceCommand, RecordingCommand, SessionCommand, StateCommand, Topic,
 )
 
 STATE_COMMANDS = tuple(StateCommand)
 TOPICS = tuple(Topic)
 SESSION_COMMANDS = tuple(SessionCommand)
+RECORDING_COMMANDS = tuple(RecordingCommand)
 
 MAX_LINE = 1 << 16  #: bytes per request line (a motion command is a few hundred)
 MAX_DEPTH = 32  #: nesting of arrays and objects in a request line (a real request uses 3)
@@ -117,6 +118,22 @@ class Calibrate(_Payload):
     file: dict[str, Any] = {}  # import: the file's content
 
 
+class Record(_Payload):
+    """``record`` (docs/recording.md): the bag's path on the daemon's machine."""
+    path: Annotated[str, msgspec.Meta(min_length=1)]
+    duration_s: Annotated[float, msgspec.Meta(gt=0)] | None = None  # default: until record_stop
+    namespaces: list[str] | None = None  # default: every namespace
+
+
+class RecordStop(_Payload):
+    recording: int | None = None  # default: the session's latest recording
+    wait: bool = False  # a recording with a duration: wait for its end instead of cutting it short
+
+
+class Blackbox(_Payload):
+    path: Annotated[str, msgspec.Meta(min_length=1)]
+
+
 #: command -> payload Struct; commands not listed take no data (:class:`NoData`)
 PAYLOADS: dict[str, type[_Payload]] = {
     "servo_jp": JointServo, "servo_jr": JointPosition,
@@ -129,6 +146,7 @@ PAYLOADS: dict[str, type[_Payload]] = {
     "forward_kinematics": Joints, "inverse_kinematics": IkRequest,
     "subscribe": Subscribe, "unsubscribe": Unsubscribe,
     "calibrate": Calibrate,
+    "record": Record, "record_stop": RecordStop, "blackbox": Blackbox,
 }
 #: joint commands whose vectors have one entry per joint of the namespace
 JOINT_VECTORS = {c: t for c, t in PAYLOADS.items() if t in (JointServo, JointPosition, JointVelocity, JointEffort)}

@@ -21,7 +21,8 @@ from ..profile import joint_bus_id
 from .cartesian import FRAMED, CartesianSpace
 from .link import ControlLink, ControlLost
 from .protocol import (
-    JOINT_QUERIES, JOINT_VECTORS, MAX_LINE, PAYLOADS, PROTOCOL_VERSION, ROBOT_QUERIES, SESSION_COMMANDS,
+    JOINT_QUERIES, JOINT_VECTORS, MAX_LINE, PAYLOADS, PROTOCOL_VERSION, RECORDING_COMMANDS, ROBOT_QUERIES,
+    SESSION_COMMANDS,
     STATE_COMMANDS, STOP_COMMANDS, TOPICS, MaintenanceCommand, ProtocolError, decode_payload, decode_request, encode,
     error, ok,
 )
@@ -89,9 +90,15 @@ class Server:
         #: callables given every event the sessions get (operating_state, error, warning, status),
         #: on the event loop: other transports (the ROS 2 graph) follow the robot through them
         self.listeners: list = []
+        #: callables given every valid request (session, cmd, ns, data) before it is handled, and
+        #: every session that ends: the recorder (recording/recorder.py) logs the commands
+        self.command_listeners: list = []
+        self.detach_listeners: list = []
+        #: serves record / record_stop / blackbox (recording/recorder.py); None: not offered
+        self.recorder = None
         #: every command and query this daemon knows (data typed by protocol.PAYLOADS, else none)
         self._known = set(self.commands) | set(TOPICS) | set(SESSION_COMMANDS) | set(MaintenanceCommand) | {
-            c for cs in self.cartesian.values() for c in cs.commands + cs.queries}
+            c for cs in self.cartesian.values() for c in cs.commands + cs.queries} | set(RECORDING_COMMANDS)
 
     def cartesian_space(self, ns: str) -> CartesianSpace:
         """A new CartesianSpace of kinematic namespace ``ns``, with its own pinocchio data (a
@@ -191,6 +198,11 @@ class Server:
         for t in s.subs.values():
             t.cancel()
         self.sessions.pop(s.id, None)
+        for listener in self.detach_listeners:
+            try:
+                listener(s)
+            except Exception:
+                log.exception("%s: a session listener failed", self.robot)
         if self.controller is s:
             self.controller = None
             if client_lost:
@@ -225,6 +237,11 @@ class Server:
             req = decode_request(line)
             rid = req.id
             data = self._payload(req)
+            for listener in self.command_listeners:
+                try:
+                    listener(s, req.cmd, req.ns, data)
+                except Exception:
+                    log.exception("%s: a command listener failed", self.robot)
             result = await self._dispatch(s, rid, req.cmd, req.ns, data)
             if result is not _SENT:
                 s.send(ok(rid, result))
@@ -311,6 +328,10 @@ class Server:
             if self.controller is s:
                 self.controller = None
             return None
+        if cmd in RECORDING_COMMANDS:  # served by the front process; takes nobody's control
+            if self.recorder is None:
+                raise ProtocolError("unsupported", f"{self.robot}: {cmd}: recording is not available in this daemon")
+            return await self.recorder.request(s, cmd, data)
         if cmd == MaintenanceCommand.CALIBRATE:  # robot-wide; the control process checks the state
             self._take_control(s, cmd)
             return await self._forward(s, rid, cmd, None, data)
