@@ -69,6 +69,11 @@ def _run_parser() -> argparse.ArgumentParser:
                    help="record every control cycle from start-up into rosbag2 MCAP bags in DIR, a new bag "
                         "every recording.rotate_s seconds (default 300), until the daemon stops; replaces "
                         "the profile's recording.dir (docs/recording.md)")
+    p.add_argument("--foxglove-listen", metavar="HOST:PORT",
+                   help="serve a read-only live view to Foxglove (WebSocket, the ROS 2 graph's topics and the "
+                        "URDF), e.g. 127.0.0.1:8765; off by default. Beyond loopback only with transport.zenoh.tls "
+                        "and transport.zenoh.access_control, as Zenoh; needs pip install 'crtk-bridge[foxglove]' "
+                        "(docs/recording.md)")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO / mlockall")
     p.add_argument("--version", action="version", version=f"crtk-bridge {__version__}")
@@ -374,7 +379,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return run(str(profile), sim=args.sim, socket_path=args.socket, realtime=not args.no_realtime,
                    zenoh_connect=args.zenoh_connect, zenoh_listen=args.zenoh_listen,
-                   ros_domain_id=args.ros_domain_id, record_dir=args.record)
+                   ros_domain_id=args.ros_domain_id, record_dir=args.record,
+                   foxglove_listen=args.foxglove_listen)
     except CrtkBridgeError as exc:
         print(f"crtk-bridge: {exc}", file=sys.stderr)
         return 1

@@ -237,9 +237,11 @@ async def _serve(server: Server, link: ControlLink, proc: multiprocessing.Proces
         if server.recorder is not None:
             await server.recorder.close()
         raise
+    live = server.recorder.live if server.recorder is not None else None
     print(f"crtk-bridge: {server.robot} ({server.profile.backend_type}, {len(server.profile.joints)} joints) "
           f"serving CRTK on {server.socket_path}"
-          + (f" and Zenoh ({_zenoh_where(zenoh[1])})" if zenoh else ""), flush=True)
+          + (f" and Zenoh ({_zenoh_where(zenoh[1])})" if zenoh else "")
+          + (f"; Foxglove live view on {live.url} (read-only)" if live is not None else ""), flush=True)
     systemd.ready(f"serving {server.socket_path}")
     watchdog = systemd.watchdog_period()
     watchdog_task = loop.create_task(_watchdog(link, watchdog)) if watchdog else None
@@ -346,7 +348,7 @@ def _remove_dir(path: str | None) -> None:
 
 def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None, realtime: bool = True,
         zenoh_connect: list[str] | None = None, zenoh_listen: list[str] | None = None,
-        ros_domain_id: int | None = None, record_dir: str | None = None) -> int:
+        ros_domain_id: int | None = None, record_dir: str | None = None, foxglove_listen: str | None = None) -> int:
     """Run the daemon in the foreground until SIGTERM / SIGINT. Returns the exit status.
     ``zenoh_connect`` / ``zenoh_listen`` / ``ros_domain_id`` (the command line's) turn on and
     configure the Zenoh transport over the profile's ``transport.zenoh`` section. A start that
@@ -355,7 +357,7 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
     try:
         return _run(profile_path, created, sim=sim, socket_path=socket_path, realtime=realtime,
                     zenoh_connect=zenoh_connect, zenoh_listen=zenoh_listen, ros_domain_id=ros_domain_id,
-                    record_dir=record_dir)
+                    record_dir=record_dir, foxglove_listen=foxglove_listen)
     except BaseException:
         for folder in created:  # innermost first; one another daemon now uses is not empty: kept
             try:
@@ -367,12 +369,25 @@ def run(profile_path: str, *, sim: bool = False, socket_path: str | None = None,
 
 def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str | None, realtime: bool,
          zenoh_connect: list[str] | None, zenoh_listen: list[str] | None, ros_domain_id: int | None,
-         record_dir: str | None = None) -> int:
+         record_dir: str | None = None, foxglove_listen: str | None = None) -> int:
     """:func:`run`, adding to ``created`` the folders it creates for the socket."""
     profile = load_profile(profile_path)
     zconfig = zenoh_config(profile, zenoh_connect, zenoh_listen, ros_domain_id)
     if zconfig is not None:
         check_exposure(zconfig, profile.name)  # refused before anything starts
+    live = None
+    if foxglove_listen is not None:  # loopback, or the Zenoh transport's TLS + access control opt-in
+        from .recording.exposure import check as check_live
+
+        live = check_live(foxglove_listen, profile, str(profile_path))
+        import importlib.util
+        try:
+            found = importlib.util.find_spec("foxglove") is not None  # not imported: the fork comes first
+        except (ImportError, ValueError):
+            found = False
+        if not found:
+            raise CrtkBridgeError(f"{profile.name}: --foxglove-listen needs foxglove-sdk, an optional extra: "
+                                  "pip install 'crtk-bridge[foxglove]'")
     source = str(profile_path)
     # validate the backend section (and that its SDK is installed) before anything starts
     create_backend(profile, source=source)
@@ -436,7 +451,7 @@ def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str |
         # imported after the fork: the control process never loads the recorder (rosbags, zenoh)
         from .recording.recorder import Recorder
 
-        server.recorder = Recorder(server, samples, source, record_dir)
+        server.recorder = Recorder(server, samples, source, record_dir, live)
         holder["server"] = server
         for msg in early:
             server.on_event(msg)

@@ -25,6 +25,9 @@ import msgspec
 import yaml
 
 from .errors import ProfileError
+# the Zenoh lease's bounds: a module of their own, which crtk-ctl imports without this one
+from .zenoh_lease import (  # noqa: F401 - re-exported
+    ZENOH_KEEP_ALIVE_PER_LEASE, ZENOH_LEASE_MS_DEFAULT, ZENOH_LEASE_MS_MAX, ZENOH_LEASE_MS_MIN, zenoh_lease_problem)
 
 _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*(/[A-Za-z_][A-Za-z0-9_\-]*)*$")
 
@@ -167,29 +170,6 @@ class ZenohTls(_Strict, kw_only=True):
     connect_private_key: str | None = None
     enable_mtls: bool = False  # require a certificate from whoever connects (mutual TLS)
     verify_name_on_connect: bool = True  # the router's certificate must name the host connected to
-
-
-#: Zenoh link lease (ms, ``transport.zenoh.lease_ms``; Zenoh's ``transport/link/tx/lease``): a
-#: peer that sends nothing for the lease it announced (frozen, cable pulled) is dropped. Zenoh's
-#: own default is 10 s; with 2 s a frozen remote client is lost within 2 s (docs/zenoh.md, "Lease").
-ZENOH_LEASE_MS_DEFAULT = 2000
-#: below this a healthy link on a loaded PC or Wi-Fi (a TCP retransmission alone waits 200 ms or
-#: more) would expire: a spurious client loss
-ZENOH_LEASE_MS_MIN = 500
-#: rmw_zenoh's router uses 60 s, the longest lease Zenoh ships; beyond it client loss takes minutes
-ZENOH_LEASE_MS_MAX = 60000
-#: keep-alives per lease (Zenoh's ``transport/link/tx/keep_alive``): one every lease/4 on an idle
-#: link, so three may be lost before the peer expires it (Zenoh's own ratio, set explicitly)
-ZENOH_KEEP_ALIVE_PER_LEASE = 4
-
-
-def zenoh_lease_problem(value: Any) -> str | None:
-    """Why ``value`` is not a valid Zenoh lease in ms (an integer in [ZENOH_LEASE_MS_MIN,
-    ZENOH_LEASE_MS_MAX]), or ``None``. The caller names the key or option."""
-    if isinstance(value, bool) or not isinstance(value, int) \
-            or not ZENOH_LEASE_MS_MIN <= value <= ZENOH_LEASE_MS_MAX:
-        return f"must be an integer from {ZENOH_LEASE_MS_MIN} to {ZENOH_LEASE_MS_MAX} (ms), got {value!r}"
-    return None
 
 
 class ZenohTransport(_Strict, kw_only=True):

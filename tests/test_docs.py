@@ -137,6 +137,7 @@ SCENES = {
     ("docs/simulators.md", "`crtk-sim canopen`"): "sim-canopen",
     ("docs/teleop.md", "Teleoperation: a leader arm drives a follower"): "teleop",
     ("docs/recording.md", "Commands"): "so101",
+    ("docs/recording.md", "Replay and plots"): "so101",  # after Commands (doc order): run2.mcap exists
 }
 
 #: The reviewed list: how each documented command runs when not simply to exit status 0 in its
@@ -232,6 +233,17 @@ SPEC: dict[tuple[str, str], How] = {
         scene="so101", out=(r"now/now\.mcap: \d+ cycles \(cycles \d+\.\.\d+, \d+\.\d s\)",)),
     ("docs/recording.md", "crtk-bridge --profile profiles/so101.yaml --record /data/so101"): How(
         "skip", why=HARDWARE + "; tests/test_recording.py runs --record on --sim"),
+    ("docs/recording.md", "crtk-ctl enable"): How(scene="so101", out=(r"so101: ENABLED",)),
+    ("docs/recording.md", "crtk-ctl replay run2.mcap --topic measured_js --yes"): How(
+        scene="so101", out=(r"first a move_jp to its first position", r"so101: replayed \d+\.\d+ s of measured_js")),
+    ("docs/recording.md", "crtk-ctl plot run2.mcap -o run2.png"): How(scene="so101", out=(r"wrote run2\.png",)),
+    ("docs/recording.md", "crtk-ctl plot run2.mcap -o run2.html --joints shoulder_pan elbow_flex --from 0.5 --to 1.5"):
+        How(scene="so101", out=(r"wrote run2\.html",)),
+    ("docs/recording.md", "crtk-ctl disable"): How(scene="so101", out=(r"so101: DISABLED",)),
+    ("docs/recording.md", "crtk-bridge --profile profiles/so101.yaml --sim --foxglove-listen 127.0.0.1:8765"): How(
+        "skip", why="the so101 scene's daemon has the robot's socket, and 8765 is a fixed port a parallel run would "
+                    "take: tests/test_foxglove_live.py starts this daemon on a free port and reads it with a "
+                    "Foxglove WebSocket client"),
     # systemd/README.md
     ("systemd/README.md", "journalctl -u crtk-bridge@so101 -f"): How("skip", why="the journal of an installed systemd unit"),
     ("systemd/README.md", "journalctl -u 'crtk-bridge@*' -b"): How("skip", why="the journal of an installed systemd unit"),

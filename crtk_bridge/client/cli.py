@@ -13,6 +13,8 @@
     crtk-ctl calibrate --profile my_arm.yaml           (by hand, robot DISABLED; docs/calibration.md)
     crtk-ctl calibrate --profile my_arm.yaml --import ~/.cache/huggingface/lerobot/calibration/robots/so_follower/arm.json
     crtk-ctl teleop --leader so101_leader --follower so101   (follower ENABLED first; docs/teleop.md)
+    crtk-ctl record run1.mcap --duration 2      crtk-ctl replay run1.mcap --yes      (docs/recording.md)
+    crtk-ctl plot run1.mcap -o run1.png         (pip install 'crtk-bridge[plot]')
 
 Cartesian poses are X Y Z (m) then the unit quaternion QX QY QZ QW, the tip frame in the base
 frame; relative commands (_cr) take DX DY DZ [QX QY QZ QW] in the base frame (no quaternion: no
@@ -50,14 +52,14 @@ from typing import Sequence
 from crtk_bridge import __version__, vocabulary
 from crtk_bridge.argparsing import ArgumentParser
 
-from crtk_bridge.client import calibrate, teleop
+from crtk_bridge.client import teleop
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.client.device import (
     CARTESIAN_TOPICS, CF_TOPICS, CV_TOPICS, ENDLESS_COMMANDS, FRAMES, JS_TOPICS, Device, Robot,
     connect, encode_pose, list_robots)
 from crtk_bridge.client.paths import SYSTEM_SOCKET_DIR, default_socket_dir
 from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
-from crtk_bridge.profile import ZENOH_LEASE_MS_DEFAULT, ZENOH_LEASE_MS_MAX, ZENOH_LEASE_MS_MIN, zenoh_lease_problem
+from crtk_bridge.zenoh_lease import ZENOH_LEASE_MS_DEFAULT, ZENOH_LEASE_MS_MAX, ZENOH_LEASE_MS_MIN, zenoh_lease_problem
 
 PROG = "crtk-ctl"
 GET_TOPICS = tuple(str(t) for t in (*JS_TOPICS, *CARTESIAN_TOPICS, *vocabulary.ROBOT_TOPICS))
@@ -337,7 +339,39 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("blackbox", "write the black box (the last recording.blackbox_s seconds of every cycle, kept "
                         "by the daemon) into the rosbag2 MCAP bag OUT (docs/recording.md)")
     p.add_argument("out", metavar="OUT.mcap", help="the bag to write (must not exist)")
+    p = add("replay", "play a recording's joint positions back on the robot it was made on: a move_jp to its "
+                      "first position (confirmed, or --yes), then the positions at their recorded timing as an "
+                      "interpolate_jp stream; Ctrl-C holds (docs/recording.md)")
+    p.add_argument("file", metavar="FILE", help="a bag written by crtk-ctl record / blackbox (folder or .mcap)")
+    p.add_argument("--topic", choices=("setpoint_js", "measured_js"), default="setpoint_js",
+                   help="the positions to play: what was commanded (setpoint_js, default) or what was measured")
+    p.add_argument("--speed", metavar="F", type=_checked(_speed_problem), default=1.0,
+                   help="play F times as fast as recorded, 0.05 to 4 (default 1)")
+    p.add_argument("--rate", metavar="HZ", type=_positive_float, default=50.0,
+                   help="interpolate_jp samples per second (default 50, at most the loop rate)")
+    p.add_argument("--yes", action="store_true",
+                   help="move to the first position without asking (needed when stdin is not a terminal)")
+    p = add("plot", "plot a recording: per joint, measured against setpoint (position, velocity, effort where "
+                    "recorded), operating-state changes and events marked, on the recording's clock; needs "
+                    "matplotlib: pip install 'crtk-bridge[plot]' (docs/recording.md)")
+    p.add_argument("file", metavar="FILE", help="a bag written by crtk-ctl record / blackbox (folder or .mcap)")
+    p.add_argument("-o", "--output", required=True, metavar="OUT",
+                   help="the file to write: .png, .svg or .html (a page holding the SVG)")
+    p.add_argument("--joints", nargs="+", metavar="JOINT", help="these joints only (default: every joint)")
+    p.add_argument("--from", dest="t_from", metavar="S", type=float, default=None,
+                   help="from S seconds after the recording's start")
+    p.add_argument("--to", dest="t_to", metavar="S", type=float, default=None,
+                   help="up to S seconds after the recording's start")
+    ns_option = getattr(p, "_option_string_actions", {}).get("--ns")
+    if ns_option is not None:
+        ns_option.help = "the namespace to plot (default: the first recorded)"
     return parser
+
+
+def _speed_problem(value: float) -> str | None:
+    if not (math.isfinite(value) and 0.05 <= value <= 4.0):
+        return f"{value:g} is not in 0.05..4 (1: the recorded timing)"
+    return None
 
 
 # -- output -------------------------------------------------------------------------------------
@@ -537,6 +571,8 @@ def _last_error(robot: Robot, since: int) -> str:
 def _run(args, robot: Robot) -> int:
     if args.command in ("record", "blackbox"):
         return _record(args, robot)
+    if args.command == "replay":
+        return _replay(args, robot)
     base, _, frame = (args.ns or "").rpartition("/")
     if args.ns not in robot.namespaces and frame in FRAMES and base in robot.namespaces:
         raise UsageError(f"--ns {args.ns}: {frame} is a frame, not a namespace: use --ns {base} --frame {frame} "
@@ -570,6 +606,8 @@ def _run(args, robot: Robot) -> int:
         return 0
 
     if cmd == "calibrate":
+        # here, not at the top: the profile model and its YAML writer are for this command only
+        from crtk_bridge.client import calibrate
         return calibrate.run(robot, args.profile, args.gripper, args.import_path, sys.stdin.fileno(), sys.stdout)
 
     if cmd == "list":
@@ -746,6 +784,54 @@ def _record(args, robot: Robot) -> int:
     return 0
 
 
+def _replay(args, robot: Robot) -> int:
+    """``replay``: move_jp to the first position (asked), then the recording as interpolate_jp
+    samples at its timing (client/replay.py); Ctrl-C holds."""
+    from crtk_bridge.client import bagfile, replay
+
+    dev = robot.device(args.ns)
+    rec = bagfile.read(args.file, topics=(args.topic,))
+    p = replay.plan(rec, robot.name, dev.name, args.topic, dev.joint_names)
+    rate = args.rate if robot.loop_rate_hz is None else min(args.rate, robot.loop_rate_hz)
+    q, _, _, _ = dev.measured_js()
+    offset, joint = replay.largest_offset(p, q)
+    what = (f"{dev.name}: replay of {p.duration:.1f} s of /{dev.name}/{args.topic} from {rec.path} at speed "
+            f"{args.speed:g}; first a move_jp to its first position ({offset:.3f} rad away on {joint})")
+    if not args.yes:
+        if not sys.stdin.isatty():
+            raise UsageError(f"{what}: give --yes to move without being asked (stdin is not a terminal)")
+        answer = input(f"{what}. Move? [y/N] ")
+        if answer.strip().lower() not in ("y", "yes"):
+            raise Failure(f"{dev.name}: replay not started (answered {answer.strip() or 'no'!r})")
+    elif not args.json:
+        print(what, flush=True)
+    timeout = args.timeout if args.timeout is not None else MOVE_WAIT_DEFAULT
+    with _stops_on_interrupt([dev], f"{dev.name} replay"):
+        handle = dev.move_jp(p.q[0].tolist())
+        if not handle.wait(timeout=timeout):
+            raise Failure(f"{dev.name}: replay: the move to the first position did not end within {timeout:g} s")
+        if dev.operating_state() == "FAULT":
+            raise Failure(f"{dev.name}: replay: the move to the first position ended in FAULT")
+        report = replay.stream(dev, p, args.speed, rate)
+    obj = {"cmd": "replay", "ns": dev.name, "file": str(rec.path), "topic": args.topic, "speed": args.speed,
+           "samples": report.samples, "duration_s": report.duration_s, "rate_hz": rate}
+    if args.json:
+        _emit_json(obj)
+    else:
+        print(f"{dev.name}: replayed {p.duration:.2f} s of {args.topic} in {report.elapsed_s:.2f} s "
+              f"({report.samples} interpolate_jp samples at up to {rate:g} Hz)")
+    return 0
+
+
+def _plot(args) -> int:
+    """``plot``: no daemon; matplotlib only here (client/plot.py)."""
+    from crtk_bridge.client import plot
+
+    out = plot.write(args.file, args.output, ns=args.ns, joints=args.joints, t_from=args.t_from, t_to=args.t_to)
+    _emit_json({"cmd": "plot", "output": str(out)}) if args.json else print(f"wrote {out}")
+    return 0
+
+
 def _fmt_event(ev, received: float | None = None) -> str:
     """One event as a line: its stamp, or when it has none (0), the time it was ``received``."""
     d = ev.data
@@ -875,6 +961,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         if args.command == "teleop":
             return _teleop(args, request_timeout)
+        if args.command == "plot":
+            return _plot(args)
         robot = connect(socket=args.socket, robot=args.robot, timeout=request_timeout,
                         zenoh_connect=args.zenoh_connect, zenoh_config=args.zenoh_config,
                         zenoh_lease_ms=args.zenoh_lease_ms)

@@ -14,6 +14,10 @@ Differences from crtk_python_client, on purpose (reference/crtk-anchors.md secti
 - ``pause()``, ``resume()``, ``is_paused()`` and ``is_fault()`` exist (CRTK 3.4).
 
 Units are SI: rad, rad/s, N·m, s; stamps in seconds since the Unix epoch.
+
+numpy is imported by the functions that return or take arrays, not by this module: ``crtk-ctl
+state`` and ``enable`` need none, and importing numpy alone costs more than their round trip
+(bench/bench_cli.py; tests/test_cli_imports.py).
 """
 
 from __future__ import annotations
@@ -26,8 +30,6 @@ import time
 import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
-
-import numpy as np
 
 from crtk_bridge.client.connection import (
     PROTOCOL_VERSION, Connection, DaemonConnectionError, Event, encode_vector)
@@ -72,6 +74,7 @@ RELATIVE_COMMANDS = ("servo_jr", "interpolate_jr", "servo_cr", "interpolate_cr")
 def joint_state(data: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """A wire JointState as ``(position, velocity, effort, ts)``: float64 arrays (empty when the
     robot does not provide that vector) and the stamp in s (``0.0``: invalid data)."""
+    import numpy as np
     return (np.asarray(data.get("position") or (), dtype=float),
             np.asarray(data.get("velocity") or (), dtype=float),
             np.asarray(data.get("effort") or (), dtype=float),
@@ -83,6 +86,7 @@ def joint_state(data: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
 def matrix_from_quaternion(quaternion) -> np.ndarray:
     """3x3 rotation matrix of a quaternion ``[x, y, z, w]`` (ROS order), normalised first.
     Raises ``ValueError`` on a zero or non-finite quaternion."""
+    import numpy as np
     x, y, z, w = (float(v) for v in np.asarray(quaternion, dtype=float).ravel())
     n = math.sqrt(x * x + y * y + z * z + w * w)
     if not (n > 1e-9 and math.isfinite(n)):
@@ -98,6 +102,7 @@ def matrix_from_quaternion(quaternion) -> np.ndarray:
 def quaternion_from_matrix(rotation) -> np.ndarray:
     """Unit quaternion ``[x, y, z, w]`` (``w >= 0``) of a 3x3 rotation matrix (or the rotation
     block of a 4x4 pose)."""
+    import numpy as np
     R = np.asarray(rotation, dtype=float)[:3, :3]
     t = R[0, 0] + R[1, 1] + R[2, 2]
     if t > 0.0:
@@ -118,6 +123,7 @@ def quaternion_from_matrix(rotation) -> np.ndarray:
 
 def pose_matrix(position, quaternion) -> np.ndarray:
     """The 4x4 homogeneous matrix of ``position`` [x, y, z] (m) and ``quaternion`` [x, y, z, w]."""
+    import numpy as np
     T = np.eye(4)
     T[:3, :3] = matrix_from_quaternion(quaternion)
     T[:3, 3] = np.asarray(position, dtype=float).ravel()[:3]
@@ -126,6 +132,7 @@ def pose_matrix(position, quaternion) -> np.ndarray:
 
 def pose_pq(matrix) -> tuple[np.ndarray, np.ndarray]:
     """``(position [3] in m, quaternion [4] x, y, z, w with w >= 0)`` of a 4x4 homogeneous matrix."""
+    import numpy as np
     T = np.asarray(matrix, dtype=float)
     return T[:3, 3].copy(), quaternion_from_matrix(T[:3, :3])
 
@@ -133,6 +140,7 @@ def pose_pq(matrix) -> tuple[np.ndarray, np.ndarray]:
 def pose_from_wire(data: dict) -> tuple[np.ndarray, float]:
     """A wire pose (``{"stamp", "position", "orientation", ...}``) as ``(4x4 matrix, ts)``; the
     matrix is all NaN when the pose is invalid (``ts == 0``, empty vectors)."""
+    import numpy as np
     p, q, ts = pq_from_wire(data)
     if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
         return np.full((4, 4), np.nan), ts
@@ -141,6 +149,7 @@ def pose_from_wire(data: dict) -> tuple[np.ndarray, float]:
 
 def pq_from_wire(data: dict) -> tuple[np.ndarray, np.ndarray, float]:
     """A wire pose as ``(position [3], quaternion [4] xyzw, ts)``; NaN vectors when invalid."""
+    import numpy as np
     p = np.asarray(data.get("position") or (), dtype=float)
     q = np.asarray(data.get("orientation") or (), dtype=float)
     if p.shape != (3,) or q.shape != (4,):
@@ -151,6 +160,7 @@ def pq_from_wire(data: dict) -> tuple[np.ndarray, np.ndarray, float]:
 def six_from_wire(data: dict, a: str, b: str) -> tuple[np.ndarray, float]:
     """A wire twist (``a, b = "linear", "angular"``) or wrench (``"force", "torque"``) as
     ``(vector [6], ts)``; NaN when invalid."""
+    import numpy as np
     v = np.asarray(list(data.get(a) or ()) + list(data.get(b) or ()), dtype=float)
     if v.shape != (6,):
         v = np.full(6, np.nan)
@@ -166,6 +176,7 @@ def encode_pose(pose, what: str = "pose") -> dict:
     (0.5, 1.5), as the daemon requires). Raises :class:`CommandError` ``bad_request`` before
     anything is sent.
     """
+    import numpy as np
     if isinstance(pose, dict):
         if "position" not in pose or "orientation" not in pose:
             raise CommandError("bad_request", f"{what}: a pose dict needs 'position' and 'orientation'")
@@ -205,6 +216,7 @@ def pose_share(delta: dict, before: float, reached: float) -> dict:
     """The part of a relative pose ``delta`` (wire form, as :func:`encode_pose` returns) between
     the fractions ``before`` and ``reached`` of it: that part of the translation, and of the
     rotation's angle about the same axis, so the parts of ``0 .. 1`` in a row make ``delta``."""
+    import numpy as np
     dp = np.asarray(delta["position"], float)
     dq = np.asarray(delta["orientation"], float)
     dq = dq / np.linalg.norm(dq)
@@ -725,6 +737,7 @@ class Device:
         the daemon refused the first sample (nothing of the stream runs).
         Raises :class:`CommandError` (``bad_request`` for a bad duration, rate or payload,
         before anything is sent)."""
+        import numpy as np
         if cmd not in JOINT_STREAM_COMMANDS + POSE_STREAM_COMMANDS + DELTA_STREAM_COMMANDS + SIX_STREAM_COMMANDS:
             raise CommandError("bad_request", f"{self.name}: {cmd!r} is not a stream command (servo_*, "
                                "interpolate_*)")
@@ -970,6 +983,7 @@ class Device:
         pose is not reachable within the profile's IK tolerances; nothing raises for that. The
         argument order differs from crtk_python_client's ``inverse_kinematics(jp, cp)``: the
         seed is optional here. Raises :class:`CommandError` for a malformed request."""
+        import numpy as np
         self._check_query("inverse_kinematics")
         data = encode_pose(pose, f"{self.name}: inverse_kinematics")
         if jp_seed is not None:

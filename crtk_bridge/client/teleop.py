@@ -36,8 +36,6 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-import numpy as np
-
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.client.device import Device, Robot
 from crtk_bridge.errors import CommandError, CrtkBridgeError, fmt_number
@@ -259,6 +257,7 @@ class Teleop:
         except (DaemonConnectionError, ConnectionError, TimeoutError) as exc:
             raise TeleopError(f"leader {self.leader.name!r} went away: {exc}") from exc
         # invalid (stamp 0), short or non-finite data is no position to follow or align on
+        import numpy as np  # here, not at the top: crtk-ctl's other commands need no numpy
         valid = ts != 0.0 and len(q) == len(p.leader.joint_names) and bool(np.all(np.isfinite(q)))
         return q if valid else None
 
@@ -290,6 +289,7 @@ class Teleop:
 
     def _worst(self, lead: list[np.ndarray], follow: list[np.ndarray]) -> tuple[Pair, int, float] | None:
         """The pair and joint furthest from alignment, when any is beyond the tolerance."""
+        import numpy as np
         worst = None
         for p, a, b in zip(self.pairs, lead, follow):
             err = np.abs(np.asarray(a) - np.asarray(b))

@@ -24,7 +24,7 @@ from typing import Any, Iterable
 
 from crtk_bridge.client.connection import DaemonConnectionError
 from crtk_bridge.errors import CrtkBridgeError
-from crtk_bridge.profile import ZENOH_LEASE_MS_DEFAULT, zenoh_lease_problem
+from crtk_bridge.zenoh_lease import ZENOH_LEASE_MS_DEFAULT, zenoh_lease_problem
 from crtk_bridge.transport import tunnel_keys as keys
 from crtk_bridge.transport.zenoh_session import ZenohConfig, ZenohConnectError, open_session
 

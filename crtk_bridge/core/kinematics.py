@@ -254,6 +254,20 @@ class Kinematics:
         oMt = pin.updateFramePlacement(self.model, self.data, self._tip)
         return oMt if self._base_identity else self._bMo * oMt
 
+    def link_poses(self, q: np.ndarray) -> list[tuple[str, np.ndarray, np.ndarray]]:
+        """Every link of the model (URDF links; joints outside ``joint_names`` at 0) but the base,
+        in the base frame at joint positions ``q``: ``(link, position[3], quaternion[4] x,y,z,w)``,
+        what robot_state_publisher puts on /tf, for a 3D view of the URDF (recording/live.py)."""
+        if not hasattr(self, "_links"):
+            self._links = [i for i, f in enumerate(self.model.frames)
+                           if f.type == pin.FrameType.BODY and i != self._base]
+        pin.framesForwardKinematics(self.model, self.data, self._model_q(q))
+        out = []
+        for i in self._links:
+            M = self.data.oMf[i] if self._base_identity else self._bMo * self.data.oMf[i]
+            out.append((self.model.frames[i].name, M.translation.copy(), quaternion_from_matrix(M.rotation)))
+        return out
+
     def fk(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Tip pose in the base frame: ``(position[3] m, quaternion[4] x,y,z,w with w >= 0)``."""
         M = self._placement(self._model_q(q))

@@ -81,11 +81,7 @@ class BagWriter:
         self.namespaces = list(namespaces)
         self.spaces = {ns: cs for ns, cs in spaces.items() if ns in self.namespaces}
         self.enc = Encoders()
-        self.writer = Writer(self.dir, version=9, storage_plugin=StoragePlugin.MCAP)
-        self.writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        for k, v in (custom or {}).items():
-            self.writer.set_custom_data(k, v)
-        self.writer.open()
+        self._open_storage(custom)
         self.messages = 0
         self.samples = 0
         self.first_cycle = -1
@@ -104,17 +100,25 @@ class BagWriter:
                 add(ns, topic, T.STRING_STAMPED, EVENTS)
         add(robot, "commands", T.STRING_STAMPED, EVENTS)
         if self.spaces:
-            self._conns[("", "tf")] = self.writer.add_connection("/tf", T.TF_MESSAGE, typestore=T.TYPESTORE,
-                                                                 offered_qos_profiles=[EVENTS])
-        self._conns[("", "robot_description")] = self.writer.add_connection(
-            "/robot_description", T.STRING, typestore=T.TYPESTORE, offered_qos_profiles=[LATCHED])
+            self._conns[("", "tf")] = self._connect("/tf", T.TF_MESSAGE, EVENTS)
+        self._conns[("", "robot_description")] = self._connect("/robot_description", T.STRING, LATCHED)
         self._js = [(ns, topic, self._conns[(ns, topic)]) for ns in self.namespaces for topic in JOINT_TOPICS]
         self._cart = [(ns, cs, [(t, self._conns[(ns, t)]) for t in CARTESIAN_TOPICS]) for ns, cs in self.spaces.items()]
         self._tf = self._conns.get(("", "tf"))
 
     def _add(self, ns: str, topic: str, ros_type: str, qos: Qos) -> None:
-        self._conns[(ns, topic)] = self.writer.add_connection(f"/{ns}/{topic}", ros_type, typestore=T.TYPESTORE,
-                                                              offered_qos_profiles=[qos])
+        self._conns[(ns, topic)] = self._connect(f"/{ns}/{topic}", ros_type, qos)
+
+    # the storage: rosbags' rosbag2 MCAP writer (recording/live.py's LiveWriter: Foxglove channels)
+    def _open_storage(self, custom: dict[str, str] | None) -> None:
+        self.writer = Writer(self.dir, version=9, storage_plugin=StoragePlugin.MCAP)
+        self.writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        for k, v in (custom or {}).items():
+            self.writer.set_custom_data(k, v)
+        self.writer.open()
+
+    def _connect(self, topic: str, ros_type: str, qos: Qos) -> Any:
+        return self.writer.add_connection(topic, ros_type, typestore=T.TYPESTORE, offered_qos_profiles=[qos])
 
     def _write(self, conn: Any, t_ns: int, data: bytes) -> None:
         self.writer.write(conn, t_ns, data)

@@ -288,7 +288,9 @@ class Recording:
 class Recorder:
     """The front's recording service: started by the daemon after the server, closed before it."""
 
-    def __init__(self, server: Any, ring: SampleRing, source: str | None = None, record_dir: str | None = None):
+    def __init__(self, server: Any, ring: SampleRing, source: str | None = None, record_dir: str | None = None,
+                 live: Any = None):
+        """``live``: where the Foxglove live view listens (recording/exposure.py's Listen), or None."""
         self.server = server
         self.link = server.link
         self.profile = server.profile
@@ -325,6 +327,8 @@ class Recorder:
         self._lost_unsaid = 0
         self._state = str(server.state.get("state"))
         self.lost = 0  # cycles overwritten in the ring before the drain read them
+        self.live_listen = live
+        self.live = None  # the Foxglove live view (recording/live.py), fed as the recordings are
 
     def custom_data(self) -> dict[str, str]:
         return {"robot": self.robot, "daemon_version": __version__, "rate_hz": f"{1.0 / self.link.period_s:g}",
@@ -336,6 +340,12 @@ class Recorder:
         self.server.listeners.append(self.on_event)
         self.server.command_listeners.append(self.on_command)
         self.server.detach_listeners.append(self.on_detach)
+        if self.live_listen is not None:
+            from .live import LiveView  # foxglove-sdk: loaded only when asked
+
+            live = LiveView(self, self.live_listen)
+            live.start()
+            self.live = live
         self._thread.start()
 
     async def start_recording(self) -> None:
@@ -369,6 +379,8 @@ class Recorder:
         self._stop.set()
         if self._thread.ident is not None:  # started (a start-up that failed early may not have)
             await self.loop.run_in_executor(None, self._thread.join, 5.0)
+        if self.live is not None:
+            await self.loop.run_in_executor(None, self.live.close)
         if self._dumping is not None:
             await self.loop.run_in_executor(None, self._dumping.join, 30.0)
 
@@ -410,6 +422,8 @@ class Recorder:
             self.blackbox.add(t_ns, "event", msg)
         for r in self._active:
             r.offer(("event", t_ns, msg))
+        if self.live is not None:
+            self.live.offer(("event", t_ns, msg))
         if ev == "operating_state":
             state = str(msg["data"].get("state"))
             if state == "FAULT" and self._state != "FAULT" and self.blackbox is not None:
@@ -427,6 +441,8 @@ class Recorder:
             self.blackbox.add(t_ns, "command", entry)
         for r in self._active:
             r.offer(("command", t_ns, entry))
+        if self.live is not None:
+            self.live.offer(("command", t_ns, entry))
 
     def on_detach(self, session: Any) -> None:
         """A session ended: the recordings it started stop (as its streams do)."""
@@ -526,6 +542,8 @@ class Recorder:
             for r in self._active:
                 if not r.stopping:
                     r.offer(("rows", rows))
+            if self.live is not None:
+                self.live.offer(("rows", rows))
         dump = self._dumps[0] if self._dumps else None
         if dump is not None and self.reader.next > dump[1] and (self._dumping is None or not self._dumping.is_alive()):
             self._dumps.popleft()

@@ -1,0 +1,84 @@
+"""python-can's ``slcan`` interface, reading the adapter's bytes as they come rather than one by one.
+
+python-can 4.6's ``slcanBus._read`` takes one byte per ``Serial.read(1)`` (a ``select`` and a
+``read`` system call each, and the Python around them), and when nothing is waiting it polls at the
+serial timeout, 1 ms by default. A CANopen cycle at 250 Hz brings ~100 bytes from the adapter (the
+drives' TPDOs, the adapter's ``z`` acknowledgements of the SYNC and RPDOs), so the notifier thread
+took ~25 % of a core reading them byte by byte and polling between cycles (issue 23,
+bench/bench_cpu.py). python-can's own fix (reading everything waiting at once, hardbyte/python-can
+#2028) is not in a release yet; this is the same idea on python-can's pieces: one ``select`` on
+the port waits for the adapter (up to the serial timeout, the notifier's cycle, not 1 ms), one
+``read`` takes all that is waiting (pyserial opens a tty non-blocking), and the lines are handed
+out one at a time from the bus's own buffer. A pyserial URL (``socket://``...) has no descriptor:
+it is read with its own ``read``, the first byte then what is waiting.
+
+Sending: python-can's ``_write`` follows every line with ``Serial.flush()``, a ``tcdrain`` that
+waits until the port has transmitted it (on a USB adapter, the USB transfer): in the control
+cycle, once per SYNC and RPDO. Here a line is written and the cycle goes on; the kernel sends it,
+in order, as it would after the wait.
+
+Everything else (opening, bitrate, frame formatting and parsing) is python-can's.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+from typing import Optional
+
+import serial
+from can.exceptions import error_check
+from can.interfaces.slcan import slcanBus
+
+#: the serial timeout when the profile's ``backend.options`` name none: how long one read blocks
+#: while the bus is silent (the notifier's recv timeout is the same 50 ms; a byte that arrives
+#: ends the wait at once)
+SERIAL_TIMEOUT_S = 0.05
+
+
+class SlcanBus(slcanBus):
+    """``slcanBus`` whose receive reads what is waiting in one go (see the module docstring)."""
+
+    def __init__(self, channel, *args, timeout: float = SERIAL_TIMEOUT_S, **kwargs):
+        super().__init__(channel, *args, timeout=timeout, **kwargs)
+
+    def _write(self, string: str) -> None:
+        with error_check("Could not write to serial device"):
+            self.serialPortOrig.write(string.encode() + self.LINE_TERMINATOR)
+
+    def _line(self) -> Optional[str]:
+        """The first complete line in the buffer (with its CR or BEL), taken out of it; or None."""
+        buf = self._buffer
+        ends = [i for i in (buf.find(self._OK), buf.find(self._ERROR)) if i >= 0]
+        if not ends:
+            return None
+        n = min(ends) + 1
+        line = buf[:n].decode()
+        del buf[:n]
+        return line
+
+    def _read(self, timeout: Optional[float]) -> Optional[str]:
+        line = self._line()
+        if line is not None:
+            return line
+        expiry = serial.Timeout(timeout)
+        port = self.serialPortOrig
+        fd = port.fd if isinstance(port, serial.Serial) and port.fd is not None else None
+        with error_check("Could not read from serial device"):
+            while True:
+                if fd is not None:  # a tty: one select and one read per wake-up
+                    if select.select([fd], [], [], port.timeout)[0]:
+                        data = os.read(fd, 4096)  # pyserial opens the port non-blocking
+                        if not data:  # what pyserial's read says of a USB adapter pulled out
+                            raise serial.SerialException("device reports readiness to read but returned "
+                                                         "no data (device disconnected?)")
+                        self._buffer += data
+                else:  # a pyserial URL (socket://, loop://...): its own read
+                    data = port.read(1)  # blocks up to the port's timeout
+                    if data:
+                        self._buffer += data + port.read(port.in_waiting)
+                line = self._line()
+                if line is not None:
+                    return line
+                if expiry.expired():
+                    return None

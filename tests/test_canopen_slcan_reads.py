@@ -1,0 +1,102 @@
+"""The CANopen backend's slcan bus (backends/canopen402/slcan.py) reads what the adapter sent in one
+go (issue 23: python-can 4.6 reads an SLCAN line byte by byte, a ``select`` + ``read`` per byte,
+and polls every 1 ms while the bus is silent; at 250 Hz that was a quarter of a core). Asserted as
+behaviour: the frames come out whole and in order, and the number of serial reads they took, not
+how long they took."""
+
+from __future__ import annotations
+
+import os
+import pty
+import tty
+
+import can
+import pytest
+
+from crtk_bridge.backends.canopen402.slcan import SERIAL_TIMEOUT_S, SlcanBus
+
+
+@pytest.fixture
+def bus_and_adapter(monkeypatch):
+    """A SlcanBus on one end of a pty; the test writes the adapter's bytes on the other. The
+    third item lists the reads of the bus's port (os.read of its descriptor, or Serial.read)."""
+    master, slave = pty.openpty()
+    tty.setraw(master)
+    name = os.ttyname(slave)
+    bus = SlcanBus(channel=name, bitrate=1_000_000, sleep_after_open=0)
+    os.read(master, 1024)  # the bitrate and open commands python-can sent
+    reads = []
+    port = bus.serialPortOrig
+    real_read, real_os_read = port.read, os.read
+
+    def counted(size=1):
+        reads.append(size)
+        return real_read(size)
+
+    def os_read(fd, n):
+        if fd == port.fd:
+            reads.append(n)
+        return real_os_read(fd, n)
+
+    port.read = counted
+    monkeypatch.setattr(os, "read", os_read)
+    yield bus, master, reads
+    monkeypatch.undo()
+    bus.shutdown()
+    os.close(master)
+    os.close(slave)
+
+
+def test_a_burst_of_frames_takes_one_or_two_reads_not_one_per_byte(bus_and_adapter):
+    bus, master, reads = bus_and_adapter
+    sent = [(0x181, bytes.fromhex("0F012C00000000")), (0x282, bytes.fromhex("1122334455667788")),
+            (0x182, bytes.fromhex("0F012D00000000"))]
+    # the adapter's acknowledgements of two transmits between the frames, all in one chunk
+    frames = b"z\r" + b"z\r".join(f"t{i:03X}{len(d)}{d.hex().upper()}\r".encode() for i, d in sent)
+    os.write(master, frames)
+    got = [bus.recv(1.0) for _ in range(3)]
+    assert [(m.arbitration_id, bytes(m.data)) for m in got] == sent
+    # python-can 4.6's slcan: one read per byte, len(frames) of them
+    assert 1 <= len(reads) <= 4, reads
+
+
+def test_a_line_split_across_two_writes_comes_out_whole(bus_and_adapter):
+    bus, master, _ = bus_and_adapter
+    os.write(master, b"t1812AB")
+    assert bus.recv(0.1) is None  # no CR yet: no frame, and no garbage
+    os.write(master, b"CD\r")
+    msg = bus.recv(1.0)
+    assert msg is not None and msg.arbitration_id == 0x181 and bytes(msg.data) == b"\xab\xcd"
+
+
+def test_a_silent_bus_is_waited_on_not_polled_every_millisecond(bus_and_adapter):
+    bus, _, reads = bus_and_adapter
+    assert bus.recv(0.5) is None
+    # stock python-can: the serial timeout is 1 ms, so ~500 reads in 0.5 s
+    assert len(reads) <= 0.5 / SERIAL_TIMEOUT_S + 2, len(reads)
+
+
+def test_sending_is_python_cans_without_waiting_for_the_port_to_drain(bus_and_adapter):
+    """A send writes the line and returns: no tcdrain (Serial.flush) in the control cycle."""
+    bus, master, _ = bus_and_adapter
+    drains = []
+    bus.serialPortOrig.flush = lambda: drains.append(1)
+    bus.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+    out = b""
+    while not out.endswith(b"\r"):  # a closing CR, or the test's timeout
+        out += os.read(master, 64)
+    assert out.endswith(b"t0800\r") and drains == []
+
+
+def test_a_pyserial_url_without_a_descriptor_is_read_with_its_own_read():
+    """``loop://`` (pyserial's loopback URL) has no file descriptor: what the bus sends comes
+    back through pyserial's own read, a frame whole (after the open commands' echoes)."""
+    bus = SlcanBus(channel="loop://", bitrate=1_000_000, sleep_after_open=0)
+    try:
+        bus.send(can.Message(arbitration_id=0x123, data=b"\x01\x02", is_extended_id=False))
+        msg = bus.recv(1.0)
+        while msg is not None and msg.arbitration_id != 0x123:
+            msg = bus.recv(1.0)
+        assert msg is not None and bytes(msg.data) == b"\x01\x02"
+    finally:
+        bus.shutdown()
