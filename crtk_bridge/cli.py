@@ -253,7 +253,7 @@ def _setup_servos(argv: list[str]) -> int:
             _print_setup_event(event, args.profile)
 
     try:
-        profile = load_profile(resolve_profile_arg(args.profile))
+        profile = load_profile(resolve_profile_arg(args.profile, hardware=True))  # it writes EEPROM
         backend = create_backend(profile, source=args.profile)
         if profile.backends is not None:
             if args.bus not in profile.bus_names:
@@ -373,7 +373,11 @@ def main(argv: list[str] | None = None) -> int:
     from .daemon import run
     from .profile import resolve_profile_arg
 
-    profile = resolve_profile_arg(args.profile)
+    try:
+        profile = resolve_profile_arg(args.profile, hardware=not args.sim)
+    except CrtkBridgeError as exc:
+        print(f"crtk-bridge: {exc}", file=sys.stderr)
+        return 1
     if str(profile) != args.profile:
         print(f"crtk-bridge: --profile {args.profile}: using the shipped profile {profile}", file=sys.stderr)
     try:

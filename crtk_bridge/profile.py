@@ -584,11 +584,17 @@ def shipped_profile_names() -> list[str]:
     return sorted(p.stem for p in shipped_profiles_dir().glob("*.yaml"))
 
 
-def resolve_profile_arg(arg: str | Path) -> Path:
+def resolve_profile_arg(arg: str | Path, hardware: bool = False) -> Path:
     """The profile file a ``--profile`` argument means: the file itself when it exists; else a
     shipped profile, named bare (``so101``) or as README writes it from the clone's root
     (``profiles/so101.yaml``), so those commands work from any folder once the package is
-    installed; else the path as given (loading it then says the file is missing)."""
+    installed; else the path as given (loading it then says the file is missing).
+
+    ``hardware``: the caller drives real hardware (the daemon without ``--sim``, ``setup-servos``).
+    There a path that is not found never stands for the shipped profile: a user who typed their
+    own profile's path from the wrong folder would otherwise drive the arm with the shipped port
+    and calibration. Raises :class:`ProfileError` naming both ways out; a bare name still asks
+    for the shipped profile outright."""
     path = Path(arg).expanduser()
     if path.exists():
         return path
@@ -597,6 +603,11 @@ def resolve_profile_arg(arg: str | Path) -> Path:
         name = f"{text}.yaml"
     elif len(path.parts) == 2 and path.parts[0] == "profiles":
         name = path.name
+        if hardware and (shipped_profiles_dir() / name).is_file():
+            raise ProfileError(
+                f"--profile {text}: no such file in {Path.cwd()}; on hardware give your own profile's "
+                f"path (`crtk-bridge init-profile {path.stem} my_arm.yaml` writes one) or name the shipped "
+                f"profile outright (`--profile {path.stem}`); with --sim the shipped one is used")
     else:
         return path
     shipped = shipped_profiles_dir() / name

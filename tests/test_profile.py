@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import copy
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -468,3 +471,24 @@ def test_a_wrong_loop_rate_is_one_error_not_a_cascade(tmp_path, base, rate):
     msg = load_bad(tmp_path, base)
     assert "loop.rate_hz:" in msg and "(0, 10000]" in msg
     assert "bus_errors_max" not in msg, msg
+
+
+def test_a_profile_path_not_found_never_stands_for_the_shipped_one_on_hardware(tmp_path, monkeypatch):
+    # from a folder without profiles/: --sim (and check) take the shipped profile README names,
+    # the daemon on hardware and setup-servos refuse, so a user's own profile typed from the wrong
+    # folder never drives the arm with the shipped port and calibration (found by the review)
+    from crtk_bridge.profile import resolve_profile_arg, shipped_profiles_dir
+
+    monkeypatch.chdir(tmp_path)
+    shipped = shipped_profiles_dir() / "so101.yaml"
+    assert resolve_profile_arg("profiles/so101.yaml") == shipped
+    assert resolve_profile_arg("so101", hardware=True) == shipped  # named outright: asked for
+    with pytest.raises(ProfileError) as exc:
+        resolve_profile_arg("profiles/so101.yaml", hardware=True)
+    assert "init-profile so101 my_arm.yaml" in str(exc.value) and "--profile so101" in str(exc.value)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    for argv in (["--profile", "profiles/so101.yaml"], ["setup-servos", "--profile", "profiles/so101.yaml", "--yes"]):
+        done = subprocess.run([sys.executable, "-P", "-m", "crtk_bridge.cli", *argv], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=60)
+        assert done.returncode == 1, (argv, done.stderr)
+        assert done.stderr.strip().splitlines() == [f"crtk-bridge: {exc.value}"]
