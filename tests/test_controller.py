@@ -70,10 +70,11 @@ def rig():
     return make_rig(FakeActuator(PROFILE))
 
 
-def make_rig(act):
-    """(controller, actuator, clock, cycle(n), req(cmd, ns, **data)) around fake actuator ``act``."""
+def make_rig(act, profile=None):
+    """(controller, actuator, clock, cycle(n), req(cmd, ns, **data)) around fake actuator ``act``,
+    on ``profile`` (default: the test profile)."""
     clock = Clock()
-    c = Controller(PROFILE, act, clock)
+    c = Controller(profile or PROFILE, act, clock)
     ids = itertools.count(1)
     fb = act.new_feedback()
 

@@ -6,7 +6,6 @@ move_jp braked with the move's own acceleration (10 rad/s^2) and jerk (100 rad/s
 
 from __future__ import annotations
 
-import itertools
 import math
 import re
 from pathlib import Path
@@ -18,38 +17,21 @@ import yaml
 
 from crtk_bridge.backends import create_backend
 from crtk_bridge.core.actuator import effective_period_s
-from crtk_bridge.core.controller import Controller
 from crtk_bridge.core.motion import Mode
 from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import ProfileError
 from crtk_bridge.profile import STOP_DECELERATION_FACTOR, load_profile, parse_profile, stop_deceleration
 
-from .test_controller import PROFILE, Clock, FakeActuator
+from .test_controller import PROFILE, FakeActuator, make_rig
 from .test_transitions import HookedActuator
 
 SO101_STOP_MAX_RAD = 0.25  # DESIGN: the SO-101 stops from 3 rad/s within 0.25 rad
 
 
 def rig_for(act, profile=None):
-    """(controller, actuator, cycle(n), req(cmd, ns, **data)) for ``act`` on ``profile``."""
-    clock = Clock()
-    c = Controller(profile or act.profile, act, clock)
-    ids = itertools.count(1)
-    fb = act.new_feedback()
-
-    def cycle(n=1):
-        for _ in range(n):
-            clock.t += c.dt
-            c.on_read(fb, act.read(fb))
-            if c.step():
-                c.on_write(act.write(c.command))
-
-    def req(cmd, ns=None, **data):
-        rid = next(ids)
-        c.handle({"id": rid, "cmd": cmd, "ns": ns, "data": data})
-        return [m for m in c.outbox if m.get("id") == rid][-1]
-
-    cycle()
+    """(controller, actuator, cycle(n), req(cmd, ns, **data)) for ``act`` on ``profile`` (the
+    actuator's own by default): test_controller's rig, one reply per request asserted."""
+    c, act, _, cycle, req = make_rig(act, profile or act.profile)
     return c, act, cycle, req
 
 
