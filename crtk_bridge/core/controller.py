@@ -39,6 +39,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .. import vectors
 from ..errors import BackendError, CommandError, fmt_number
 from ..profile import Profile, stop_deceleration
 from .actuator import (
@@ -481,19 +482,10 @@ class Controller:
                           "in progress")
 
     def _vector(self, ns: str, cmd: str, motion: NamespaceMotion, values: Any, field: str) -> np.ndarray:
-        if not isinstance(values, (list, tuple)) or len(values) != motion.n:
-            got = len(values) if isinstance(values, (list, tuple)) else type(values).__name__
-            raise Refused(
-                "bad_request",
-                f"{ns}: {cmd} needs {field} with {motion.n} values ({', '.join(motion.joint_names)}), got {got}",
-            )
         try:
-            vec = np.array(values, dtype=float)
-        except (TypeError, ValueError):
-            raise Refused("bad_request", f"{ns}: {cmd} {field} must be numbers") from None
-        if not np.all(np.isfinite(vec)):
-            raise Refused("bad_request", f"{ns}: {cmd} {field} contains a non-finite value")
-        return vec
+            return vectors.floats(values, f"{ns}: {cmd} {field}", motion.n, motion.joint_names)
+        except vectors.InvalidVector as exc:
+            raise Refused(exc.code, exc.message) from None
 
     def _check_step(self, m: NamespaceMotion, p: np.ndarray, base: np.ndarray, cmd: str) -> None:
         step = np.abs(p - base)
