@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import abc
 import enum
+import math
 import os
 import threading
 import time
@@ -778,11 +779,13 @@ _POSITION, _VELOCITY, _EFFORT, _NONE_MODE = (int(CommandMode.POSITION), int(Comm
 def _all_finite(command: JointCommand) -> bool:
     """True when every number of ``command`` is finite (the cycle's fast path: a sum is finite
     only if every term is; False may also mean a finite sum that overflowed, checked joint by joint)."""
-    total = command.position.sum() + command.velocity.sum() + command.effort.sum()
+    # Python floats: an overflow is inf, never a warning; a third of numpy's cost on a few joints
+    total = sum(command.position.tolist()) + sum(command.velocity.tolist()) + sum(command.effort.tolist())
     cart = command.cartesian
     if cart is not None:
-        total += cart.position.sum() + cart.orientation.sum() + cart.linear.sum() + cart.angular.sum()
-    return bool(np.isfinite(total))
+        total += (sum(cart.position.ravel().tolist()) + sum(cart.orientation.ravel().tolist())
+                  + sum(cart.linear.ravel().tolist()) + sum(cart.angular.ravel().tolist()))
+    return math.isfinite(total)
 
 
 # ---------------------------------------------------------------- ruckig, for the motion layer and
