@@ -83,9 +83,9 @@ class NativeCartesian:
         return self.mode is CartesianMode.MOVE and self.done_seq < self.seq
 
     def command(self, cmd: str, data: Any, now: float, measured: CartesianFeedback) -> None:
-        """Take ``cmd`` (validated here; ValueError with a one-line message naming the namespace
-        and field, CommandError for a step or twist beyond the ``safety`` bounds; nothing
-        changes then). ``measured``: the latest feedback, the base of a stream's first step. The
+        """Take ``cmd`` (validated here: :class:`~crtk_bridge.vectors.InvalidVector` naming the
+        namespace and field, CommandError for a step or twist beyond the ``safety`` bounds;
+        nothing changes then). ``measured``: the latest feedback, the base of a stream's first step. The
         namespace's joint motion holds and is no longer written."""
         ns = self.motion.name
         if cmd in POSE_COMMANDS:
