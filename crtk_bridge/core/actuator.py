@@ -24,6 +24,9 @@ Three paths, as in ros2_control hardware components:
   purpose, never raises: they return ``None`` when all went well, else a :class:`Fault` naming the
   cause. Backends implement the hooks ``_read`` / ``_write``; the public methods turn any exception
   a hook lets escape into a Fault, so a backend bug faults the robot instead of killing the loop.
+  ``write`` is also the one finiteness gate: a non-finite setpoint never reaches ``_write``
+  (:meth:`Actuator.write`), and core's motion output is already within the profile's limits, so
+  a backend clamps only to its device's ranges (docs/architecture.md, Limits).
   ``write`` is called only while ENABLED or PAUSED unless the backend sets ``cyclic_write``
   (a CiA 402 chain needs SYNC, RPDOs and the controlword every cycle in every state); then it is
   called every cycle, with every joint in :attr:`CommandMode.NONE` outside ENABLED / PAUSED.
