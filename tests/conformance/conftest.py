@@ -23,9 +23,9 @@ import pytest
 
 from crtk_bridge import registry
 from crtk_bridge.backends import backend_class, create_backend
+from crtk_bridge.core.actuator import Actuator, effective_period_s
+from crtk_bridge.core.control import Controller
 from crtk_bridge.registry import backend_simulator
-from crtk_bridge.core.actuator import Actuator
-from crtk_bridge.core.controller import Controller
 from crtk_bridge.profile import Profile, load_profile
 from crtk_bridge.sim import simulator_class
 
@@ -325,7 +325,7 @@ class Rig:
         self.controller: Controller | None = None
 
     def make_controller(self) -> Controller:
-        self.controller = Controller(self.profile, self.backend, time.time)
+        self.controller = Controller(self.profile, self.backend, time.time, effective_period_s(self.profile, self.backend))
         self.cycle()
         return self.controller
 
