@@ -19,8 +19,9 @@ from crtk_bridge.core.actuator import (
     Fault,
     FaultReaction,
     Lifecycle,
+    effective_period_s,
 )
-from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.control import Controller
 from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import BackendError, ProfileError
 from crtk_bridge.profile import load_profile
@@ -317,7 +318,7 @@ def controller_rig(left_reaction, right_reaction, left_enable_cycles=None):
     act = CompositeActuator(PROFILE, {"left": left, "right": right})
     act.open()
     clock = Clock()
-    c = Controller(PROFILE, act, clock)
+    c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
     fb = act.new_feedback()
     cycles: list[list] = []  # the log of each cycle
 
