@@ -18,8 +18,8 @@ cartesian control get cartesian setpoints from ``native_cartesian.py``. Safety h
   last setpoint (or goal) is refused; a stream silent for ``safety.servo_timeout_s`` holds;
 * move goals outside the joint limits are refused naming joint and limit;
 * faults (bus, servo error bits, tracking error beyond ``safety.tracking_error_max``) put the
-  robot in FAULT with the cause in an ``error`` event, and the backend's ``fault_reaction``
-  (serial servos: torque off).
+  robot in FAULT with the cause in an ``error`` event, and torque off (the backend's DISABLE
+  transition; a UR stops, powers off and applies its brakes).
 
 Lifecycle transitions (enable, disable, the torque-off of a fault, pause, resume, native home)
 run as the backend's :class:`~crtk_bridge.core.actuator.Transition`, one step per cycle after the
@@ -47,7 +47,6 @@ from .actuator import (
     CommandMode,
     DeviceStatus,
     Fault,
-    FaultReaction,
     JointFeedback,
     Lifecycle,
     Steps,
@@ -117,7 +116,9 @@ class Controller:
                  period_s: float | None = None):
         self.profile = profile
         self.actuator = actuator
-        self.caps = actuator.capabilities
+        #: what the backend declares (immutable, final once open): read here and nowhere else
+        self.traits = traits = actuator.traits
+        self.caps = traits.capabilities
         self.clock = clock
         self.robot = profile.name
         #: the cycle period (s): actuator.effective_period_s, passed in by the loop
@@ -132,7 +133,7 @@ class Controller:
         self.state_stamp = clock()
         self.outbox: list[dict] = []
         #: what each namespace's joints can do together: commands are offered and refused per namespace
-        self.ns_caps = {ns.name: actuator.capabilities_of([profile.joint_index(j) for j in ns.joints])
+        self.ns_caps = {ns.name: traits.capabilities_of([profile.joint_index(j) for j in ns.joints])
                         for ns in profile.namespaces}
         #: rad/s^2 each joint's stops brake at (the profile's, or its default bounded by the hardware)
         self.stop_dec = np.array([stop_deceleration(j.limits, actuator.deceleration_limit(i))
@@ -258,7 +259,7 @@ class Controller:
             what = {"position": "position control", "velocity": "velocity or position control",
                     "effort": "effort control", "free": "a way to switch torque off"}[need]
             lacking = [self.profile.joints[i].name for i in m.idx
-                       if not self._allows(self.actuator.joint_capabilities(int(i)), need)]
+                       if not self._allows(self.traits.joints[int(i)], need)]
             where = (f"joint{'s' if len(lacking) > 1 else ''} {', '.join(map(repr, lacking))}" if lacking
                      else f"the {self.profile.backend_type} backend")
             raise Refused("unsupported", f"{ns}: {cmd} is not supported: no {what} on {where}")
@@ -308,7 +309,7 @@ class Controller:
                 return Refused("unsupported", str(exc))
 
             t = Transition(self.robot, Lifecycle.CALIBRATE, self.actuator.calibration_begin(),
-                           self.actuator.transition_timeout_s(Lifecycle.CALIBRATE))
+                           self.traits.timeout_s(Lifecycle.CALIBRATE))
             return self._start(t, lambda: {"joints": list(self.profile.joint_names)}, failed)
         try:
             if action == "status":
@@ -337,7 +338,7 @@ class Controller:
                 p, q = parse_pose(ns, cmd, data)
             except ValueError as exc:
                 raise Refused("bad_request", str(exc)) from None
-            check = self.actuator.goal_check_steps(ns, cmd, np.concatenate([p, q]))
+            check = self.actuator.goal_check_steps(ns, cmd, np.concatenate([p, q])) if self.traits.goal_check else None
             if check is not None:  # the device's own limits first; the move starts when they agree
                 return self._start(self._goal_check(check), lambda: self._native_accept(cmd, ns, data),
                                    self._goal_refused)
@@ -345,7 +346,7 @@ class Controller:
 
     def _goal_check(self, steps: Steps) -> Transition:
         return Transition(self.robot, Lifecycle.GOAL_CHECK, steps,
-                          self.actuator.transition_timeout_s(Lifecycle.GOAL_CHECK))
+                          self.traits.timeout_s(Lifecycle.GOAL_CHECK))
 
     def _goal_refused(self, exc: Exception) -> Refused:
         """A GOAL_CHECK that refused the goal (or could not ask): the move is refused, the robot
@@ -527,7 +528,7 @@ class Controller:
                 f"{m.name}: move refused: goal {fmt_number(goal[j])} rad for joint {m.joint_names[j]!r} is outside "
                 f"its limits [{fmt_number(m.pos_min[j])}, {fmt_number(m.pos_max[j])}]",
             )
-        check = self.actuator.goal_check_steps(m.name, "move_jp", goal)
+        check = self.actuator.goal_check_steps(m.name, "move_jp", goal) if self.traits.goal_check else None
         if check is not None:  # the device's own limits first; the move starts when they agree
             return self._start(self._goal_check(check), lambda: self._start_move(m, goal), self._goal_refused)
         return self._start_move(m, goal)
@@ -667,7 +668,7 @@ class Controller:
 
     def _enable(self) -> Any:
         kinds = (Lifecycle.FAULT_RESET, Lifecycle.ENABLE) if self.state is OperatingState.FAULT else (Lifecycle.ENABLE,)
-        timeout = sum(self.actuator.transition_timeout_s(k) for k in kinds)
+        timeout = sum(self.traits.timeout_s(k) for k in kinds)
         t = Transition(self.robot, Lifecycle.ENABLE, self._sequence(kinds), timeout)
         return self._start(t, self._enabled, self._failed("enable"))
 
@@ -724,14 +725,15 @@ class Controller:
         return self.operating_state()
 
     def _resumed(self) -> dict:
-        if self.actuator.stops_itself_on_pause:  # the device holds where its own stop ended
-            for m in self.namespaces.values():
+        stopped_itself = self.traits.stops_itself_on_pause
+        for m in self.namespaces.values():  # a device that stops itself holds where its own stop ended
+            if any(stopped_itself[i] for i in m.idx):
                 m.reset(self.feedback.position[m.idx])
         self._set_state(OperatingState.ENABLED)
         return self.operating_state()
 
     def _home(self) -> Any:
-        if self.actuator.native_homing:
+        if self.traits.native_homing:
             def homed() -> dict:
                 self.is_homed = True
                 for m in self.namespaces.values():
@@ -827,7 +829,7 @@ class Controller:
                         f"{self.robot}: controlling client disconnected; holding {', '.join(names)}")
 
     def _enter_fault(self, fault: Fault) -> None:
-        """FAULT with ``fault`` as the cause, and the backend's fault reaction."""
+        """FAULT with ``fault`` as the cause, and the fault reaction: torque off (DISABLE)."""
         self.fault_cause = fault
         run = self._running
         torque_going_off = run is not None and run.transition.kind is Lifecycle.DISABLE and not run.rids
@@ -835,7 +837,7 @@ class Controller:
             self._abort_running(f"{run.transition.kind.value} aborted: {fault.message}")
         self._abort_motion()
         message = fault.message
-        if self.actuator.fault_reaction is FaultReaction.TORQUE_OFF and not torque_going_off:
+        if not torque_going_off:  # every backend's reaction: torque off (the DISABLE transition)
             message += self._torque_off()
         self._event("error", fault.code, message, joint=fault.joint, register=fault.register,
                     value=fault.value)
@@ -862,7 +864,7 @@ class Controller:
             self._torque_unconfirmed = True
             return Refused("fault", str(exc))
 
-        self._start(self.actuator.begin_fault_reaction(), done, failed, reply=False)
+        self._start(self.actuator.begin(Lifecycle.DISABLE), done, failed, reply=False)
         first[0] = False
         return said[0] if said else ""
 
@@ -917,7 +919,7 @@ class Controller:
         if news is not None:
             self._device_status(*news)
         self._consecutive_bus_errors = 0
-        speed = self.actuator.speed_fraction
+        speed = self.actuator.speed_fraction if self.traits.speed_scaling else math.nan
         if speed == speed and abs(speed - self._speed_fraction) >= 0.005 or (speed == speed) != (
                 self._speed_fraction == self._speed_fraction):
             self._speed_fraction = speed  # the operator moved the slider: clients hear of it
@@ -979,7 +981,7 @@ class Controller:
                 nc.cancel()  # paused, disabled, fault: the backend gets no cartesian setpoint
         if self.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
             self._written = False
-            if self.actuator.cyclic_write:
+            if self.traits.cyclic_write:
                 self.command.mode[:] = _NONE
                 if self.command.cartesian is not None:
                     self.command.cartesian.mode[:] = _NONE
