@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from crtk_bridge.backends.canopen402.backend import Canopen402Backend  # noqa: E402
-from crtk_bridge.core.controller import Controller  # noqa: E402
+from crtk_bridge.core.control import Controller  # noqa: E402
 from crtk_bridge.profile import parse_profile  # noqa: E402
 from crtk_bridge.sim.canopen402 import CanopenSimulator  # noqa: E402
 

@@ -15,7 +15,8 @@ import pytest
 
 from crtk_bridge.backends.canopen402 import tables as t
 from crtk_bridge.backends.canopen402.backend import Canopen402Backend
-from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.actuator import effective_period_s
+from crtk_bridge.core.control import Controller
 from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import BackendError, ProfileError
 from crtk_bridge.profile import load_profile, parse_profile
@@ -103,7 +104,7 @@ class CanRig:
         self.backend.open()
         self.backend.configure()
         self.fb = self.backend.new_feedback()  # its shape is the backend's traits': final once open
-        self.c = Controller(self.profile, self.backend, time.time)
+        self.c = Controller(self.profile, self.backend, time.time, effective_period_s(self.profile, self.backend))
         self.cycle()
         return self.c
 

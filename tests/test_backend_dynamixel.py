@@ -16,7 +16,7 @@ import yaml
 from crtk_bridge.backends import create_backend
 from crtk_bridge.backends.dynamixel import tables as T
 from crtk_bridge.backends.dynamixel.backend import DynamixelBackend
-from crtk_bridge.core.actuator import CommandMode
+from crtk_bridge.core.actuator import CommandMode, effective_period_s
 from crtk_bridge.errors import ProfileError
 from crtk_bridge.profile import parse_profile
 from crtk_bridge.sim.dynamixel import DynamixelSimulator
@@ -283,10 +283,10 @@ def test_failed_mode_switch_puts_the_robot_in_fault_at_once_torque_off_everywher
     # in FAULT (not ENABLED for bus_errors_max cycles with a limp joint); then torque off everywhere
     import time
 
-    from crtk_bridge.core.controller import Controller
+    from crtk_bridge.core.control import Controller
 
     sim, b = rig
-    c = Controller(b.profile, b, time.time)
+    c = Controller(b.profile, b, time.time, effective_period_s(b.profile, b))
     fb = b.new_feedback()
 
     def cycle():

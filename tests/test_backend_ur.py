@@ -1,5 +1,5 @@
 """The UR backend (backends/ur) on the simulated UR controller (sim/ur.py), through ur_rtde
-unmodified: the controller (core/controller.py) driven cycle by cycle as core/loop.py does, paced by
+unmodified: the controller (core/control/) driven cycle by cycle as core/loop.py does, paced by
 the controller's RTDE packets (``wait_cycle``), checked on what the simulated controller reports.
 
 One simulator and one backend serve the whole module; each test starts from a fresh controller,
@@ -20,7 +20,7 @@ import pytest
 from crtk_bridge.backends.ur.backend import UrBackend
 from crtk_bridge.backends.ur.channel import CTL_RUNNING
 from crtk_bridge.core.actuator import Lifecycle
-from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.control import Controller
 from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import ProfileError
 from crtk_bridge.profile import load_profile
@@ -300,7 +300,7 @@ def test_link_loss_faults_in_the_cycle_that_sees_it_then_reconnects(ur):
     assert c.state is OperatingState.FAULT  # never enabled by itself
     # the fault reaction (stop, power off) could not be confirmed without the link: it is, now
     ur.until(lambda: not c.is_busy and ur.sim.state()["robot_mode"] == "POWER_OFF", 5, "the arm powered off")
-    ur.until(lambda: not c.is_busy and not c._torque_unconfirmed, 5, "the fault reaction confirmed")
+    ur.until(lambda: not c.is_busy and not c.torque_unconfirmed, 5, "the fault reaction confirmed")
     r = ur.do("enable", timeout=15)
     assert r["ok"], r
     assert ur.do("move_jp", NS, position=list(READY - 0.1))["ok"]
@@ -437,7 +437,7 @@ def test_a_worker_that_dies_mid_servo_faults_naming_the_signal_then_enable_recov
     assert time.monotonic() - killed < watchdog_s + 1.5
     assert not _alive(old)
     # a new worker by itself; once its link is up the fault reaction (power off) is confirmed
-    ur.until(lambda: b.worker_pid not in (None, old) and not c.is_busy and not c._torque_unconfirmed, 10,
+    ur.until(lambda: b.worker_pid not in (None, old) and not c.is_busy and not c.torque_unconfirmed, 10,
              "a new worker and the fault reaction confirmed")
     assert ur.sim.state()["robot_mode"] == "POWER_OFF"
     r = ur.do("enable", timeout=15)

@@ -22,8 +22,9 @@ from crtk_bridge.core.actuator import (
     Fault,
     Lifecycle,
     Traits,
+    effective_period_s,
 )
-from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.control import Controller
 from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import BackendError, ProfileError
 from crtk_bridge.profile import load_profile
@@ -356,7 +357,7 @@ def test_on_resume_each_bus_resumes_from_where_it_stopped():
     measured position), the servos' where core's ramp ended."""
     c, left, right = device_and_servos()
     clock = Clock()
-    ctl = Controller(PROFILE, c, clock)
+    ctl = Controller(PROFILE, c, clock, effective_period_s(PROFILE, c))
     fb = c.new_feedback()
 
     def cycle(n=1):
@@ -469,7 +470,7 @@ def controller_rig(left_enable_cycles=None):
     act = CompositeActuator(PROFILE, {"left": left, "right": right})
     act.open()
     clock = Clock()
-    c = Controller(PROFILE, act, clock)
+    c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
     fb = act.new_feedback()
     cycles: list[list] = []  # the log of each cycle
 

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import itertools
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from crtk_bridge.core.actuator import Actuator, Capabilities, CommandMode, Fault, Traits
-from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.actuator import Actuator, Capabilities, CommandMode, Fault, Traits, effective_period_s
+from crtk_bridge.core.control import Controller
 from crtk_bridge.core.motion import Mode
 from crtk_bridge.core.state import TRANSITIONS, OperatingState, StateCommand
 from crtk_bridge.errors import BackendError
@@ -82,7 +84,7 @@ def make_rig(act, profile=None):
     """(controller, actuator, clock, cycle(n), req(cmd, ns, **data)) around fake actuator ``act``,
     on ``profile`` (default: the test profile)."""
     clock = Clock()
-    c = Controller(profile or PROFILE, act, clock)
+    c = Controller(profile or PROFILE, act, clock, effective_period_s(profile or PROFILE, act))
     ids = itertools.count(1)
     fb = act.new_feedback()
 
@@ -576,7 +578,7 @@ class VelocityActuator(FakeActuator):
 def test_native_velocity_stops_at_the_position_limit():
     act = VelocityActuator(PROFILE)
     clock = Clock()
-    c = Controller(PROFILE, act, clock)
+    c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
     fb = act.new_feedback()
 
     def cycle():
@@ -601,7 +603,7 @@ def test_pause_stops_an_effort_stream():
 
     act = EffortActuator(PROFILE)
     clock = Clock()
-    c = Controller(PROFILE, act, clock)
+    c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
     fb = act.new_feedback()
     c.on_read(fb, act.read(fb))
     c.handle({"id": 1, "cmd": "enable"})
@@ -658,3 +660,46 @@ def test_a_move_waiting_on_the_devices_goal_check_has_one_busy_seq_and_one_edge_
     assert r["ok"] and r["data"]["busy_seq"] == seq0 + 3
     cycle(2000)
     assert [(s["is_busy"], s["busy_seq"]) for s in states(c)] == [(True, seq0 + 3), (False, seq0 + 3)]
+
+
+# ---------------------------------------------------------------- the controller's public API
+_ROOT = Path(__file__).resolve().parents[1]
+#: receivers that name a controller outside its package (the loop's ``c``, ``self.controller``...)
+_RECEIVER = r"\b(?:c|ctl|controller|self\.c|self\.controller|rig\.c|loop\.controller)"
+
+
+def _private_controller_uses(text: str, private: set[str]) -> list[str]:
+    return [m for m in re.findall(_RECEIVER + r"\.(_[a-z]\w*)\b", text) if m in private]
+
+
+def _controller_private_names(c: Controller) -> set[str]:
+    names = {k for k in vars(c) if k.startswith("_") and not k.startswith("__")}
+    for cls in type(c).__mro__:
+        names |= {k for k in vars(cls) if k.startswith("_") and not k.startswith("__")}
+    return names
+
+
+def test_no_private_controller_attribute_is_used_outside_its_package(rig):
+    """The loop, the benches and the tests use the controller through its public API only
+    (event, push_state, enter_fault, measured_valid, torque_switched_off...): its privates may
+    move between the modules of core/control/ without anyone outside noticing."""
+    c = rig[0]
+    private = _controller_private_names(c)
+    assert {"_consecutive_bus_errors", "_abort_motion", "_running"} <= private  # the scan knows them
+    package = _ROOT / "crtk_bridge" / "core" / "control"
+    found = []
+    for top in ("crtk_bridge", "tests", "bench"):
+        for path in sorted((_ROOT / top).rglob("*.py")):
+            if package in path.parents:
+                continue
+            found += [f"{path.relative_to(_ROOT)}: {name}"
+                      for name in _private_controller_uses(path.read_text(), private)]
+    assert found == []
+    # the scan does find such a use (the loop before the controller had a public API)
+    old_loop = "stamp if c" "._consecutive_bus_errors < m else 0.0\n        self.controller" "._abort_motion()"
+    assert _private_controller_uses(old_loop, private) == ["_consecutive_bus_errors", "_abort_motion"]
+
+
+def test_period_s_is_required():
+    with pytest.raises(TypeError):
+        Controller(PROFILE, FakeActuator(PROFILE), Clock())  # type: ignore[call-arg]

@@ -12,8 +12,8 @@ import msgspec
 import numpy as np
 import pytest
 
-from crtk_bridge.core.actuator import CommandMode
-from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.actuator import CommandMode, effective_period_s
+from crtk_bridge.core.control import Controller
 from crtk_bridge.core.loop import ControlLoop
 from crtk_bridge.core.snapshot import Layout, SnapshotBuffer
 from crtk_bridge.core.state import OperatingState
@@ -63,7 +63,7 @@ def test_bad_shutdown_sections_are_refused_naming_the_key(section, needle):
 def test_park_moves_every_torqued_namespace_to_rest_with_busy_edges():
     act = FakeActuator(PROFILE)
     clock = Clock()
-    c = Controller(PROFILE, act, clock)
+    c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
     fb = act.new_feedback()
     c.on_read(fb, act.read(fb))
     assert not c.park()  # DISABLED: nothing to park, nothing moves
@@ -96,7 +96,7 @@ def test_a_joint_the_rest_pose_does_not_name_stays_where_it_is():
     del rest["wrist_roll"]
     profile = with_shutdown(rest=rest)
     act = FakeActuator(profile)
-    c = Controller(profile, act, Clock())
+    c = Controller(profile, act, Clock(), effective_period_s(profile, act))
     fb = act.new_feedback()
     act.pos[4] = 0.7
     c.on_read(fb, act.read(fb))
@@ -112,7 +112,7 @@ def test_a_joint_the_rest_pose_does_not_name_stays_where_it_is():
 
 def test_park_leaves_a_free_namespace_free():
     act = FakeActuator(PROFILE)
-    c = Controller(PROFILE, act, Clock())
+    c = Controller(PROFILE, act, Clock(), effective_period_s(PROFILE, act))
     fb = act.new_feedback()
     c.on_read(fb, act.read(fb))
     c.handle({"id": 1, "cmd": "enable"})
@@ -309,7 +309,7 @@ def test_no_park_while_a_lifecycle_transition_is_under_way():
 
     act = SlowActuator(PROFILE, enable_cycles=1)
     clock = Clock()
-    c = Controller(PROFILE, act, clock)
+    c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
     fb = act.new_feedback()
 
     def cycle(n):

@@ -19,7 +19,7 @@ from crtk_bridge.core.actuator import (
     Traits,
     effective_period_s,
 )
-from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.control import Controller
 from crtk_bridge.core.state import DEVICE_STATUS, OperatingState
 from crtk_bridge.errors import BackendError
 from crtk_bridge.profile import load_profile
@@ -94,7 +94,7 @@ def make_slow_rig(act):
     """(controller, actuator, clock, cycle(n), send(cmd, ns, **data) -> id, replies(id)) around
     ``act``; unlike test_controller's rig, replies may come cycles after the request."""
     clock = Clock()
-    c = Controller(PROFILE, act, clock)
+    c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
     ids = itertools.count(1)
     fb = act.new_feedback()
 

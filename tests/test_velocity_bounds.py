@@ -17,8 +17,8 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from ruckig import RuckigError
 
-from crtk_bridge.core.actuator import CommandMode
-from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.actuator import CommandMode, effective_period_s
+from crtk_bridge.core.control import Controller
 from crtk_bridge.core.motion import Mode
 from crtk_bridge.core.state import OperatingState
 
@@ -37,7 +37,7 @@ class Rig:
     def __init__(self, actuator_cls=FakeActuator):
         self.act = actuator_cls(PROFILE)
         self.clock = Clock()
-        self.c = Controller(PROFILE, self.act, self.clock)
+        self.c = Controller(PROFILE, self.act, self.clock, effective_period_s(PROFILE, self.act))
         self.fb = self.act.new_feedback()
         self.ids = itertools.count(1)
         self.written: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []

@@ -41,7 +41,7 @@ _USES = [
     (r"\b(?:Refused|ProtocolError|CommandError)\(\s*\"([a-z_]+)\"", V.ErrorCode),
     (r"\"error\": \{\"code\": \"([a-z_]+)\"", V.ErrorCode),
     (r"\bFault\(\s*\"([a-z_]+)\"", V.EventCode),
-    (r"_event\(\s*\"(?:status|warning|error)\",\s*\"([a-z_]+)\"", V.EventCode),
+    (r"event\(\s*\"(?:status|warning|error)\",\s*\"([a-z_]+)\"", V.EventCode),
     (r"StatusReaction\([^)]*\"(?:status|warning|error)\",\s*\"([a-z_]+)\"", V.EventCode),
     (r"\"event\": \"(?:status|warning|error)\", \"data\": \{[^}]*\"code\": \"([a-z_]+)\"", V.EventCode),
 ]
@@ -60,7 +60,7 @@ def test_the_code_uses_only_vocabulary_codes():
 
 def test_every_layer_takes_its_words_from_the_vocabulary():
     from crtk_bridge.client import connection, device
-    from crtk_bridge.core import controller, state
+    from crtk_bridge.core import control as controller, state
     from crtk_bridge.server import protocol
 
     assert state.OperatingState is V.OperatingState and state.StateCommand is V.StateCommand

@@ -33,7 +33,7 @@ import msgspec
 from ..errors import CrtkBridgeError
 from ..profile import Profile
 from .actuator import Actuator, Clock, Fault, Lifecycle, effective_period_s
-from .controller import Controller
+from .control import Controller
 from .samples import SampleRing
 from .snapshot import RING, SnapshotBuffer
 from .state import OperatingState
@@ -116,7 +116,6 @@ class ControlLoop:
         self.period = effective_period_s(profile, actuator)  # computed once; everyone uses it
         self.controller = Controller(profile, actuator, steady_epoch_clock(), self.period)
         self.feedback = actuator.new_feedback()
-        self._bus_errors_max = profile.safety.bus_errors_max
         self.pending: deque[bytes] = deque()  # messages the pair could not take yet
         self.running = True
         self.front_alive = True
@@ -195,7 +194,7 @@ class ControlLoop:
         c, v, fb = self.controller, self._v, self.controller.feedback
         self.snap.begin()
         # a missed read leaves the last sample, honestly stamped; it turns invalid only with a bus fault
-        v["measured_stamp"][0] = fb.stamp if c._consecutive_bus_errors < self._bus_errors_max else 0.0
+        v["measured_stamp"][0] = fb.stamp if c.measured_valid else 0.0
         v["measured_p"][:] = fb.position
         v["measured_v"][:] = fb.velocity
         v["measured_f"][:] = fb.effort
@@ -218,7 +217,7 @@ class ControlLoop:
             v["ns_goal_has_f"][k] = g_f
         fc = fb.cartesian
         for k, row, nc in self._native_rows:  # measured_cp straight from a native cartesian backend
-            v["ns_cart_stamp"][k] = fc.stamp if c._consecutive_bus_errors < self._bus_errors_max else 0.0
+            v["ns_cart_stamp"][k] = fc.stamp if c.measured_valid else 0.0
             v["ns_cart_p"][3 * k:3 * k + 3] = fc.position[row]
             v["ns_cart_q"][4 * k:4 * k + 4] = fc.orientation[row]
             if fc.wrench is not None:
@@ -243,12 +242,12 @@ class ControlLoop:
         c = self.controller
         problems = request_realtime(self.profile.loop.realtime_priority, self.profile.loop.cpu) if self.realtime else ["disabled by --no-realtime"]
         if problems:
-            c._event("warning", "realtime_unavailable",
+            c.event("warning", "realtime_unavailable",
                      f"{self.profile.name}: running without full real-time guarantees: " + "; ".join(problems))
         # prime the measured state before anyone can enable
         fault = self.actuator.read(self.feedback)
         c.on_read(self.feedback, fault)
-        c._push_state()
+        c.push_state()
         self._publish()
         samples = self.samples
         # the cycle's stamp in the ring: the steady epoch clock of the cycle's start
@@ -291,7 +290,7 @@ class ControlLoop:
                 if c.step():  # also advances a lifecycle transition by one step
                     c.on_write(self.actuator.write(c.command))
             except Exception as exc:  # a bug must fault the robot, not kill the loop
-                c._enter_fault(Fault("internal", f"{self.profile.name}: control loop error: {exc!r}",
+                c.enter_fault(Fault("internal", f"{self.profile.name}: control loop error: {exc!r}",
                                      transient=False))
             # stats go in before the snapshot is published, so the same seqlock covers them
             i += 1
@@ -326,30 +325,30 @@ class ControlLoop:
             active = c.state in (OperatingState.ENABLED, OperatingState.PAUSED)
             if sd.action != "park" or self.abort_park or not active or not c.park():
                 if active:
-                    c._event("status", "shutdown_torque_off", f"{name}: shutting down: torque off "
+                    c.event("status", "shutdown_torque_off", f"{name}: shutting down: torque off "
                              f"(shutdown.action: {sd.action})")
                 return False
             self._park_t0 = now
             self._park_deadline = now + sd.timeout_s
-            c._event("status", "shutdown_park", f"{name}: shutting down: parking at the rest pose "
+            c.event("status", "shutdown_park", f"{name}: shutting down: parking at the rest pose "
                      f"(shutdown.action: park, within {sd.timeout_s:g} s), then torque off")
             return True
         took = now - self._park_t0
         if c.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
-            c._event("warning", "shutdown_park_aborted", f"{name}: park ended by {c.state.value} after {took:.2f} s; "
+            c.event("warning", "shutdown_park_aborted", f"{name}: park ended by {c.state.value} after {took:.2f} s; "
                      "torque off")
         elif self.abort_park:
-            c._event("warning", "shutdown_park_aborted", f"{name}: park cut short by a second signal after "
+            c.event("warning", "shutdown_park_aborted", f"{name}: park cut short by a second signal after "
                      f"{took:.2f} s; torque off")
         elif now > self._park_deadline:
-            c._event("warning", "shutdown_park_timeout", f"{name}: the rest pose was not reached within "
+            c.event("warning", "shutdown_park_timeout", f"{name}: the rest pose was not reached within "
                      f"shutdown.timeout_s = {sd.timeout_s:g} s; torque off")
         elif c.in_motion():
             return True
         elif c.at_rest_pose():
-            c._event("status", "shutdown_parked", f"{name}: parked at the rest pose in {took:.2f} s; torque off")
+            c.event("status", "shutdown_parked", f"{name}: parked at the rest pose in {took:.2f} s; torque off")
         else:
-            c._event("warning", "shutdown_park_aborted", f"{name}: park stopped short of the rest pose after "
+            c.event("warning", "shutdown_park_aborted", f"{name}: park stopped short of the rest pose after "
                      f"{took:.2f} s (a stop command); torque off")
         return False
 
@@ -376,10 +375,7 @@ class ControlLoop:
         except Exception:
             pass
         self.actuator.close()
-        c = self.controller
-        c._abort_motion()
-        c.state = c.state.__class__.DISABLED
-        c._push_state()
+        self.controller.torque_switched_off()
         self._publish()
         self._flush()
 

@@ -2,7 +2,7 @@
 
 Each namespace (an arm, its gripper) has its own setpoints, goals and trajectory generator, so a
 gripper move never disturbs the arm's servo stream (the dVRK jaw lesson), while all namespaces
-share one operating state (see ``controller.py``).
+share one operating state (see ``control/controller.py``).
 
 Levels and what they produce each cycle (crtk-spec 4.1.1, setpoint fields per 4.2.5):
 

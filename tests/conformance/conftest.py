@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 
 from crtk_bridge.backends import BACKENDS, backend_class, create_backend
-from crtk_bridge.core.actuator import Actuator
-from crtk_bridge.core.controller import Controller
+from crtk_bridge.core.actuator import Actuator, effective_period_s
+from crtk_bridge.core.control import Controller
 from crtk_bridge.profile import Profile, load_profile
 from crtk_bridge.sim import simulator_class
 
@@ -323,7 +323,7 @@ class Rig:
         self.controller: Controller | None = None
 
     def make_controller(self) -> Controller:
-        self.controller = Controller(self.profile, self.backend, time.time)
+        self.controller = Controller(self.profile, self.backend, time.time, effective_period_s(self.profile, self.backend))
         self.cycle()
         return self.controller
 
