@@ -273,7 +273,7 @@ class Canopen402Backend(Actuator):
     before :meth:`open`.
     """
 
-    simulator = SimWiring("canopen", endpoint_key="channel")
+    simulator = SimWiring(endpoint_key="channel")  # crtk-sim canopen's SLCAN pty
     #: the interface ``--sim`` uses to reach the simulated USB-CAN adapter
     SIM_INTERFACE = "slcan"
     #: ``tpdo_timeout_ms`` on the simulator unless the profile sets one: the simulated adapter
