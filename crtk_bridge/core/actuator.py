@@ -24,6 +24,9 @@ Three paths, as in ros2_control hardware components:
   purpose, never raises: they return ``None`` when all went well, else a :class:`Fault` naming the
   cause. Backends implement the hooks ``_read`` / ``_write``; the public methods turn any exception
   a hook lets escape into a Fault, so a backend bug faults the robot instead of killing the loop.
+  ``write`` is also the one finiteness gate: a non-finite setpoint never reaches ``_write``
+  (:meth:`Actuator.write`), and core's motion output is already within the profile's limits, so
+  a backend clamps only to its device's ranges (docs/architecture.md, Limits).
   ``write`` is called only while ENABLED or PAUSED unless the backend sets ``cyclic_write``
   (a CiA 402 chain needs SYNC, RPDOs and the controlword every cycle in every state); then it is
   called every cycle, with every joint in :attr:`CommandMode.NONE` outside ENABLED / PAUSED.
@@ -60,6 +63,7 @@ from __future__ import annotations
 
 import abc
 import enum
+import math
 import os
 import threading
 import time
@@ -595,11 +599,73 @@ class Actuator(abc.ABC):
             return Fault("backend_exception", f"{self.robot}: read failed: {exc!r}", transient=False)
 
     def write(self, command: JointCommand) -> Fault | None:
-        """Send ``command`` in one bus transaction. Never raises."""
+        """Send ``command`` in one bus transaction. Never raises.
+
+        The one finiteness gate of every backend: a joint whose setpoint (the field its mode
+        follows, and a position's velocity feed-forward) or a cartesian row whose pose or twist
+        is not finite is handed to ``_write`` in :attr:`CommandMode.NONE` (its joints keep their
+        last goal; the others are sent) and the write returns a non-transient ``invalid_command``
+        Fault naming the robot and joint, so core faults the robot. No backend checks NaN itself."""
+        refused = None if _all_finite(command) else self._refuse_non_finite(command)
         try:
-            return self._write(command)
+            fault = self._write(command)
         except Exception as exc:
-            return Fault("backend_exception", f"{self.robot}: write failed: {exc!r}", transient=False)
+            fault = Fault("backend_exception", f"{self.robot}: write failed: {exc!r}", transient=False)
+        if refused is None:
+            return fault
+        fault_out, modes, cart_modes = refused
+        command.mode[:] = modes  # the caller's buffer as it was
+        if cart_modes is not None:
+            command.cartesian.mode[:] = cart_modes
+        return fault_out
+
+    def _refuse_non_finite(self, command: JointCommand) -> tuple[Fault, np.ndarray, np.ndarray | None] | None:
+        """Set every joint (cartesian row) with a non-finite setpoint to NONE for this write; ->
+        (the Fault naming the first, the modes to restore), or None when all is finite after all
+        (a sum that overflowed)."""
+        first = None
+        modes = command.mode.copy()
+        for i in range(self.n):
+            m = modes[i]
+            if m == _POSITION:
+                fields = ("position", command.position[i]), ("velocity", command.velocity[i])
+            elif m == _VELOCITY:
+                fields = (("velocity", command.velocity[i]),)
+            elif m == _EFFORT:
+                fields = (("effort", command.effort[i]),)
+            else:
+                continue
+            bad = next(((f, v) for f, v in fields if not np.isfinite(v)), None)
+            if bad is not None:
+                command.mode[i] = _NONE_MODE
+                if first is None:
+                    name = self.joint_names[i]
+                    first = Fault("invalid_command", f"{self.robot}: joint {name!r}: {bad[0]} setpoint {bad[1]} "
+                                  "is not finite; not sent (the joint keeps its last goal)", joint=name,
+                                  transient=False)
+        cart, cart_modes = command.cartesian, None
+        if cart is not None:
+            rows = self.cartesian_namespaces()
+            cart_modes = cart.mode.copy()
+            for k in range(len(cart_modes)):
+                m = cart_modes[k]
+                if m == CartesianMode.TWIST:
+                    ok = np.isfinite(cart.linear[k]).all() and np.isfinite(cart.angular[k]).all()
+                    what = "twist"
+                elif m in (CartesianMode.POSE, CartesianMode.MOVE):
+                    ok = np.isfinite(cart.position[k]).all() and np.isfinite(cart.orientation[k]).all()
+                    what = "pose"
+                else:
+                    continue
+                if not ok:
+                    cart.mode[k] = CartesianMode.NONE
+                    if first is None:
+                        first = Fault("invalid_command", f"{self.robot}: namespace {rows[k]!r}: cartesian {what} "
+                                      "setpoint is not finite; not sent (the arm keeps its last goal)",
+                                      transient=False)
+        if first is None:
+            return None
+        return first, modes, cart_modes
 
     def joint_capabilities(self, i: int) -> Capabilities:
         """What joint ``i`` can do. Default: the backend's :attr:`capabilities`; a backend that
@@ -707,6 +773,22 @@ class Actuator(abc.ABC):
 
     @abc.abstractmethod
     def _write(self, command: JointCommand) -> Fault | None: ...
+
+
+_POSITION, _VELOCITY, _EFFORT, _NONE_MODE = (int(CommandMode.POSITION), int(CommandMode.VELOCITY),
+                                             int(CommandMode.EFFORT), int(CommandMode.NONE))
+
+
+def _all_finite(command: JointCommand) -> bool:
+    """True when every number of ``command`` is finite (the cycle's fast path: a sum is finite
+    only if every term is; False may also mean a finite sum that overflowed, checked joint by joint)."""
+    # Python floats: an overflow is inf, never a warning; a third of numpy's cost on a few joints
+    total = sum(command.position.tolist()) + sum(command.velocity.tolist()) + sum(command.effort.tolist())
+    cart = command.cartesian
+    if cart is not None:
+        total += (sum(cart.position.ravel().tolist()) + sum(cart.orientation.ravel().tolist())
+                  + sum(cart.linear.ravel().tolist()) + sum(cart.angular.ravel().tolist()))
+    return math.isfinite(total)
 
 
 # ---------------------------------------------------------------- ruckig, for the motion layer and

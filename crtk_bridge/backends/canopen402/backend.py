@@ -183,9 +183,7 @@ class _Drive:
         self.k_pos = keys.direction * k  # SI per count (signed)
         self.k_vel = keys.direction * k / keys.velocity_factor  # SI/s per velocity unit
         self.k_eff: float | None = None  # N*m (N) per per mille; set at open
-        self.pos_min, self.pos_max = limits.position_min, limits.position_max
-        self.vel_max = limits.velocity_max
-        self.eff_max = limits.effort_max
+        self.eff_max = limits.effort_max  # None: targets capped at the rated torque
         self.node: canopen.RemoteNode | None = None
         self.supported = 0  # 0x6502
         self.csv = self.cst = False
@@ -224,8 +222,8 @@ class _Drive:
         self.emcy: tuple[int, int] | None = None  # (code, error register) not yet reset
 
     def counts(self, si: float) -> int:
-        """Counts of position ``si`` (finite), clipped to the joint's limits and to I32."""
-        si = min(max(si, self.pos_min), self.pos_max)
+        """Counts of position ``si`` (finite, within the profile's limits: core's output), clamped
+        to the I32 range of 0x607A."""
         c = round(self.keys.offset + si / self.k_pos)
         return min(max(c, I32[0]), I32[1])
 
@@ -861,10 +859,10 @@ class Canopen402Backend(Actuator):
         Never blocks.
 
         A drive that is OPERATION ENABLED (and not homing) follows its joint's mode: POSITION ->
-        CSP (target clipped to the joint's limits), VELOCITY -> CSV (clipped to velocity_max),
-        EFFORT -> CST (clipped to effort_max), FREE -> CST with zero torque, NONE -> as before.
-        Every other drive holds its measured position as target in CSP. A non-finite setpoint is
-        not sent (the drive keeps its last mode and target) and returns ``invalid_command``."""
+        CSP, VELOCITY -> CSV, EFFORT -> CST, FREE -> CST with zero torque, NONE -> as before.
+        Every other drive holds its measured position as target in CSP. Setpoints arrive finite
+        and within the profile's limits (``Actuator.write``, core's motion output); targets are
+        clamped to their objects' ranges only (I32, I16; the rated torque without effort_max)."""
         return self._send(command)
 
     def _unusable(self, what: str) -> Fault | None:
@@ -888,7 +886,7 @@ class Canopen402Backend(Actuator):
             elif not enabled:
                 d.mode, d.target_pos, d.target_vel, d.target_torque = _CSP, d.pos, 0, 0
             else:
-                fault = self._follow(d, command) or fault
+                self._follow(d, command)
                 if d.mode != _CSP:
                     d.target_pos = d.pos  # a switch back to CSP starts from here
             # each RPDO's payload in one pack (see _decode)
@@ -950,38 +948,23 @@ class Canopen402Backend(Actuator):
         self._sync_out()
         return True
 
-    def _follow(self, d: _Drive, command: JointCommand) -> Fault | None:
+    def _follow(self, d: _Drive, command: JointCommand) -> None:
         i = d.i
         mode = command.mode[i]
         if mode == _POSITION:
-            x = command.position[i]
-            if x != x:
-                return self._nan(d, "position", x)
-            d.mode, d.target_pos = _CSP, d.counts(x)
+            d.mode, d.target_pos = _CSP, d.counts(command.position[i])
             d.target_vel = d.target_torque = 0
         elif mode == _VELOCITY and d.csv:
-            x = command.velocity[i]
-            if x != x:
-                return self._nan(d, "velocity", x)
-            x = min(max(x, -d.vel_max), d.vel_max) / d.k_vel
+            x = command.velocity[i] / d.k_vel
             d.mode, d.target_vel, d.target_torque = _CSV, round(min(max(x, I32[0]), I32[1])), 0
         elif mode == _EFFORT and d.cst and d.k_eff is not None:
-            x = command.effort[i]
-            if x != x:
-                return self._nan(d, "effort", x)
-            if d.eff_max is not None:
-                x = min(max(x, -d.eff_max), d.eff_max)
-            x /= d.k_eff
+            x = command.effort[i] / d.k_eff
             # no limits.effort_max: never above the rated torque (1000 per mille), not the I16 range
             cap = I16[1] if d.eff_max is not None else RATED_PER_MILLE
             d.mode, d.target_torque, d.target_vel = _CST, round(min(max(x, -cap), cap)), 0
         elif mode == _FREE and d.cst:
             d.mode, d.target_torque, d.target_vel = _CST, 0, 0
         return None
-
-    def _nan(self, d: _Drive, what: str, x: float) -> Fault:
-        return Fault("invalid_command", f"{self.robot}: joint {d.name!r}: {what} command {x} is not a "
-                     f"number; not sent", joint=d.name, transient=False)
 
     # ------------------------------------------------------------------ bus errors
     def _bus_fault(self) -> Fault:

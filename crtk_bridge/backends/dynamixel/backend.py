@@ -526,8 +526,8 @@ class DynamixelBackend(SerialServoBackend):
 
         Joints in NONE are not written (they keep their goal); FREE turns torque off; a change of
         a joint's command mode switches its operating mode first (see the module docstring).
-        Nothing is sent while disabled. A non-finite command is not sent and returns a
-        non-transient ``invalid_command`` Fault.
+        Nothing is sent while disabled. Setpoints arrive finite and within the profile's limits
+        (``Actuator.write``, core's motion output); goals are clamped to the servo's own ranges.
         """
         if not self._enabled or self._port is None:
             return None
@@ -551,24 +551,17 @@ class DynamixelBackend(SerialServoBackend):
             if m == _POSITION:
                 want = self._pos_mode[i]
                 g = goal[i]
-                value = command.position[i]
             elif m == _VELOCITY:  # velocity, effort: clamped BEFORE round(), which a huge value overflows
                 want = OperatingMode.VELOCITY
                 value = command.velocity[i]
                 lim = self._vel_limit[i]
-                g = round(min(max(value * self._vel_per_rad_s[i], -lim), lim)) if value == value else 0
+                g = round(min(max(value * self._vel_per_rad_s[i], -lim), lim))
             elif m == _EFFORT and self._effort_j[i]:
                 want = OperatingMode.CURRENT
                 value = command.effort[i]
                 lim = self._cur_limit[i]
-                g = round(min(max(value * self._unit_per_nm[i], -lim), lim)) if value == value else 0
+                g = round(min(max(value * self._unit_per_nm[i], -lim), lim))
             else:
-                continue
-            if value != value:  # NaN: inf is clamped above
-                if fault is None:
-                    fault = Fault("invalid_command", f"{self.robot}: joint {self.joint_names[i]!r}: "
-                                  f"command {value} is not a number; not sent",
-                                  joint=self.joint_names[i], transient=False)
                 continue
             if want != self._op_mode[i] or self._free[i]:
                 f = self._switch(i, want)

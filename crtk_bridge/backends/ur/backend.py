@@ -313,9 +313,6 @@ class UrBackend(Actuator):
         self.capabilities = dataclasses.replace(self.capabilities, native_rate_hz=self.rate_hz)
         self.dt = 1.0 / self.rate_hz
         self._speed_acc = cfg.speed_acceleration or min(j.limits.acceleration_max for j in profile.joints)
-        self._pos_min = np.array([j.limits.position_min for j in profile.joints])
-        self._pos_max = np.array([j.limits.position_max for j in profile.joints])
-        self._vel_max = np.array([j.limits.velocity_max for j in profile.joints])
         #: the ur_rtde worker process (None: none up, e.g. after a link loss until a new one is)
         self._w: WorkerHandle | None = None
         self._opened = False
@@ -711,33 +708,20 @@ class UrBackend(Actuator):
             return None
         if np.any(mode == _VELOCITY):
             qd = np.where(mode == _VELOCITY, command.velocity, 0.0)
-            bad = _first_bad(qd)
-            if bad is not None:
-                return self._invalid(bad, "velocity", qd[bad])
-            np.clip(qd, -self._vel_max, self._vel_max, out=qd)
             self._last_kind = "speedj"
             self._target[:] = command.position  # a later hold starts from core's (measured) setpoint
             return self._out(SPEEDJ, qd, self._speed_acc, 0.0)
         q = self._target
-        fault = None
-        for i in range(N_JOINTS):
-            if mode[i] == _POSITION:
-                v = command.position[i]
-                if not math.isfinite(v):
-                    fault = fault or self._invalid(i, "position", v)
-                    continue  # this joint keeps its last target; the others are sent
-                q[i] = min(max(v, self._pos_min[i]), self._pos_max[i])
+        np.copyto(q, command.position, where=mode == _POSITION)  # a joint in NONE keeps its last target
         cfg = self.config
         self._last_kind = "servoj"
-        return self._out(SERVOJ, q, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain) or fault
+        return self._out(SERVOJ, q, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain)
 
     def _write_cartesian(self, cart) -> Fault | None:
         cfg = self.config
         m = int(cart.mode[0])
         if m == _C_TWIST:
             xd = np.concatenate([cart.linear[0], cart.angular[0]])
-            if not np.all(np.isfinite(xd)):
-                return Fault("invalid_command", f"{self.robot}: servo_cv twist is not finite", transient=False)
             if int(cart.frame[0]) == FRAME_BODY:  # speedL takes base-frame axes
                 xd[:3] = self._tcp_r @ xd[:3]
                 xd[3:] = self._tcp_r @ xd[3:]
@@ -764,16 +748,9 @@ class UrBackend(Actuator):
                              f"TCP at {np.round(self._tcp_p, 4).tolist()} m", transient=False)
             pose = [float(p[0]), float(p[1]), float(p[2]), *map(float, pin.log3(rot))]
         else:
-            if not (np.all(np.isfinite(cart.position[0])) and np.all(np.isfinite(cart.orientation[0]))):
-                return Fault("invalid_command", f"{self.robot}: servo_cp pose is not finite", transient=False)
             pose = _pose6(cart.position[0], cart.orientation[0])
         self._last_kind = "servol"
         return self._out(SERVOL, pose, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain)
-
-    def _invalid(self, i: int, field: str, value: float) -> Fault:
-        name = self.joint_names[i]
-        return Fault("invalid_command", f"{self.robot}: joint {name!r}: {field} setpoint {value!r} is not finite; "
-                     "not sent", joint=name, value=float(value), transient=False)
 
     def _set_teach(self, on: bool) -> None:
         self._teach = on
@@ -999,11 +976,6 @@ class UrBackend(Actuator):
 
 def _op_name(op: int) -> str:
     return OP_NAMES.get(op, str(op))
-
-
-def _first_bad(v: np.ndarray) -> int | None:
-    bad = np.flatnonzero(~np.isfinite(v))
-    return int(bad[0]) if bad.size else None
 
 
 def _name(enum_type: type, value: int) -> str:

@@ -38,7 +38,6 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ...errors import fmt_number
 from ...profile import Profile, stop_deceleration
 from ..actuator import Actuator, Capabilities, CommandMode, Fault, Lifecycle
 from ..motion import Mode, NamespaceMotion
@@ -319,14 +318,7 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
                           "in progress")
 
     def _move(self, m: NamespaceMotion, goal: np.ndarray) -> dict:
-        bad = np.flatnonzero((goal < m.pos_min) | (goal > m.pos_max))
-        if bad.size:
-            j = int(bad[0])
-            raise Refused(
-                "out_of_limits",
-                f"{m.name}: move refused: goal {fmt_number(goal[j])} rad for joint {m.joint_names[j]!r} is outside "
-                f"its limits [{fmt_number(m.pos_min[j])}, {fmt_number(m.pos_max[j])}]",
-            )
+        self._check_goal(m, goal)
         check = self.actuator.goal_check_steps(m.name, "move_jp", goal)
         if check is not None:  # the device's own limits first; the move starts when they agree
             return self._start(self._goal_check(check), lambda: self._start_move(m, goal), self._goal_refused)
