@@ -5,7 +5,7 @@ Built on ``canopen`` (object dictionaries, SDO client, NMT, EMCY consumer, PDO m
 What the library does not do, or does in a way a real-time loop cannot use, is done here
 (``../shared/reference/canopen-ur.md`` part A):
 
-* **The loop paces the bus.** The backend paces the cycle (``paces_cycle``): the loop's sleep is
+* **The loop paces the bus.** The backend paces the cycle (``traits.clock`` is the device's): the loop's sleep is
   :meth:`Canopen402Backend.wait_cycle`, which sends ONE SYNC (``SyncProducer.transmit()``) at the
   tick of an absolute schedule, the first thing of the cycle, so the SYNC period jitters by the
   wake-up alone. At that SYNC the drives apply the RPDOs the previous cycle's ``write`` sent
@@ -73,15 +73,16 @@ from ...core.actuator import (
     Actuator,
     ActuatorInfo,
     Capabilities,
+    Clock,
     CommandMode,
     DeviceStatus,
     Fault,
-    FaultReaction,
     JointCommand,
     JointFeedback,
     Lifecycle,
     SimWiring,
     Steps,
+    Traits,
     background_thread,
     on_worker,
 )
@@ -270,13 +271,6 @@ class Canopen402Backend(Actuator):
     before :meth:`open`.
     """
 
-    capabilities = Capabilities(position=True, velocity=False, effort=False, measures_velocity=True,
-                                measures_effort=False, needs_homing=False, can_free=False)
-    extra = "canopen402"
-    fault_reaction = FaultReaction.TORQUE_OFF  # the DISABLE transition: disable voltage on every drive
-    cyclic_write = True  # RPDOs every cycle, in every state
-    paces_cycle = True  # the loop's tick sends the SYNC (wait_cycle)
-    stops_itself_on_pause = True  # pause is the drives' own quick stop
     simulator = SimWiring(endpoint_key="channel")  # crtk-sim canopen's SLCAN pty
     #: the interface ``--sim`` uses to reach the simulated USB-CAN adapter
     SIM_INTERFACE = "slcan"
@@ -284,7 +278,7 @@ class Canopen402Backend(Actuator):
     #: and drives are Python threads in another process, on a loaded host their answers can take
     #: tens of ms (a real drive answers within a millisecond)
     SIM_DEFAULTS = {"tpdo_timeout_ms": 50.0}
-    transition_timeouts_s = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 3.0,
+    TRANSITION_TIMEOUTS_S = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 3.0,
                              Lifecycle.RESUME: 3.0, Lifecycle.FAULT_RESET: 2.0, Lifecycle.HOME: 60.0}
     #: cycles a drive's statusword may stay missing inside a transition before it fails
     TRANSITION_MISSED_MAX = 25
@@ -329,7 +323,8 @@ class Canopen402Backend(Actuator):
         # time has run out (bounded well inside the ENABLE time limit)
         self._settle_s = min((self._consumer_ms + cfg.master_heartbeat_ms) / 1000.0, 2.0)
         self._settle_until = 0.0
-        self._joint_caps = [self.capabilities] * self.n
+        #: per drive, what its supported modes allow (known at open: _identify)
+        self._joint_caps: list[Capabilities | None] = [None] * self.n
         self._network: canopen.Network | None = None
         self._rx_event = threading.Event()
         self._sync_seq = 0  # SYNCs sent
@@ -391,14 +386,17 @@ class Canopen402Backend(Actuator):
 
     # ------------------------------------------------------------------ info
     def info(self) -> ActuatorInfo:
-        return ActuatorInfo(list(self.joint_names), self.capabilities, dict(self._details))
+        return ActuatorInfo(list(self.joint_names), dict(self._details))
 
-    def joint_capabilities(self, i: int) -> Capabilities:
-        return self._joint_caps[i]
-
-    @property
-    def native_homing(self) -> bool:
-        return any(d.keys.homing is not None for d in self.drives)
+    def _traits_hook(self) -> Traits:
+        """Per drive, what its supported modes (0x6502) and rated torque allow (read at open);
+        the loop's tick sends the SYNC (the device's clock: wait_cycle); RPDOs every cycle in
+        every state; pause is the drives' own quick stop; the drives home themselves (CiA 402
+        homing mode) where a joint has ``homing``."""
+        return Traits(joints=tuple(self._joint_caps), clock=Clock.DEVICE, cyclic_write=True,
+                      stops_itself_on_pause=True,
+                      native_homing=any(d.keys.homing is not None for d in self.drives),
+                      transition_timeouts_s=self.TRANSITION_TIMEOUTS_S)
 
     @property
     def _where(self) -> str:
@@ -444,7 +442,6 @@ class Canopen402Backend(Actuator):
         except BaseException:
             self._disconnect()
             raise
-        self.capabilities = self._combined_caps()
         self._details = {
             "interface": self.config.interface, "channel": self.config.channel, "bitrate": self.config.bitrate,
             "nodes": {d.name: d.id for d in self.drives},
@@ -556,11 +553,6 @@ class Canopen402Backend(Actuator):
                             measures_velocity=True, measures_effort=d.k_eff is not None,
                             needs_homing=d.keys.homing is not None, can_free=d.cst)
         self._joint_caps[d.i] = caps
-
-    def _combined_caps(self) -> Capabilities:
-        from ...core.actuator import combine_capabilities
-
-        return combine_capabilities(self._joint_caps)
 
     def _configure_hook(self) -> None:
         """Per node: NMT PRE-OPERATIONAL, heartbeat producer, the PDO mapping (SDO, CiA 301

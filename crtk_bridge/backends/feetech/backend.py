@@ -115,11 +115,6 @@ class FeetechBackend(SerialServoBackend):
     key); nothing touches the bus before :meth:`open`.
     """
 
-    capabilities = Capabilities(
-        position=True, velocity=False, effort=False, measures_velocity=True,
-        measures_effort=False, needs_homing=False, can_free=True,
-    )
-    extra = "feetech"
     vendor = "feetech"
     simulator = SimWiring()  # --sim sets backend.port to its simulator's pty (crtk-sim feetech)
     Config = Config
@@ -149,10 +144,9 @@ class FeetechBackend(SerialServoBackend):
             self._direction * tables.CURRENT_UNIT_A * np.array(epa, dtype=float)
             if self._measures_effort else np.zeros(n)
         )
-        self.capabilities = Capabilities(
-            position=True, velocity=False, effort=False, measures_velocity=True,
-            measures_effort=self._measures_effort, needs_homing=False, can_free=True,
-        )
+        self._joint_caps = [Capabilities(position=True, velocity=False, effort=False, measures_velocity=True,
+                                         measures_effort=self._measures_effort, needs_homing=False,
+                                         can_free=True)] * n
         self._last_goal = [0] * n  # ticks last sent / written at enable (int)
         self._sync_read: GroupSyncRead | None = None
         self._sync_write: GroupSyncWrite | None = None

@@ -13,7 +13,7 @@ to the controller at ``backend.host`` (the ports are fixed by UR):
 
 * ``RTDEReceiveInterface`` (RTDE 30004), opened with the backend: joint and TCP state, robot /
   safety mode, runtime state and the speed slider, one packet every 2 ms (e-Series, 500 Hz) or
-  8 ms (CB3, 125 Hz). Its packets PACE THE LOOP (``paces_cycle``): the worker forwards each as it
+  8 ms (CB3, 125 Hz). Its packets PACE THE LOOP (``traits.clock`` is the device's): the worker forwards each as it
   comes, and :meth:`UrBackend.wait_cycle` blocks until it does (and counts the packets skipped).
 * ``DashboardClient`` (29999): power on / off, brake release, unlock protective stop, restart
   safety, play (lifecycle path only).
@@ -100,7 +100,6 @@ m, axis-angle (UR) <-> unit quaternion [x, y, z, w] (CRTK) converted here.
 
 from __future__ import annotations
 
-import dataclasses
 import importlib.util
 import math
 import os
@@ -119,6 +118,7 @@ from ...core.actuator import (
     ActuatorInfo,
     Capabilities,
     CartesianMode,
+    Clock,
     CommandMode,
     DeviceStatus,
     Fault,
@@ -128,7 +128,7 @@ from ...core.actuator import (
     SimWiring,
     background_thread,
     Steps,
-    DEFAULT_TRANSITION_TIMEOUTS_S,
+    Traits,
     ruckig_update,
 )
 from ...errors import BackendError, CommandError, ProfileError, fmt_number
@@ -277,16 +277,18 @@ class UrBackend(Actuator):
     before :meth:`open`.
     """
 
-    capabilities = Capabilities(position=True, velocity=True, effort=False, measures_velocity=True,
-                                measures_effort=False, needs_homing=False, can_free=True,
-                                native_rate_hz=500.0, native_cartesian=True, measures_wrench=True)
-    extra = "ur"
-    fault_reaction = Actuator.fault_reaction  # the DISABLE transition: stop, power off, brakes on
-    paces_cycle = True
     simulator = SimWiring(endpoint_key="host", host_ports=(30004, 29999, 30003))
-    stops_itself_on_pause = True  # a safeguard stop stops the arm by itself: resume from where it is
-    transition_timeouts_s = {**DEFAULT_TRANSITION_TIMEOUTS_S, Lifecycle.ENABLE: 20.0, Lifecycle.DISABLE: 6.0,
-                             Lifecycle.RESUME: 3.0, Lifecycle.FAULT_RESET: 12.0, Lifecycle.GOAL_CHECK: 2.0}
+    #: what every UR arm declares (:meth:`_traits_hook`): the controller's packets pace the loop; a
+    #: safeguard stop stops the arm by itself (resume from where it is); the controller checks move
+    #: goals against its safety limits; its speed slider scales every motion. A FAULT runs the
+    #: DISABLE transition: stop, power off, brakes on.
+    TRAITS = Traits(
+        joints=(Capabilities(position=True, velocity=True, effort=False, measures_velocity=True,
+                             measures_effort=False, needs_homing=False, can_free=True, native_cartesian=True,
+                             measures_wrench=True),) * N_JOINTS,
+        clock=Clock.DEVICE, stops_itself_on_pause=True, goal_check=True, speed_scaling=True,
+        transition_timeouts_s={Lifecycle.ENABLE: 20.0, Lifecycle.DISABLE: 6.0, Lifecycle.RESUME: 3.0,
+                               Lifecycle.FAULT_RESET: 12.0, Lifecycle.GOAL_CHECK: 2.0})
 
     def __init__(self, profile: Profile, *, source: str = "<profile>"):
         super().__init__(profile, source=source)
@@ -310,7 +312,6 @@ class UrBackend(Actuator):
                 raise ProfileError(f"{source}: joints[{i}] ({j.name}).{next(iter(j.backend))}: a UR joint has "
                                    "no backend keys (the controller numbers its joints base to wrist 3)")
         self.rate_hz = cfg.rate_hz or SERIES_RATE_HZ[cfg.series]
-        self.capabilities = dataclasses.replace(self.capabilities, native_rate_hz=self.rate_hz)
         self.dt = 1.0 / self.rate_hz
         self._speed_acc = cfg.speed_acceleration or min(j.limits.acceleration_max for j in profile.joints)
         #: the ur_rtde worker process (None: none up, e.g. after a link loss until a new one is)
@@ -425,7 +426,10 @@ class UrBackend(Actuator):
     def info(self) -> ActuatorInfo:
         details = {"host": self.host, "rate_hz": self.rate_hz, "packets": self.packets,
                    "missed_packets": self.missed_packets, "worker_pid": self.worker_pid}
-        return ActuatorInfo(list(self.joint_names), self.capabilities, details)
+        return ActuatorInfo(list(self.joint_names), details)
+
+    def _traits_hook(self) -> Traits:
+        return self.TRAITS
 
     # ------------------------------------------------------------------ pacing
     def cycle_period_s(self) -> float:

@@ -48,7 +48,7 @@ class RelaysMixin:
                 return Refused("unsupported", str(exc))
 
             t = Transition(self.robot, Lifecycle.CALIBRATE, self.actuator.calibration_begin(),
-                           self.actuator.transition_timeout_s(Lifecycle.CALIBRATE))
+                           self.traits.timeout_s(Lifecycle.CALIBRATE))
             return self._start(t, lambda: {"joints": list(self.profile.joint_names)}, failed)
         try:
             if action == "status":
@@ -74,7 +74,7 @@ class RelaysMixin:
         self._check_can_move(ns, cmd)
         if cmd == "move_cp":
             p, q = self._pose(ns, cmd, data)
-            check = self.actuator.goal_check_steps(ns, cmd, np.concatenate([p, q]))
+            check = self.actuator.goal_check_steps(ns, cmd, np.concatenate([p, q])) if self.traits.goal_check else None
             if check is not None:  # the device's own limits first; the move starts when they agree
                 return self._start(self._goal_check(check), lambda: self._native_accept(cmd, ns, data),
                                    self._goal_refused)
@@ -82,7 +82,7 @@ class RelaysMixin:
 
     def _goal_check(self, steps: Steps) -> Transition:
         return Transition(self.robot, Lifecycle.GOAL_CHECK, steps,
-                          self.actuator.transition_timeout_s(Lifecycle.GOAL_CHECK))
+                          self.traits.timeout_s(Lifecycle.GOAL_CHECK))
 
     def _goal_refused(self, exc: Exception) -> Refused:
         """A GOAL_CHECK that refused the goal (or could not ask): the move is refused, the robot
