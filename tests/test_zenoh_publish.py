@@ -322,3 +322,21 @@ def test_the_publishing_thread_copies_the_state_without_the_statistics_rings():
         assert snap.layout.slices["cycles"].stop <= upto
     finally:
         snap.close(unlink=True)
+
+
+def test_a_stream_forgets_the_subscribers_of_a_closed_session_and_ends_with_the_last():
+    """A session that closed gets no frame and no read is made for it; once no subscriber is
+    left the stream says so (the server forgets it and its task ends)."""
+    ended = []
+    reads = itertools.count()
+    stream = TopicStream("measured_js", "so101", lambda: next(reads), ended.append)
+    a, b = Collecting(), Collecting()
+    stream.add(a, 1, 0.01, 0.0)
+    stream.add(b, 2, 0.01, 0.0)
+    tick_all([stream], 0.0)
+    b.closed = True
+    tick_all([stream], 0.01)
+    assert len(a.frames) == 2 and len(b.frames) == 1 and ended == []
+    a.closed = True
+    assert tick_all([stream], 0.02) == float("inf")
+    assert ended == [stream] and stream.subscribers == [] and next(reads) == 2

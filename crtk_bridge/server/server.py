@@ -427,7 +427,10 @@ class Server:
         """Tick every stream when its next subscriber is due, until no stream is left."""
         loop = asyncio.get_running_loop()
         while self._streams:
-            delay = tick_all(list(self._streams.values()), loop.time()) - loop.time()
+            due = tick_all(list(self._streams.values()), loop.time())
+            if not self._streams:
+                break  # the last subscriber's session ended
+            delay = due - loop.time()
             if delay <= 0:
                 await asyncio.sleep(0)  # behind: let the rest of the loop run, never hold it
                 continue
