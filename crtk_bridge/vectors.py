@@ -151,8 +151,9 @@ def matrix_from_quaternion(quaternion: Any) -> np.ndarray:
 def quaternion_from_matrix(rotation: Any) -> np.ndarray:
     """Unit quaternion ``[x, y, z, w]`` (``w >= 0``) of a 3x3 rotation matrix (or the rotation
     block of a 4x4 pose); Shepperd's method, stable for every rotation."""
-    R = np.asarray(rotation, dtype=float)[:3, :3]
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    if not (isinstance(rotation, np.ndarray) and rotation.shape == (3, 3)):
+        rotation = np.asarray(rotation, dtype=float)[:3, :3]
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rotation.tolist()
     t = r00 + r11 + r22
     if t > 0.0:
         s = 2.0 * math.sqrt(t + 1.0)
@@ -166,9 +167,8 @@ def quaternion_from_matrix(rotation: Any) -> np.ndarray:
     else:
         s = 2.0 * math.sqrt(max(0.0, 1.0 + r22 - r00 - r11))
         q = [(r02 + r20) / s, (r12 + r21) / s, s / 4, (r10 - r01) / s]
-    norm = math.sqrt(sum(v * v for v in q))
-    sign = -1.0 if q[3] < 0 else 1.0
-    return np.array(q) * (sign / norm)
+    k = (-1.0 if q[3] < 0 else 1.0) / math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return np.array([q[0] * k, q[1] * k, q[2] * k, q[3] * k])
 
 
 def pose_matrix(position: Any, quaternion: Any) -> np.ndarray:
