@@ -10,7 +10,7 @@ import pytest
 from crtk_bridge.core.actuator import CommandMode, DeviceStatus, Fault
 from crtk_bridge.core.state import OperatingState
 
-from ..conftest import wait_until
+from ..conftest import _counts_per_rad, wait_until
 from .conftest import ROWS, simulated_backends
 
 
@@ -200,3 +200,25 @@ def test_a_slow_enable_keeps_the_loop_cycling(rig):
     assert np.all(gaps >= 0) and np.mean(gaps > 0) > 0.8 and gaps.max() < 0.4, gaps.max()
     rig.cycle(20)
     assert len(rig.replies(1)) == 1
+
+
+def test_the_backend_clamps_no_profile_limit(rig):
+    """Core owns the profile's limits (docs/architecture.md, Limits): a position a little beyond
+    a joint's limit (where core holds a joint enabled outside its limits, never snapping it onto
+    the limit) reaches the device as given; a backend clamps only to the device's own range."""
+    b, sim, row = rig.backend, rig.sim, rig.row
+    b.enable(rig.fb)
+    here = rig.measured()
+    j = int(np.argmin(np.array([jt.limits.position_max for jt in rig.profile.joints]) - here))  # closest to its max
+    limit = rig.profile.joints[j].limits.position_max
+    cmd = b.new_command()
+    cmd.mode[:] = int(CommandMode.POSITION)
+    goals = []
+    for p in (limit, limit + 0.02):
+        cmd.position[:] = here
+        cmd.position[j] = p
+        assert b.write(cmd) is None
+        rig.measured()  # the simulator has taken the write
+        goals.append(row.goal(sim, rig.ids[j]))
+    units = abs(_counts_per_rad(rig.profile.joints[j], row))
+    assert abs(goals[1] - goals[0]) >= 0.5 * 0.02 * units, (limit, goals)
