@@ -371,7 +371,7 @@ def test_hostile_payloads_are_refused_without_harm(ros_daemon, ros, errors, stat
             (key("so101/servo_jp", "std_msgs::msg::dds_::String_", STRING_HASH),
              bytes(STORE.serialize_cdr(StringMsg(data="go"), "std_msgs/msg/String")),
              "published as std_msgs::msg::dds_::String_"),  # wrong type
-            (js_key, joint_state([0.0, float("nan"), 0.0, 0.0, 0.0]), "non-finite value nan at data.position[1]"),
+            (js_key, joint_state([0.0, float("nan"), 0.0, 0.0, 0.0]), "data.position: entry 1 is non-finite (nan)"),
             (js_key, joint_state([0.0] * 4), "Expected `array` of 5 numbers"),  # wrong length
             (js_key, joint_state([0.0] * 5, name=["a", "b", "c", "d", "e"]), "joint names"),
             (move_key, joint_state([3.0, 0.0, 0.0, 0.0, 0.0]), "joint 'shoulder_pan' is outside its limits"),
