@@ -15,7 +15,7 @@
 Prints medians / p99 and the ratios (docs/architecture.md, "Performance targets": loop p99 within
 2x of the bare loop's, socket p50 within 2x of the echo's). Figures only; nothing is asserted. Usage:
 
-    python bench/bench_daemon.py [--rounds 3] [--window 3]
+    python bench/bench_daemon.py [--rounds 3] [--window 3] [--old /tmp/old]
 """
 
 from __future__ import annotations
@@ -259,10 +259,27 @@ def main() -> int:
     ap.add_argument("--window", type=float, default=3.0, help="seconds per measurement window")
     ap.add_argument("--rtt", type=int, default=2000, help="round trips per window")
     ap.add_argument("--cartesian", action="store_true", help="stream servo_cp (IK per command) instead of servo_jp")
+    ap.add_argument("--old", type=Path, help="another checkout, measured after this one the same way (its own "
+                                             "baselines in its own windows)")
     args = ap.parse_args()
+    print(f"load average (1 min) at start {os.getloadavg()[0]:.2f}")
+    for name, tree in [("this checkout", ROOT)] + ([(f"OLD {args.old}", args.old.resolve())] if args.old else []):
+        print(f"== {name}")
+        run(tree, args)
+    print(f"load average (1 min) at end {os.getloadavg()[0]:.2f} (this script's own processes included)")
+    return 0
 
+
+def cpu_s(pid: int) -> float:
+    """utime + stime of process ``pid`` (its own threads, not its children), in seconds."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run(tree: Path, args) -> None:
     tmp = Path(tempfile.mkdtemp(prefix="crtk-bench-"))
-    daemon, sock = sim_daemon.start(1000, tmp)
+    daemon, sock = sim_daemon.start(1000, tmp, tree=tree)
     echo_path = str(tmp / "echo.sock")
     echo = echo_server(echo_path)
     profile = tmp / "so101-1000hz.yaml"  # sim_daemon's: the daemon's own profile at 1 kHz
@@ -283,7 +300,7 @@ def main() -> int:
 
         # -- loop lateness under load, alternating with the bare loop --
         bare, loaded, compute, overruns = [], [], [], []
-        bus_runs, daemon_ovr, daemon_cyc = [], 0, 0
+        bus_runs, daemon_ovr, daemon_cyc, front_cpu = [], 0, 0, []
         stats_start = robot.connection.request("period_statistics")
         load = Load(str(sock), start, cartesian=args.cartesian)
         load.start(robot)
@@ -295,9 +312,11 @@ def main() -> int:
             t_end = time.monotonic() + args.window
             window = []
             first = robot.connection.request("period_statistics")
+            cpu0, t0 = cpu_s(daemon.pid), time.monotonic()
             while time.monotonic() < t_end:
                 time.sleep(min(0.9, args.window))  # the daemon's ring holds the last 1024 cycles
                 window.append(robot.connection.request("period_statistics"))
+            front_cpu.append((cpu_s(daemon.pid) - cpu0) / (time.monotonic() - t0))
             daemon_ovr += window[-1]["overruns"] - first["overruns"]
             daemon_cyc += window[-1]["cycles"] - first["cycles"]
             loaded.append(np.array([w["lateness_p99_s"] for w in window]))
@@ -330,7 +349,8 @@ def main() -> int:
     ovr = stats_end["overruns"] - stats_start["overruns"]
     print(f"  daemon compute p99 (median of windows): {float(np.median(np.concatenate(compute))) * 1e3:.3f} ms; "
           f"overruns {ovr} of {cyc} cycles ({100.0 * ovr / max(cyc, 1):.2f} %)")
-    print(f"  subscriber frames received: {frames / (8 * elapsed):.0f} Hz per subscriber (asked 1000)")
+    print(f"  subscriber frames received: {frames / (8 * elapsed):.0f} Hz per subscriber (asked 1000); "
+          f"front process CPU {100 * float(np.median(front_cpu)):.0f} % of a core")
     print(f"  ratio daemon p99 / bare p99: {loaded_p99 / bare_p99:.2f}  (target <= 2)")
     bus_late = np.concatenate([np.array(r["late"]) for r in bus_runs])
     bus_ovr, bus_cyc = sum(r["overruns"] for r in bus_runs), sum(r["cycles"] for r in bus_runs)
@@ -346,7 +366,6 @@ def main() -> int:
     print(f"  daemon p50 {pct(rtt_d, 50) * 1e6:.0f} us, p99 {pct(rtt_d, 99) * 1e6:.0f} us")
     print(f"  bare asyncio echo p50 {pct(rtt_e, 50) * 1e6:.0f} us, p99 {pct(rtt_e, 99) * 1e6:.0f} us")
     print(f"  ratio p50 daemon / echo: {pct(rtt_d, 50) / pct(rtt_e, 50):.2f}  (target <= 2)")
-    return 0
 
 
 if __name__ == "__main__":

@@ -168,6 +168,10 @@ class RosGraph:
         spaces = {ns: server.cartesian_space(ns) for ns in server.cartesian}  # the thread's own
         self.periodic = PeriodicTopics(self.link, self.namespaces, self._pubs, spaces, self.rate_hz, robot)
         self.periodic.start()
+        server.statistics.append(self._statistics)
+
+    def _statistics(self) -> dict:
+        return {"ros_ticks_skipped": self.periodic.skipped if self.periodic is not None else 0}
 
     def _declare(self) -> None:
         node = self.node
