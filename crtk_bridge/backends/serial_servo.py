@@ -60,6 +60,7 @@ from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Fault, Lifecyc
 from ..errors import BackendError, ProfileError
 from ..profile import Profile, backend_config
 from .calibration import RangeWatch, from_lerobot, sweep_calibration
+from .optional import BusScanner, DeviceSetup
 from .port_errors import open_error_reason, silent_bus_hint
 from .ports import resolve_port
 from .servo_keys import Calibration, ServoJoint, servo_joints
@@ -268,8 +269,9 @@ class BusScan:
     elsewhere: dict[int, list[tuple[int, int]]]
 
 
-class SerialServoBackend(Actuator):
+class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
     """Servos with one id each on one half-duplex serial bus. Subclasses fill the hooks below.
+    Both optional capabilities (backends/optional.py): ``check --scan`` and ``setup-servos``.
 
     Constructing validates the profile (raises ProfileError naming ``backend.<key>`` or the joint
     key); nothing touches the bus before :meth:`open`.
@@ -810,6 +812,16 @@ class SerialServoBackend(Actuator):
         return port, margin
 
     # ------------------------------------------------------------------ bus scan (check --scan)
+    def scan_plan(self, all_bauds: bool) -> tuple[int | None, str]:
+        return self.config.baudrate, (f"at {self.config.baudrate} baud{' (then every other rate)' if all_bauds else ''}, "
+                                      f"ids 0-{self.MAX_ID}")
+
+    def setup_devices(self, joints, emit, ask, timeout_s: float) -> int:
+        """``crtk-bridge setup-servos`` (backends/servo_setup.py)."""
+        from .servo_setup import ServoSetup
+
+        return ServoSetup(self, emit, ask, timeout_s).run(joints)
+
     def scan(self, all_bauds: bool = False) -> BusScan:
         """Every servo answering on the bus at the profile's baud rate, by id: model number,
         firmware, torque state, and for a joint's servo of the right model its EEPROM
@@ -948,6 +960,7 @@ class SerialServoBackend(Actuator):
                              f"{self.config.baudrate}")
                 problems.append(f"id {sid} ({what}) answers at {baud} baud, not the profile's "
                                 f"{self.config.baudrate}{hint}")
+        findings["servos_answered"] = len(scan.servos)
         return lines, problems, findings
 
     def _open_hook(self) -> None:

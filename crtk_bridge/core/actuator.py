@@ -45,7 +45,7 @@ What else a backend declares (class attributes, refined per profile in ``__init_
   :func:`effective_period_s` is the ONE period the loop, motion, the server's rates and the
   statistics use, computed once at start-up.
 * ``simulator`` (:class:`SimWiring`): how ``--sim`` wires the backend to its wire-level
-  simulator (which ``crtk-sim`` device, which backend key takes the simulator's endpoint).
+  simulator (which backend key takes the simulator's endpoint; which simulator is the registry's).
 * Native cartesian control (``Capabilities.native_cartesian``): a controller with its own
   cartesian control and TCP pose (UR ``servoL`` / ``speedL`` / ``moveL``) receives cartesian
   setpoints in :attr:`JointCommand.cartesian` (one row per namespace of
@@ -246,14 +246,14 @@ class FaultReaction(str, enum.Enum):
 
 @dataclass(frozen=True)
 class SimWiring:
-    """How ``--sim`` runs a backend on its simulator (no port patching in the entry layer).
+    """How ``--sim`` wires a backend to its simulator (no port patching in the entry layer).
 
-    ``device`` is the ``crtk-sim`` device name (``crtk_bridge.sim.cli``); the simulator prints or
-    links an endpoint (a pty path, an address) that :meth:`Actuator.sim_profile` writes into the
-    backend key ``endpoint_key`` of the profile the backend is then built from.
+    Which simulator is the registry's (:mod:`crtk_bridge.registry`, one registration names the
+    backend and its simulator); the simulator prints or links an endpoint (a pty path, an address)
+    that :meth:`Actuator.sim_profile` writes into the backend key ``endpoint_key`` of the profile
+    the backend is then built from.
     """
 
-    device: str
     endpoint_key: str = "port"
     #: a simulator that serves fixed TCP ports (a UR controller's) instead of a pty: ``--sim``
     #: picks a loopback address 127.0.0.x where these ports are free, passes it as ``--host`` and

@@ -279,7 +279,7 @@ class Canopen402Backend(Actuator):
     cyclic_write = True  # RPDOs every cycle, in every state
     paces_cycle = True  # the loop's tick sends the SYNC (wait_cycle)
     stops_itself_on_pause = True  # pause is the drives' own quick stop
-    simulator = SimWiring("canopen", endpoint_key="channel")
+    simulator = SimWiring(endpoint_key="channel")  # crtk-sim canopen's SLCAN pty
     #: the interface ``--sim`` uses to reach the simulated USB-CAN adapter
     SIM_INTERFACE = "slcan"
     #: ``tpdo_timeout_ms`` on the simulator unless the profile sets one: the simulated adapter

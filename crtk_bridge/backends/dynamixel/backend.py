@@ -159,7 +159,7 @@ class DynamixelBackend(SerialServoBackend):
     vendor = "dynamixel"
     ACCELERATION_KEY = "profile_acceleration"
     SOFTWARE_DRIVE_MODE = False  # the servo's Drive_Mode register reverses it (LeRobot writes it there)
-    simulator = SimWiring("dynamixel")  # crtk-sim dynamixel; --sim sets backend.port to its pty
+    simulator = SimWiring()  # --sim sets backend.port to its simulator's pty (crtk-sim dynamixel)
     Config = Config
     MODEL_NUMBERS = T.MODEL_NUMBERS
     RESOLUTION = T.RESOLUTION

@@ -121,7 +121,7 @@ class FeetechBackend(SerialServoBackend):
     )
     extra = "feetech"
     vendor = "feetech"
-    simulator = SimWiring("feetech")  # crtk-sim feetech; --sim sets backend.port to its pty
+    simulator = SimWiring()  # --sim sets backend.port to its simulator's pty (crtk-sim feetech)
     Config = Config
     MODEL_NUMBERS = tables.MODEL_NUMBERS
     RESOLUTION = tables.RESOLUTION

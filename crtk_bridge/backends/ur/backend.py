@@ -283,7 +283,7 @@ class UrBackend(Actuator):
     extra = "ur"
     fault_reaction = Actuator.fault_reaction  # the DISABLE transition: stop, power off, brakes on
     paces_cycle = True
-    simulator = SimWiring(device="ur", endpoint_key="host", host_ports=(30004, 29999, 30003))
+    simulator = SimWiring(endpoint_key="host", host_ports=(30004, 29999, 30003))
     stops_itself_on_pause = True  # a safeguard stop stops the arm by itself: resume from where it is
     transition_timeouts_s = {**DEFAULT_TRANSITION_TIMEOUTS_S, Lifecycle.ENABLE: 20.0, Lifecycle.DISABLE: 6.0,
                              Lifecycle.RESUME: 3.0, Lifecycle.FAULT_RESET: 12.0, Lifecycle.GOAL_CHECK: 2.0}
