@@ -235,7 +235,10 @@ def robot_capabilities(profile, has_gripper: bool) -> frozenset:
         caps.add("kinematics")
     if backend_class(profile.backend_type).calibration_import is not Actuator.calibration_import:
         caps.add("calibration")
-    if backend_class(profile.backend_type).capabilities.native_cartesian:
+    # traits are final only once open; a backend whose traits never depend on its devices (a UR
+    # arm) keeps them as the class constant TRAITS its _traits_hook returns
+    traits = getattr(backend_class(profile.backend_type), "TRAITS", None)
+    if traits is not None and traits.capabilities.native_cartesian:
         caps.add("native_cartesian")
     return frozenset(caps)
 

@@ -56,7 +56,17 @@ from typing import Any, ClassVar
 import numpy as np
 import serial
 
-from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Fault, Lifecycle, Steps, background_thread
+from ..core.actuator import (
+    Actuator,
+    ActuatorInfo,
+    Capabilities,
+    DeviceStatus,
+    Fault,
+    Lifecycle,
+    Steps,
+    Traits,
+    background_thread,
+)
 from ..errors import BackendError, ProfileError
 from ..profile import Profile, backend_config
 from .calibration import RangeWatch, from_lerobot, lerobot_maps, sweep_calibration
@@ -446,7 +456,16 @@ class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
     port_name = _where  # the device path once opened (or scanned), else backend.port as given
 
     def info(self) -> ActuatorInfo:
-        return ActuatorInfo(list(self.joint_names), self.capabilities, dict(self._details))
+        return ActuatorInfo(list(self.joint_names), dict(self._details))
+
+    #: per joint, what it can do (set by the vendor's __init__ from the profile)
+    _joint_caps: list[Capabilities]
+
+    def _traits_hook(self) -> Traits:
+        """Serial servos: the loop's clock; written only while ENABLED / PAUSED; core's braking
+        ramp pauses them; no native homing, goal check or speed scaling; per joint what the
+        profile gives (``_joint_caps``)."""
+        return Traits(joints=tuple(self._joint_caps), transition_timeouts_s=self.TRANSITION_TIMEOUTS_S)
 
     def _result_text(self, result: int) -> str:
         text = self._ph.getTxRxResult(result) if self._ph else str(result)
@@ -1008,6 +1027,11 @@ class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
         if problems:
             raise BackendError(f"{self.robot}: " + "; ".join(problems))
 
+    def _disable_steps(self) -> Steps:
+        """DISABLE: :meth:`_disable_hook` in one step."""
+        self._disable_hook()
+        yield from ()
+
     def _disable_hook(self) -> None:
         """Torque_Enable = 0 on every servo, each acknowledged. Blocks.
 
@@ -1027,8 +1051,8 @@ class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
         if failed:
             raise BackendError(f"{self.robot}: torque off not confirmed: " + "; ".join(failed))
 
-    #: time limits (s) of the lifecycle transitions (ENABLE may grow: transition_timeout_s)
-    transition_timeouts_s = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 1.0,
+    #: time limits (s) of the lifecycle transitions (a vendor's ``_traits_hook`` may grow ENABLE's)
+    TRANSITION_TIMEOUTS_S = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 1.0,
                              Lifecycle.RESUME: 1.0, Lifecycle.FAULT_RESET: 1.0}
 
     def _enable_steps(self, feedback) -> Steps:

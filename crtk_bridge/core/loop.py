@@ -32,7 +32,7 @@ import msgspec
 
 from ..errors import CrtkBridgeError
 from ..profile import Profile
-from .actuator import Actuator, Fault, Lifecycle, effective_period_s
+from .actuator import Actuator, Clock, Fault, Lifecycle, effective_period_s
 from .control import Controller
 from .samples import SampleRing
 from .snapshot import RING, SnapshotBuffer
@@ -268,7 +268,7 @@ class ControlLoop:
         lateness = v["lateness"]
         compute = v["compute"]
         period = self.period
-        paced = self.actuator.paces_cycle
+        paced = self.actuator.traits.clock is Clock.DEVICE
         wait_cycle = self.actuator.wait_cycle
         clock = time.perf_counter
         next_t = clock() + period
@@ -408,7 +408,8 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
     except Exception as exc:
         chan.send(_encode({"event": "_startup_failed", "data": {"message": f"{profile.name}: {exc!r}"}}))
         return 1
-    caps = actuator.capabilities
+    traits = actuator.traits
+    caps = traits.capabilities
     loop = ControlLoop(profile, actuator, chan, snapshot, realtime=realtime, samples=samples)
     loop_ref["loop"] = loop
     c = loop.controller
@@ -421,8 +422,8 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
         "capabilities": as_dict(caps),
         "period_s": loop.period,  # the ONE effective period: the front's rates and statistics
         # the longest a state command may take before the loop itself replies (its time limit)
-        "transition_timeout_s": 2 * max(actuator.transition_timeout_s(k) for k in Lifecycle
-                                        if k is not Lifecycle.HOME or actuator.native_homing),
+        "transition_timeout_s": 2 * max(traits.timeout_s(k) for k in Lifecycle
+                                        if k is not Lifecycle.HOME or traits.native_homing),
         "namespace_commands": c.namespace_commands(),  # motion commands per namespace
         "namespace_capabilities": {ns: as_dict(cap) for ns, cap in c.ns_caps.items()},
         "native_cartesian": list(c.native_cartesian),  # namespaces whose backend does cartesian control

@@ -110,7 +110,7 @@ class RosSession(Session):
         except Exception:  # never break the server's fan-out to the other sessions
             log.exception("ROS graph: publishing %s failed", msg.get("event", "a reply"))
 
-    def send_frame(self, msg: Any) -> None:  # the ROS session never subscribes to socket streams
+    def send_frame(self, line: bytes) -> None:  # the ROS session never subscribes to socket streams
         pass
 
     def close(self) -> None:
