@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """The ROS 2 graph over Zenoh on the simulated SO-101 at 1 kHz, each figure beside a baseline
-measured in the same run (DESIGN.md: "Zenoh: measured_js latency within 2x of a bare Zenoh pub/sub
-of the same bytes; the loop's lateness unchanged with the transport publishing at 1 kHz").
+measured in the same run (docs/architecture.md, "Performance targets": Zenoh ``measured_js``
+latency within 2x of a bare Zenoh pub/sub of the same bytes; the loop's lateness unchanged with
+the transport publishing at 1 kHz).
 
 1. Latency of ``measured_js`` over Zenoh on loopback: the daemon publishes at the loop rate
    (1 kHz); a subscriber in this process takes (receive time - the attachment's source timestamp)

@@ -1,10 +1,12 @@
 """crtk-bridge: the CRTK robot API served on real hardware.
 
-Layers (imports point downward only, see docs/architecture.md): entry (cli, daemon) -> server /
-client -> core -> core.actuator <- backends; sim stands apart. ``profile`` and ``errors`` are plain
-data and exceptions that every layer may import. The client library and the leaf modules it
-needs (``errors``, ``vocabulary``) are the ``crtk_client`` package (clients/python), which
-crtk-bridge installs with itself.
+Layers and which may import which: docs/architecture.md, "Layers" and "Dependencies" (a test
+checks the code against that table). In short: entry (cli, daemon) -> server / transport /
+recording -> core -> core.actuator (the seam) <- backends; the simulators share only the vendors'
+tables with the backends; the client needs neither core nor the server. ``profile``, ``errors``
+and the leaf modules (``vocabulary``, ``registry``...) are data and helpers every layer may import.
+The client library and the leaves it needs (``errors``, ``vocabulary``, ``vectors``) are the
+``crtk_client`` package (clients/python), which crtk-bridge installs with itself.
 """
 
 __version__ = "0.1.0"

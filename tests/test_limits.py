@@ -23,7 +23,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from crtk_bridge import vectors
+from crtk_bridge import registry, vectors
 from crtk_bridge.core.actuator import Capabilities, CartesianMode, CommandMode
 from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import CommandError
@@ -185,6 +185,17 @@ def test_write_refuses_a_non_finite_cartesian_setpoint(kind):
     assert cart.mode[0] == (CartesianMode.POSE if kind == "pose" else CartesianMode.TWIST)
 
 
+@pytest.mark.parametrize("name", ["composite", *registry.names()])
+def test_every_backend_writes_through_the_gate(name):
+    """No backend (nor the composite) replaces ``Actuator.write``: the finiteness gate runs for
+    each; tests/conformance::test_nan_never_reaches_the_bus shows it on every simulator's wire."""
+    from crtk_bridge.backends.composite import CompositeActuator
+    from crtk_bridge.core.actuator import Actuator
+
+    cls = CompositeActuator if name == "composite" else registry.backend_class(name)
+    assert cls.write is Actuator.write
+
+
 def test_a_buggy_core_path_never_reaches_the_backend_and_faults_the_robot(monkeypatch):
     """A NaN produced inside core (here: the motion layer's output, patched) is refused by the
     write template: the backend never writes it, the robot goes to FAULT naming the joint."""
@@ -272,3 +283,49 @@ def test_hostile_values_on_every_path_reach_the_motors_bounded_and_finite(steps)
         assert np.all((p[pos] >= POS_MIN[pos] - EPS) & (p[pos] <= POS_MAX[pos] + EPS)), p
         assert np.all(np.abs(v) <= V_MAX + EPS), v
         assert np.all(np.abs(f) <= 2.0 + EPS), f
+
+
+_cart_step = st.tuples(
+    st.sampled_from(["servo_cp", "interpolate_cp", "move_cp", "servo_cv", "interpolate_cv", "hold"]),
+    st.lists(HOSTILE | st.floats(-0.005, 0.005), min_size=7, max_size=7),
+    st.integers(0, 25),
+)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(steps=st.lists(_cart_step, min_size=1, max_size=8))
+def test_hostile_values_on_the_native_cartesian_path_reach_the_backend_bounded_and_finite(steps):
+    """A backend with its own cartesian control (a UR) gets poses and twists: with NaN, inf, 1e308
+    and plain values, every row it is handed is finite, a stream's pose never steps farther than
+    safety.cartesian_step_max (and cartesian_rotation_step_max) from the last, and a twist never
+    exceeds safety.cartesian_velocity_max / cartesian_angular_velocity_max."""
+    sf = PROFILE.safety
+    c, act, clock, cycle, req = make_rig(FakeNativeArm(PROFILE))
+    assert req("enable")["ok"]
+    cycle(2)
+    for cmd, values, cycles in steps:
+        if cmd.endswith("_cp"):
+            data = {"position": list(act.tcp_p + np.array(values[:3])),
+                    "orientation": list(act.tcp_q + np.array(values[3:]))}
+        elif cmd.endswith("_cv"):
+            data = {"linear": values[:3], "angular": values[3:6]}
+        else:
+            data = {}
+        reply = req(cmd, ARM, **data)
+        if not all(math.isfinite(v) for v in values[:6 if cmd.endswith("_cv") else 7]) and cmd != "hold":
+            assert not reply["ok"] and reply["error"]["code"] == "bad_request", reply
+        cycle(cycles)
+        assert c.state is OperatingState.ENABLED, [m for m in c.outbox if m.get("event") == "error"]
+    last = None
+    for mode, joint_modes, row in act.writes:
+        assert all(np.isfinite(row[k]).all() for k in ("position", "orientation", "linear", "angular")), row
+        if mode is CartesianMode.POSE:
+            if last is not None:
+                assert np.linalg.norm(row["position"] - last[0]) <= sf.cartesian_step_max + EPS
+                assert vectors.rotation_angle(row["orientation"], last[1]) <= sf.cartesian_rotation_step_max + 1e-6
+            last = (row["position"], row["orientation"])
+        elif mode is CartesianMode.TWIST:
+            assert np.linalg.norm(row["linear"]) <= sf.cartesian_velocity_max + EPS
+            assert np.linalg.norm(row["angular"]) <= sf.cartesian_angular_velocity_max + EPS
+        if mode is not CartesianMode.POSE:
+            last = None  # a new stream steps from the measured pose

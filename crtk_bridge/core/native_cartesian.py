@@ -128,7 +128,7 @@ class NativeCartesian:
         else:
             raise CommandError("invalid_state", f"{ns}: {cmd} refused: the backend reports no measured pose "
                                "to bound the step from")
-        dist = float(np.linalg.norm(p - base_p))
+        dist = vectors.distance(p, base_p)
         if dist > sf.cartesian_step_max:
             raise CommandError("step_too_large", f"{ns}: {cmd} refused: the tip would jump {fmt_number(dist)} m "
                                f"from {what} (safety.cartesian_step_max = {sf.cartesian_step_max})")
@@ -140,8 +140,8 @@ class NativeCartesian:
 
     def _check_twist(self, cmd: str, twist: np.ndarray) -> None:
         ns, sf = self.motion.name, self.safety
-        for speed, key, unit in ((float(np.linalg.norm(twist[:3])), "cartesian_velocity_max", "m/s"),
-                                 (float(np.linalg.norm(twist[3:])), "cartesian_angular_velocity_max", "rad/s")):
+        for speed, key, unit in ((vectors.norm(twist[:3]), "cartesian_velocity_max", "m/s"),
+                                 (vectors.norm(twist[3:]), "cartesian_angular_velocity_max", "rad/s")):
             bound = getattr(sf, key)
             if speed > bound:
                 raise CommandError("out_of_limits", f"{ns}: {cmd} refused: {'linear' if unit == 'm/s' else 'angular'} "

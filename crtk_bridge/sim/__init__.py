@@ -1,4 +1,4 @@
-"""Wire-level simulated devices: product code, not test code (DESIGN.md, "Simulators are product").
+"""Wire-level simulated devices: product code, not test code (docs/architecture.md, "Simulators are product").
 
 Each simulator answers the vendor SDK's real packets on a real OS channel (a pseudo-terminal for
 serial buses, TCP on loopback for a UR controller), so ``--sim`` and the tests run the same backend code path as hardware.

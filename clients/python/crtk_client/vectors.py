@@ -78,7 +78,7 @@ def field(data: Any, key: str, n: int, what: str, names: Sequence[str] | None = 
 def unit_quaternion(values: Any, what: str) -> np.ndarray:
     """4 finite numbers [x, y, z, w] with a norm in (0.5, 1.5), normalised. Raises InvalidVector."""
     q = floats(values, what, 4)
-    norm = math.sqrt(float(q @ q))
+    norm = math.hypot(*q.tolist())  # 1e308 entries: a huge norm (refused), never an overflow
     if not QUATERNION_NORM_MIN < norm < QUATERNION_NORM_MAX:
         raise InvalidVector(f"{what} must be a unit quaternion [x, y, z, w] (norm {norm:.3g})")
     return q / norm
@@ -183,6 +183,17 @@ def pose_pq(matrix: Any) -> tuple[np.ndarray, np.ndarray]:
     """``(position [3] in m, quaternion [4] x, y, z, w with w >= 0)`` of a 4x4 homogeneous matrix."""
     T = np.asarray(matrix, dtype=float)
     return T[:3, 3].copy(), quaternion_from_matrix(T[:3, :3])
+
+
+def distance(a: Any, b: Any) -> float:
+    """Euclidean distance of two 3-vectors, without overflow (1e308 apart: a huge number)."""
+    (ax, ay, az), (bx, by, bz) = a, b
+    return math.hypot(float(ax) / 2 - float(bx) / 2, float(ay) / 2 - float(by) / 2, float(az) / 2 - float(bz) / 2) * 2
+
+
+def norm(v: Any) -> float:
+    """Euclidean norm of a vector, without overflow."""
+    return math.hypot(*(float(x) for x in v))
 
 
 def rotation_angle(q: np.ndarray, base: np.ndarray) -> float:

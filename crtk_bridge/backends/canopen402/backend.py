@@ -3,7 +3,7 @@
 Built on ``canopen`` (object dictionaries, SDO client, NMT, EMCY consumer, PDO maps) over
 ``python-can`` (any interface it speaks: socketcan, slcan, pcan, kvaser, socketcand, virtual...).
 What the library does not do, or does in a way a real-time loop cannot use, is done here
-(``../shared/reference/canopen-ur.md`` part A):
+(docs/architecture.md, "Sources": CANopen CiA 402):
 
 * **The loop paces the bus.** The backend paces the cycle (``traits.clock`` is the device's): the loop's sleep is
   :meth:`Canopen402Backend.wait_cycle`, which sends ONE SYNC (``SyncProducer.transmit()``) at the
