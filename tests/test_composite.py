@@ -22,6 +22,7 @@ from crtk_bridge.core.actuator import (
     effective_period_s,
 )
 from crtk_bridge.core.control import Controller
+from crtk_bridge.core.cycle import CycleRunner, run_transition
 from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import BackendError, ProfileError
 from crtk_bridge.profile import load_profile
@@ -162,7 +163,9 @@ def test_transitions_step_every_bus_together_until_the_slowest_ends():
     c, left, right = composite(enable_cycles=5)
     right.enable_cycles = 2
     t = c.begin(Lifecycle.ENABLE, c.new_feedback())
-    assert run_steps(t) == 6  # the slowest bus's 5 steps (+ the step that sees it end)
+    # the slowest bus's 5 steps, the cycle of its fresh read after torque on (Actuator's), and
+    # the step that sees it end
+    assert run_steps(t) == 7
     assert left.steps == 5 and right.steps == 2 and left.torque and right.torque
     assert c.is_enabled and left.is_enabled and right.is_enabled
     # the buses' limits add up, and an enable may end in a rollback (every bus's disable)
@@ -171,10 +174,11 @@ def test_transitions_step_every_bus_together_until_the_slowest_ends():
 
 
 def test_enable_is_all_or_none_and_names_the_bus():
-    c, left, right = composite(enable_cycles=3)
+    c, left, right = composite(enable_cycles=4)
     right.enable_cycles = 1
     t = c.begin(Lifecycle.ENABLE, c.new_feedback())
-    assert not t.step() and not t.step()  # right done after its one step, left still going
+    # right done after its one step and its fresh read, left still going
+    assert not t.step() and not t.step() and not t.step()
     assert right.torque and right.is_enabled and not left.torque
     left.fail_enable = True
     with pytest.raises(BackendError, match=r"^bimanual_so101: bus 'left': joint 'left_shoulder_pan' did not"):
@@ -319,16 +323,13 @@ def controller_rig(left_reaction, right_reaction, left_enable_cycles=None):
     act.open()
     clock = Clock()
     c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
-    fb = act.new_feedback()
+    runner = CycleRunner(act, c.dt, clock=clock, sleep=clock.sleep)  # the loop's cycle, on the fake clock
     cycles: list[list] = []  # the log of each cycle
 
     def cycle(n=1):
         for _ in range(n):
             start = len(log)
-            clock.t += c.dt
-            c.on_read(fb, act.read(fb))
-            if c.step():
-                c.on_write(act.write(c.command))
+            runner.cycle(c)
             cycles.append(log[start:])
 
     cycle()
@@ -442,7 +443,7 @@ def test_the_rollback_is_bounded_by_the_disable_time_limit():
     c = CompositeActuator(PROFILE, {"left": left, "right": right})
     c.open()
     with pytest.raises(BackendError) as info:
-        c.run(c.begin(Lifecycle.ENABLE, c.new_feedback()))  # its own limit (2.1 s) is not reached
+        run_transition(c, c.begin(Lifecycle.ENABLE, c.new_feedback()))  # its own limit (2.1 s) is not reached
     assert str(info.value).startswith("bimanual_so101: bus 'right': joint 'right_elbow_flex' did not confirm")
     assert str(info.value).endswith("undoing the enable: torque off not confirmed on 'left', 'right' within 0.1 s")
 
@@ -457,6 +458,6 @@ def test_the_fault_reaction_also_switches_off_a_holding_bus_an_abandoned_enable_
     assert not t.step() and not t.step()
     t.abort()  # core gave up on it (time limit, or a fault meanwhile)
     assert right.servo_torque.any() and not right.is_enabled
-    c.run(c.begin_fault_reaction())
+    run_transition(c, c.begin_fault_reaction())
     assert not left.servo_torque.any() and not right.servo_torque.any()
     c.close()

@@ -40,8 +40,10 @@ What else a backend declares (class attributes, refined per profile in ``__init_
   (:meth:`Actuator.take_status`) and maps it onto the CRTK states with ONE table
   (``core/state.py``, ``DEVICE_STATUS``). A non-transient :class:`Fault` from ``read`` is a
   device FAULT too.
-* Pacing: ``paces_cycle`` and :meth:`Actuator.wait_cycle` let the hardware pace the loop (wait for
-  its next packet, or produce the SYNC); otherwise the loop sleeps to its own clock.
+* Pacing: every cycle starts with :meth:`Actuator.wait_cycle` (``deadline``: the cycle
+  runner's, core/cycle.py). With ``paces_cycle`` the device's clock paces the loop (a UR's next
+  packet); otherwise the runner sleeps to its own clock's deadline and ``wait_cycle`` does what
+  starts the backend's cycle (a CANopen SYNC).
   :func:`effective_period_s` is the ONE period the loop, motion, the server's rates and the
   statistics use, computed once at start-up.
 * ``simulator`` (:class:`SimWiring`): how ``--sim`` wires the backend to its wire-level
@@ -271,7 +273,7 @@ class Transition:
     steps raise (a BackendError naming robot, joint and register) when it failed. ``abort()``
     abandons it (closes the step generator, so its ``finally`` clauses run; idempotent).
     ``timeout_s`` is the backend's limit; enforcing it is the caller's job (core faults the robot
-    naming the transition, :meth:`Actuator.run` raises).
+    naming the transition, :func:`~crtk_bridge.core.cycle.run_transition` raises).
     """
 
     __slots__ = ("robot", "kind", "timeout_s", "done", "_steps", "_on_finish")
@@ -356,6 +358,9 @@ def effective_period_s(profile: Profile, actuator: "Actuator") -> float:
     return float(hw) if hw is not None else 1.0 / profile.loop.rate_hz
 
 
+#: cycles an ENABLE stepped over cycles waits, after its steps, for a read with torque on
+ENABLE_FRESH_READ_CYCLES = 3
+
 #: default time limits (s) of lifecycle transitions; a backend overrides ``transition_timeouts_s``
 DEFAULT_TRANSITION_TIMEOUTS_S: dict[Lifecycle, float] = {
     Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 2.0, Lifecycle.RESUME: 2.0,
@@ -408,6 +413,7 @@ class Actuator(abc.ABC):
         #: the device's last reported status (see :meth:`report_status`)
         self.device_status = DeviceStatus.OK
         self._status_news: tuple[DeviceStatus, Fault | None] | None = None
+        self._read_fault: Fault | None = None  # the last read's fault (None: it succeeded)
 
     # ---- start-up path (may block, raises BackendError) ----
     def open(self) -> None:
@@ -457,7 +463,7 @@ class Actuator(abc.ABC):
         """
         on_finish = None
         if kind is Lifecycle.ENABLE:
-            steps = self._enable_steps(feedback if feedback is not None else self.new_feedback())
+            steps = self._enable_then_fresh(feedback if feedback is not None else self.new_feedback())
             on_finish = self._finished_enable
         elif kind is Lifecycle.DISABLE:
             self._enabled = False  # no goal goes out from now on
@@ -485,6 +491,30 @@ class Actuator(abc.ABC):
     def _finished_enable(self) -> None:
         self._enabled = True
 
+    def _enable_then_fresh(self, feedback: JointFeedback) -> Steps:
+        """The backend's ENABLE steps, ending with the pose the joints are held at in
+        ``feedback`` (core holds exactly there, never a stale pose: a joint may have sagged while
+        torque was off). An ENABLE done in one step (a blocking ``_enable_hook``) writes it into
+        ``feedback`` itself; one stepped over cycles ends in a later cycle whose read succeeded
+        (its sample is core's), trying ENABLE_FRESH_READ_CYCLES reads (a loaded host may miss
+        one reply: not a FAULT for one late byte); none: BackendError. Nothing here touches the
+        bus: the cycle reads it."""
+        inner = self._enable_steps(feedback)
+        stepped = False
+        try:
+            for _ in inner:
+                stepped = True
+                yield
+        finally:
+            inner.close()
+        if not stepped:
+            return
+        for _ in range(ENABLE_FRESH_READ_CYCLES):
+            yield
+            if self._read_fault is None:
+                return
+        raise BackendError(f"{self.robot}: no fresh position after torque on: {self._read_fault.message}")
+
     def transition_timeout_s(self, kind: Lifecycle) -> float:
         """The backend's time limit (s) for transition ``kind`` (may depend on the profile)."""
         return self.transition_timeouts_s.get(kind, DEFAULT_TRANSITION_TIMEOUTS_S[kind])
@@ -494,26 +524,15 @@ class Actuator(abc.ABC):
         """True when the backend homes itself (``_home_steps`` implemented)."""
         return type(self)._home_steps is not Actuator._home_steps
 
-    def run(self, transition: Transition, interval_s: float = 0.001) -> None:
-        """Run ``transition`` to its end outside the loop (start-up, shutdown, tests). Blocks;
-        sleeps ``interval_s`` between steps. Raises what a step raises, or BackendError after the
-        transition's time limit (the transition is aborted)."""
-        deadline = time.monotonic() + transition.timeout_s
-        while not transition.step():
-            if time.monotonic() > deadline:
-                transition.abort()
-                raise BackendError(f"{self.robot}: {transition.kind.value} did not finish within "
-                                   f"{transition.timeout_s:g} s")
-            time.sleep(interval_s)
-
     def enable(self, feedback: JointFeedback) -> None:
-        """The ENABLE transition run to its end (:meth:`run`). Blocks. Raises BackendError."""
-        self.run(self.begin(Lifecycle.ENABLE, feedback))
+        """The ENABLE transition run to its end, cycle by cycle (:func:`~crtk_bridge.core.cycle.run_transition`:
+        wait, read, step, write, as in the loop). Blocks. Raises BackendError."""
+        run_transition(self, self.begin(Lifecycle.ENABLE, feedback))
 
     def disable(self) -> None:
-        """The DISABLE transition run to its end. Blocks. Raises BackendError if a joint did not
-        confirm torque off."""
-        self.run(self.begin(Lifecycle.DISABLE))
+        """The DISABLE transition run to its end, cycle by cycle. Blocks. Raises BackendError if
+        a joint did not confirm torque off."""
+        run_transition(self, self.begin(Lifecycle.DISABLE))
 
     # ---- calibration (docs/calibration.md): joints moved by hand while DISABLED ----
     def calibration_begin(self) -> Steps:
@@ -567,11 +586,14 @@ class Actuator(abc.ABC):
         rate = self.capabilities.native_rate_hz
         return 1.0 / rate if self.paces_cycle and rate else None
 
-    def wait_cycle(self, timeout_s: float) -> bool:
-        """Block until the hardware's next cycle (its next packet arrived, or the SYNC went
-        out), at most ``timeout_s``. Returns False on timeout (the read that follows reports
-        the cause). Called by the loop instead of sleeping when ``paces_cycle``."""
-        raise NotImplementedError(f"{type(self).__name__} sets paces_cycle but has no wait_cycle")
+    def wait_cycle(self, deadline: float) -> bool:
+        """The start of the cycle scheduled at ``deadline`` (``time.perf_counter``; the cycle
+        runner's schedule, core/cycle.py), called first thing in every cycle. On the loop's clock
+        the runner has slept to ``deadline`` already: a backend does what starts its cycle (a
+        CANopen SYNC). On the device's clock (``paces_cycle``) it blocks until the device's next
+        packet, giving up one period after ``deadline``. Returns False when nothing came (the
+        read that follows reports the cause). Default: nothing to do (True)."""
+        return True
 
     # ---- simulator wiring ----
     @classmethod
@@ -590,9 +612,11 @@ class Actuator(abc.ABC):
     def read(self, feedback: JointFeedback) -> Fault | None:
         """Fill ``feedback`` in place from one bus transaction. Never raises."""
         try:
-            return self._read(feedback)
+            fault = self._read(feedback)
         except Exception as exc:  # a backend bug must fault the robot, not kill the loop
-            return Fault("backend_exception", f"{self.robot}: read failed: {exc!r}", transient=False)
+            fault = Fault("backend_exception", f"{self.robot}: read failed: {exc!r}", transient=False)
+        self._read_fault = fault
+        return fault
 
     def write(self, command: JointCommand) -> Fault | None:
         """Send ``command`` in one bus transaction. Never raises."""
@@ -692,7 +716,8 @@ class Actuator(abc.ABC):
         yield  # pragma: no cover
 
     def _enable_hook(self, feedback: JointFeedback) -> None:
-        """Blocking enable, for backends without ``_enable_steps`` of their own."""
+        """Blocking enable, for backends without ``_enable_steps`` of their own; leaves the pose
+        the joints are held at in ``feedback``."""
         raise NotImplementedError(f"{type(self).__name__} implements neither _enable_steps nor _enable_hook")
 
     def _disable_hook(self) -> None:
@@ -708,6 +733,8 @@ class Actuator(abc.ABC):
     @abc.abstractmethod
     def _write(self, command: JointCommand) -> Fault | None: ...
 
+
+from .cycle import run_transition  # noqa: E402 - the runner needs nothing of this module at import
 
 # ---------------------------------------------------------------- ruckig, for the motion layer and
 # backends that plan on their own (a UR's move_cp)
