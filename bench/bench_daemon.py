@@ -7,8 +7,8 @@
 2. Socket round trip: ``measured_js`` request -> reply, against a bare asyncio Unix-socket echo
    server answering the same request line, alternating, same client code.
 
-Prints medians / p99 and the ratios (the DESIGN.md targets: loop p99 within 2x of the bare loop's,
-socket p50 within 2x of the echo's). Figures only; nothing is asserted. Usage:
+Prints medians / p99 and the ratios (docs/architecture.md, "Performance targets": loop p99 within
+2x of the bare loop's, socket p50 within 2x of the echo's). Figures only; nothing is asserted. Usage:
 
     python bench/bench_daemon.py [--rounds 3] [--window 3]
 """

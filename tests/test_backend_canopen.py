@@ -99,14 +99,15 @@ class CanRig:
         self.profile = msgspec.structs.replace(profile, backend={
             **profile.backend, "interface": interface, "channel": self.sim.port, "options": {}})
         self.backend = Canopen402Backend(self.profile, source=str(PROFILE))
-        period = effective_period_s(self.profile, self.backend)
-        self.runner = CycleRunner(self.backend, period)  # the loop's cycle: wait (SYNC), read, step, write
-        self.fb = self.runner.feedback
         self.c: Controller | None = None
 
     def start(self) -> Controller:
         self.backend.open()
         self.backend.configure()
+        #: the loop's cycle (core/cycle.py): wait (SYNC), read, step, write; its feedback's shape
+        #: is the backend's traits': final once open
+        self.runner = CycleRunner(self.backend, effective_period_s(self.profile, self.backend))
+        self.fb = self.runner.feedback
         self.c = Controller(self.profile, self.backend, time.time, self.runner.period)
         self.cycle()
         return self.c
@@ -403,10 +404,10 @@ def test_capabilities_follow_0x6502_per_drive(iface):
     try:
         c = r.start()
         b = r.backend
-        assert b.joint_capabilities(0).velocity and b.joint_capabilities(0).effort
-        tilt = b.joint_capabilities(1)
+        assert b.traits.joints[0].velocity and b.traits.joints[0].effort
+        tilt = b.traits.joints[1]
         assert tilt.position and not tilt.velocity and not tilt.effort and not tilt.can_free
-        assert not b.capabilities.effort
+        assert not b.traits.capabilities.effort
         r.request(1, "servo_jf", ns="pantilt", data={"effort": [0.1, 0.1]})
         reply = r.c.outbox[-1]
         assert not reply["ok"] and reply["error"]["code"] == "unsupported" and "'tilt'" in reply["error"]["message"]
@@ -451,7 +452,7 @@ def test_home_runs_the_drives_homing_method(iface):
     r = CanRig(iface, data)
     try:
         c = r.start()
-        assert r.backend.native_homing and not c.is_homed
+        assert r.backend.traits.native_homing and not c.is_homed
         r.drive(0).set_position(20000)
         r.cycle(3)
         assert c.feedback.position[0] > 0.5
@@ -513,7 +514,7 @@ def test_effort_scale_from_0x6076_when_the_profile_gives_none(iface):
         pan, tilt = r.backend.drives
         assert pan.k_eff == pytest.approx(0.25 / 1000 * 10)  # 0.25 N*m motor x gear 10, per mille
         assert tilt.k_eff == pytest.approx(-0.5 / 1000 * 10)  # the profile's, direction -1
-        assert r.backend.joint_capabilities(0).effort and r.backend.joint_capabilities(0).measures_effort
+        assert r.backend.traits.joints[0].effort and r.backend.traits.joints[0].measures_effort
     finally:
         r.close()
 

@@ -75,18 +75,19 @@ def reg(sim, sid, name):
 
 def test_koch_capabilities_effort_per_joint():
     b = create_backend(parse_profile(koch()))
-    c = b.capabilities  # the whole robot: only what every joint can do
+    t = b._traits_hook()  # what open() declares: per joint from the profile alone, no bus needed
+    c = t.capabilities  # the whole robot: only what every joint can do
     assert isinstance(b, DynamixelBackend)
     assert (c.position, c.velocity, c.effort, c.measures_effort, c.can_free) == (True, True, False, False, True)
     # per joint: the XL430 shoulders have no current sensing; the XL330s with effort_per_amp have it
-    assert [b.joint_capabilities(i).effort for i in range(6)] == [False, False, True, True, True, True]
-    assert [b.joint_capabilities(i).measures_effort for i in range(6)] == [False, False, True, True, True, True]
-    assert b.capabilities_of([5]).effort and not b.capabilities_of([0, 1, 2, 3, 4]).effort
-    c = DynamixelBackend(parse_profile(all_xl330())).capabilities
+    assert [t.joints[i].effort for i in range(6)] == [False, False, True, True, True, True]
+    assert [t.joints[i].measures_effort for i in range(6)] == [False, False, True, True, True, True]
+    assert t.capabilities_of([5]).effort and not t.capabilities_of([0, 1, 2, 3, 4]).effort
+    c = DynamixelBackend(parse_profile(all_xl330()))._traits_hook().capabilities
     assert c.effort and c.measures_effort
     data = all_xl330()
     del data["joints"][0]["effort_per_amp"]
-    assert not DynamixelBackend(parse_profile(data)).capabilities.effort
+    assert not DynamixelBackend(parse_profile(data))._traits_hook().capabilities.effort
 
 
 def test_profile_errors_name_the_key():

@@ -393,7 +393,7 @@ def test_a_speedj_running_into_a_goal_check_is_stopped_by_the_scripts_watchdog(u
         st = ur.sim.state()
         assert "watchdog" in st["last_error"] and st["runtime_state"] != "PLAYING", st
         # the watchdog's period + the stop, well before the check's limit
-        assert stopped_after < watchdog_s + 0.4 < ur.backend.transition_timeout_s(Lifecycle.GOAL_CHECK), stopped_after
+        assert stopped_after < watchdog_s + 0.4 < ur.backend.traits.timeout_s(Lifecycle.GOAL_CHECK), stopped_after
         r = ur.reply(rid, 5)
         # refused: aborted by the FAULT of the stopped script, or ur_rtde's call failing first
         assert not r["ok"] and r["error"]["code"] in ("aborted", "out_of_limits"), r

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crtk_bridge.core.actuator import Actuator, Capabilities, CommandMode, Fault, effective_period_s
+from crtk_bridge.core.actuator import Actuator, Capabilities, CommandMode, Fault, Traits, effective_period_s
 from crtk_bridge.core.control import Controller
 from crtk_bridge.core.cycle import CycleRunner
 from crtk_bridge.core.motion import Mode
@@ -21,30 +21,38 @@ PROFILE = load_profile("profiles/so101.yaml")
 
 
 class FakeActuator(Actuator):
-    """A perfect position-controlled robot: measured = last commanded."""
+    """A perfect position-controlled robot: measured = last commanded. Open once built (no bus);
+    ``traits`` are :class:`Traits` fields beside its joints' ``CAPS``."""
 
-    capabilities = Capabilities(position=True, measures_velocity=True)
+    CAPS = Capabilities(position=True, measures_velocity=True)
 
-    def __init__(self, profile):
+    def __init__(self, profile, **traits):
         super().__init__(profile)
         self.torque = False
         self.pos = np.zeros(self.n)
         self.fail_enable = False
         self.calls: list[str] = []
+        self._traits_kw = traits
+        self.open()
 
     def _open_hook(self):
         pass
 
-    def _enable_hook(self, feedback):
+    def _traits_hook(self):
+        return Traits(joints=(self.CAPS,) * self.n, **self._traits_kw)
+
+    def _enable_steps(self, feedback):
         self.calls.append("enable")
         if self.fail_enable:
             raise BackendError("so101: joint 'gripper' (id 6) did not confirm Torque_Enable")
         feedback.position[:] = self.pos  # the pose it holds, from the device (not the last sample)
         self.torque = True
+        yield from ()
 
-    def _disable_hook(self):
+    def _disable_steps(self):
         self.calls.append("disable")
         self.torque = False
+        yield from ()
 
     def _close_hook(self):
         pass
@@ -83,8 +91,6 @@ def make_rig(act, profile=None):
     clock = Clock()
     c = Controller(profile or PROFILE, act, clock, effective_period_s(profile or PROFILE, act))
     ids = itertools.count(1)
-    fb = act.new_feedback()
-
     runner = CycleRunner(act, c.dt, clock=clock, sleep=clock.sleep)  # the loop's cycle, on the fake clock
 
     def cycle(n=1):
@@ -559,7 +565,7 @@ def test_write_faults_count_even_between_good_reads(rig):
 class VelocityActuator(FakeActuator):
     """Native velocity control: the joint integrates the velocity command itself."""
 
-    capabilities = Capabilities(position=True, velocity=True, measures_velocity=True)
+    CAPS = Capabilities(position=True, velocity=True, measures_velocity=True)
 
     def _write(self, cmd):
         if self.torque:
@@ -584,7 +590,7 @@ def test_native_velocity_stops_at_the_position_limit():
 
 def test_pause_stops_an_effort_stream():
     class EffortActuator(FakeActuator):
-        capabilities = Capabilities(position=True, effort=True, measures_velocity=True)
+        CAPS = Capabilities(position=True, effort=True, measures_velocity=True)
 
     c, act, clock, cycle, req = make_rig(EffortActuator(PROFILE))  # its first cycle read
     c.handle({"id": 1, "cmd": "enable"})
@@ -612,7 +618,7 @@ class CheckingActuator(FakeActuator):
 
 
 def test_a_move_waiting_on_the_devices_goal_check_has_one_busy_seq_and_one_edge_each_way():
-    c, act, clock, cycle, req = make_rig(CheckingActuator(PROFILE))
+    c, act, clock, cycle, req = make_rig(CheckingActuator(PROFILE, goal_check=True))
     assert req("enable")["ok"]
     c.outbox.clear()
     seq0 = c.busy_seq

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from crtk_bridge.core.actuator import Lifecycle
+from crtk_bridge.core.actuator import Clock as Beat, Lifecycle
 from crtk_bridge.core.cycle import CycleRunner, run_transition
 
 from .test_controller import PROFILE, Clock, FakeActuator
@@ -20,11 +20,9 @@ ROOT = Path(__file__).resolve().parents[1]
 class Recording(SlowActuator):
     """Written every cycle (as a CiA 402 chain); logs the cycle's calls in order."""
 
-    cyclic_write = True
-
     def __init__(self, profile, enable_cycles=3):
-        super().__init__(profile, enable_cycles)
         self.calls: list[str] = []
+        super().__init__(profile, enable_cycles, cyclic_write=True)
 
     def wait_cycle(self, deadline):
         self.calls.append("wait")
@@ -112,11 +110,9 @@ def test_the_devices_clock_sets_each_cycle_one_period_after_the_last_began():
     clock = Clock()
 
     class Device(FakeActuator):
-        paces_cycle = True
-
         def __init__(self, profile):
-            super().__init__(profile)
             self.deadlines = []
+            super().__init__(profile, clock=Beat.DEVICE)
 
         def wait_cycle(self, deadline):
             self.deadlines.append(deadline)

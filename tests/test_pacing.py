@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from crtk_bridge.core.actuator import Capabilities
+from crtk_bridge.core.actuator import Clock
 from crtk_bridge.core.loop import ControlLoop
 from crtk_bridge.core.snapshot import Layout, SnapshotBuffer
 
@@ -20,14 +20,14 @@ from .test_transitions import PROFILE, SlowActuator
 class PacedActuator(SlowActuator):
     """Hardware at 100 Hz (the profile asks 200 Hz): each cycle waits for its next 'packet'."""
 
-    capabilities = Capabilities(position=True, native_rate_hz=100.0)
-    paces_cycle = True
-
     def __init__(self, profile):
-        super().__init__(profile)
+        super().__init__(profile, clock=Clock.DEVICE)
         self.waits = 0
         self.calls: list[str] = []  # "w" per wait_cycle, "r" per read, in order
         self.next_packet = time.perf_counter()
+
+    def cycle_period_s(self):
+        return 0.01
 
     def wait_cycle(self, deadline):
         self.waits += 1

@@ -16,7 +16,6 @@ from __future__ import annotations
 import collections
 import itertools
 import logging
-import math
 import socket
 import threading
 import time
@@ -59,16 +58,11 @@ def encode_vector(values, what: str = "vector") -> list[float]:
     """A list, tuple or numpy array as a list of plain finite floats (the wire wants JSON numbers).
 
     Raises :class:`CommandError` ``bad_request`` on a non-finite or non-numeric entry, before
-    anything is sent.
+    anything is sent (:func:`crtk_bridge.vectors.client_floats`, loaded on first use: a plain
+    command needs no numpy).
     """
-    try:
-        out = [float(v) for v in (values.ravel() if hasattr(values, "ravel") else values)]
-    except (TypeError, ValueError) as exc:
-        raise CommandError("bad_request", f"{what}: not a vector of numbers: {values!r}") from exc
-    for i, v in enumerate(out):
-        if not math.isfinite(v):
-            raise CommandError("bad_request", f"{what}: entry {i} is not finite ({v})")
-    return out
+    from crtk_bridge.vectors import client_floats
+    return client_floats(values, what)
 
 
 def _open_socket(path: str, timeout: float) -> socket.socket:

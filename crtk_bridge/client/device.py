@@ -81,60 +81,34 @@ def joint_state(data: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
             float(data.get("stamp") or 0.0))
 
 
-# -- cartesian helpers (numpy only: the client does not need pinocchio) ------------------------
+# -- cartesian helpers: crtk_bridge/vectors.py, the one implementation the daemon uses too (numpy
+# only: the client does not need pinocchio); loaded on first use, so that a plain command needs
+# no numpy
 
 def matrix_from_quaternion(quaternion) -> np.ndarray:
     """3x3 rotation matrix of a quaternion ``[x, y, z, w]`` (ROS order), normalised first.
     Raises ``ValueError`` on a zero or non-finite quaternion."""
-    import numpy as np
-    x, y, z, w = (float(v) for v in np.asarray(quaternion, dtype=float).ravel())
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    if not (n > 1e-9 and math.isfinite(n)):
-        raise ValueError(f"quaternion [x, y, z, w] = {[x, y, z, w]} has no direction")
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    from crtk_bridge import vectors
+    return vectors.matrix_from_quaternion(quaternion)
 
 
 def quaternion_from_matrix(rotation) -> np.ndarray:
     """Unit quaternion ``[x, y, z, w]`` (``w >= 0``) of a 3x3 rotation matrix (or the rotation
     block of a 4x4 pose)."""
-    import numpy as np
-    R = np.asarray(rotation, dtype=float)[:3, :3]
-    t = R[0, 0] + R[1, 1] + R[2, 2]
-    if t > 0.0:
-        s = 2.0 * math.sqrt(t + 1.0)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, s / 4]
-    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
-        s = 2.0 * math.sqrt(max(0.0, 1.0 + R[0, 0] - R[1, 1] - R[2, 2]))
-        q = [s / 4, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
-    elif R[1, 1] >= R[2, 2]:
-        s = 2.0 * math.sqrt(max(0.0, 1.0 + R[1, 1] - R[0, 0] - R[2, 2]))
-        q = [(R[0, 1] + R[1, 0]) / s, s / 4, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
-    else:
-        s = 2.0 * math.sqrt(max(0.0, 1.0 + R[2, 2] - R[0, 0] - R[1, 1]))
-        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, s / 4, (R[1, 0] - R[0, 1]) / s]
-    q = np.array(q) / np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    from crtk_bridge import vectors
+    return vectors.quaternion_from_matrix(rotation)
 
 
 def pose_matrix(position, quaternion) -> np.ndarray:
     """The 4x4 homogeneous matrix of ``position`` [x, y, z] (m) and ``quaternion`` [x, y, z, w]."""
-    import numpy as np
-    T = np.eye(4)
-    T[:3, :3] = matrix_from_quaternion(quaternion)
-    T[:3, 3] = np.asarray(position, dtype=float).ravel()[:3]
-    return T
+    from crtk_bridge import vectors
+    return vectors.pose_matrix(position, quaternion)
 
 
 def pose_pq(matrix) -> tuple[np.ndarray, np.ndarray]:
     """``(position [3] in m, quaternion [4] x, y, z, w with w >= 0)`` of a 4x4 homogeneous matrix."""
-    import numpy as np
-    T = np.asarray(matrix, dtype=float)
-    return T[:3, 3].copy(), quaternion_from_matrix(T[:3, :3])
+    from crtk_bridge import vectors
+    return vectors.pose_pq(matrix)
 
 
 def pose_from_wire(data: dict) -> tuple[np.ndarray, float]:
@@ -174,42 +148,11 @@ def encode_pose(pose, what: str = "pose") -> dict:
     a rotation within 1e-3), a ``(position[3], quaternion[4] xyzw)`` pair, or a dict with
     ``position`` and ``orientation``. The quaternion is normalised (its norm must lie in
     (0.5, 1.5), as the daemon requires). Raises :class:`CommandError` ``bad_request`` before
-    anything is sent.
+    anything is sent (:func:`crtk_bridge.vectors.any_pose`).
     """
-    import numpy as np
-    if isinstance(pose, dict):
-        if "position" not in pose or "orientation" not in pose:
-            raise CommandError("bad_request", f"{what}: a pose dict needs 'position' and 'orientation'")
-        position, quaternion = pose["position"], pose["orientation"]
-    elif isinstance(pose, (tuple, list)) and len(pose) == 2:
-        position, quaternion = pose
-    else:
-        try:
-            T = np.asarray(pose, dtype=float)
-        except (TypeError, ValueError) as exc:
-            raise CommandError("bad_request", f"{what}: not a 4x4 matrix or a (position, quaternion) "
-                               f"pair: {pose!r}") from exc
-        if T.shape != (4, 4):
-            raise CommandError("bad_request", f"{what}: expected a 4x4 homogeneous matrix or a "
-                               f"(position, quaternion) pair, got shape {T.shape}")
-        if not np.all(np.isfinite(T)):
-            raise CommandError("bad_request", f"{what}: the matrix has a non-finite entry")
-        R = T[:3, :3]
-        if (not np.allclose(T[3], [0, 0, 0, 1], atol=1e-9)
-                or not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0):
-            raise CommandError("bad_request", f"{what}: not a homogeneous transform (rotation block "
-                               "not orthonormal, or last row not [0, 0, 0, 1])")
-        return {"position": T[:3, 3].tolist(), "orientation": quaternion_from_matrix(R).tolist()}
-    p = encode_vector(position, f"{what} position")
-    q = encode_vector(quaternion, f"{what} orientation")
-    if len(p) != 3 or len(q) != 4:
-        raise CommandError("bad_request", f"{what}: position needs 3 numbers (m) and the quaternion "
-                           f"4 [x, y, z, w], got {len(p)} and {len(q)}")
-    n = math.sqrt(sum(v * v for v in q))
-    if not 0.5 < n < 1.5:
-        raise CommandError("bad_request", f"{what}: orientation must be a unit quaternion [x, y, z, w] "
-                           f"(norm {n:.3g})")
-    return {"position": p, "orientation": [v / n for v in q]}
+    from crtk_bridge import vectors
+    p, q = vectors.any_pose(pose, what)
+    return {"position": p.tolist(), "orientation": q.tolist()}
 
 
 def pose_share(delta: dict, before: float, reached: float) -> dict:

@@ -7,10 +7,10 @@ transition to its end without a controller (:func:`run_transition`: ``Actuator.e
 sequence of calls everywhere, the one production runs.
 
 The cycle's start (:meth:`CycleRunner.wait`) has one meaning: the cycle scheduled at
-``deadline`` begins. On the loop's clock (``paces_cycle`` false) the runner sleeps to the
+``deadline`` begins. On the loop's clock (``traits.clock`` Clock.LOOP) the runner sleeps to the
 deadline of an absolute schedule (after an overrun it skips ahead instead of bursting); then the
 backend's :meth:`~crtk_bridge.core.actuator.Actuator.wait_cycle` runs (CANopen sends its SYNC
-there). On the device's clock (``paces_cycle``: a UR's packages) the backend's ``wait_cycle``
+there). On the device's clock (Clock.DEVICE: a UR's packages) the backend's ``wait_cycle``
 blocks until the device's next packet, and the next deadline is one period after the cycle
 began. Either way the deadline is the runner's, passed in, never rebuilt by the backend.
 """
@@ -18,13 +18,16 @@ began. Either way the deadline is the runner's, passed in, never rebuilt by the 
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from ..errors import BackendError
 
 if TYPE_CHECKING:  # core/actuator.py imports this module
     from .actuator import Actuator, Fault, JointCommand, JointFeedback, Transition
-    from .control import Controller
+
+#: what :meth:`CycleRunner.cycle` drives: core's Controller (``on_read`` / ``step`` / ``command`` /
+#: ``on_write``); the runner is part of the seam, beside core/actuator.py, and imports no more
+Stepper = Any
 
 
 class CycleRunner:
@@ -36,7 +39,8 @@ class CycleRunner:
                  clock: Callable[[], float] = time.perf_counter, sleep: Callable[[float], None] = time.sleep):
         self.actuator = actuator
         self.period = float(period_s)
-        self.device_clock = bool(actuator.paces_cycle)
+        from .actuator import Clock  # (core/actuator.py imports this module)
+        self.device_clock = actuator.traits.clock is Clock.DEVICE
         self.clock = clock
         self._sleep = sleep
         self.feedback: "JointFeedback" = actuator.new_feedback()
@@ -76,14 +80,14 @@ class CycleRunner:
                 self.next_t += (int((now - self.next_t) / period) + 1) * period
 
     # ------------------------------------------------------------------ one cycle
-    def cycle(self, controller: "Controller", between: Callable[[], None] | None = None) -> None:
+    def cycle(self, controller: Stepper, between: Callable[[], None] | None = None) -> None:
         """One cycle around ``controller``: wait, read, ``between`` (the loop takes the
         requests that arrived), step (lifecycle transition + motion), write what it says."""
         self.wait()
         self.work(controller, between)
         self.schedule()
 
-    def work(self, controller: "Controller", between: Callable[[], None] | None = None) -> None:
+    def work(self, controller: Stepper, between: Callable[[], None] | None = None) -> None:
         """The cycle's work (between :meth:`wait` and :meth:`schedule`): read -> requests ->
         step -> write."""
         act, fb = self.actuator, self.feedback
@@ -115,7 +119,7 @@ class CycleRunner:
         finally:
             if command is not None:
                 act.write(command)
-            elif act.cyclic_write:
+            elif act.traits.cyclic_write:
                 act.write(self._idle)
             self.schedule()
         return done, fault

@@ -393,7 +393,8 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
     except Exception as exc:
         chan.send(_encode({"event": "_startup_failed", "data": {"message": f"{profile.name}: {exc!r}"}}))
         return 1
-    caps = actuator.capabilities
+    traits = actuator.traits
+    caps = traits.capabilities
     loop = ControlLoop(profile, actuator, chan, snapshot, realtime=realtime, samples=samples)
     loop_ref["loop"] = loop
     c = loop.controller
@@ -406,8 +407,8 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
         "capabilities": as_dict(caps),
         "period_s": loop.period,  # the ONE effective period: the front's rates and statistics
         # the longest a state command may take before the loop itself replies (its time limit)
-        "transition_timeout_s": 2 * max(actuator.transition_timeout_s(k) for k in Lifecycle
-                                        if k is not Lifecycle.HOME or actuator.native_homing),
+        "transition_timeout_s": 2 * max(traits.timeout_s(k) for k in Lifecycle
+                                        if k is not Lifecycle.HOME or traits.native_homing),
         "namespace_commands": c.namespace_commands(),  # motion commands per namespace
         "namespace_capabilities": {ns: as_dict(cap) for ns, cap in c.ns_caps.items()},
         "native_cartesian": list(c.native_cartesian),  # namespaces whose backend does cartesian control

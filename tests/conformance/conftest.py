@@ -1,6 +1,6 @@
 """One backend conformance suite over the actuator contract (issue 8 item 8), as python-can tests
-every interface with one suite: every registered backend that declares a simulator
-(``Actuator.simulator``) runs every test here against that simulator, in process, through the
+every interface with one suite: every registered backend whose registration names a simulator
+(crtk_bridge/registry.py) runs every test here against that simulator, in process, through the
 real vendor SDK path.
 
 A backend is a ROW: the profile it runs on and how a test reaches into its simulator (which device
@@ -21,10 +21,12 @@ import msgspec
 import numpy as np
 import pytest
 
-from crtk_bridge.backends import BACKENDS, backend_class, create_backend
+from crtk_bridge import registry
+from crtk_bridge.backends import backend_class, create_backend
 from crtk_bridge.core.actuator import Actuator, Fault, effective_period_s
 from crtk_bridge.core.cycle import CycleRunner
 from crtk_bridge.core.control import Controller
+from crtk_bridge.registry import backend_simulator
 from crtk_bridge.profile import Profile, load_profile
 from crtk_bridge.sim import simulator_class
 
@@ -243,7 +245,7 @@ class BusSims:
         self.sims = []
         for bus in self.names:
             sub = profile.bus_profile(bus)
-            self.sims.append(simulator_class(backend_class(sub.backend_type).simulator.device).from_profile(sub))
+            self.sims.append(backend_simulator(sub.backend_type).from_profile(sub))
 
     def start(self) -> None:
         for s in self.sims:
@@ -286,12 +288,12 @@ class BusSims:
 def simulated_backends() -> list[str]:
     """Registered backends that declare a simulator (their SDK importable)."""
     out = []
-    for name in BACKENDS:
+    for name in registry.names():
         try:
-            cls = backend_class(name)
+            backend_class(name)
         except Exception:  # SDK missing: that backend is not tested here
             continue
-        if cls.simulator is not None:
+        if registry.registration(name).simulator is not None:
             out.append(name)
     return out
 
@@ -310,7 +312,7 @@ class Rig:
         else:
             cls = backend_class(row.backend)
             self.sim = (row.make_sim(profile) if row.make_sim is not None
-                        else simulator_class(cls.simulator.device).from_profile(profile))
+                        else backend_simulator(row.backend).from_profile(profile))
             self.sim.start()
             self.profile = cls.sim_profile(profile, self.sim.port)
             if getattr(self.sim, "interface", None) == "virtual":  # an in-process CAN simulator

@@ -92,7 +92,7 @@ def test_nan_never_reaches_the_bus(rig):
 
 def test_nothing_goes_on_the_bus_while_disabled(rig):
     b, sim, row = rig.backend, rig.sim, rig.row
-    if b.cyclic_write:
+    if b.traits.cyclic_write:
         pytest.skip("this backend writes every cycle in every state by design (cyclic_write)")
     goals = [row.goal(sim, i) for i in rig.ids]
     cmd = b.new_command()

@@ -3,7 +3,7 @@
 Built on ``canopen`` (object dictionaries, SDO client, NMT, EMCY consumer, PDO maps) over
 ``python-can`` (any interface it speaks: socketcan, slcan, pcan, kvaser, socketcand, virtual...).
 What the library does not do, or does in a way a real-time loop cannot use, is done here
-(``../shared/reference/canopen-ur.md`` part A):
+(docs/architecture.md, "Sources": CANopen CiA 402):
 
 * **The loop paces the bus.** The cycle runs on the loop's clock (core/cycle.py): at the tick of
   its absolute schedule :meth:`Canopen402Backend.wait_cycle` sends ONE SYNC
@@ -73,15 +73,16 @@ from ...core.actuator import (
     Actuator,
     ActuatorInfo,
     Capabilities,
+    Clock,
     CommandMode,
     DeviceStatus,
     Fault,
-    FaultReaction,
     JointCommand,
     JointFeedback,
     Lifecycle,
     SimWiring,
     Steps,
+    Traits,
     background_thread,
     on_worker,
 )
@@ -183,9 +184,7 @@ class _Drive:
         self.k_pos = keys.direction * k  # SI per count (signed)
         self.k_vel = keys.direction * k / keys.velocity_factor  # SI/s per velocity unit
         self.k_eff: float | None = None  # N*m (N) per per mille; set at open
-        self.pos_min, self.pos_max = limits.position_min, limits.position_max
-        self.vel_max = limits.velocity_max
-        self.eff_max = limits.effort_max
+        self.eff_max = limits.effort_max  # None: targets capped at the rated torque
         self.node: canopen.RemoteNode | None = None
         self.supported = 0  # 0x6502
         self.csv = self.cst = False
@@ -224,8 +223,8 @@ class _Drive:
         self.emcy: tuple[int, int] | None = None  # (code, error register) not yet reset
 
     def counts(self, si: float) -> int:
-        """Counts of position ``si`` (finite), clipped to the joint's limits and to I32."""
-        si = min(max(si, self.pos_min), self.pos_max)
+        """Counts of position ``si`` (finite, within the profile's limits: core's output), clamped
+        to the I32 range of 0x607A."""
         c = round(self.keys.offset + si / self.k_pos)
         return min(max(c, I32[0]), I32[1])
 
@@ -272,20 +271,14 @@ class Canopen402Backend(Actuator):
     before :meth:`open`.
     """
 
-    capabilities = Capabilities(position=True, velocity=False, effort=False, measures_velocity=True,
-                                measures_effort=False, needs_homing=False, can_free=False)
-    extra = "canopen402"
-    fault_reaction = FaultReaction.TORQUE_OFF  # the DISABLE transition: disable voltage on every drive
-    cyclic_write = True  # RPDOs every cycle, in every state
-    stops_itself_on_pause = True  # pause is the drives' own quick stop
-    simulator = SimWiring("canopen", endpoint_key="channel")
+    simulator = SimWiring(endpoint_key="channel")  # crtk-sim canopen's SLCAN pty
     #: the interface ``--sim`` uses to reach the simulated USB-CAN adapter
     SIM_INTERFACE = "slcan"
     #: ``tpdo_timeout_ms`` on the simulator unless the profile sets one: the simulated adapter
     #: and drives are Python threads in another process, on a loaded host their answers can take
     #: tens of ms (a real drive answers within a millisecond)
     SIM_DEFAULTS = {"tpdo_timeout_ms": 50.0}
-    transition_timeouts_s = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 3.0,
+    TRANSITION_TIMEOUTS_S = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 3.0,
                              Lifecycle.RESUME: 3.0, Lifecycle.FAULT_RESET: 2.0, Lifecycle.HOME: 60.0}
     #: cycles a drive's statusword may stay missing inside a transition before it fails
     TRANSITION_MISSED_MAX = 25
@@ -330,7 +323,8 @@ class Canopen402Backend(Actuator):
         # time has run out (bounded well inside the ENABLE time limit)
         self._settle_s = min((self._consumer_ms + cfg.master_heartbeat_ms) / 1000.0, 2.0)
         self._settle_until = 0.0
-        self._joint_caps = [self.capabilities] * self.n
+        #: per drive, what its supported modes allow (known at open: _identify)
+        self._joint_caps: list[Capabilities | None] = [None] * self.n
         self._network: canopen.Network | None = None
         self._rx_event = threading.Event()
         self._sync_seq = 0  # SYNCs sent
@@ -388,14 +382,17 @@ class Canopen402Backend(Actuator):
 
     # ------------------------------------------------------------------ info
     def info(self) -> ActuatorInfo:
-        return ActuatorInfo(list(self.joint_names), self.capabilities, dict(self._details))
+        return ActuatorInfo(list(self.joint_names), dict(self._details))
 
-    def joint_capabilities(self, i: int) -> Capabilities:
-        return self._joint_caps[i]
-
-    @property
-    def native_homing(self) -> bool:
-        return any(d.keys.homing is not None for d in self.drives)
+    def _traits_hook(self) -> Traits:
+        """Per drive, what its supported modes (0x6502) and rated torque allow (read at open);
+        the loop's clock, whose tick sends the SYNC (wait_cycle); RPDOs every cycle in
+        every state; pause is the drives' own quick stop; the drives home themselves (CiA 402
+        homing mode) where a joint has ``homing``."""
+        return Traits(joints=tuple(self._joint_caps), clock=Clock.LOOP, cyclic_write=True,
+                      stops_itself_on_pause=True,
+                      native_homing=any(d.keys.homing is not None for d in self.drives),
+                      transition_timeouts_s=self.TRANSITION_TIMEOUTS_S)
 
     @property
     def _where(self) -> str:
@@ -441,7 +438,6 @@ class Canopen402Backend(Actuator):
         except BaseException:
             self._disconnect()
             raise
-        self.capabilities = self._combined_caps()
         self._details = {
             "interface": self.config.interface, "channel": self.config.channel, "bitrate": self.config.bitrate,
             "nodes": {d.name: d.id for d in self.drives},
@@ -553,11 +549,6 @@ class Canopen402Backend(Actuator):
                             measures_velocity=True, measures_effort=d.k_eff is not None,
                             needs_homing=d.keys.homing is not None, can_free=d.cst)
         self._joint_caps[d.i] = caps
-
-    def _combined_caps(self) -> Capabilities:
-        from ...core.actuator import combine_capabilities
-
-        return combine_capabilities(self._joint_caps)
 
     def _configure_hook(self) -> None:
         """Per node: NMT PRE-OPERATIONAL, heartbeat producer, the PDO mapping (SDO, CiA 301
@@ -849,10 +840,10 @@ class Canopen402Backend(Actuator):
         Never blocks.
 
         A drive that is OPERATION ENABLED (and not homing) follows its joint's mode: POSITION ->
-        CSP (target clipped to the joint's limits), VELOCITY -> CSV (clipped to velocity_max),
-        EFFORT -> CST (clipped to effort_max), FREE -> CST with zero torque, NONE -> as before.
-        Every other drive holds its measured position as target in CSP. A non-finite setpoint is
-        not sent (the drive keeps its last mode and target) and returns ``invalid_command``."""
+        CSP, VELOCITY -> CSV, EFFORT -> CST, FREE -> CST with zero torque, NONE -> as before.
+        Every other drive holds its measured position as target in CSP. Setpoints arrive finite
+        and within the profile's limits (``Actuator.write``, core's motion output); targets are
+        clamped to their objects' ranges only (I32, I16; the rated torque without effort_max)."""
         return self._send(command)
 
     def _unusable(self, what: str) -> Fault | None:
@@ -876,7 +867,7 @@ class Canopen402Backend(Actuator):
             elif not enabled:
                 d.mode, d.target_pos, d.target_vel, d.target_torque = _CSP, d.pos, 0, 0
             else:
-                fault = self._follow(d, command) or fault
+                self._follow(d, command)
                 if d.mode != _CSP:
                     d.target_pos = d.pos  # a switch back to CSP starts from here
             # each RPDO's payload in one pack (see _decode)
@@ -916,9 +907,6 @@ class Canopen402Backend(Actuator):
             self._bus_down = f"send failed: {exc}"
 
     # ------------------------------------------------------------------ pacing
-    def cycle_period_s(self) -> float:
-        return self._period_s
-
     def wait_cycle(self, deadline: float) -> bool:
         """The cycle starts (the runner slept to its tick, ``deadline``, on its absolute
         schedule): the SYNC at once -- the first thing of the cycle, so its jitter is the
@@ -929,38 +917,23 @@ class Canopen402Backend(Actuator):
         self._sync_out()
         return True
 
-    def _follow(self, d: _Drive, command: JointCommand) -> Fault | None:
+    def _follow(self, d: _Drive, command: JointCommand) -> None:
         i = d.i
         mode = command.mode[i]
         if mode == _POSITION:
-            x = command.position[i]
-            if x != x:
-                return self._nan(d, "position", x)
-            d.mode, d.target_pos = _CSP, d.counts(x)
+            d.mode, d.target_pos = _CSP, d.counts(command.position[i])
             d.target_vel = d.target_torque = 0
         elif mode == _VELOCITY and d.csv:
-            x = command.velocity[i]
-            if x != x:
-                return self._nan(d, "velocity", x)
-            x = min(max(x, -d.vel_max), d.vel_max) / d.k_vel
+            x = command.velocity[i] / d.k_vel
             d.mode, d.target_vel, d.target_torque = _CSV, round(min(max(x, I32[0]), I32[1])), 0
         elif mode == _EFFORT and d.cst and d.k_eff is not None:
-            x = command.effort[i]
-            if x != x:
-                return self._nan(d, "effort", x)
-            if d.eff_max is not None:
-                x = min(max(x, -d.eff_max), d.eff_max)
-            x /= d.k_eff
+            x = command.effort[i] / d.k_eff
             # no limits.effort_max: never above the rated torque (1000 per mille), not the I16 range
             cap = I16[1] if d.eff_max is not None else RATED_PER_MILLE
             d.mode, d.target_torque, d.target_vel = _CST, round(min(max(x, -cap), cap)), 0
         elif mode == _FREE and d.cst:
             d.mode, d.target_torque, d.target_vel = _CST, 0, 0
         return None
-
-    def _nan(self, d: _Drive, what: str, x: float) -> Fault:
-        return Fault("invalid_command", f"{self.robot}: joint {d.name!r}: {what} command {x} is not a "
-                     f"number; not sent", joint=d.name, transient=False)
 
     # ------------------------------------------------------------------ bus errors
     def _bus_fault(self) -> Fault:

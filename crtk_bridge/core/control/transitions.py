@@ -155,7 +155,7 @@ class TransitionsMixin:
 
     def _enable(self) -> Any:
         kinds = (Lifecycle.FAULT_RESET, Lifecycle.ENABLE) if self.state is OperatingState.FAULT else (Lifecycle.ENABLE,)
-        timeout = sum(self.actuator.transition_timeout_s(k) for k in kinds)
+        timeout = sum(self.traits.timeout_s(k) for k in kinds)
         t = Transition(self.robot, Lifecycle.ENABLE, self._sequence(kinds), timeout)
         return self._start(t, self._enabled, self._failed("enable"))
 
@@ -203,14 +203,15 @@ class TransitionsMixin:
         return self.operating_state()
 
     def _resumed(self) -> dict:
-        if self.actuator.stops_itself_on_pause:  # the device holds where its own stop ended
-            for m in self.namespaces.values():
+        stopped_itself = self.traits.stops_itself_on_pause
+        for m in self.namespaces.values():  # a device that stops itself holds where its own stop ended
+            if any(stopped_itself[i] for i in m.idx):
                 m.reset(self.feedback.position[m.idx])
         self._set_state(OperatingState.ENABLED)
         return self.operating_state()
 
     def _home(self) -> Any:
-        if self.actuator.native_homing:
+        if self.traits.native_homing:
             def homed() -> dict:
                 self.is_homed = True
                 for m in self.namespaces.values():

@@ -1,7 +1,7 @@
 """The robot as a ROS 2 graph over Zenoh (rmw_zenoh's format), in the front process.
 
 One ROS node, ``crtk_bridge_<robot>``, per daemon. Per CRTK namespace (names and types as the
-dVRK uses them, ../shared/reference/crtk-anchors.md):
+dVRK uses them, docs/architecture.md, "Sources": CRTK):
 
 * published at the loop rate (or ``transport.zenoh.publish_rate_hz``): ``measured_js``,
   ``setpoint_js``, ``goal_js`` (sensor_msgs/JointState); where the namespace has kinematics
@@ -110,7 +110,7 @@ class RosSession(Session):
         except Exception:  # never break the server's fan-out to the other sessions
             log.exception("ROS graph: publishing %s failed", msg.get("event", "a reply"))
 
-    def send_frame(self, msg: Any) -> None:  # the ROS session never subscribes to socket streams
+    def send_frame(self, line: bytes) -> None:  # the ROS session never subscribes to socket streams
         pass
 
     def close(self) -> None:
