@@ -272,9 +272,11 @@ DEFAULT_TRANSITION_TIMEOUTS_S: Mapping[Lifecycle, float] = MappingProxyType({
 class Clock(str, enum.Enum):
     """Who says when a cycle starts (:attr:`Traits.clock`)."""
 
-    LOOP = "loop"  # the loop sleeps to its own clock, the profile's ``loop.rate_hz``
-    #: the device paces the loop: the loop waits in :meth:`Actuator.wait_cycle` (a UR's next RTDE
-    #: package; the CiA 402 master's SYNC tick), at :meth:`Actuator.cycle_period_s`
+    #: the cycle runner sleeps to its own clock (the profile's ``loop.rate_hz``), then
+    #: :meth:`Actuator.wait_cycle` starts the backend's cycle (a CiA 402 master's SYNC)
+    LOOP = "loop"
+    #: the device paces the loop: the runner waits in :meth:`Actuator.wait_cycle` (a UR's next RTDE
+    #: package), at :meth:`Actuator.cycle_period_s`
     DEVICE = "device"
 
 
@@ -357,7 +359,7 @@ class Transition:
     steps raise (a BackendError naming robot, joint and register) when it failed. ``abort()``
     abandons it (closes the step generator, so its ``finally`` clauses run; idempotent).
     ``timeout_s`` is the backend's limit; enforcing it is the caller's job (core faults the robot
-    naming the transition, :meth:`Actuator.run` raises).
+    naming the transition, :func:`~crtk_bridge.core.cycle.run_transition` raises).
     """
 
     __slots__ = ("robot", "kind", "timeout_s", "done", "_steps", "_on_finish")
