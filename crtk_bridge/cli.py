@@ -350,21 +350,23 @@ def _init_profile(argv: list[str]) -> int:
     return 0
 
 
-#: the backend keys that say where a robot of each backend type is found
-_WHERE = {"ur": "backend.host", "canopen402": "backend.interface and backend.channel"}
+#: the backend keys that say where a robot of each backend type is found (default: ``port``)
+_WHERE = {"ur": ("host",), "canopen402": ("interface", "channel")}
 
 
 def _where_the_robot_is(text: str) -> str:
     """The keys to set in a profile written from the shipped ``text``: a serial bus's port, a UR's
-    host, a CAN bus's interface and channel; one per bus of a several-bus profile."""
+    host, a CAN bus's interface and channel; each bus's own of a several-bus profile."""
     import yaml
 
     data = yaml.safe_load(text) or {}
     buses = data.get("backends")
-    if isinstance(buses, dict) and buses:
-        return " and ".join(f"backends.{bus}.port" for bus in buses)
-    kind = (data.get("backend") or {}).get("type")
-    return _WHERE.get(kind, "backend.port (crtk-bridge find-port)")
+    sections = ({f"backends.{bus}": section for bus, section in buses.items()} if isinstance(buses, dict) and buses
+                else {"backend": data.get("backend") or {}})
+    keys = [f"{where}.{key}" for where, section in sections.items()
+            for key in _WHERE.get((section or {}).get("type"), ("port",))]
+    serial = any((section or {}).get("type") not in _WHERE for section in sections.values())
+    return " and ".join(keys) + (" (crtk-bridge find-port)" if serial and len(sections) == 1 else "")
 
 
 def main(argv: list[str] | None = None) -> int:

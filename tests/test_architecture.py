@@ -5,6 +5,7 @@ design document outside the repository (DESIGN.md, ../shared/...)."""
 from __future__ import annotations
 
 import ast
+import fnmatch
 import re
 
 from .conftest import ROOT
@@ -31,7 +32,14 @@ def dependency_table() -> tuple[dict[str, str], dict[str, set[str]]]:
 
 
 def layer_of(path: str, paths: dict[str, str]) -> str | None:
-    best = max((p for p in paths if path == p or (p.endswith("/") and path.startswith(p))), key=len, default=None)
+    """The layer of ``path``: its own row, else a pattern's (``*``: one folder), else the
+    longest folder's that holds it."""
+    if path in paths:
+        return paths[path]
+    for pattern, layer in paths.items():
+        if "*" in pattern and fnmatch.fnmatch(path, pattern) and path.count("/") == pattern.count("/"):
+            return layer
+    best = max((p for p in paths if p.endswith("/") and path.startswith(p)), key=len, default=None)
     return paths[best] if best else None
 
 
@@ -88,6 +96,9 @@ def test_the_checker_sees_a_forbidden_import(tmp_path):
     assert layer_of("crtk_bridge/core/actuator.py", paths) == "seam"
     assert layer_of("crtk_bridge/backends/feetech/tables.py", paths) == "tables"
     assert layer_of("crtk_bridge/backends/feetech/backend.py", paths) == "backends"
+    assert layer_of("crtk_bridge/backends/robotiq/tables.py", paths) == "tables"  # a fifth vendor's too
+    assert layer_of("crtk_bridge/backends/robotiq/__init__.py", paths) == "tables"
+    assert layer_of("crtk_bridge/backends/__init__.py", paths) == "backends"
     assert "backends" not in allowed["core"] and "core" not in allowed["client"] and "core" not in allowed["sim"]
 
 

@@ -177,3 +177,16 @@ def test_a_backend_that_cannot_scan_is_named_with_those_that_can(tmp_path):
         assert bus["vendor"] == type_ and not bus["ok"]
         assert bus["error"] == (f"{profile}: backend: backend {type_!r} ({cls}) cannot scan its bus "
                                 "(crtk-bridge check --scan); backends that can: dynamixel, feetech")
+
+
+def test_init_profile_names_where_each_bus_of_a_mixed_profile_is_found():
+    from crtk_bridge.cli import _where_the_robot_is
+
+    assert _where_the_robot_is("backend: {type: feetech}") == "backend.port (crtk-bridge find-port)"
+    assert _where_the_robot_is("backend: {type: ur}") == "backend.host"
+    assert _where_the_robot_is("backend: {type: canopen402}") == "backend.interface and backend.channel"
+    # a UR arm with a servo gripper: the arm's host, the gripper bus's port (it said port for both)
+    mixed = "backends: {arm: {type: ur}, gripper: {type: dynamixel}}"
+    assert _where_the_robot_is(mixed) == "backends.arm.host and backends.gripper.port"
+    assert _where_the_robot_is("backends: {left: {type: feetech}, right: {type: feetech}}") == \
+        "backends.left.port and backends.right.port"

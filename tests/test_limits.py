@@ -22,7 +22,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from crtk_bridge import vectors
+from crtk_bridge import registry, vectors
 from crtk_bridge.core.actuator import Capabilities, CartesianMode, CommandMode
 from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import CommandError
@@ -180,6 +180,17 @@ def test_write_refuses_a_non_finite_cartesian_setpoint(kind):
                              "not sent (the arm keeps its last goal)")
     assert act.writes[-1][0] is CartesianMode.NONE  # the backend got no cartesian setpoint
     assert cart.mode[0] == (CartesianMode.POSE if kind == "pose" else CartesianMode.TWIST)
+
+
+@pytest.mark.parametrize("name", ["composite", *registry.names()])
+def test_every_backend_writes_through_the_gate(name):
+    """No backend (nor the composite) replaces ``Actuator.write``: the finiteness gate runs for
+    each; tests/conformance::test_nan_never_reaches_the_bus shows it on every simulator's wire."""
+    from crtk_bridge.backends.composite import CompositeActuator
+    from crtk_bridge.core.actuator import Actuator
+
+    cls = CompositeActuator if name == "composite" else registry.backend_class(name)
+    assert cls.write is Actuator.write
 
 
 def test_a_buggy_core_path_never_reaches_the_backend_and_faults_the_robot(monkeypatch):

@@ -246,7 +246,7 @@ def test_a_slow_remote_subscriber_delays_no_other_and_its_drops_are_counted(capl
         assert any("slow0123" in r.getMessage() and "stream frames dropped" in r.getMessage() for r in caplog.records)
         server = Server.__new__(Server)  # only its statistics: the link's figures and the sessions'
         server.link = type("L", (), {"period_statistics": lambda self: {"cycles": 1}})()
-        server.sessions, server._dropped_before = {1: slow, 2: fast}, 0
+        server.sessions, server._dropped_before, server.statistics = {1: slow, 2: fast}, 0, []
         assert server.period_statistics() == {"cycles": 1, "frames_dropped": slow.dropped}
         slow.close()
         release.set()
@@ -322,3 +322,64 @@ def test_the_publishing_thread_copies_the_state_without_the_statistics_rings():
         assert snap.layout.slices["cycles"].stop <= upto
     finally:
         snap.close(unlink=True)
+
+
+def test_a_stream_forgets_the_subscribers_of_a_closed_session_and_ends_with_the_last():
+    """A session that closed gets no frame and no read is made for it; once no subscriber is
+    left the stream says so (the server forgets it and its task ends)."""
+    ended = []
+    reads = itertools.count()
+    stream = TopicStream("measured_js", "so101", lambda: next(reads), ended.append)
+    a, b = Collecting(), Collecting()
+    stream.add(a, 1, 0.01, 0.0)
+    stream.add(b, 2, 0.01, 0.0)
+    tick_all([stream], 0.0)
+    b.closed = True
+    tick_all([stream], 0.01)
+    assert len(a.frames) == 2 and len(b.frames) == 1 and ended == []
+    a.closed = True
+    assert tick_all([stream], 0.02) == float("inf")
+    assert ended == [stream] and stream.subscribers == [] and next(reads) == 2
+
+
+def test_ros_ticks_the_publishing_thread_missed_are_counted_and_said(monkeypatch, caplog):
+    """The ROS topics' thread never bursts to catch up: when a tick's work takes 3.5 periods, the
+    next publication goes out at once with the newest sample, the 2 ticks wholly missed are
+    skipped, counted (period_statistics' ros_ticks_skipped) and said in the log, and the ticks
+    after are on time again. A driven clock: nothing here waits."""
+    from crtk_bridge.transport.ros import periodic
+
+    class Clock:
+        t = 0.0
+
+        def perf_counter(self):
+            return self.t
+
+        def sleep(self, s):
+            self.t += s
+
+        def monotonic(self):
+            return self.t
+
+    clock = Clock()
+    monkeypatch.setattr(periodic, "time", clock)
+    p = periodic.PeriodicTopics.__new__(periodic.PeriodicTopics)
+    p.period_s, p.robot, p._error_said, p.skipped, p._skip_said = 0.001, "so101", -1.0, 0, -1.0
+    p._stop = threading.Event()
+    calls = []
+
+    def publish_once():
+        calls.append(clock.t)
+        if len(calls) == 2:
+            clock.t += 0.0035  # this tick's work took 3.5 periods
+        if len(calls) == 6:
+            p._stop.set()
+        return True
+
+    p.publish_once = publish_once
+    with caplog.at_level(logging.WARNING, logger="crtk_bridge.ros"):
+        p._run()
+    assert p.skipped == 2
+    assert any("2 ticks skipped" in r.getMessage() for r in caplog.records)
+    assert calls[2] == pytest.approx(0.0045)  # at once, not at a tick 0.002 or 0.003 replayed
+    assert all(b - a == pytest.approx(0.001) for a, b in zip(calls[2:], calls[3:]))  # then on time again

@@ -541,7 +541,7 @@ class Actuator(abc.ABC):
         ENABLE holds the joints where they are (no surprise motion): ``feedback`` is the latest
         measured state; backends set fresh goals from the device itself before torque on.
         DISABLE stops the real-time writes at once (before its first step). HOME is legal only
-        when :attr:`native_homing`. Does not touch the bus itself; the first step does.
+        when ``traits.native_homing``. Does not touch the bus itself; the first step does.
         """
         on_finish = None
         if kind is Lifecycle.ENABLE:

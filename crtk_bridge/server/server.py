@@ -99,6 +99,8 @@ class Server:
         self._streams_task: asyncio.Task | None = None  # ticks every stream (_run_streams)
         self._streams_wake: asyncio.Future | None = None  # _run_streams' sleep; a new subscriber ends it
         self._dropped_before = 0  # stream frames dropped by sessions that ended
+        #: callables adding figures to period_statistics (the ROS graph's skipped ticks)
+        self.statistics: list = []
         self.controller: Session | None = None
         self.state: dict = {"state": "DISABLED", "is_homed": False, "is_busy": False, "busy_seq": 0, "stamp": 0.0}
         self._sids = itertools.count(1)
@@ -427,7 +429,10 @@ class Server:
         """Tick every stream when its next subscriber is due, until no stream is left."""
         loop = asyncio.get_running_loop()
         while self._streams:
-            delay = tick_all(list(self._streams.values()), loop.time()) - loop.time()
+            due = tick_all(list(self._streams.values()), loop.time())
+            if not self._streams:
+                break  # the last subscriber's session ended
+            delay = due - loop.time()
             if delay <= 0:
                 await asyncio.sleep(0)  # behind: let the rest of the loop run, never hold it
                 continue
@@ -445,9 +450,12 @@ class Server:
 
     def period_statistics(self) -> dict:
         """The control loop's statistics, and ``frames_dropped``: the stream frames the front dropped
-        for every session since it started (a client reading slower than it subscribed)."""
+        for every session since it started (a client reading slower than it subscribed); with the
+        ROS graph, ``ros_ticks_skipped``."""
         stats = self.link.period_statistics()
         stats["frames_dropped"] = self._dropped_before + sum(s.dropped for s in self.sessions.values())
+        for more in self.statistics:
+            stats.update(more())
         return stats
 
     def describe(self) -> dict:

@@ -81,15 +81,18 @@ class TopicStream:
     def tick(self, now: float) -> list[Any]:
         """Send the frame of ``now`` to every subscriber due; returns their sessions (to flush).
         The data is read and encoded once, whatever their number."""
+        for s in [s for s in self.subscribers if s.session.closed]:
+            self.remove(s)  # its session ended (the server detaches it too: cancel is idempotent)
+        if not self.subscribers:
+            return []
         half = 0.5 * self.period
         due = [s for s in self.subscribers if s.next_t - half <= now]
+        if not due:
+            return due
         for s in due:
             s.next_t += s.period
             if s.next_t + half < now:  # behind (the event loop was held): skip, never burst
                 s.next_t = now + s.period
-        due = [s for s in due if not s.session.closed]
-        if not due:
-            return due
         try:
             body = encode_body(self.produce())
         except Exception:  # a bug here must not end the stream silently, nor flood the log
