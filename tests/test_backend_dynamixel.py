@@ -284,15 +284,14 @@ def test_failed_mode_switch_puts_the_robot_in_fault_at_once_torque_off_everywher
     import time
 
     from crtk_bridge.core.control import Controller
+    from crtk_bridge.core.cycle import CycleRunner
 
     sim, b = rig
     c = Controller(b.profile, b, time.time, effective_period_s(b.profile, b))
-    fb = b.new_feedback()
+    runner = CycleRunner(b, c.dt)
 
-    def cycle():
-        c.on_read(fb, b.read(fb))
-        if c.step():
-            c.on_write(b.write(c.command))
+    def cycle():  # the loop's (core/cycle.py)
+        runner.cycle(c)
 
     c.handle({"id": 1, "cmd": "enable"})
     wait_until(lambda: cycle() or any(m.get("id") == 1 for m in c.outbox), 10.0, what="enable reply")

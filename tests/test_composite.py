@@ -25,6 +25,7 @@ from crtk_bridge.core.actuator import (
     effective_period_s,
 )
 from crtk_bridge.core.control import Controller
+from crtk_bridge.core.cycle import CycleRunner, run_transition
 from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import BackendError, ProfileError
 from crtk_bridge.profile import load_profile
@@ -169,7 +170,9 @@ def test_transitions_step_every_bus_together_until_the_slowest_ends():
     c, left, right = composite(enable_cycles=5)
     right.enable_cycles = 2
     t = c.begin(Lifecycle.ENABLE, c.new_feedback())
-    assert run_steps(t) == 6  # the slowest bus's 5 steps (+ the step that sees it end)
+    # the slowest bus's 5 steps, the cycle of its fresh read after torque on (Actuator's), and
+    # the step that sees it end
+    assert run_steps(t) == 7
     assert left.steps == 5 and right.steps == 2 and left.torque and right.torque
     assert c.is_enabled and left.is_enabled and right.is_enabled
     # the buses' limits add up, and an enable may end in a rollback (every bus's disable)
@@ -178,10 +181,11 @@ def test_transitions_step_every_bus_together_until_the_slowest_ends():
 
 
 def test_enable_is_all_or_none_and_names_the_bus():
-    c, left, right = composite(enable_cycles=3)
+    c, left, right = composite(enable_cycles=4)
     right.enable_cycles = 1
     t = c.begin(Lifecycle.ENABLE, c.new_feedback())
-    assert not t.step() and not t.step()  # right done after its one step, left still going
+    # right done after its one step and its fresh read, left still going
+    assert not t.step() and not t.step() and not t.step()
     assert right.torque and right.is_enabled and not left.torque
     left.fail_enable = True
     with pytest.raises(BackendError, match=r"^bimanual_so101: bus 'left': joint 'left_shoulder_pan' did not"):
@@ -240,8 +244,8 @@ class Device(FakeBus):
     def cycle_period_s(self):
         return 0.002
 
-    def wait_cycle(self, timeout_s):
-        self.waited = timeout_s
+    def wait_cycle(self, deadline):
+        self.waited = deadline
         return True
 
     def _read(self, fb):
@@ -277,7 +281,11 @@ def test_the_robot_declares_exactly_what_its_buses_do():
     assert t.capabilities_of(range(left.n)) == FakeBus.CAPS and t.capabilities_of(range(6, 12)) == Device.CAPS
     assert t.capabilities.needs_homing and not t.capabilities.velocity  # the robot: every joint together
     assert t.clock is TraitClock.DEVICE and t.cyclic_write and t.goal_check and t.native_homing and t.speed_scaling
-    assert c.cycle_period_s() == 0.002 and c.wait_cycle(0.5) and right.waited == 0.5
+    assert c.cycle_period_s() == 0.002
+    runner = CycleRunner(c, c.cycle_period_s())  # the cycle starts on the device bus's clock
+    deadline = runner.next_t
+    runner.wait()
+    assert right.waited == deadline
     assert t.timeout_s(Lifecycle.DISABLE) == 1.0 + 2.0
     assert t.timeout_s(Lifecycle.ENABLE) == 1.0 + 3.0 + 3.0  # and the rollback's disables
     assert t.timeout_s(Lifecycle.HOME) == 30.0  # only the bus that homes
@@ -290,7 +298,7 @@ def test_the_robot_declares_exactly_what_its_buses_do():
     assert list(steps) == [None] and right.checked == ("right", "move_jp", [1.0] * 6)
     # native homing: HOME runs on the bus that homes itself, the other is not touched
     c.enable(c.new_feedback())
-    c.run(c.begin(Lifecycle.HOME))
+    run_transition(c, c.begin(Lifecycle.HOME))
     assert right.homed and not hasattr(left, "homed")
     c.close()
     # and nothing of it when no bus has it
@@ -358,14 +366,11 @@ def test_on_resume_each_bus_resumes_from_where_it_stopped():
     c, left, right = device_and_servos()
     clock = Clock()
     ctl = Controller(PROFILE, c, clock, effective_period_s(PROFILE, c))
-    fb = c.new_feedback()
+    runner = CycleRunner(c, ctl.dt, clock=clock, sleep=clock.sleep)  # the loop's cycle, on the fake clock
 
     def cycle(n=1):
         for _ in range(n):
-            clock.t += ctl.dt
-            ctl.on_read(fb, c.read(fb))
-            if ctl.step():
-                ctl.on_write(c.write(ctl.command))
+            runner.cycle(ctl)
 
     cycle()
     ctl.handle({"id": 1, "cmd": "enable"})
@@ -471,16 +476,13 @@ def controller_rig(left_enable_cycles=None):
     act.open()
     clock = Clock()
     c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
-    fb = act.new_feedback()
+    runner = CycleRunner(act, c.dt, clock=clock, sleep=clock.sleep)  # the loop's cycle, on the fake clock
     cycles: list[list] = []  # the log of each cycle
 
     def cycle(n=1):
         for _ in range(n):
             start = len(log)
-            clock.t += c.dt
-            c.on_read(fb, act.read(fb))
-            if c.step():
-                c.on_write(act.write(c.command))
+            runner.cycle(c)
             cycles.append(log[start:])
 
     cycle()
@@ -590,7 +592,7 @@ def test_the_rollback_is_bounded_by_the_disable_time_limit():
     c = CompositeActuator(PROFILE, {"left": left, "right": right})
     c.open()
     with pytest.raises(BackendError) as info:
-        c.run(c.begin(Lifecycle.ENABLE, c.new_feedback()))  # its own limit (2.1 s) is not reached
+        run_transition(c, c.begin(Lifecycle.ENABLE, c.new_feedback()))  # its own limit (2.1 s) is not reached
     assert str(info.value).startswith("bimanual_so101: bus 'right': joint 'right_elbow_flex' did not confirm")
     assert str(info.value).endswith("undoing the enable: torque off not confirmed on 'left', 'right' within 0.1 s")
 

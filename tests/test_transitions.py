@@ -20,6 +20,7 @@ from crtk_bridge.core.actuator import (
     effective_period_s,
 )
 from crtk_bridge.core.control import Controller
+from crtk_bridge.core.cycle import CycleRunner
 from crtk_bridge.core.state import DEVICE_STATUS, OperatingState
 from crtk_bridge.errors import BackendError
 from crtk_bridge.profile import load_profile
@@ -98,12 +99,11 @@ def make_slow_rig(act):
     ids = itertools.count(1)
     fb = act.new_feedback()
 
+    runner = CycleRunner(act, c.dt, clock=clock, sleep=clock.sleep)  # the loop's cycle, on the fake clock
+
     def cycle(n=1):
         for _ in range(n):
-            clock.t += c.dt
-            c.on_read(fb, act.read(fb))
-            if c.step():
-                c.on_write(act.write(c.command))
+            runner.cycle(c)
 
     def send(cmd, ns=None, **data):
         rid = next(ids)

@@ -271,8 +271,15 @@ class CompositeActuator(Actuator):
     def cycle_period_s(self) -> float | None:
         return self._pacer.cycle_period_s() if self._pacer is not None else None
 
-    def wait_cycle(self, timeout_s: float) -> bool:
-        return self._pacer.wait_cycle(timeout_s)
+    def wait_cycle(self, deadline: float) -> bool:
+        """The pacing bus's wait (the device's clock) first, if any; then every other bus's
+        start of the cycle (a CANopen SYNC), in bus order."""
+        pacer = self._pacer
+        ok = pacer.wait_cycle(deadline) if pacer is not None else True
+        for p in self.parts:
+            if p is not pacer:
+                p.wait_cycle(deadline)
+        return ok
 
     @property
     def speed_fraction(self) -> float:  # type: ignore[override]
@@ -298,6 +305,10 @@ class CompositeActuator(Actuator):
 
     def deceleration_limit(self, i: int) -> float:
         return self.parts[self._owner[i]].deceleration_limit(int(self._local[i]))
+
+    def lerobot_maps(self) -> list[dict[str, list[float]] | None]:
+        maps = [p.lerobot_maps() for p in self.parts]
+        return [maps[self._owner[i]][self._local[i]] for i in range(self.n)]
 
     def cartesian_namespaces(self) -> list[str]:
         """Every bus's natively cartesian namespaces, bus after bus (the rows of the robot's
@@ -326,6 +337,10 @@ class CompositeActuator(Actuator):
             self._on_bus(b, p.configure)
 
     # ---- lifecycle transitions: every bus's, stepped together ----
+    def _enable_then_fresh(self, feedback: JointFeedback) -> Steps:
+        """The buses' ENABLE steps: each bus's own ends on a fresh read of it (Actuator's)."""
+        return self._enable_steps(feedback)
+
     def _enable_steps(self, feedback: JointFeedback) -> Steps:
         return self._together(Lifecycle.ENABLE, feedback)
 

@@ -43,8 +43,10 @@ function (backends/composite.py). When the robot enters FAULT, core runs the DIS
   (:meth:`Actuator.take_status`) and maps it onto the CRTK states with ONE table
   (``core/state.py``, ``DEVICE_STATUS``). A non-transient :class:`Fault` from ``read`` is a
   device FAULT too.
-* Pacing: with ``traits.clock`` Clock.DEVICE, :meth:`Actuator.wait_cycle` lets the device pace the
-  loop (wait for its next packet, or produce the SYNC); otherwise the loop sleeps to its own clock.
+* Pacing: every cycle starts with :meth:`Actuator.wait_cycle` (``deadline``: the cycle
+  runner's, core/cycle.py). With ``traits.clock`` Clock.DEVICE the device's clock paces the loop
+  (a UR's next packet); on Clock.LOOP the runner sleeps to its own clock's deadline and
+  ``wait_cycle`` does what starts the backend's cycle (a CANopen SYNC).
   :func:`effective_period_s` is the ONE period the loop, motion, the server's rates and the
   statistics use, computed once at start-up.
 * ``simulator`` (:class:`SimWiring`): how ``--sim`` wires the backend to its wire-level
@@ -256,6 +258,9 @@ class SimWiring:
     host_ports: tuple[int, ...] = ()
 
 
+#: cycles an ENABLE stepped over cycles waits, after its steps, for a read with torque on
+ENABLE_FRESH_READ_CYCLES = 3
+
 #: default time limits (s) of lifecycle transitions; a backend's :class:`Traits` names its own
 DEFAULT_TRANSITION_TIMEOUTS_S: Mapping[Lifecycle, float] = MappingProxyType({
     Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 2.0, Lifecycle.RESUME: 2.0,
@@ -267,9 +272,11 @@ DEFAULT_TRANSITION_TIMEOUTS_S: Mapping[Lifecycle, float] = MappingProxyType({
 class Clock(str, enum.Enum):
     """Who says when a cycle starts (:attr:`Traits.clock`)."""
 
-    LOOP = "loop"  # the loop sleeps to its own clock, the profile's ``loop.rate_hz``
-    #: the device paces the loop: the loop waits in :meth:`Actuator.wait_cycle` (a UR's next RTDE
-    #: package; the CiA 402 master's SYNC tick), at :meth:`Actuator.cycle_period_s`
+    #: the cycle runner sleeps to its own clock (the profile's ``loop.rate_hz``), then
+    #: :meth:`Actuator.wait_cycle` starts the backend's cycle (a CiA 402 master's SYNC)
+    LOOP = "loop"
+    #: the device paces the loop: the runner waits in :meth:`Actuator.wait_cycle` (a UR's next RTDE
+    #: package), at :meth:`Actuator.cycle_period_s`
     DEVICE = "device"
 
 
@@ -352,7 +359,7 @@ class Transition:
     steps raise (a BackendError naming robot, joint and register) when it failed. ``abort()``
     abandons it (closes the step generator, so its ``finally`` clauses run; idempotent).
     ``timeout_s`` is the backend's limit; enforcing it is the caller's job (core faults the robot
-    naming the transition, :meth:`Actuator.run` raises).
+    naming the transition, :func:`~crtk_bridge.core.cycle.run_transition` raises).
     """
 
     __slots__ = ("robot", "kind", "timeout_s", "done", "_steps", "_on_finish")
@@ -466,6 +473,7 @@ class Actuator(abc.ABC):
         #: the device's last reported status (see :meth:`report_status`)
         self.device_status = DeviceStatus.OK
         self._status_news: tuple[DeviceStatus, Fault | None] | None = None
+        self._read_fault: Fault | None = None  # the last read's fault (None: it succeeded)
 
     # ---- start-up path (may block, raises BackendError) ----
     def open(self) -> None:
@@ -537,7 +545,7 @@ class Actuator(abc.ABC):
         """
         on_finish = None
         if kind is Lifecycle.ENABLE:
-            steps = self._enable_steps(feedback if feedback is not None else self.new_feedback())
+            steps = self._enable_then_fresh(feedback if feedback is not None else self.new_feedback())
             on_finish = self._finished_enable
         elif kind is Lifecycle.DISABLE:
             self._enabled = False  # no goal goes out from now on
@@ -563,26 +571,38 @@ class Actuator(abc.ABC):
     def _finished_enable(self) -> None:
         self._enabled = True
 
-    def run(self, transition: Transition, interval_s: float = 0.001) -> None:
-        """Run ``transition`` to its end outside the loop (start-up, shutdown, tests). Blocks;
-        sleeps ``interval_s`` between steps. Raises what a step raises, or BackendError after the
-        transition's time limit (the transition is aborted)."""
-        deadline = time.monotonic() + transition.timeout_s
-        while not transition.step():
-            if time.monotonic() > deadline:
-                transition.abort()
-                raise BackendError(f"{self.robot}: {transition.kind.value} did not finish within "
-                                   f"{transition.timeout_s:g} s")
-            time.sleep(interval_s)
+    def _enable_then_fresh(self, feedback: JointFeedback) -> Steps:
+        """The backend's ENABLE steps, ending with the pose the joints are held at in
+        ``feedback`` (core holds exactly there, never a stale pose: a joint may have sagged while
+        torque was off). An ENABLE done in one step writes it into ``feedback`` itself; one
+        stepped over cycles ends in a later cycle whose read succeeded (its sample is core's),
+        trying ENABLE_FRESH_READ_CYCLES reads (a loaded host may miss one reply: not a FAULT for
+        one late byte); none: BackendError. Nothing here touches the bus: the cycle reads it."""
+        inner = self._enable_steps(feedback)
+        stepped = False
+        try:
+            for _ in inner:
+                stepped = True
+                yield
+        finally:
+            inner.close()
+        if not stepped:
+            return
+        for _ in range(ENABLE_FRESH_READ_CYCLES):
+            yield
+            if self._read_fault is None:
+                return
+        raise BackendError(f"{self.robot}: no fresh position after torque on: {self._read_fault.message}")
 
     def enable(self, feedback: JointFeedback) -> None:
-        """The ENABLE transition run to its end (:meth:`run`). Blocks. Raises BackendError."""
-        self.run(self.begin(Lifecycle.ENABLE, feedback))
+        """The ENABLE transition run to its end, cycle by cycle (:func:`~crtk_bridge.core.cycle.run_transition`:
+        wait, read, step, write, as in the loop). Blocks. Raises BackendError."""
+        run_transition(self, self.begin(Lifecycle.ENABLE, feedback))
 
     def disable(self) -> None:
-        """The DISABLE transition run to its end. Blocks. Raises BackendError if a joint did not
-        confirm torque off."""
-        self.run(self.begin(Lifecycle.DISABLE))
+        """The DISABLE transition run to its end, cycle by cycle. Blocks. Raises BackendError if
+        a joint did not confirm torque off."""
+        run_transition(self, self.begin(Lifecycle.DISABLE))
 
     # ---- calibration (docs/calibration.md): joints moved by hand while DISABLED ----
     def calibration_begin(self) -> Steps:
@@ -612,6 +632,13 @@ class Actuator(abc.ABC):
         joint -> the backend's ``calibration`` keys. Never touches the bus. Raises BackendError."""
         raise BackendError(f"{self.robot}: the {self.profile.backend_type} backend cannot import {fmt} calibrations")
 
+    def lerobot_maps(self) -> list[dict[str, list[float]] | None]:
+        """Per joint: ``{mode: [scale, bias]}``, LeRobot's number in each of its norm modes
+        (``degrees``, ``range_m100_100``, ``range_0_100``) as ``scale * value + bias`` of the
+        joint's SI value, from the joint's calibration, or None where LeRobot has no such number
+        (docs/protocol.md, "LeRobot units"; ``list`` carries them). Default: None for every joint."""
+        return [None] * self.n
+
     # ---- device status (backend -> core) ----
     def report_status(self, status: DeviceStatus, cause: Fault | None = None) -> None:
         """Called by the backend (from ``_read`` or a step) when the device's status changes.
@@ -635,11 +662,14 @@ class Actuator(abc.ABC):
         the profile, before open (docs/protocol.md's stopping table is computed from it)."""
         return None
 
-    def wait_cycle(self, timeout_s: float) -> bool:
-        """Block until the device's next cycle (its next packet arrived, or the SYNC went
-        out), at most ``timeout_s``. Returns False on timeout (the read that follows reports
-        the cause). Called by the loop instead of sleeping when ``traits.clock`` is Clock.DEVICE."""
-        raise NotImplementedError(f"{type(self).__name__} declares the device's clock but has no wait_cycle")
+    def wait_cycle(self, deadline: float) -> bool:
+        """The start of the cycle scheduled at ``deadline`` (``time.perf_counter``; the cycle
+        runner's schedule, core/cycle.py), called first thing in every cycle. On the loop's clock
+        the runner has slept to ``deadline`` already: a backend does what starts its cycle (a
+        CANopen SYNC). On the device's clock (``traits.clock`` Clock.DEVICE) it blocks until the
+        device's next packet, giving up one period after ``deadline``. Returns False when
+        nothing came (the read that follows reports the cause). Default: nothing to do (True)."""
+        return True
 
     # ---- simulator wiring ----
     @classmethod
@@ -658,9 +688,11 @@ class Actuator(abc.ABC):
     def read(self, feedback: JointFeedback) -> Fault | None:
         """Fill ``feedback`` in place from one bus transaction. Never raises."""
         try:
-            return self._read(feedback)
+            fault = self._read(feedback)
         except Exception as exc:  # a backend bug must fault the robot, not kill the loop
-            return Fault("backend_exception", f"{self.robot}: read failed: {exc!r}", transient=False)
+            fault = Fault("backend_exception", f"{self.robot}: read failed: {exc!r}", transient=False)
+        self._read_fault = fault
+        return fault
 
     def write(self, command: JointCommand) -> Fault | None:
         """Send ``command`` in one bus transaction. Never raises.
@@ -791,7 +823,9 @@ class Actuator(abc.ABC):
 
     @abc.abstractmethod
     def _enable_steps(self, feedback: JointFeedback) -> Steps:
-        """Steps of ENABLE: torque on, holding where the joints are."""
+        """Steps of ENABLE: torque on, holding where the joints are. Steps that end without
+        yielding (all done in the first step) leave the pose they hold in ``feedback``; stepped
+        over cycles, the cycle's read after the last step gives it (:meth:`_enable_then_fresh`)."""
 
     @abc.abstractmethod
     def _disable_steps(self) -> Steps:
@@ -840,6 +874,8 @@ def _all_finite(command: JointCommand) -> bool:
                   + sum(cart.linear.ravel().tolist()) + sum(cart.angular.ravel().tolist()))
     return math.isfinite(total)
 
+
+from .cycle import run_transition  # noqa: E402 - the runner needs nothing of this module at import
 
 # ---------------------------------------------------------------- ruckig, for the motion layer and
 # backends that plan on their own (a UR's move_cp)

@@ -5,9 +5,9 @@ Built on ``canopen`` (object dictionaries, SDO client, NMT, EMCY consumer, PDO m
 What the library does not do, or does in a way a real-time loop cannot use, is done here
 (docs/architecture.md, "Sources": CANopen CiA 402):
 
-* **The loop paces the bus.** The backend paces the cycle (``traits.clock`` is the device's): the loop's sleep is
-  :meth:`Canopen402Backend.wait_cycle`, which sends ONE SYNC (``SyncProducer.transmit()``) at the
-  tick of an absolute schedule, the first thing of the cycle, so the SYNC period jitters by the
+* **The loop paces the bus.** The cycle runs on the loop's clock (core/cycle.py): at the tick of
+  its absolute schedule :meth:`Canopen402Backend.wait_cycle` sends ONE SYNC
+  (``SyncProducer.transmit()``), the first thing of the cycle, so the SYNC period jitters by the
   wake-up alone. At that SYNC the drives apply the RPDOs the previous cycle's ``write`` sent
   (CiA 301: SYNC-type RPDOs take effect at the next SYNC) and answer with their SYNC-type TPDOs
   (statusword, position, mode display; velocity, torque). ``read`` takes the TPDOs that answered
@@ -15,8 +15,8 @@ What the library does not do, or does in a way a real-time loop cannot use, is d
   (controlword, target position, mode; target velocity and torque where the drive has CSV / CST)
   and transmits them with ``PdoMap.transmit()``. Every cycle, in every operating state. No library
   thread sends anything periodic (its ``start()`` threads are not locked to the loop, and its
-  setters do not send SYNC-type RPDOs at all). Outside the loop (start-up, tests) a ``read`` sends
-  its own SYNC and waits for its answers. TPDOs are counted, not tagged: a TPDO that has not
+  setters do not send SYNC-type RPDOs at all). Start-up, shutdown and tests run the same cycle
+  (core/cycle.py), so there is one way the bus is driven. TPDOs are counted, not tagged: a TPDO that has not
   arrived ``tpdo_timeout_ms`` after its SYNC is missing, a transient ``tpdo_missing`` fault naming
   the node (core faults after ``safety.bus_errors_max`` in a row); a late one is not.
 * **Heartbeat consumer** (the library has none): each node's heartbeat is timed here; a node
@@ -40,9 +40,9 @@ What the library does not do, or does in a way a real-time loop cannot use, is d
   robot; the bus is reopened on a worker thread and the reads resume once it is back.
 
 Blocking SDO traffic happens only at ``open`` / ``configure`` and inside lifecycle transitions
-(``on_worker``), never in ``read`` / ``write``. Transitions run inside the loop (whose
-``write`` carries their controlwords) or outside it (``Actuator.run``: start-up, shutdown,
-tests); outside, each step exchanges one SYNC itself (:meth:`Canopen402Backend._pump`).
+(``on_worker``), never in ``read`` / ``write``. Transitions are stepped by the cycle (the loop's,
+or the runner's at start-up and shutdown): the cycle's ``write`` carries their controlwords and
+a later cycle's ``read`` brings the statusword that answers them.
 
 Units (raw counts never leave this module), per joint, ``k = 2*pi / (counts_per_revolution *
 gear_ratio)`` for ``unit: rad`` (``1 / (...)`` for ``unit: m``):
@@ -329,12 +329,8 @@ class Canopen402Backend(Actuator):
         self._rx_event = threading.Event()
         self._sync_seq = 0  # SYNCs sent
         self._sync_t = 0.0  # monotonic time of the last SYNC
-        self._sync_fresh = False  # a SYNC went out (wait_cycle) that no read has taken yet
-        self._tick: float | None = None  # perf_counter time of the next SYNC (wait_cycle)
         self._sync_mono = [0.0] * _RING  # monotonic time of SYNC n at [n % _RING]
         self._sync_wall = [0.0] * _RING  # its wall-clock time: the stamp of the samples answering it
-        self._reads = 0  # reads that took the drives' TPDOs (the loop's)
-        self._seen_reads = 0  # self._reads at a transition's previous step
         self._bus_down: str | None = None  # why the bus failed; None: up
         self._reopening: threading.Thread | None = None
         self._error_frames = 0
@@ -390,10 +386,10 @@ class Canopen402Backend(Actuator):
 
     def _traits_hook(self) -> Traits:
         """Per drive, what its supported modes (0x6502) and rated torque allow (read at open);
-        the loop's tick sends the SYNC (the device's clock: wait_cycle); RPDOs every cycle in
+        the loop's clock, whose tick sends the SYNC (wait_cycle); RPDOs every cycle in
         every state; pause is the drives' own quick stop; the drives home themselves (CiA 402
         homing mode) where a joint has ``homing``."""
-        return Traits(joints=tuple(self._joint_caps), clock=Clock.DEVICE, cyclic_write=True,
+        return Traits(joints=tuple(self._joint_caps), clock=Clock.LOOP, cyclic_write=True,
                       stops_itself_on_pause=True,
                       native_homing=any(d.keys.homing is not None for d in self.drives),
                       transition_timeouts_s=self.TRANSITION_TIMEOUTS_S)
@@ -666,7 +662,6 @@ class Canopen402Backend(Actuator):
         while True:
             self._send(None)
             self._sync_out()
-            self._sync_fresh = False
             missing = self._wait_tpdos(time.monotonic() + min(0.1, self.config.boot_timeout_s))
             self._resync(self._sync_seq)
             if missing is None:
@@ -737,8 +732,8 @@ class Canopen402Backend(Actuator):
             d.state = t.decode_state(d.sw)
 
     def _read(self, feedback: JointFeedback) -> Fault | None:
-        """Take the TPDOs that answered the previous SYNC (paced by the loop; outside it, this
-        read's own SYNC), waiting for a late drive at most until ``tpdo_timeout_ms`` after that
+        """Take the TPDOs that answered the previous SYNC (the one before this cycle's: in
+        already, no waiting in the cycle), waiting for a late drive at most until ``tpdo_timeout_ms`` after that
         SYNC; convert them into ``feedback`` (stamp: the SYNC the oldest sample answered), check
         heartbeats and EMCYs, report the device status. Returns a transient ``tpdo_missing``
         fault, a ``heartbeat_lost`` / ``nmt_state`` / ``bus_error`` fault, or None."""
@@ -747,13 +742,7 @@ class Canopen402Backend(Actuator):
             self._settle_until = time.monotonic() + self._settle_s
             return fault
         self.stats["reads"] += 1
-        self._reads += 1
-        if self._sync_fresh:  # paced by the loop: take the answers to the previous SYNC (in already)
-            want = self._sync_seq - 1
-        else:  # outside the loop (start-up, tests): this read's own SYNC and its answers
-            self._sync_out()
-            want = self._sync_seq
-        self._sync_fresh = False
+        want = self._sync_seq - 1  # this cycle's SYNC went out in wait_cycle: the one before it
         # A late drive is waited for until tpdo_timeout_ms after that SYNC; one that missed the
         # previous read is not, so a silent node does not stretch every cycle: its data is then
         # that of the last SYNC it answered, and it is missing once that is overdue.
@@ -908,7 +897,6 @@ class Canopen402Backend(Actuator):
             self._sync_wall[self._sync_seq % _RING] = time.time()
             self._network.sync.transmit()
             self.stats["syncs"] += 1
-            self._sync_fresh = True
             due = self._master_hb_due
             if due is not None and self._sync_t >= due:  # the master's heartbeat rides the SYNC
                 self._network.send_message(self._master_hb_cob, self._master_hb_data)
@@ -919,24 +907,13 @@ class Canopen402Backend(Actuator):
             self._bus_down = f"send failed: {exc}"
 
     # ------------------------------------------------------------------ pacing
-    def cycle_period_s(self) -> float:
-        return self._period_s
-
-    def wait_cycle(self, timeout_s: float) -> bool:
-        """The loop's sleep: until the next tick of this backend's SYNC schedule (absolute, so the
-        SYNC period does not drift with the cycle's work), then the SYNC at once -- the first
-        thing of the cycle, so its jitter is the wake-up's alone (and the master's heartbeat with
-        it when due: the first call starts it). Restarts the schedule when the loop fell a period
-        behind. Always True."""
+    def wait_cycle(self, deadline: float) -> bool:
+        """The cycle starts (the runner slept to its tick, ``deadline``, on its absolute
+        schedule): the SYNC at once -- the first thing of the cycle, so its jitter is the
+        wake-up's alone (and the master's heartbeat with it when due: the first call starts it).
+        Always True."""
         if self._master_hb_due is None:
             self._master_hb_due = 0.0
-        now = time.perf_counter()
-        tick = self._tick
-        if tick is None or now - tick > self._period_s:
-            tick = now + max(timeout_s - self._period_s, 0.0)
-        if tick > now:
-            time.sleep(tick - now)
-        self._tick = tick + self._period_s
         self._sync_out()
         return True
 
@@ -986,23 +963,6 @@ class Canopen402Backend(Actuator):
                 time.sleep(1.0)
 
     # ------------------------------------------------------------------ transitions
-    def _begin_steps(self) -> None:
-        self._seen_reads = self._reads
-
-    def _pump(self) -> None:
-        """Between two steps of a transition: when no read took the TPDOs since the previous
-        step, the transition runs outside the loop (:meth:`Actuator.run`): exchange one SYNC here,
-        so the step sees the statusword its controlword produced. In the loop, its own write
-        carries the controlword and its next read brings the answer."""
-        if self._reads == self._seen_reads and self._network is not None and self._bus_down is None:
-            self._send(None)
-            self._sync_out()
-            self._sync_fresh = False
-            self._wait_tpdos(time.monotonic() + max(self._tpdo_timeout_s, 0.05))
-            self._resync(self._sync_seq)
-            self._decode()
-        self._seen_reads = self._reads
-
     def _walk(self, goal: Goal, drives: list[_Drive] | None = None) -> Steps:
         """Every cycle, each drive's controlword from ``tables.WALK`` for its state and ``goal``,
         until every drive is there. Raises BackendError naming a drive that is in FAULT (when
@@ -1025,7 +985,6 @@ class Canopen402Backend(Actuator):
             if pending is None:
                 return
             yield
-            self._pump()
             missed = missed + 1 if pending.missed else 0
             if missed > self.TRANSITION_MISSED_MAX:
                 raise BackendError(f"{self.robot}: {pending.label}: no statusword for {missed} cycles; "
@@ -1045,7 +1004,6 @@ class Canopen402Backend(Actuator):
         settle = min(self._settle_until, time.monotonic() + self._settle_s)  # a silent node keeps
         while time.monotonic() < settle:  # pushing _settle_until: bounded from here
             yield
-            self._pump()
         # a node whose heartbeat was lost gets a moment to be heard again (it may just be back)
         deadline = time.monotonic() + 2 * self._hb_timeout_s
         while True:
@@ -1057,7 +1015,6 @@ class Canopen402Backend(Actuator):
                 raise BackendError(f"{self.robot}: {silent.label}: no heartbeat for {now - silent.hb_t:.2f} s; "
                                    f"cannot enable")
             yield
-            self._pump()
         faulted = [d for d in self.drives if d.state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE)]
         for d in self.drives:
             d.emcy = None
@@ -1066,13 +1023,11 @@ class Canopen402Backend(Actuator):
         for d in faulted:
             d.cw = int(Command.DISABLE_VOLTAGE)  # bit 7 low first: the reset acts on a rising edge
         yield
-        self._pump()
         cycles = 0
         while True:
             for d in faulted:
                 d.cw = int(Command.FAULT_RESET)
             yield
-            self._pump()
             still = [d for d in faulted if d.state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE)]
             for d in faulted:
                 d.emcy = None
@@ -1087,7 +1042,6 @@ class Canopen402Backend(Actuator):
             d.cw = int(Command.DISABLE_VOLTAGE)
 
     def _fault_reset_steps(self) -> Steps:
-        self._begin_steps()
         yield from self._reset_faults()
 
     def _enable_steps(self, feedback: JointFeedback) -> Steps:
@@ -1095,7 +1049,6 @@ class Canopen402Backend(Actuator):
         -> OPERATION ENABLED, one controlword per cycle, each drive holding its measured position
         as target in CSP. On failure every drive gets disable voltage."""
         self._require_open()
-        self._begin_steps()
         self._paused_by_us = False
         try:
             yield from self._reset_faults()
@@ -1109,7 +1062,6 @@ class Canopen402Backend(Actuator):
         """Disable voltage on every drive (transitions 7, 9, 10, 12) until each confirms."""
         if self._network is None:
             return
-        self._begin_steps()
         self._paused_by_us = False
         for d in self.drives:
             d.homing = False
@@ -1117,14 +1069,12 @@ class Canopen402Backend(Actuator):
 
     def _pause_steps(self) -> Steps:
         """Quick stop (transition 11) until every drive is QUICK STOP ACTIVE (or stopped)."""
-        self._begin_steps()
         self._paused_by_us = True
         yield from self._walk(Goal.QUICK_STOP_ACTIVE)
 
     def _resume_steps(self) -> Steps:
         """Enable operation (transition 16) from QUICK STOP ACTIVE, holding the measured position
         (a drive whose quick stop ended in SWITCH ON DISABLED walks the whole way)."""
-        self._begin_steps()
         try:
             yield from self._walk(Goal.OPERATION_ENABLED)
         finally:
@@ -1135,7 +1085,6 @@ class Canopen402Backend(Actuator):
         edge of controlword bit 4, then statusword bits 10 / 12 / 13 until homing is completed
         (``is_homed`` = bit 12), an error (BackendError naming the joint) or the time limit.
         Joints without ``homing`` (absolute encoders) hold."""
-        self._begin_steps()
         drives = [d for d in self.drives if d.keys.homing is not None]
         try:
             for d in drives:
@@ -1143,15 +1092,12 @@ class Canopen402Backend(Actuator):
                 d.cw = int(Command.ENABLE_OPERATION)  # bit 4 low while the mode switches
             while any(d.mode_display != _HM for d in drives):
                 yield
-                self._pump()
             for d in drives:
                 d.cw = int(Command.ENABLE_OPERATION) | t.CW_HOMING_START
             yield
-            self._pump()
             pending = list(drives)
             while pending:
                 yield
-                self._pump()
                 for d in list(pending):
                     meaning, finished, failed = t.HOMING_STATUS[d.sw & t.HOMING_STATUS_MASK]
                     if failed:

@@ -435,18 +435,20 @@ class UrBackend(Actuator):
     def cycle_period_s(self) -> float:
         return self.dt
 
-    def wait_cycle(self, timeout_s: float) -> bool:
-        """Until the worker forwards the next RTDE package (its timestamp moved on), at most
-        ``timeout_s``: blocks in poll() on the worker's socket. Counts skipped packages in
-        ``missed_packets``."""
+    def wait_cycle(self, deadline: float) -> bool:
+        """Until the worker forwards the next RTDE package (its timestamp moved on), expected at
+        ``deadline`` (the runner's schedule, ``time.perf_counter``) and given up one period
+        after it (after now, when the deadline has passed: a late cycle still waits for its
+        package): blocks in poll() on the worker's socket. Counts skipped packages in
+        ``missed_packets``. Without a link: one period (the cycle goes on, reporting it)."""
         if not self._rt_checked:
             self._note_realtime()
         clock = time.perf_counter
         w = self._w
         if w is None or not self._link:
-            time.sleep(min(timeout_s, self.dt))
+            time.sleep(self.dt)
             return False
-        deadline = clock() + timeout_s
+        deadline = max(deadline, clock()) + self.dt
         while True:
             if self._take(w):
                 return True

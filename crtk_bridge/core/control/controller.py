@@ -100,7 +100,6 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
                                                        profile.safety)
         self.command = actuator.new_command()
         self.feedback = actuator.new_feedback()  # latest sample, copied in by on_read()
-        self._fresh = actuator.new_feedback()  # the read that follows torque on
         self.fault_cause: Fault | None = None
         self._consecutive_bus_errors = 0
         self._tracking_cycles = 0

@@ -45,7 +45,7 @@ class SupervisorMixin:
                 nc.cancel()
             names = [m.name for m in endless] + [nc.motion.name for nc in native]
             self.event("warning", "control_released",
-                        f"{self.robot}: controlling client disconnected; holding {', '.join(names)}")
+                       f"{self.robot}: controlling client disconnected; holding {', '.join(names)}")
 
     def enter_fault(self, fault: Fault) -> None:
         """FAULT with ``fault`` as the cause, and the backend's fault reaction (also the loop's
@@ -60,7 +60,7 @@ class SupervisorMixin:
         if not torque_going_off:  # every backend's reaction: torque off (the DISABLE transition)
             message += self._torque_off()
         self.event("error", fault.code, message, joint=fault.joint, register=fault.register,
-                    value=fault.value)
+                   value=fault.value)
         self._set_state(OperatingState.FAULT)
 
     def _torque_off(self) -> str:
