@@ -16,6 +16,7 @@ import json
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from crtk_bridge.backends.calibration import from_lerobot
@@ -205,6 +206,23 @@ def tail(log: Path, lines: int = 40) -> str:
         return "\n".join(log.read_text(errors="replace").splitlines()[-lines:])
     except OSError:
         return "(no log)"
+
+
+def on_the_way(values: np.ndarray, start: np.ndarray, end: np.ndarray, tol: np.ndarray) -> np.ndarray:
+    """Per frame: every joint between ``start`` and ``end`` (within ``tol``)."""
+    lo, hi = np.minimum(start, end) - tol, np.maximum(start, end) + tol
+    return np.all((values >= lo) & (values <= hi), axis=1)
+
+
+def polyline_distance(points: np.ndarray, path: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Each point's distance (in ticks: ``/ scale``) to the nearest segment of ``path``, joint-wise max."""
+    p = points[:, None, :] / scale
+    a, b = path[:-1][None] / scale, path[1:][None] / scale
+    ab = b - a
+    denom = np.maximum((ab * ab).sum(-1), 1e-12)
+    t = np.clip(((p - a) * ab).sum(-1) / denom, 0, 1)
+    nearest = a + t[..., None] * ab
+    return np.abs(p - nearest).max(-1).min(-1)
 
 
 def read_dataset(venv: Path, root: Path, repo_id: str = "local/crtk_test") -> dict:
