@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import shutil
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from crtk_bridge.client import connect
 from crtk_bridge.sim.control import control_request
@@ -29,18 +31,27 @@ B = HOME + np.array([0.25, 0.15, -0.2, 0.1, 0.0, 0.3])
 C = HOME + np.array([0.1, 0.05, -0.05, 0.05, 0.1, 0.1])
 EPISODES = ((HOME, B), (B, C))
 HAND = 0.5  # rad/s
+HOLD_S = 0.8  # s: the leader held still at the start of each episode (a replay starts there)
 EPISODE_S = 3
 REPO = "local/crtk_ur5e"
 
 
 class URArm:
-    """A simulated UR5e under its daemon (``--sim``); ``q()``: the simulator's joint positions."""
+    """A simulated UR5e under its daemon (``--sim``); ``q()``: the simulator's joint positions.
+    ``series``: the controller's (the leader runs as a CB3, RTDE at 125 Hz: a quarter of the CPU an
+    e-Series takes, on a host that runs both)."""
 
-    def __init__(self, tmp: Path, name: str):
+    def __init__(self, tmp: Path, name: str, series: str | None = None):
         self.tmp = tmp / name
         self.tmp.mkdir()
         self.socket = self.tmp / "d.sock"
-        self.daemon = DaemonProcess(["--profile", str(UR5E), "--sim"], self.socket, self.tmp / "daemon.log")
+        profile = UR5E
+        if series is not None:
+            data = yaml.safe_load(UR5E.read_text())
+            data["backend"]["series"] = series
+            profile = self.tmp / "ur5e.yaml"
+            profile.write_text(yaml.safe_dump(data))
+        self.daemon = DaemonProcess(["--profile", str(profile), "--sim"], self.socket, self.tmp / "daemon.log")
         self.sim = self.daemon.sim_control_path()
 
     def state(self) -> dict:
@@ -65,7 +76,7 @@ def urs(lerobot_venv, lerobot_plugin):
     try:
         follower = URArm(tmp, "follower")
         arms.append(follower)
-        leader = URArm(tmp, "leader")
+        leader = URArm(tmp, "leader", series="cb3")
         arms.append(leader)
         client = connect(socket=str(leader.socket))  # freedrive: enabled, then free (you do this)
         arm = client.device("ur5e")
@@ -97,6 +108,7 @@ def test_record_on_the_ur5e_in_si_units(urs):
         for k, (_start, end) in enumerate(EPISODES):
             wait_until(lambda: f"Recording episode {k}" in log.read_text(errors="replace") or proc.poll() is not None,
                        240, what=f"lerobot-record's episode {k}")
+            time.sleep(HOLD_S)  # the person holds the leader still a moment, then moves it
             reply = control_request(urs["leader"].sim, {"cmd": "hand", "q": list(end), "speed": HAND})
             assert reply["ok"], reply
         rc = finish(proc, log)
