@@ -10,7 +10,7 @@ reports:
 * bytes per cycle, counted at the client's port (written + read), split read / write;
 * the wire-time limit: baud / (10 bits x bytes per cycle), the rate the byte count allows
   (servo turnaround excluded: both backends configure Return_Delay_Time = 0);
-* the achieved cycle rate and its ratio to that limit (DESIGN.md target: >= 90 % at 1 Mbps).
+* the achieved cycle rate and its ratio to that limit (docs/architecture.md, "Performance targets": >= 90 % at 1 Mbps).
 
 Figures only; nothing is asserted. Usage:
 

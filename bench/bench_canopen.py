@@ -38,6 +38,7 @@ sys.path.insert(0, str(ROOT))
 
 from crtk_bridge.backends.canopen402.backend import Canopen402Backend  # noqa: E402
 from crtk_bridge.core.control import Controller  # noqa: E402
+from crtk_bridge.core.cycle import CycleRunner  # noqa: E402
 from crtk_bridge.profile import parse_profile  # noqa: E402
 from crtk_bridge.sim.canopen402 import CanopenSimulator  # noqa: E402
 
@@ -79,33 +80,25 @@ def rig(rate: float):
     backend.open()
     backend.configure()
     c = Controller(profile, backend, time.time, 1.0 / rate)
-    fb = backend.new_feedback()
-    return sim, backend, c, fb, profile
+    runner = CycleRunner(backend, 1.0 / rate)
+    return sim, backend, c, runner, profile
 
 
-def run_loop(c, backend, fb, period: float, seconds: float) -> None:
-    """core/loop.py's schedule: the backend paces the cycle (wait_cycle: its SYNC at the tick),
-    then read -> step -> write."""
-    clock = time.perf_counter
-    next_t = clock() + period
-    end = clock() + seconds
-    while clock() < end:
-        delay = next_t - clock()
-        backend.wait_cycle(max(delay, 0.0) + period)
-        t0 = clock()
-        c.on_read(fb, backend.read(fb))
+def run_loop(c, backend, runner, period: float, seconds: float) -> None:
+    """core/loop.py's cycle (core/cycle.py): the SYNC at the tick of the loop's schedule
+    (``wait_cycle``), then read -> step -> write."""
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        runner.cycle(c)
         c.outbox.clear()
-        if c.step():
-            c.on_write(backend.write(c.command))
-        next_t = t0 + period
 
 
-def enable(c, backend, fb, period: float) -> None:
+def enable(c, backend, runner, period: float) -> None:
     c.handle({"id": 1, "cmd": "enable"})
     deadline = time.monotonic() + 5
     while c.state.value != "ENABLED":
         assert time.monotonic() < deadline, "enable did not finish"
-        run_loop(c, backend, fb, period, period)
+        run_loop(c, backend, runner, period, period)
 
 
 def main(argv=None) -> int:
@@ -118,7 +111,7 @@ def main(argv=None) -> int:
     period = 1.0 / args.rate
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
 
-    sim, backend, c, fb, profile = rig(args.rate)
+    sim, backend, c, runner, profile = rig(args.rate)
     tap_bus = can.Bus(interface="virtual", channel=sim.port)  # hears everyone but itself
     sender = can.Bus(interface="virtual", channel=sim.port)  # the bare periodic baseline
     tap = Tap()
@@ -128,11 +121,11 @@ def main(argv=None) -> int:
     # the bare master produces its heartbeat too (the drives watch it: 0x1016), on its own thread
     master_hb = can.Message(arbitration_id=master_cob, data=b"\x05", is_extended_id=False)
     try:
-        enable(c, backend, fb, period)
+        enable(c, backend, runner, period)
         loop_j, bare_j, loop_frames = [], [], []
         for _ in range(args.rounds):  # alternate: loop, bare, loop, bare...
             tap.take()
-            run_loop(c, backend, fb, period, args.seconds)
+            run_loop(c, backend, runner, period, args.seconds)
             frames = tap.take()
             loop_j.append(jitter(frames, period))
             loop_frames.append(frames)
@@ -176,12 +169,12 @@ def main(argv=None) -> int:
     best = None
     rate = args.sweep_from
     while rate <= 8000:
-        sim, backend, c, fb, _ = rig(rate)
+        sim, backend, c, runner, _ = rig(rate)
         try:
-            enable(c, backend, fb, 1.0 / rate)
+            enable(c, backend, runner, 1.0 / rate)
             missed0, reads0 = backend.stats["tpdos_missed"], backend.stats["reads"]
             t0 = time.perf_counter()
-            run_loop(c, backend, fb, 1.0 / rate, args.seconds)
+            run_loop(c, backend, runner, 1.0 / rate, args.seconds)
             took = time.perf_counter() - t0
             missed = backend.stats["tpdos_missed"] - missed0
             reads = backend.stats["reads"] - reads0

@@ -8,7 +8,7 @@ and p99 per call and each as a fraction of a 1 ms (1 kHz) and a 5 ms (200 Hz, th
 profile's rate) cycle, plus IK iteration counts and success rates. Also the per-cycle cost of a
 ``servo_cv`` stream in the control process (core/twist.py: the twist mapped to joint velocities
 at the setpoint, bounded, every cycle), as a fraction of the profile's cycle period. Figures only; nothing is
-asserted (DESIGN.md: "IK per cycle as a fraction of the cycle period, goal under 10 %"). Usage:
+asserted (docs/architecture.md, "Performance targets": IK per cycle as a fraction of the cycle period, goal under 10 %). Usage:
 
     python bench/bench_kinematics.py [--calls 20000] [--ik-calls 3000]
 """

@@ -11,7 +11,7 @@ bench then runs, alternating in rounds so both see the same host load:
 
 each for ``--cycles`` real-time cycles back to back (one ``read`` + one ``write`` of position
 goals, goals changing so the writes are real), and prints each round's rate, the medians and the
-ratio two-bus / one-bus (DESIGN.md target: >= 90 %). A sequential composite (the same two buses
+ratio two-bus / one-bus (docs/architecture.md, "Performance targets": >= 90 %). A sequential composite (the same two buses
 served one after the other, ``--sequential``) shows what the concurrency buys.
 
 Figures only; nothing is asserted. Usage:

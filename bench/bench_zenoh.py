@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """The ROS 2 graph over Zenoh on the simulated SO-101 at 1 kHz, each figure beside a baseline
-measured in the same run (DESIGN.md: "Zenoh: measured_js latency within 2x of a bare Zenoh pub/sub
-of the same bytes; the loop's lateness unchanged with the transport publishing at 1 kHz").
+measured in the same run (docs/architecture.md, "Performance targets": Zenoh ``measured_js``
+latency within 2x of a bare Zenoh pub/sub of the same bytes; the loop's lateness unchanged with
+the transport publishing at 1 kHz).
 
 1. Latency of ``measured_js`` over Zenoh on loopback: the daemon publishes at the loop rate
    (1 kHz); a subscriber in this process takes (receive time - the attachment's source timestamp)
@@ -9,13 +10,16 @@ of the same bytes; the loop's lateness unchanged with the transport publishing a
    bare Zenoh publisher in its own process putting the same bytes at 1 kHz, each with its send
    time, to the same kind of subscriber. Windows alternate.
 2. The control loop's lateness and overruns (``period_statistics``, ~1 s windows) with the daemon
-   publishing at 1 kHz every ROS topic to a subscriber of all of them, then only measured_js to a
-   subscriber of it, against the same daemon without the Zenoh transport. Daemons alternate,
-   enabled and idle.
+   publishing at 1 kHz every ROS topic to a subscriber of all of them while ``--clients`` remote
+   clients (eclipse-zenoh alone, as docs/zenoh.md's key layout) stream measured_js, setpoint_js,
+   goal_js and measured_cp at 1 kHz each, then only measured_js to a ROS subscriber, against the
+   same daemon without the Zenoh transport. Daemons alternate, enabled and idle. ``--old DIR``
+   also runs another checkout (``git worktree add /tmp/old <commit>``) with every topic and without
+   Zenoh, in the same rounds: a before / after in one run.
 
 Figures only; nothing is asserted. Usage:
 
-    python bench/bench_zenoh.py [--rounds 3] [--window 3]
+    python bench/bench_zenoh.py [--rounds 3] [--window 3] [--clients 4] [--old /tmp/old]
 """
 
 from __future__ import annotations
@@ -157,20 +161,73 @@ def loop_window(sock: Path, seconds: float) -> tuple[list[float], list[float], i
         robot.close()
 
 
-def loop_round(tmp: Path, zen: str | None, window: float) -> tuple:
-    """One daemon (without the Zenoh transport, or with it and a subscriber of the key ``zen``)
-    and one loop_window: (p99s, p50s, overruns, cycles, samples received)."""
+REMOTE_TOPICS = ("measured_js", "setpoint_js", "goal_js", "measured_cp")
+
+
+class RemoteClients:
+    """``n`` remote clients of the daemon's tunnel spoken with eclipse-zenoh alone (docs/zenoh.md's
+    key layout), each streaming REMOTE_TOPICS at 1 kHz; counts the frame lines they receive."""
+
+    def __init__(self, s: zenoh.Session, n: int):
+        import uuid
+
+        self.lines = 0
+        self.lock = threading.Lock()
+        self.entities = []
+        for _ in range(n):
+            cid = uuid.uuid4().hex
+            self.entities.append(s.declare_subscriber(f"crtk_bridge/so101/out/{cid}", self._on))
+            self.entities.append(s.liveliness().declare_token(f"crtk_bridge/so101/client/{cid}"))
+            time.sleep(0.3)  # the daemon opens the session on the token
+            s.put(f"crtk_bridge/so101/in/{cid}", b"".join(
+                b'{"id": %d, "cmd": "subscribe", "ns": "so101", "data": {"topic": "%s", "rate_hz": 1000}}\n'
+                % (i, t.encode()) for i, t in enumerate(REMOTE_TOPICS)))
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        n = sample.payload.to_bytes().count(b'{"topic"')
+        with self.lock:
+            self.lines += n
+
+    def close(self) -> None:
+        for e in reversed(self.entities):
+            e.undeclare()
+
+
+def cpu_s(pid: int) -> float:
+    """utime + stime of process ``pid`` (its own threads, not its children), in seconds."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def loop_round(tmp: Path, zen: str | None, window: float, tree: Path = ROOT, clients: int = 0) -> tuple:
+    """One daemon of checkout ``tree`` (without the Zenoh transport, or with it, a subscriber of the
+    ROS key ``zen`` and ``clients`` remote clients) and one loop_window: (p99s, p50s, overruns,
+    cycles, ROS samples received, remote frames received, frames_dropped)."""
     extra = ["--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"] if zen else []
-    d, sock = sim_daemon.start(1000, tmp, args=extra)
-    listener = None
+    d, sock = sim_daemon.start(1000, tmp, args=extra, tree=tree)
+    listener = remote = None
     got = [0]
     try:
         if zen:  # a subscriber of every topic, so the samples really leave the process
             listener = session(extra[1])
             listener.declare_subscriber(zen, lambda s: got.__setitem__(0, got[0] + 1))
+            if clients:
+                remote = RemoteClients(listener, clients)
+        rx0, t_rx = (got[0], remote.lines if remote else 0), time.monotonic()
+        time.sleep(0.5)  # the streams run
+        cpu0, t0 = cpu_s(d.pid), time.monotonic()
         p99, p50, ovr, cyc = loop_window(sock, window)
-        return p99, p50, ovr, cyc, got[0]
+        front = (cpu_s(d.pid) - cpu0) / (time.monotonic() - t0)
+        span = time.monotonic() - t_rx
+        ros_rate, remote_rate = (got[0] - rx0[0]) / span, ((remote.lines if remote else 0) - rx0[1]) / span
+        robot = connect(socket=str(sock))
+        dropped = robot.connection.request("period_statistics").get("frames_dropped", float("nan"))
+        robot.close()
+        return p99, p50, ovr, cyc, ros_rate, remote_rate, dropped, front
     finally:
+        if remote is not None:
+            remote.close()
         if listener is not None:
             listener.close()
         stop(d)
@@ -184,6 +241,8 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--window", type=float, default=3.0, help="seconds per measurement window")
+    ap.add_argument("--clients", type=int, default=4, help="remote clients streaming 4 topics at 1 kHz each")
+    ap.add_argument("--old", type=Path, help="another checkout: every topic and without Zenoh, same rounds")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="crtk-bench-zenoh-"))
     load_before = os.getloadavg()[0]  # the host is shared: figures from a loaded one say little
@@ -218,15 +277,20 @@ def main() -> int:
     d_transit, d_age, b_transit = (np.concatenate(x) for x in (d_transit, d_age, b_transit))
 
     # -- 2. loop lateness with / without the Zenoh transport, daemons alternating --
-    # every topic subscribed (the worst case), only measured_js (a typical client), or no transport
-    variants = {"with Zenoh, every topic subscribed": "0/**", "with Zenoh, measured_js subscribed": MEASURED_JS,
-                "without Zenoh": None}
+    # every topic subscribed (the worst case: every ROS topic, and remote clients streaming), only
+    # measured_js (a typical client), or no transport
+    every = f"every topic + {args.clients} remote clients"
+    variants = {f"with Zenoh, {every}": ("0/**", ROOT, args.clients),
+                "with Zenoh, measured_js subscribed": (MEASURED_JS, ROOT, 0), "without Zenoh": (None, ROOT, 0)}
+    if args.old:
+        variants[f"OLD with Zenoh, {every}"] = ("0/**", args.old.resolve(), args.clients)
+        variants["OLD without Zenoh"] = (None, args.old.resolve(), 0)
     rows: dict[str, list] = {name: [] for name in variants}
     for r in range(args.rounds):
-        for name, key in variants.items():
+        for name, (key, tree, clients) in variants.items():
             for attempt in range(3):  # a loaded host can starve the 1 kHz simulator at start-up
                 try:
-                    rows[name].append(loop_round(tmp, key, args.window))
+                    rows[name].append(loop_round(tmp, key, args.window, tree, clients))
                     break
                 except (RuntimeError, AssertionError) as exc:
                     print(f"  (a '{name}' window failed, retrying: {exc})", flush=True)
@@ -244,15 +308,20 @@ def main() -> int:
     print("control loop lateness @1 kHz, enabled, idle (median of ~1 s windows' p50 / p99):")
     for name, rs in rows.items():
         ovr, cyc = sum(col(rs, 2)), sum(col(rs, 3))
-        extra = f"; {sum(col(rs, 4)) / (len(rs) * (args.window + 1.1)):.0f} samples/s to the subscriber" \
-            if variants[name] else ""
-        print(f"  {name:36s}: p50 {ms(col(rs, 1))}, p99 {ms(col(rs, 0))}; overruns {ovr} of {cyc} cycles{extra}")
-    base = float(np.median(col(rows["without Zenoh"], 0)))
-    base_ovr = sum(col(rows["without Zenoh"], 2)) / max(1, sum(col(rows["without Zenoh"], 3)))
-    for name in list(variants)[:2]:
-        ovr = sum(col(rows[name], 2)) / max(1, sum(col(rows[name], 3)))
-        print(f"  ratio p99 {name} / without: {float(np.median(col(rows[name], 0))) / base:.2f}  (target: ~1); "
-              f"overruns per cycle: {ovr / base_ovr if base_ovr else float('nan'):.2f}x")
+        extra = f"; {float(np.median(col(rs, 4))):.0f} ROS samples/s" if variants[name][0] else ""
+        if variants[name][2]:
+            extra += (f", {float(np.median(col(rs, 5))):.0f} remote frames/s (asked {1000 * len(REMOTE_TOPICS) * args.clients}),"
+                      f" frames_dropped {sum(col(rs, 6))}")
+        print(f"  {name:50s}: p50 {ms(col(rs, 1))}, p99 {ms(col(rs, 0))}; overruns {ovr} of {cyc} cycles; "
+              f"front process CPU {100 * float(np.median(col(rs, 7))):.0f} % of a core{extra}")
+    for tag in ("", "OLD ") if args.old else ("",):
+        base_rows = rows[f"{tag}without Zenoh"]
+        base = float(np.median(col(base_rows, 0)))
+        base_ovr = sum(col(base_rows, 2)) / max(1, sum(col(base_rows, 3)))
+        for name in [n for n in variants if n.startswith(tag + "with Zenoh")]:
+            ovr = sum(col(rows[name], 2)) / max(1, sum(col(rows[name], 3)))
+            print(f"  ratio p99 {name} / {tag}without: {float(np.median(col(rows[name], 0))) / base:.2f}  "
+                  f"(target <= 1.2); overruns per cycle: {ovr / base_ovr if base_ovr else float('nan'):.2f}x")
     print(f"load average (1 min) at start {load_before:.2f}, at end {os.getloadavg()[0]:.2f} (this script's "
           "own processes included)")
     return 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
@@ -12,20 +13,23 @@ import yaml
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def start(rate_hz: float, tmp: Path, startup_s: float = 30.0, args: list[str] = ()) -> tuple[subprocess.Popen, Path]:
+def start(rate_hz: float, tmp: Path, startup_s: float = 30.0, args: list[str] = (),
+          tree: Path = ROOT) -> tuple[subprocess.Popen, Path]:
     """Write profiles/so101.yaml at ``rate_hz`` into ``tmp``, start the daemon on the simulator
-    (with more command-line ``args``) and wait (up to ``startup_s``) for its socket. Returns
+    (with more command-line ``args``; ``tree``: the checkout to run, another one for a before /
+    after in one run) and wait (up to ``startup_s``) for its socket. Returns
     (process, socket path); the caller stops it (SIGTERM). Raises RuntimeError if it does not start."""
-    data = yaml.safe_load((ROOT / "profiles" / "so101.yaml").read_text())
+    data = yaml.safe_load((tree / "profiles" / "so101.yaml").read_text())
     data["loop"]["rate_hz"] = rate_hz
     for ns in data["namespaces"]:
         if "kinematics" in ns:
-            ns["kinematics"]["urdf"] = str(ROOT / "profiles" / "urdf" / "so101.urdf")
+            ns["kinematics"]["urdf"] = str(tree / "profiles" / "urdf" / "so101.urdf")
     prof = tmp / f"so101-{rate_hz:g}hz.yaml"
     prof.write_text(yaml.safe_dump(data))
     sock = tmp / "so101.sock"
     daemon = subprocess.Popen([sys.executable, "-m", "crtk_bridge.cli", "--profile", str(prof), "--sim",
-                               "--socket", str(sock), "--log-level", "ERROR", *args], stdout=subprocess.DEVNULL, cwd=ROOT)
+                               "--socket", str(sock), "--log-level", "ERROR", *args], stdout=subprocess.DEVNULL, cwd=tree,
+                              env=dict(os.environ, PYTHONPATH=str(tree)))
     deadline = time.monotonic() + startup_s
     while not sock.exists():
         if daemon.poll() is not None or time.monotonic() > deadline:

@@ -151,7 +151,12 @@ def _check_end(doc: dict, as_json: bool, status: int) -> int:
 def _scan(profile, backend, source: str, all_bauds: bool, quiet: bool = False) -> list[dict]:
     """``check --scan``: each bus's servos against the profile, one record each (``check
     --json``'s ``scan.buses``; ``ok`` false on any mismatch). Prints the report unless ``quiet``."""
-    buses = dict(zip(backend.bus_names, backend.parts)) if profile.backends is not None else {"": backend}
+    from .backends.optional import BusScanner, require
+
+    if profile.backends is not None:
+        buses = {bus: (part, str(profile.backends[bus]["type"])) for bus, part in zip(backend.bus_names, backend.parts)}
+    else:
+        buses = {"": (backend, profile.backend_type)}
     out = []
 
     def fail(rec: dict, message: str) -> None:
@@ -160,29 +165,31 @@ def _scan(profile, backend, source: str, all_bauds: bool, quiet: bool = False) -
         if not quiet:
             print(f"crtk-bridge: {message}", file=sys.stderr)
 
-    for bus, part in buses.items():
+    for bus, (part, backend_type) in buses.items():
         where = f"backends.{bus}" if bus else "backend"
-        rec = {"bus": bus or None, "where": where, "vendor": getattr(part, "vendor", None), "port": None,
+        rec = {"bus": bus or None, "where": where, "vendor": backend_type, "port": None,
                "baudrate": None, "ok": True, "error": None, "servos_answered": 0, "joints": [], "extra": [],
                "other_rates": [], "problems": []}
         out.append(rec)
-        if not hasattr(part, "scan"):
-            fail(rec, f"{profile.name}: {where}: a {type(part).__name__} cannot scan its bus")
-            continue
-        rec.update(baudrate=part.config.baudrate, port=part.port_name)
-        if not quiet:
-            print(f"scanning {where} ({part.vendor}) at {part.config.baudrate} baud"
-                  f"{' (then every other rate)' if all_bauds else ''}, ids 0-{part.MAX_ID}...", flush=True)
         try:
-            found = part.scan(all_bauds=all_bauds)
+            scanner = require(part, BusScanner, robot=profile.name, where=where, backend_type=backend_type)
+        except CrtkBridgeError as exc:
+            fail(rec, str(exc))
+            continue
+        baudrate, plan = scanner.scan_plan(all_bauds)
+        rec.update(baudrate=baudrate, port=scanner.port_name)
+        if not quiet:
+            print(f"scanning {where} ({backend_type}) {plan}...", flush=True)
+        try:
+            found = scanner.scan(all_bauds=all_bauds)
         except CrtkBridgeError as exc:
             fail(rec, str(exc))
             continue
         bus_opt = f" --bus {bus}" if bus else ""
-        lines, problems, findings = part.scan_report(
+        lines, problems, findings = scanner.scan_report(
             found, f": run crtk-bridge setup-servos --profile {source}{bus_opt} with only that servo connected")
-        n = len(found.servos)
-        rec.update(findings, port=part.port_name, servos_answered=n, ok=not problems, problems=problems)
+        rec.update(findings, port=scanner.port_name, ok=not problems, problems=problems)
+        n = rec["servos_answered"]
         if quiet:
             continue
         print(f"{where}: {part.port_name}: {n} servo{'s' if n != 1 else ''} answered")
@@ -243,7 +250,8 @@ def _setup_servos(argv: list[str]) -> int:
                    help="one JSON object per line for each step, then a summary object")
     args = p.parse_args(argv)
     from .backends import create_backend
-    from .backends.servo_setup import EXIT_ERROR, ServoSetup
+    from .backends.optional import DeviceSetup, require
+    from .backends.servo_setup import EXIT_ERROR
     from .profile import load_profile, resolve_profile_arg
 
     def emit(event: dict) -> None:
@@ -255,14 +263,15 @@ def _setup_servos(argv: list[str]) -> int:
     try:
         profile = load_profile(resolve_profile_arg(args.profile, hardware=True))  # it writes EEPROM
         backend = create_backend(profile, source=args.profile)
+        where, backend_type = "backend", profile.backend_type
         if profile.backends is not None:
             if args.bus not in profile.bus_names:
                 p.error(f"--bus must name one of the profile's buses ({', '.join(profile.bus_names)})")
             backend = backend.parts[backend.bus_names.index(args.bus)]
+            where, backend_type = f"backends.{args.bus}", str(profile.backends[args.bus]["type"])
         elif args.bus is not None:
             p.error("--bus: the profile has one backend; leave --bus out")
-        if not hasattr(backend, "_broadcast_ping"):
-            raise CrtkBridgeError(f"{profile.name}: a {type(backend).__name__} has no servos to set up")
+        backend = require(backend, DeviceSetup, robot=profile.name, where=where, backend_type=backend_type)
         unknown = [n for n in args.joint if n not in backend.joint_names]
         if unknown:
             p.error(f"--joint {unknown[0]}: not a joint of this bus ({', '.join(backend.joint_names)})")
@@ -274,7 +283,7 @@ def _setup_servos(argv: list[str]) -> int:
         return EXIT_ERROR
     joints = [i for i, n in enumerate(backend.joint_names) if not args.joint or n in args.joint][::-1]
     ask = None if args.yes else (lambda prompt: input(prompt))
-    return ServoSetup(backend, emit, ask, args.timeout).run(joints)
+    return backend.setup_devices(joints, emit, ask, args.timeout)
 
 
 def _print_setup_event(e: dict, source: str) -> None:
@@ -341,21 +350,23 @@ def _init_profile(argv: list[str]) -> int:
     return 0
 
 
-#: the backend keys that say where a robot of each backend type is found
-_WHERE = {"ur": "backend.host", "canopen402": "backend.interface and backend.channel"}
+#: the backend keys that say where a robot of each backend type is found (default: ``port``)
+_WHERE = {"ur": ("host",), "canopen402": ("interface", "channel")}
 
 
 def _where_the_robot_is(text: str) -> str:
     """The keys to set in a profile written from the shipped ``text``: a serial bus's port, a UR's
-    host, a CAN bus's interface and channel; one per bus of a several-bus profile."""
+    host, a CAN bus's interface and channel; each bus's own of a several-bus profile."""
     import yaml
 
     data = yaml.safe_load(text) or {}
     buses = data.get("backends")
-    if isinstance(buses, dict) and buses:
-        return " and ".join(f"backends.{bus}.port" for bus in buses)
-    kind = (data.get("backend") or {}).get("type")
-    return _WHERE.get(kind, "backend.port (crtk-bridge find-port)")
+    sections = ({f"backends.{bus}": section for bus, section in buses.items()} if isinstance(buses, dict) and buses
+                else {"backend": data.get("backend") or {}})
+    keys = [f"{where}.{key}" for where, section in sections.items()
+            for key in _WHERE.get((section or {}).get("type"), ("port",))]
+    serial = any((section or {}).get("type") not in _WHERE for section in sections.values())
+    return " and ".join(keys) + (" (crtk-bridge find-port)" if serial and len(sections) == 1 else "")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -31,8 +31,9 @@ from .core.kinematics_check import check_kinematics
 from .core.loop import control_main
 from .core.samples import SampleRing, ring_slots
 from .core.snapshot import Layout, SnapshotBuffer
-from .errors import CrtkBridgeError
+from .errors import BackendUnavailableError, CrtkBridgeError
 from .profile import Profile, load_profile
+from .registry import simulator_device
 from .server.link import ControlLink
 from .server.server import Server
 from .sim.loopback import free_loopback_host
@@ -304,12 +305,19 @@ async def _watchdog(link: ControlLink, period: float) -> None:
             last = cycles
 
 
-def _sim_wiring(backend_type: str, source: str) -> SimWiring:
-    """How --sim wires backend ``backend_type``: the backend declares it (actuator.SimWiring)."""
+def _sim_wiring(backend_type: str, source: str) -> tuple[str, SimWiring]:
+    """(the ``crtk-sim`` device, how --sim wires it) of backend ``backend_type``: the registry
+    names its simulator (crtk_bridge/registry.py), the backend how its profile takes the
+    simulator's endpoint (actuator.SimWiring)."""
+    try:
+        device = simulator_device(backend_type, source)
+    except BackendUnavailableError as exc:
+        raise CrtkBridgeError(f"--sim: {exc}") from None
     wiring = backend_class(backend_type, source).simulator
     if wiring is None:
-        raise CrtkBridgeError(f"--sim: backend {backend_type!r} has no simulator")
-    return wiring
+        raise CrtkBridgeError(f"--sim: {source}: backend {backend_type!r} declares no SimWiring "
+                              f"(Actuator.simulator) though its registration names a simulator")
+    return device, wiring
 
 
 def _simulate_buses(profile: Profile, profile_path: str, workdir: str,
@@ -318,8 +326,8 @@ def _simulate_buses(profile: Profile, profile_path: str, workdir: str,
     Appends each started simulator to ``simulators`` (so they are stopped however this ends)."""
     backends = {}
     for bus, section in profile.backends.items():
-        wiring = _sim_wiring(str(section["type"]), profile_path)
-        simulator = SimulatorProcess(profile_path, wiring.device, workdir, bus=bus, host_ports=wiring.host_ports,
+        device, wiring = _sim_wiring(str(section["type"]), profile_path)
+        simulator = SimulatorProcess(profile_path, device, workdir, bus=bus, host_ports=wiring.host_ports,
                                      raise_priority=realtime)
         simulators.append(simulator)
         # the bus's section wired the way --sim wires a one-bus profile (the backend's sim_profile:
@@ -401,8 +409,8 @@ def _run(profile_path: str, created: list[str], *, sim: bool, socket_path: str |
         workdir = tempfile.mkdtemp(prefix=f"crtk-bridge-{profile.name}-sim-")
         try:
             if profile.backends is None:
-                wiring = _sim_wiring(profile.backend_type, source)
-                simulator = SimulatorProcess(str(profile_path), wiring.device, workdir, host_ports=wiring.host_ports,
+                device, wiring = _sim_wiring(profile.backend_type, source)
+                simulator = SimulatorProcess(str(profile_path), device, workdir, host_ports=wiring.host_ports,
                                              raise_priority=realtime)
                 simulators.append(simulator)
                 profile = backend_class(profile.backend_type, source).sim_profile(profile, simulator.link)

@@ -220,10 +220,10 @@ def robot_capabilities(profile, has_gripper: bool) -> frozenset:
 
     from crtk_bridge.backends import backend_class
     from crtk_bridge.core.actuator import Actuator
-    from crtk_bridge.sim import simulator_class
+    from crtk_bridge.registry import backend_simulator
     from crtk_bridge.sim.bus import BusSimulator
 
-    sim_cls = simulator_class(backend_class(profile.backend_type).simulator.device)
+    sim_cls = backend_simulator(profile.backend_type)
     caps = {f"fault:{k.value}" for k in getattr(importlib.import_module(sim_cls.__module__), "FaultKind", ())}
     if issubclass(sim_cls, BusSimulator):
         caps.add("servo_bus")
@@ -235,7 +235,10 @@ def robot_capabilities(profile, has_gripper: bool) -> frozenset:
         caps.add("kinematics")
     if backend_class(profile.backend_type).calibration_import is not Actuator.calibration_import:
         caps.add("calibration")
-    if backend_class(profile.backend_type).capabilities.native_cartesian:
+    # traits are final only once open; a backend whose traits never depend on its devices (a UR
+    # arm) keeps them as the class constant TRAITS its _traits_hook returns
+    traits = getattr(backend_class(profile.backend_type), "TRAITS", None)
+    if traits is not None and traits.capabilities.native_cartesian:
         caps.add("native_cartesian")
     return frozenset(caps)
 
@@ -356,6 +359,7 @@ def standalone_sim(robot: SimRobot, tmp: Path):
     import yaml
 
     from crtk_bridge.backends import backend_class
+    from crtk_bridge.registry import simulator_device
     from crtk_bridge.sim.loopback import free_loopback_host
 
     control = tmp / "sim.sock"
@@ -374,7 +378,7 @@ def standalone_sim(robot: SimRobot, tmp: Path):
 
         def ready() -> bool:
             return Path(endpoint).exists() and control.exists()
-    sim = subprocess.Popen([sys.executable, "-m", "crtk_bridge.sim.cli", wiring.device, "--profile",
+    sim = subprocess.Popen([sys.executable, "-m", "crtk_bridge.sim.cli", simulator_device(robot.backend), "--profile",
                             str(robot.profile), *where, "--control", str(control), "--parent-pid", str(os.getpid())],
                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=ROOT)
     try:

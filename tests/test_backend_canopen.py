@@ -17,6 +17,7 @@ from crtk_bridge.backends.canopen402 import tables as t
 from crtk_bridge.backends.canopen402.backend import Canopen402Backend
 from crtk_bridge.core.actuator import effective_period_s
 from crtk_bridge.core.control import Controller
+from crtk_bridge.core.cycle import CycleRunner
 from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import BackendError, ProfileError
 from crtk_bridge.profile import load_profile, parse_profile
@@ -98,25 +99,24 @@ class CanRig:
         self.profile = msgspec.structs.replace(profile, backend={
             **profile.backend, "interface": interface, "channel": self.sim.port, "options": {}})
         self.backend = Canopen402Backend(self.profile, source=str(PROFILE))
-        self.fb = self.backend.new_feedback()
         self.c: Controller | None = None
 
     def start(self) -> Controller:
         self.backend.open()
         self.backend.configure()
-        self.c = Controller(self.profile, self.backend, time.time, effective_period_s(self.profile, self.backend))
+        #: the loop's cycle (core/cycle.py): wait (SYNC), read, step, write; its feedback's shape
+        #: is the backend's traits': final once open
+        self.runner = CycleRunner(self.backend, effective_period_s(self.profile, self.backend))
+        self.fb = self.runner.feedback
+        self.c = Controller(self.profile, self.backend, time.time, self.runner.period)
         self.cycle()
         return self.c
 
     def cycle(self, n: int = 1) -> None:
-        """As core/loop.py: the backend paces (wait_cycle: its SYNC at the tick), then read ->
-        step -> write."""
-        c, b = self.c, self.backend
+        """``n`` cycles as core/loop.py runs them (core/cycle.py): the SYNC at the tick, then
+        read -> step -> write."""
         for _ in range(n):
-            b.wait_cycle(c.dt)
-            c.on_read(self.fb, b.read(self.fb))
-            if c.step():
-                c.on_write(b.write(c.command))
+            self.runner.cycle(self.c)
 
     def request(self, rid: int, cmd: str, **kw) -> None:
         self.c.handle({"id": rid, "cmd": cmd, **kw})
@@ -182,23 +182,34 @@ def test_enable_walks_the_402_states_one_per_cycle_while_the_loop_cycles(rig):
             assert c.state is S.DISABLED and c.is_busy  # the state stays until the walk ends
 
     look(requested=False)
+    per_cycle = []  # (SYNCs sent, reads) in each cycle
+
+    def counted():
+        before = b.stats["syncs"], b.stats["reads"]
+        rig.cycle()
+        per_cycle.append((b.stats["syncs"] - before[0], b.stats["reads"] - before[1]))
+
     rig.request(1, "enable")
     cycles = 0
     deadline = time.monotonic() + 5
     while not any(m.get("id") == 1 for m in c.outbox):
         assert time.monotonic() < deadline
-        rig.cycle()
+        counted()
         cycles += 1
         look()
+    for _ in range(3):  # and after it: the controller holds the pose without asking the bus
+        counted()
     assert [m for m in c.outbox if m.get("id") == 1][0]["ok"] and c.state is S.ENABLED
     walk = ["SWITCH_ON_DISABLED", "READY_TO_SWITCH_ON", "SWITCHED_ON", "OPERATION_ENABLED"]
     assert seen == [walk] * b.n  # every state on the way, in order, on every drive
     assert cycles >= 3  # one controlword per cycle: at least three cycles
     gaps = np.diff(stamps)  # fresh samples all along: the loop went on (a loaded host may be late)
     assert np.all(gaps >= 0) and np.mean(gaps > 0) > 0.6, gaps
-    # ONE SYNC per read, sent by the backend: one per cycle, plus core's fresh read of the pose
-    # at the end of the enable; and the drive heard exactly those (it may still be taking the last)
-    assert b.stats["syncs"] - syncs_sent == b.stats["reads"] - reads0 in (cycles, cycles + 1)
+    # ONE SYNC and ONE read per cycle, the cycle's own, also in the cycle the enable ends (the
+    # pose it holds is that cycle's read: no read of core's own, no off-schedule SYNC); and the
+    # drive heard exactly those (it may still be taking the last)
+    assert per_cycle == [(1, 1)] * (cycles + 3), per_cycle
+    assert b.stats["syncs"] - syncs_sent == b.stats["reads"] - reads0 == cycles + 3
     wait_until(lambda: rig.drive(0).sync_count == b.stats["syncs"], 1, what="the drive took every SYNC")
     for i in range(b.n):  # enabled holding where it was
         assert abs(rig.drive(i).target_position - rig.drive(i).position) <= 2
@@ -354,9 +365,8 @@ def test_a_silent_drive_is_missing_in_every_read_also_after_a_late_cycle(iface):
         r.enable()
         b = r.backend
 
-        def read():
-            b.wait_cycle(c.dt)
-            return b.read(r.fb)
+        def read():  # a cycle of the loop's, its read's fault
+            return r.runner.idle()
 
         r.sim.set_fault(2, "silent")
         wait_until(lambda: read() is not None, 1, interval=0, what="the first missing TPDO")
@@ -394,10 +404,10 @@ def test_capabilities_follow_0x6502_per_drive(iface):
     try:
         c = r.start()
         b = r.backend
-        assert b.joint_capabilities(0).velocity and b.joint_capabilities(0).effort
-        tilt = b.joint_capabilities(1)
+        assert b.traits.joints[0].velocity and b.traits.joints[0].effort
+        tilt = b.traits.joints[1]
         assert tilt.position and not tilt.velocity and not tilt.effort and not tilt.can_free
-        assert not b.capabilities.effort
+        assert not b.traits.capabilities.effort
         r.request(1, "servo_jf", ns="pantilt", data={"effort": [0.1, 0.1]})
         reply = r.c.outbox[-1]
         assert not reply["ok"] and reply["error"]["code"] == "unsupported" and "'tilt'" in reply["error"]["message"]
@@ -431,7 +441,7 @@ def test_a_bus_error_faults_and_the_bus_is_reopened(rig):
     rig.until(lambda: b._bus_down is None, 5, "the bus reopened")
     # the reopened bus answers SYNCs again (a loaded host may miss the first few TPDOs' timeout)
     rig.cycle(5)
-    rig.until(lambda: b.read(rig.fb) is None, 2, "a clean read on the reopened bus")
+    wait_until(lambda: rig.runner.idle() is None, 2, interval=0, what="a clean read on the reopened bus")
     rig.enable(3)
 
 
@@ -442,7 +452,7 @@ def test_home_runs_the_drives_homing_method(iface):
     r = CanRig(iface, data)
     try:
         c = r.start()
-        assert r.backend.native_homing and not c.is_homed
+        assert r.backend.traits.native_homing and not c.is_homed
         r.drive(0).set_position(20000)
         r.cycle(3)
         assert c.feedback.position[0] > 0.5
@@ -504,7 +514,7 @@ def test_effort_scale_from_0x6076_when_the_profile_gives_none(iface):
         pan, tilt = r.backend.drives
         assert pan.k_eff == pytest.approx(0.25 / 1000 * 10)  # 0.25 N*m motor x gear 10, per mille
         assert tilt.k_eff == pytest.approx(-0.5 / 1000 * 10)  # the profile's, direction -1
-        assert r.backend.joint_capabilities(0).effort and r.backend.joint_capabilities(0).measures_effort
+        assert r.backend.traits.joints[0].effort and r.backend.traits.joints[0].measures_effort
     finally:
         r.close()
 

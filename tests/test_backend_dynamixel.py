@@ -75,18 +75,19 @@ def reg(sim, sid, name):
 
 def test_koch_capabilities_effort_per_joint():
     b = create_backend(parse_profile(koch()))
-    c = b.capabilities  # the whole robot: only what every joint can do
+    t = b._traits_hook()  # what open() declares: per joint from the profile alone, no bus needed
+    c = t.capabilities  # the whole robot: only what every joint can do
     assert isinstance(b, DynamixelBackend)
     assert (c.position, c.velocity, c.effort, c.measures_effort, c.can_free) == (True, True, False, False, True)
     # per joint: the XL430 shoulders have no current sensing; the XL330s with effort_per_amp have it
-    assert [b.joint_capabilities(i).effort for i in range(6)] == [False, False, True, True, True, True]
-    assert [b.joint_capabilities(i).measures_effort for i in range(6)] == [False, False, True, True, True, True]
-    assert b.capabilities_of([5]).effort and not b.capabilities_of([0, 1, 2, 3, 4]).effort
-    c = DynamixelBackend(parse_profile(all_xl330())).capabilities
+    assert [t.joints[i].effort for i in range(6)] == [False, False, True, True, True, True]
+    assert [t.joints[i].measures_effort for i in range(6)] == [False, False, True, True, True, True]
+    assert t.capabilities_of([5]).effort and not t.capabilities_of([0, 1, 2, 3, 4]).effort
+    c = DynamixelBackend(parse_profile(all_xl330()))._traits_hook().capabilities
     assert c.effort and c.measures_effort
     data = all_xl330()
     del data["joints"][0]["effort_per_amp"]
-    assert not DynamixelBackend(parse_profile(data)).capabilities.effort
+    assert not DynamixelBackend(parse_profile(data))._traits_hook().capabilities.effort
 
 
 def test_profile_errors_name_the_key():
@@ -283,15 +284,14 @@ def test_failed_mode_switch_puts_the_robot_in_fault_at_once_torque_off_everywher
     import time
 
     from crtk_bridge.core.control import Controller
+    from crtk_bridge.core.cycle import CycleRunner
 
     sim, b = rig
     c = Controller(b.profile, b, time.time, effective_period_s(b.profile, b))
-    fb = b.new_feedback()
+    runner = CycleRunner(b, c.dt)
 
-    def cycle():
-        c.on_read(fb, b.read(fb))
-        if c.step():
-            c.on_write(b.write(c.command))
+    def cycle():  # the loop's (core/cycle.py)
+        runner.cycle(c)
 
     c.handle({"id": 1, "cmd": "enable"})
     wait_until(lambda: cycle() or any(m.get("id") == 1 for m in c.outbox), 10.0, what="enable reply")

@@ -127,12 +127,12 @@ def test_joint_needs_id_and_known_model():
 def test_registry_builds_it_and_capabilities():
     b = create_backend(parse_profile(profile_data()))
     assert isinstance(b, FeetechBackend)
-    c = b.capabilities
+    c = b._traits_hook().capabilities  # what open() declares: from the profile alone, no bus needed
     assert (c.position, c.velocity, c.effort) == (True, False, False)
     assert c.measures_velocity and c.measures_effort and not c.needs_homing and c.can_free
     data = profile_data()
     del data["joints"][0]["effort_per_amp"]
-    assert not FeetechBackend(parse_profile(data)).capabilities.measures_effort
+    assert not FeetechBackend(parse_profile(data))._traits_hook().capabilities.measures_effort
 
 
 def test_open_missing_port_raises_backend_error():

@@ -21,6 +21,7 @@ from crtk_bridge.backends.ur.backend import UrBackend
 from crtk_bridge.backends.ur.channel import CTL_RUNNING
 from crtk_bridge.core.actuator import Lifecycle
 from crtk_bridge.core.control import Controller
+from crtk_bridge.core.cycle import CycleRunner, run_transition
 from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import ProfileError
 from crtk_bridge.profile import load_profile
@@ -54,19 +55,16 @@ class URRig:
         self.backend = UrBackend(self.profile)
         self.backend.open()
         self.backend.configure()
-        self.fb = self.backend.new_feedback()
+        self.runner = CycleRunner(self.backend, self.backend.dt)  # paced by the controller's packages
+        self.fb = self.runner.feedback
         self.c: Controller | None = None
         self.rid = 0
         self.cycles = 0
 
-    # ---- the loop, as core/loop.py runs it ----
+    # ---- the loop, as core/loop.py runs it (core/cycle.py) ----
     def cycle(self, n: int = 1) -> None:
-        b, c = self.backend, self.c
         for _ in range(n):
-            b.wait_cycle(2 * b.dt)
-            c.on_read(self.fb, b.read(self.fb))
-            if c.step():
-                c.on_write(b.write(c.command))
+            self.runner.cycle(self.c)
             self.cycles += 1
 
     def until(self, predicate, timeout: float = 5.0, what: str = "condition"):
@@ -109,7 +107,7 @@ class URRig:
             assert time.monotonic() < deadline, "the RTDE link did not come back"
             time.sleep(0.05)
         if b.safety_mode != 1:
-            b.run(b.begin(Lifecycle.FAULT_RESET))
+            run_transition(b, b.begin(Lifecycle.FAULT_RESET))
         b.disable()
         self.c = Controller(self.profile, b, time.time, b.dt)
         self.cycle()
@@ -395,7 +393,7 @@ def test_a_speedj_running_into_a_goal_check_is_stopped_by_the_scripts_watchdog(u
         st = ur.sim.state()
         assert "watchdog" in st["last_error"] and st["runtime_state"] != "PLAYING", st
         # the watchdog's period + the stop, well before the check's limit
-        assert stopped_after < watchdog_s + 0.4 < ur.backend.transition_timeout_s(Lifecycle.GOAL_CHECK), stopped_after
+        assert stopped_after < watchdog_s + 0.4 < ur.backend.traits.timeout_s(Lifecycle.GOAL_CHECK), stopped_after
         r = ur.reply(rid, 5)
         # refused: aborted by the FAULT of the stopped script, or ur_rtde's call failing first
         assert not r["ok"] and r["error"]["code"] in ("aborted", "out_of_limits"), r
@@ -461,8 +459,7 @@ def test_link_losses_end_workers_not_the_process_and_leak_no_file(ur, monkeypatc
         deadline = time.monotonic() + timeout
         while not predicate():
             assert time.monotonic() < deadline, f"timed out after {timeout} s waiting for {what}"
-            b.wait_cycle(2 * b.dt)
-            b.read(ur.fb)
+            ur.runner.idle()  # a cycle without the controller
 
     losses = 30
     fds = len(os.listdir("/proc/self/fd"))

@@ -4,6 +4,7 @@ missing and extra ids, a servo of another model, exit status 1 on any mismatch."
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -163,3 +164,29 @@ def test_eeprom_settings_that_differ_are_reported_per_joint_naming_the_register(
            "reply waits 500 us" in err
     assert "elbow_flex" not in err and "gripper" not in err
 
+
+
+def test_a_backend_that_cannot_scan_is_named_with_those_that_can(tmp_path):
+    # scanning is an optional capability (backends/optional.py), not a method looked up by name
+    for profile, type_, cls in (("canopen_2axis", "canopen402", "Canopen402Backend"), ("ur5e", "ur", "UrBackend")):
+        proc = subprocess.run([sys.executable, "-m", "crtk_bridge.cli", "check", "--profile",
+                               str(ROOT / "profiles" / f"{profile}.yaml"), "--scan", "--json"],
+                              cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 1
+        bus, = json.loads(proc.stdout)["scan"]["buses"]
+        assert bus["vendor"] == type_ and not bus["ok"]
+        assert bus["error"] == (f"{profile}: backend: backend {type_!r} ({cls}) cannot scan its bus "
+                                "(crtk-bridge check --scan); backends that can: dynamixel, feetech")
+
+
+def test_init_profile_names_where_each_bus_of_a_mixed_profile_is_found():
+    from crtk_bridge.cli import _where_the_robot_is
+
+    assert _where_the_robot_is("backend: {type: feetech}") == "backend.port (crtk-bridge find-port)"
+    assert _where_the_robot_is("backend: {type: ur}") == "backend.host"
+    assert _where_the_robot_is("backend: {type: canopen402}") == "backend.interface and backend.channel"
+    # a UR arm with a servo gripper: the arm's host, the gripper bus's port (it said port for both)
+    mixed = "backends: {arm: {type: ur}, gripper: {type: dynamixel}}"
+    assert _where_the_robot_is(mixed) == "backends.arm.host and backends.gripper.port"
+    assert _where_the_robot_is("backends: {left: {type: feetech}, right: {type: feetech}}") == \
+        "backends.left.port and backends.right.port"

@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crtk_bridge.core.actuator import Actuator, Capabilities, CommandMode, Fault, effective_period_s
+from crtk_bridge.core.actuator import Actuator, Capabilities, CommandMode, Fault, Traits, effective_period_s
 from crtk_bridge.core.control import Controller
+from crtk_bridge.core.cycle import CycleRunner
 from crtk_bridge.core.motion import Mode
 from crtk_bridge.core.state import TRANSITIONS, OperatingState, StateCommand
 from crtk_bridge.errors import BackendError
@@ -20,29 +21,38 @@ PROFILE = load_profile("profiles/so101.yaml")
 
 
 class FakeActuator(Actuator):
-    """A perfect position-controlled robot: measured = last commanded."""
+    """A perfect position-controlled robot: measured = last commanded. Open once built (no bus);
+    ``traits`` are :class:`Traits` fields beside its joints' ``CAPS``."""
 
-    capabilities = Capabilities(position=True, measures_velocity=True)
+    CAPS = Capabilities(position=True, measures_velocity=True)
 
-    def __init__(self, profile):
+    def __init__(self, profile, **traits):
         super().__init__(profile)
         self.torque = False
         self.pos = np.zeros(self.n)
         self.fail_enable = False
         self.calls: list[str] = []
+        self._traits_kw = traits
+        self.open()
 
     def _open_hook(self):
         pass
 
-    def _enable_hook(self, feedback):
+    def _traits_hook(self):
+        return Traits(joints=(self.CAPS,) * self.n, **self._traits_kw)
+
+    def _enable_steps(self, feedback):
         self.calls.append("enable")
         if self.fail_enable:
             raise BackendError("so101: joint 'gripper' (id 6) did not confirm Torque_Enable")
+        feedback.position[:] = self.pos  # the pose it holds, from the device (not the last sample)
         self.torque = True
+        yield from ()
 
-    def _disable_hook(self):
+    def _disable_steps(self):
         self.calls.append("disable")
         self.torque = False
+        yield from ()
 
     def _close_hook(self):
         pass
@@ -66,6 +76,9 @@ class Clock:
     def __call__(self):
         return self.t
 
+    def sleep(self, dt):
+        self.t += dt
+
 
 @pytest.fixture
 def rig():
@@ -78,14 +91,11 @@ def make_rig(act, profile=None):
     clock = Clock()
     c = Controller(profile or PROFILE, act, clock, effective_period_s(profile or PROFILE, act))
     ids = itertools.count(1)
-    fb = act.new_feedback()
+    runner = CycleRunner(act, c.dt, clock=clock, sleep=clock.sleep)  # the loop's cycle, on the fake clock
 
     def cycle(n=1):
         for _ in range(n):
-            clock.t += c.dt
-            c.on_read(fb, act.read(fb))
-            if c.step():
-                c.on_write(act.write(c.command))
+            runner.cycle(c)
 
     def req(cmd, ns=None, **data):
         rid = next(ids)
@@ -555,7 +565,7 @@ def test_write_faults_count_even_between_good_reads(rig):
 class VelocityActuator(FakeActuator):
     """Native velocity control: the joint integrates the velocity command itself."""
 
-    capabilities = Capabilities(position=True, velocity=True, measures_velocity=True)
+    CAPS = Capabilities(position=True, velocity=True, measures_velocity=True)
 
     def _write(self, cmd):
         if self.torque:
@@ -568,18 +578,7 @@ class VelocityActuator(FakeActuator):
 
 
 def test_native_velocity_stops_at_the_position_limit():
-    act = VelocityActuator(PROFILE)
-    clock = Clock()
-    c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
-    fb = act.new_feedback()
-
-    def cycle():
-        clock.t += c.dt
-        c.on_read(fb, act.read(fb))
-        if c.step():
-            act.write(c.command)
-
-    cycle()
+    c, act, clock, cycle, req = make_rig(VelocityActuator(PROFILE))
     c.handle({"id": 1, "cmd": "enable"})
     for _ in range(600):  # 3 s of servo_jv at 2 rad/s toward a 1.92 rad limit
         c.handle({"id": 2, "cmd": "servo_jv", "ns": "so101", "data": {"velocity": [2.0, 0, 0, 0, 0]}})
@@ -591,13 +590,9 @@ def test_native_velocity_stops_at_the_position_limit():
 
 def test_pause_stops_an_effort_stream():
     class EffortActuator(FakeActuator):
-        capabilities = Capabilities(position=True, effort=True, measures_velocity=True)
+        CAPS = Capabilities(position=True, effort=True, measures_velocity=True)
 
-    act = EffortActuator(PROFILE)
-    clock = Clock()
-    c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
-    fb = act.new_feedback()
-    c.on_read(fb, act.read(fb))
+    c, act, clock, cycle, req = make_rig(EffortActuator(PROFILE))  # its first cycle read
     c.handle({"id": 1, "cmd": "enable"})
     c.handle({"id": 2, "cmd": "servo_jf", "ns": "so101", "data": {"effort": [0.5, 0, 0, 0, 0]}})
     c.step()
@@ -623,7 +618,7 @@ class CheckingActuator(FakeActuator):
 
 
 def test_a_move_waiting_on_the_devices_goal_check_has_one_busy_seq_and_one_edge_each_way():
-    c, act, clock, cycle, req = make_rig(CheckingActuator(PROFILE))
+    c, act, clock, cycle, req = make_rig(CheckingActuator(PROFILE, goal_check=True))
     assert req("enable")["ok"]
     c.outbox.clear()
     seq0 = c.busy_seq
@@ -680,7 +675,7 @@ def test_no_private_controller_attribute_is_used_outside_its_package(rig):
     assert {"_consecutive_bus_errors", "_abort_motion", "_running"} <= private  # the scan knows them
     package = _ROOT / "crtk_bridge" / "core" / "control"
     found = []
-    for top in ("crtk_bridge", "tests", "bench"):
+    for top in ("crtk_bridge", "clients", "tests", "bench"):
         for path in sorted((_ROOT / top).rglob("*.py")):
             if package in path.parents:
                 continue

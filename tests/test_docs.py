@@ -53,6 +53,35 @@ def test_every_relative_link_resolves_inside_the_repo(doc):
     assert not broken, f"{doc.relative_to(ROOT)}: links that do not resolve inside the repository: {broken}"
 
 
+def _slug(heading: str) -> str:
+    """GitHub's anchor of a Markdown heading: lower case, punctuation dropped, spaces -> '-'."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_link_anchor_names_a_heading(doc):
+    text = doc.read_text()
+    broken = []
+    for m in LINK.finditer(text):
+        target = m.group(1) or m.group(2)
+        if re.match(r"^[a-z][a-z0-9+.-]*:", target) or "#" not in target:
+            continue
+        path, anchor = target.split("#", 1)
+        page = (doc.parent / path) if path else doc
+        if page.suffix != ".md" or not page.is_file():
+            continue
+        in_code = False
+        slugs = set()
+        for line in page.read_text().splitlines():
+            in_code ^= line.startswith("```")
+            if not in_code and line.startswith("#"):
+                slugs.add(_slug(line.lstrip("#")))
+        if anchor not in slugs:
+            broken.append(target)
+    assert _slug("Calibration (`calibrate`, not a CRTK command)") == "calibration-calibrate-not-a-crtk-command"
+    assert not broken, f"{doc.relative_to(ROOT)}: links to headings that do not exist: {broken}"
+
+
 def test_link_check_catches_a_link_outside_the_repo(tmp_path):
     # the checker itself: the README's old link to ../shared/ would fail it
     assert not _inside_repo(ROOT / "README.md" / ".." / ".." / "shared" / "crtk-spec.txt")

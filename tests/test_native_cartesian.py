@@ -24,7 +24,7 @@ MOVE_CYCLES = 20  # the fake controller's moveL takes this many cycles
 class FakeNativeArm(FakeActuator):
     """A controller that servos its tool in cartesian space and reports its TCP pose."""
 
-    capabilities = Capabilities(position=True, measures_velocity=True, native_cartesian=True)
+    CAPS = Capabilities(position=True, measures_velocity=True, native_cartesian=True)
 
     def __init__(self, profile):
         super().__init__(profile)

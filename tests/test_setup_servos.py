@@ -271,3 +271,14 @@ def test_a_several_bus_profile_needs_bus_and_an_unknown_joint_is_refused(short_t
     proc = setup_servos(str(SO101), "--joint", "elbow", "--yes")
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 2 and "--joint elbow: not a joint of this bus (shoulder_pan, " in err
+
+
+def test_a_backend_that_cannot_set_up_servos_is_named_with_those_that_can():
+    # setting up ids is an optional capability (backends/optional.py), not a private method looked up
+    proc = setup_servos(str(ROOT / "profiles" / "canopen_2axis.yaml"), "--yes", "--json")
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 1, err
+    summary = json.loads(out.splitlines()[-1])
+    assert summary == {"event": "summary", "ok": False, "exit_code": 1, "error": (
+        "canopen_2axis: backend: backend 'canopen402' (Canopen402Backend) cannot set up its devices' ids "
+        "and baud rate (crtk-bridge setup-servos); backends that can: dynamixel, feetech")}

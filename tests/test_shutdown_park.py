@@ -12,8 +12,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from crtk_bridge.core.actuator import CommandMode, effective_period_s
-from crtk_bridge.core.control import Controller
+from crtk_bridge.core.actuator import CommandMode
 from crtk_bridge.core.loop import ControlLoop
 from crtk_bridge.core.snapshot import Layout, SnapshotBuffer
 from crtk_bridge.core.state import OperatingState
@@ -21,7 +20,7 @@ from crtk_bridge.errors import ProfileError
 from crtk_bridge.profile import Shutdown, parse_profile
 
 from .conftest import so101_data, wait_until
-from .test_controller import PROFILE, Clock, FakeActuator
+from .test_controller import PROFILE, FakeActuator, make_rig
 
 REST = np.array([PROFILE.shutdown.rest[j.name] for j in PROFILE.joints])
 _enc = msgspec.msgpack.Encoder().encode
@@ -61,26 +60,17 @@ def test_bad_shutdown_sections_are_refused_naming_the_key(section, needle):
 
 # ------------------------------------------------------------------ Controller.park
 def test_park_moves_every_torqued_namespace_to_rest_with_busy_edges():
-    act = FakeActuator(PROFILE)
-    clock = Clock()
-    c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
-    fb = act.new_feedback()
-    c.on_read(fb, act.read(fb))
+    c, act, clock, cycle, req = make_rig(FakeActuator(PROFILE))
     assert not c.park()  # DISABLED: nothing to park, nothing moves
     c.handle({"id": 1, "cmd": "enable"})
     c.handle({"id": 2, "cmd": "move_jp", "ns": "so101", "data": {"position": [1.0, 0.5, -0.5, 0.3, 1.0]}})
-    for _ in range(40):  # mid-move: the park re-plans from the running trajectory
-        clock.t += c.dt
-        c.on_read(fb, act.read(fb))
-        c.step() and act.write(c.command)
+    cycle(40)  # mid-move: the park re-plans from the running trajectory
     c.outbox.clear()
     assert c.park()
     steps = []
     prev = act.pos.copy()
     for _ in range(1000):
-        clock.t += c.dt
-        c.on_read(fb, act.read(fb))
-        c.step() and act.write(c.command)
+        cycle()
         steps.append(np.abs(act.pos - prev).max())
         prev = act.pos.copy()
         if not c.in_motion():
@@ -96,25 +86,19 @@ def test_a_joint_the_rest_pose_does_not_name_stays_where_it_is():
     del rest["wrist_roll"]
     profile = with_shutdown(rest=rest)
     act = FakeActuator(profile)
-    c = Controller(profile, act, Clock(), effective_period_s(profile, act))
-    fb = act.new_feedback()
     act.pos[4] = 0.7
-    c.on_read(fb, act.read(fb))
+    c, act, clock, cycle, req = make_rig(act, profile)
     c.handle({"id": 1, "cmd": "enable"})
     assert c.park()
     for _ in range(1000):
-        c.step() and act.write(c.command)
-        c.on_read(fb, act.read(fb))
+        cycle()
         if not c.in_motion():
             break
     assert act.pos[4] == pytest.approx(0.7) and act.pos[1] == pytest.approx(rest["shoulder_lift"])
 
 
 def test_park_leaves_a_free_namespace_free():
-    act = FakeActuator(PROFILE)
-    c = Controller(PROFILE, act, Clock(), effective_period_s(PROFILE, act))
-    fb = act.new_feedback()
-    c.on_read(fb, act.read(fb))
+    c, act, clock, cycle, req = make_rig(FakeActuator(PROFILE))  # its first cycle read
     c.handle({"id": 1, "cmd": "enable"})
     c.handle({"id": 2, "cmd": "free", "ns": "so101/gripper"})
     assert c.park()
@@ -305,20 +289,9 @@ def test_shutdown_while_disabled_or_with_torque_off_moves_nothing(loop_rig):
 
 
 def test_no_park_while_a_lifecycle_transition_is_under_way():
-    from .test_transitions import SlowActuator
+    from .test_transitions import SlowActuator, make_slow_rig
 
-    act = SlowActuator(PROFILE, enable_cycles=1)
-    clock = Clock()
-    c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
-    fb = act.new_feedback()
-
-    def cycle(n):
-        for _ in range(n):
-            clock.t += c.dt
-            c.on_read(fb, act.read(fb))
-            c.step()
-
-    cycle(1)
+    c, act, clock, cycle, send, replies = make_slow_rig(SlowActuator(PROFILE, enable_cycles=1))
     c.handle({"id": 1, "cmd": "enable"})
     cycle(5)
     assert c.state is OperatingState.ENABLED

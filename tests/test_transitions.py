@@ -13,12 +13,14 @@ from crtk_bridge.core.actuator import (
     Capabilities,
     CommandMode,
     DeviceStatus,
+    Clock as TraitClock,
     Fault,
-    FaultReaction,
     Lifecycle,
+    Traits,
     effective_period_s,
 )
 from crtk_bridge.core.control import Controller
+from crtk_bridge.core.cycle import CycleRunner
 from crtk_bridge.core.state import DEVICE_STATUS, OperatingState
 from crtk_bridge.errors import BackendError
 from crtk_bridge.profile import load_profile
@@ -31,19 +33,23 @@ PROFILE = load_profile("profiles/so101.yaml")
 class SlowActuator(Actuator):
     """Enable takes ``enable_cycles`` steps; every bus action is logged in ``bus``."""
 
-    capabilities = Capabilities(position=True)
-    transition_timeouts_s = {Lifecycle.ENABLE: 1.0, Lifecycle.DISABLE: 1.0}
+    CAPS = Capabilities(position=True)
 
-    def __init__(self, profile, enable_cycles=5):
+    def __init__(self, profile, enable_cycles=5, **traits):
         super().__init__(profile)
         self.enable_cycles = enable_cycles
         self.bus: list[str] = []
         self.torque = False
         self.pos = np.linspace(-0.2, 0.2, self.n)
         self.fail_at: int | None = None
+        self._traits_kw = {"transition_timeouts_s": {Lifecycle.ENABLE: 1.0, Lifecycle.DISABLE: 1.0}, **traits}
+        self.open()  # no bus: open (its traits final) once built
 
     def _open_hook(self):
         pass
+
+    def _traits_hook(self):
+        return Traits(joints=(self.CAPS,) * self.n, **self._traits_kw)
 
     def _close_hook(self):
         pass
@@ -93,12 +99,11 @@ def make_slow_rig(act):
     ids = itertools.count(1)
     fb = act.new_feedback()
 
+    runner = CycleRunner(act, c.dt, clock=clock, sleep=clock.sleep)  # the loop's cycle, on the fake clock
+
     def cycle(n=1):
         for _ in range(n):
-            clock.t += c.dt
-            c.on_read(fb, act.read(fb))
-            if c.step():
-                c.on_write(act.write(c.command))
+            runner.cycle(c)
 
     def send(cmd, ns=None, **data):
         rid = next(ids)
@@ -219,20 +224,18 @@ def test_device_status_maps_onto_crtk_states(rig, status, target, code):
         assert [m["data"]["code"] for m in c.outbox if m.get("event") == "status"][-1] == "fault_cleared"
 
 
-def test_fault_reaction_hold_leaves_torque_on(rig):
+def test_a_device_fault_switches_torque_off(rig):
     c, act, clock, cycle, send, replies = rig
-    act.fault_reaction = FaultReaction.HOLD
     act.enable_cycles = 0
     send("enable")
     cycle()
     act.report_status(DeviceStatus.FAULT, Fault("drive_fault", "so101: drive fault", transient=False))
     cycle()
-    assert c.state is OperatingState.FAULT and act.torque and "torque-off" not in act.bus
+    assert c.state is OperatingState.FAULT and not act.torque and "torque-off" in act.bus
 
 
-def test_cyclic_write_backend_is_written_every_cycle_in_every_state(rig):
-    c, act, clock, cycle, send, replies = rig
-    act.cyclic_write = True
+def test_cyclic_write_backend_is_written_every_cycle_in_every_state():
+    c, act, clock, cycle, send, replies = make_slow_rig(SlowActuator(PROFILE, cyclic_write=True))
     act.bus.clear()
     cycle(3)
     assert act.bus.count("write") == 3 and c.state is OperatingState.DISABLED
@@ -241,11 +244,11 @@ def test_cyclic_write_backend_is_written_every_cycle_in_every_state(rig):
 
 def test_effective_period_is_the_hardwares_when_it_paces():
     class Paced(SlowActuator):
-        capabilities = Capabilities(position=True, native_rate_hz=500.0)
-        paces_cycle = True
+        def cycle_period_s(self):
+            return 0.002
 
     assert effective_period_s(PROFILE, SlowActuator(PROFILE)) == pytest.approx(1.0 / PROFILE.loop.rate_hz)
-    paced = Paced(PROFILE)
+    paced = Paced(PROFILE, clock=TraitClock.DEVICE)
     assert effective_period_s(PROFILE, paced) == pytest.approx(0.002)
     assert Controller(PROFILE, paced, Clock(), effective_period_s(PROFILE, paced)).dt == pytest.approx(0.002)
 
@@ -253,7 +256,10 @@ def test_effective_period_is_the_hardwares_when_it_paces():
 class HookedActuator(SlowActuator):
     """Logs which lifecycle hooks reached the backend; homes natively over a few cycles."""
 
-    capabilities = Capabilities(position=True, needs_homing=True)
+    CAPS = Capabilities(position=True, needs_homing=True)
+
+    def __init__(self, profile, enable_cycles=5):
+        super().__init__(profile, enable_cycles, native_homing=True)
 
     def _resume_steps(self):
         self.bus.append("resume")
@@ -271,7 +277,7 @@ class HookedActuator(SlowActuator):
 
 def test_pause_resume_fault_reset_and_native_home_reach_the_backend():
     c, act, clock, cycle, req = make_rig(HookedActuator(PROFILE, enable_cycles=1))
-    assert not c.is_homed and act.native_homing
+    assert not c.is_homed and act.traits.native_homing
     c.handle({"id": 1, "cmd": "enable"})
     cycle(3)
     assert c.state is OperatingState.ENABLED and "fault-reset" not in act.bus

@@ -205,7 +205,9 @@ def test_velocity_integrates_over_elapsed_time_when_a_cycle_is_skipped(rig):  # 
     assert req("servo_jv", ARM, velocity=[0.5, 0, 0, 0, 0])["ok"]
     cycle(3)
     p = m.setpoint_p[0]
-    clock.t += c.dt  # one cycle skipped: the next one runs two periods after the last
+    # one cycle skipped: the last one overran by a period (the fake clock moves only when the
+    # rig's cycle runner sleeps), so the next one starts two periods after it
+    clock.t += 2 * c.dt
     cycle()
     assert m.setpoint_p[0] - p == pytest.approx(0.5 * 2 * c.dt)
     p = m.setpoint_p[0]

@@ -26,22 +26,22 @@ CHILD = textwrap.dedent("""
     import numpy as np
     from crtk_bridge.backends.ur.backend import UrBackend
     from crtk_bridge.core.actuator import CommandMode
+    from crtk_bridge.core.cycle import CycleRunner
     from crtk_bridge.profile import load_profile
 
     b = UrBackend(UrBackend.sim_profile(load_profile(sys.argv[1]), sys.argv[2]))
     b.open()
     b.configure()
-    fb, cmd = b.new_feedback(), b.new_command()
-    assert b.read(fb) is None
+    runner = CycleRunner(b, b.dt)  # the loop's cycle, paced by the controller's packages
+    fb, cmd = runner.feedback, b.new_command()
+    assert runner.idle() is None
     b.enable(fb)
     cmd.mode[:] = int(CommandMode.VELOCITY)
     cmd.velocity[0] = 0.3  # speedJ: the base turns until something stops it
     cmd.position[:] = fb.position
     end = time.monotonic() + 0.3
     while time.monotonic() < end:
-        b.wait_cycle(2 * b.dt)
-        b.read(fb)
-        b.write(cmd)
+        runner.idle(cmd)
     maps = open("/proc/self/maps").read()
     print("moving", b.worker_pid, "rtde_control" in sys.modules or "rtde_receive" in sys.modules,
           "rtde_control" in maps or "rtde_receive" in maps, flush=True)

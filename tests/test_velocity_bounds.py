@@ -19,6 +19,7 @@ from ruckig import RuckigError
 
 from crtk_bridge.core.actuator import CommandMode, effective_period_s
 from crtk_bridge.core.control import Controller
+from crtk_bridge.core.cycle import CycleRunner
 from crtk_bridge.core.motion import Mode
 from crtk_bridge.core.state import OperatingState
 
@@ -38,9 +39,16 @@ class Rig:
         self.act = actuator_cls(PROFILE)
         self.clock = Clock()
         self.c = Controller(PROFILE, self.act, self.clock, effective_period_s(PROFILE, self.act))
-        self.fb = self.act.new_feedback()
+        self.runner = CycleRunner(self.act, self.c.dt, clock=self.clock, sleep=self.clock.sleep)
         self.ids = itertools.count(1)
         self.written: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        write = self.act.write
+
+        def recorded(cmd):  # every command the cycle writes
+            self.written.append((cmd.mode.copy(), cmd.position.copy(), cmd.velocity.copy()))
+            return write(cmd)
+
+        self.act.write = recorded
         self.cycle()
         assert self.req("enable")["ok"]
 
@@ -49,13 +57,8 @@ class Rig:
         return self.c.dt
 
     def cycle(self, n: int = 1) -> None:
-        c = self.c
         for _ in range(n):
-            self.clock.t += c.dt
-            c.on_read(self.fb, self.act.read(self.fb))
-            if c.step():
-                self.written.append((c.command.mode.copy(), c.command.position.copy(), c.command.velocity.copy()))
-                c.on_write(self.act.write(c.command))
+            self.runner.cycle(self.c)
 
     def req(self, cmd: str, ns: str | None = None, **data) -> dict:
         rid = next(self.ids)

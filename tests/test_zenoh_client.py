@@ -214,6 +214,53 @@ def test_a_plain_zenoh_client_and_a_flood_of_requests(lab):
         session.close()
 
 
+def test_a_plain_zenoh_subscriber_at_a_low_rate_gets_every_frame(lab):
+    """Spoken with eclipse-zenoh alone: two subscriptions of measured_js at 20 Hz on one session
+    (the topic read and encoded once a tick, the frames put together) arrive whole, each with its
+    own subscription id, in order of their bus reads, and the daemon drops none of them
+    (period_statistics' frames_dropped does not move)."""
+    import uuid
+
+    import zenoh
+
+    endpoint, so101, _ = lab
+    robot = connect(socket=str(so101.socket_path))
+    conf = zenoh.Config()
+    for k, v in (("mode", '"client"'), ("scouting/multicast/enabled", "false"),
+                 ("connect/endpoints", json.dumps([endpoint]))):
+        conf.insert_json5(k, v)
+    session = zenoh.open(conf)
+    cid = uuid.uuid4().hex
+    got: list[dict] = []
+    sub = session.declare_subscriber(
+        f"crtk_bridge/so101/out/{cid}",
+        zenoh.handlers.Callback(lambda s: got.extend(json.loads(x) for x in s.payload.to_bytes().splitlines()),
+                                indirect=False))
+    token = session.liveliness().declare_token(f"crtk_bridge/so101/client/{cid}")
+    try:
+        wait_until(lambda: got, 5.0, what="the greeting")
+        dropped_before = robot.period_statistics()["frames_dropped"]
+        session.put(f"crtk_bridge/so101/in/{cid}", b"".join(
+            b'{"id": %d, "cmd": "subscribe", "ns": "so101", "data": {"topic": "measured_js", "rate_hz": 20}}\n' % i
+            for i in (1, 2)))
+        replies = lambda: {m["id"]: m["data"]["sub"] for m in list(got) if m.get("id") in (1, 2)}  # noqa: E731
+        wait_until(lambda: len(replies()) == 2, 10.0, what="both subscriptions")
+        subs = set(replies().values())
+        frames = lambda sid: [m for m in list(got) if m.get("sub") == sid]  # noqa: E731
+        wait_until(lambda: all(len(frames(sid)) >= 20 for sid in subs), 30.0, what="20 frames of each subscription")
+        for sid in subs:
+            stamps = [m["data"]["stamp"] for m in frames(sid)]
+            assert all(m["topic"] == "measured_js" and m["ns"] == "so101" and len(m["data"]["position"]) == 5
+                       for m in frames(sid))
+            assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+        assert robot.period_statistics()["frames_dropped"] == dropped_before
+    finally:
+        token.undeclare()
+        sub.undeclare()
+        session.close()
+        robot.close()
+
+
 def test_a_second_daemon_for_the_same_robot_is_refused(lab, short_tmp):
     endpoint, so101, _ = lab
     done = subprocess.run([sys.executable, "-m", "crtk_bridge.cli", "--profile", str(SO101), "--sim",

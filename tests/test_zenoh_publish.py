@@ -4,7 +4,9 @@ never holds the event loop). No daemon: Zenoh sessions on loopback endpoints, mu
 
 from __future__ import annotations
 
+import itertools
 import json
+import logging
 import threading
 
 import msgspec
@@ -16,6 +18,10 @@ from hypothesis import strategies as st
 from rosbags.typesys import Stores, get_typestore
 
 from crtk_bridge.core.snapshot import Layout, SnapshotBuffer
+from crtk_bridge.server import streams
+from crtk_bridge.server.protocol import encode
+from crtk_bridge.server.server import Server
+from crtk_bridge.server.streams import TopicStream, tick_all
 from crtk_bridge.transport.ros import types as T
 from crtk_bridge.transport.ros.periodic import Encoders
 from crtk_bridge.transport.ros.rmw import Node
@@ -137,27 +143,34 @@ def test_cartesian_and_tf_templates_encode_as_rosbags(stamp, v, valid):
 
 class StalledPublisher:
     """A Zenoh publisher whose link is stalled: ``put`` waits (as congestion control BLOCK does)
-    until ``release`` is set."""
+    until ``release`` is set. Each put carries one or more whole JSON lines."""
 
     def __init__(self, log: list, kind: str, release: threading.Event):
         self.log, self.kind, self.release = log, kind, release
         self.waiting = threading.Event()
         self.undeclared = False
+        self.puts = 0
 
     def put(self, data: bytes) -> None:
         self.waiting.set()
         assert self.release.wait(10), "never released"
-        self.log.append((self.kind, msgspec.json.decode(data)))
+        self.puts += 1
+        self.log.extend((self.kind, msgspec.json.decode(line)) for line in data.splitlines())
 
     def undeclare(self) -> None:
         self.undeclared = True
 
 
+def _frame(sub: int, i: int) -> bytes:
+    return encode({"topic": "measured_js", "ns": "so101", "sub": sub, "data": i})
+
+
 def test_a_stalled_remote_link_never_holds_the_event_loop():
     """A remote client's replies wait for room on its link on the session's own thread: sending
     returns at once while the put is stuck; once the link moves, replies and events arrive all
-    and in order, frames beyond the backlog were dropped (never queued without bound), and the
-    publishers are undeclared after the last message went out."""
+    and in order, the frames kept are the newest (the oldest beyond the backlog dropped and
+    counted, never queued without bound), and the publishers are undeclared after the last
+    message went out."""
     release = threading.Event()
     log: list = []
     replies, frames = StalledPublisher(log, "reply", release), StalledPublisher(log, "frame", release)
@@ -166,23 +179,131 @@ def test_a_stalled_remote_link_never_holds_the_event_loop():
         s.send({"id": 1, "ok": True})
         assert replies.waiting.wait(5)  # the sender thread is stuck in the put
         for i in range(FRAME_BACKLOG + 50):  # all of this returns while the link is stalled
-            s.send_frame({"sub": 1, "data": i})
+            s.send_frame(_frame(1, i))
+            s.flush()
         s.send({"event": "operating_state", "data": {"state": "ENABLED"}})
         s.send({"id": 2, "ok": True})
         assert not release.is_set() and log == []
-        assert s.dropped > 0
+        assert s.dropped == 50
         s.close()
         release.set()
         wait_until(lambda: replies.undeclared and frames.undeclared, 5, what="publishers undeclared after the last put")
     finally:
         release.set()
-    kinds = [k for k, _ in log]
     assert [m for k, m in log if k == "reply"] == [{"id": 1, "ok": True},
                                                    {"event": "operating_state", "data": {"state": "ENABLED"}},
                                                    {"id": 2, "ok": True}]
-    sent_frames = [m["data"] for k, m in log if k == "frame"]
-    assert sent_frames == list(range(len(sent_frames))) and len(sent_frames) + s.dropped == FRAME_BACKLOG + 50
-    assert kinds[0] == "reply" and kinds[-2:] == ["reply", "reply"]  # the order the server sent
+    assert [m["data"] for k, m in log if k == "frame"] == list(range(50, FRAME_BACKLOG + 50))  # the newest kept
+    assert replies.puts == 2 and frames.puts == 1  # what waited went out together: one put each
+
+
+class CountingPublisher:
+    """A healthy link: records every line put, each put at once."""
+
+    def __init__(self):
+        self.lines: list[dict] = []
+        self.lock = threading.Lock()
+
+    def put(self, data: bytes) -> None:
+        with self.lock:
+            self.lines.extend(msgspec.json.decode(line) for line in data.splitlines())
+
+    def frames(self) -> list[dict]:
+        with self.lock:
+            return [m for m in self.lines if "topic" in m]
+
+    def undeclare(self) -> None:
+        pass
+
+
+def test_a_slow_remote_subscriber_delays_no_other_and_its_drops_are_counted(caplog):
+    """Two remote clients subscribe the same topic; one's link stalls. The other still gets every
+    tick's frame while the first is stuck, the stalled one keeps only the newest FRAME_BACKLOG
+    frames, and what it lost is counted in its session, in the server's period_statistics
+    (``frames_dropped``) and said in the log."""
+    release = threading.Event()
+    stalled_log: list = []
+    slow = TunnelSession(1, "slow0123456789ab", StalledPublisher(stalled_log, "reply", release),
+                         StalledPublisher(stalled_log, "frame", release))
+    fast_pub = CountingPublisher()
+    fast = TunnelSession(2, "fast0123456789ab", CountingPublisher(), fast_pub)
+    stream = TopicStream("measured_js", "so101", itertools.count().__next__)
+    ticks = FRAME_BACKLOG + 40
+    try:
+        stream.add(slow, 1, 0.001, 0.0)
+        stream.add(fast, 2, 0.001, 0.0)
+        with caplog.at_level(logging.WARNING, logger="crtk_bridge.server"):
+            for k in range(ticks):
+                tick_all([stream], k * 0.001)
+                if k == 0:  # the slow client's sender thread is stuck in its first put from now on
+                    assert slow._frames.waiting.wait(5)
+                # the fast client has each frame while the slow one's thread is stuck
+                wait_until(lambda: len(fast_pub.frames()) == k + 1, 5, what=f"the fast client's frame {k}")
+        assert [m["data"] for m in fast_pub.frames()] == list(range(ticks))
+        assert all(m["sub"] == 2 for m in fast_pub.frames()) and fast.dropped == 0
+        assert not release.is_set() and stalled_log == []
+        assert slow.dropped == ticks - 1 - FRAME_BACKLOG  # the first went into the stuck put
+        assert any("slow0123" in r.getMessage() and "stream frames dropped" in r.getMessage() for r in caplog.records)
+        server = Server.__new__(Server)  # only its statistics: the link's figures and the sessions'
+        server.link = type("L", (), {"period_statistics": lambda self: {"cycles": 1}})()
+        server.sessions, server._dropped_before, server.statistics = {1: slow, 2: fast}, 0, []
+        assert server.period_statistics() == {"cycles": 1, "frames_dropped": slow.dropped}
+        slow.close()
+        release.set()
+        wait_until(lambda: len([m for k, m in stalled_log if k == "frame"]) == 1 + FRAME_BACKLOG, 5,
+                   what="the stalled client's kept frames")
+        kept = [m["data"] for k, m in stalled_log if k == "frame"]
+        assert kept == [0] + list(range(ticks - FRAME_BACKLOG, ticks))
+    finally:
+        release.set()
+        slow.close()
+        fast.close()
+
+
+class Collecting:
+    """A session that keeps the frames it is sent, and counts its flushes."""
+
+    closed = False
+
+    def __init__(self):
+        self.frames: list[bytes] = []
+        self.flushes = 0
+
+    def send_frame(self, line: bytes) -> None:
+        self.frames.append(line)
+
+    def flush(self) -> None:
+        self.flushes += 1
+
+
+@pytest.mark.parametrize("n", [1, 7])
+def test_a_topic_is_read_and_encoded_once_a_tick_whatever_the_number_of_subscribers(n, monkeypatch):
+    """One read (produce) and one JSON encoding per tick for n subscribers of a topic; each gets
+    the frame ``encode`` gives for its own subscription id, byte for byte, and one flush a tick
+    for all the topics it subscribes.
+    A slower subscriber shares the ticks: it gets every fourth at a quarter of the rate."""
+    encodes = []
+    real = streams.encode_body
+    monkeypatch.setattr(streams, "encode_body", lambda d: encodes.append(d) or real(d))
+    reads = itertools.count()
+    stream = TopicStream("measured_js", "so101", lambda: {"stamp": float(next(reads)), "position": [0.5, -1.25]})
+    sessions = [Collecting() for _ in range(n)]
+    slow = Collecting()
+    for i, s in enumerate(sessions):
+        stream.add(s, 10 + i, 0.001, 0.0)
+    stream.add(slow, 99, 0.004, 0.0)
+    other = TopicStream("goal_js", "so101", lambda: {"stamp": 0.0})  # the first session's second topic
+    other.add(sessions[0], 5, 0.001, 0.0)
+    for k in range(20):
+        assert tick_all([stream, other], k * 0.001) == pytest.approx((k + 1) * 0.001)  # the next tick
+    assert len(encodes) == 40 and next(reads) == 20  # one read and one encoding per topic a tick
+    assert [s.flushes for s in sessions] == [20] * n  # one flush a tick, for both topics
+    assert len(sessions[0].frames) == 40
+    sessions[0].frames = [f for f in sessions[0].frames if b'"goal_js"' not in f]
+    for i, s in enumerate(sessions):
+        assert s.frames == [encode({"topic": "measured_js", "ns": "so101", "sub": 10 + i,
+                                    "data": {"stamp": float(k), "position": [0.5, -1.25]}}) for k in range(20)]
+    assert [msgspec.json.decode(f)["data"]["stamp"] for f in slow.frames] == [0.0, 4.0, 8.0, 12.0, 16.0]
 
 
 def test_the_publishing_thread_copies_the_state_without_the_statistics_rings():
@@ -201,3 +322,64 @@ def test_the_publishing_thread_copies_the_state_without_the_statistics_rings():
         assert snap.layout.slices["cycles"].stop <= upto
     finally:
         snap.close(unlink=True)
+
+
+def test_a_stream_forgets_the_subscribers_of_a_closed_session_and_ends_with_the_last():
+    """A session that closed gets no frame and no read is made for it; once no subscriber is
+    left the stream says so (the server forgets it and its task ends)."""
+    ended = []
+    reads = itertools.count()
+    stream = TopicStream("measured_js", "so101", lambda: next(reads), ended.append)
+    a, b = Collecting(), Collecting()
+    stream.add(a, 1, 0.01, 0.0)
+    stream.add(b, 2, 0.01, 0.0)
+    tick_all([stream], 0.0)
+    b.closed = True
+    tick_all([stream], 0.01)
+    assert len(a.frames) == 2 and len(b.frames) == 1 and ended == []
+    a.closed = True
+    assert tick_all([stream], 0.02) == float("inf")
+    assert ended == [stream] and stream.subscribers == [] and next(reads) == 2
+
+
+def test_ros_ticks_the_publishing_thread_missed_are_counted_and_said(monkeypatch, caplog):
+    """The ROS topics' thread never bursts to catch up: when a tick's work takes 3.5 periods, the
+    next publication goes out at once with the newest sample, the 2 ticks wholly missed are
+    skipped, counted (period_statistics' ros_ticks_skipped) and said in the log, and the ticks
+    after are on time again. A driven clock: nothing here waits."""
+    from crtk_bridge.transport.ros import periodic
+
+    class Clock:
+        t = 0.0
+
+        def perf_counter(self):
+            return self.t
+
+        def sleep(self, s):
+            self.t += s
+
+        def monotonic(self):
+            return self.t
+
+    clock = Clock()
+    monkeypatch.setattr(periodic, "time", clock)
+    p = periodic.PeriodicTopics.__new__(periodic.PeriodicTopics)
+    p.period_s, p.robot, p._error_said, p.skipped, p._skip_said = 0.001, "so101", -1.0, 0, -1.0
+    p._stop = threading.Event()
+    calls = []
+
+    def publish_once():
+        calls.append(clock.t)
+        if len(calls) == 2:
+            clock.t += 0.0035  # this tick's work took 3.5 periods
+        if len(calls) == 6:
+            p._stop.set()
+        return True
+
+    p.publish_once = publish_once
+    with caplog.at_level(logging.WARNING, logger="crtk_bridge.ros"):
+        p._run()
+    assert p.skipped == 2
+    assert any("2 ticks skipped" in r.getMessage() for r in caplog.records)
+    assert calls[2] == pytest.approx(0.0045)  # at once, not at a tick 0.002 or 0.003 replayed
+    assert all(b - a == pytest.approx(0.001) for a, b in zip(calls[2:], calls[3:]))  # then on time again

@@ -22,24 +22,39 @@ and the robot's transition ends when the last bus's does. Enable is all or none 
 gets every bus disabled again, the error naming the bus); disable goes on on every bus and names
 those that did not confirm.
 
-What the buses declare becomes the robot's: device status (the most severe bus's, its cause
-naming the bus), ``cyclic_write`` (if any bus needs it; the others are written only while
-enabled), native cartesian namespaces (each bus's rows of the cartesian setpoints and measured
-poses, bus after bus), pacing (by the one bus that paces; two pacing buses are refused), and the fault
-reaction, per bus: the robot declares TORQUE_OFF if any bus does, and its fault transition
-(:meth:`CompositeActuator.begin_fault_reaction`) switches torque off only on the buses that declare
-TORQUE_OFF (and on a bus an abandoned enable left partly on); a HOLD or NONE bus is left as it is
-(a UR arm that stopped itself keeps its pose beside a servo gripper switched off). A failed enable
-is undone in steps too: every bus that may have torque on (finished or partly enabled) runs its
-own DISABLE steps, together, one per cycle, within the disable time limits, before the error
-naming the failed bus is raised. Native homing on one bus is not offered through the composite yet.
+What the buses declare (their :class:`~crtk_bridge.core.actuator.Traits`, final once each is open)
+becomes the robot's through ONE function, :func:`combine_traits`, with one rule per field
+(:data:`TRAIT_RULES`; tests/test_composite.py fails on a field without one):
+
+* per joint (capabilities, what each joint measures, pause behaviour): each joint keeps its own
+  bus's, so a UR arm's namespace resumes from where the arm's own stop left it while its servo
+  gripper resumes from core's braking ramp;
+* the clock: the one bus whose device paces the loop (two such buses are refused);
+* write policy: written every cycle if any bus needs it (the others only while enabled);
+* goal check: if any bus checks goals, each namespace's goal is checked by its own bus;
+* homing: if any bus homes natively, the robot does, HOME running on those buses (a bus that
+  needs homing but cannot home itself beside one that can is refused: core's move-home and a
+  native HOME cannot share one ``home``);
+* speed scaling: the bus that has a speed slider reports it (the slowest, if several do);
+* transition time limits: the buses' added up (their steps share the loop's thread), plus the
+  rollback of a failed enable.
+
+Device status is the most severe bus's, its cause naming the bus; native cartesian namespaces
+are each bus's rows of the cartesian setpoints and measured poses, bus after bus. When the robot
+enters FAULT, core's DISABLE switches torque off on every bus. A failed enable is undone in steps
+too: every bus that may have torque on (finished or partly enabled) runs its own DISABLE steps,
+together, one per cycle, within the disable time limits, before the error naming the failed bus
+is raised.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import re
 import threading
 import time
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -47,16 +62,14 @@ import numpy as np
 from ..core.actuator import (
     Actuator,
     ActuatorInfo,
-    Capabilities,
+    Clock,
     DeviceStatus,
     Fault,
-    FaultReaction,
     JointCommand,
     JointFeedback,
     Lifecycle,
     Steps,
-    Transition,
-    combine_capabilities,
+    Traits,
 )
 from ..errors import BackendError, ProfileError
 from ..profile import Profile
@@ -113,6 +126,84 @@ class _BusWorker:
             self._thread.join(1.0)
 
 
+class _Buses:
+    """What a combining rule may need beside the buses' traits: joint ``i`` of the robot is joint
+    ``owner[i][1]`` of bus ``owner[i][0]``; ``names`` are the buses'; ``where`` names the robot."""
+
+    def __init__(self, owner: Sequence[tuple[int, int]], names: Sequence[str], where: str):
+        self.owner, self.names, self.where = owner, names, where
+
+    def named(self, buses: Sequence[int]) -> str:
+        return ", ".join(repr(self.names[b]) for b in buses)
+
+
+def _per_joint(values: list, parts: list[Traits], buses: _Buses) -> tuple:
+    """Each robot joint keeps its own bus's value."""
+    return tuple(values[b][k] for b, k in buses.owner)
+
+
+def _any(values: list, parts: list[Traits], buses: _Buses) -> bool:
+    return any(values)
+
+
+def _one_clock(values: list, parts: list[Traits], buses: _Buses) -> Clock:
+    """The device's clock if one bus's device paces the loop; two cannot."""
+    pacing = [b for b, c in enumerate(values) if c is Clock.DEVICE]
+    if len(pacing) > 1:
+        raise ProfileError(f"{buses.where}: backends: buses {buses.named(pacing)} both pace the control loop "
+                           f"(each has its device's clock); at most one bus of a robot may")
+    return Clock.DEVICE if pacing else Clock.LOOP
+
+
+def _homing(values: list, parts: list[Traits], buses: _Buses) -> bool:
+    """Native if any bus homes itself; then every bus that needs homing must home itself too."""
+    if not any(values):
+        return False
+    unhomed = [b for b, t in enumerate(parts) if not t.native_homing and t.capabilities.needs_homing]
+    if unhomed:
+        raise ProfileError(f"{buses.where}: backends: bus {buses.named(unhomed)} needs homing but does not home "
+                           f"itself, beside bus {buses.named([b for b, v in enumerate(values) if v])} that does; "
+                           f"the robot's `home` cannot be both (put those joints on one kind of bus)")
+    return True
+
+
+def _timeouts(values: list, parts: list[Traits], buses: _Buses) -> dict[Lifecycle, float]:
+    """Added up: the buses' steps share the loop's thread, so in the worst case their times add up
+    (HOME: the buses that home natively); an enable may end in a rollback (every bus's disable)."""
+    out = {}
+    for kind in Lifecycle:
+        homing = [t for t in parts if t.native_homing]
+        of = homing if kind is Lifecycle.HOME and homing else parts
+        out[kind] = sum(t.timeout_s(kind) for t in of)
+    out[Lifecycle.ENABLE] += out[Lifecycle.DISABLE]
+    return out
+
+
+#: how the robot's traits come from its buses': one rule per :class:`Traits` field, called with
+#: (each bus's value, each bus's traits, the buses); tests/test_composite.py checks every field has one
+TRAIT_RULES: dict[str, Callable[[list, list[Traits], _Buses], Any]] = {
+    "joints": _per_joint,
+    "clock": _one_clock,
+    "cyclic_write": _any,
+    "stops_itself_on_pause": _per_joint,
+    "goal_check": _any,  # delegated per namespace to its bus (CompositeActuator.goal_check_steps)
+    "native_homing": _homing,
+    "speed_scaling": _any,  # the bus's slider (CompositeActuator.speed_fraction)
+    "transition_timeouts_s": _timeouts,
+}
+
+
+def combine_traits(parts: Sequence[Traits], owner: Sequence[tuple[int, int]], names: Sequence[str],
+                   where: str) -> Traits:
+    """The traits of a robot made of buses with traits ``parts`` (see the module docstring):
+    every field of :class:`Traits` by its rule in :data:`TRAIT_RULES`. Raises ProfileError when
+    the buses cannot be one robot, naming them; a field without a rule is a bug (KeyError)."""
+    parts = list(parts)
+    buses = _Buses(owner, names, where)
+    return Traits(**{f.name: TRAIT_RULES[f.name]([getattr(t, f.name) for t in parts], parts, buses)
+                     for f in dataclasses.fields(Traits)})
+
+
 class CompositeActuator(Actuator):
     """One robot on several buses: ``buses`` maps bus name -> (backend built on that bus's
     one-bus profile). Joint ``i`` of the robot is joint ``k`` of exactly one bus."""
@@ -129,9 +220,38 @@ class CompositeActuator(Actuator):
         for b, idx in enumerate(self._idx):
             self._owner[idx] = b
             self._local[idx] = np.arange(len(idx))
-        self._joint_caps = [self.parts[self._owner[i]].joint_capabilities(int(self._local[i]))
-                            for i in range(self.n)]
-        self.capabilities = combine_capabilities(self._joint_caps)
+        #: namespace -> its bus
+        self._ns_bus = {ns.name: self.bus_names.index(profile.namespace_bus(ns)) for ns in profile.namespaces}
+        # known once the buses are open (their traits, their cartesian rows): _open_hook
+        self._fb: list[JointFeedback] = []
+        self._cmd: list[JointCommand] = []
+        self._cart_rows: list[tuple[int, int, int]] = []
+        self._cyclic: list[bool] = []
+        self._pacer: Actuator | None = None
+        self._scaled: list[Actuator] = []  # the buses with a speed slider
+        self._combined: Traits | None = None
+        self._workers: list[_BusWorker] | None = None  # started at the first cycle (see _start_workers)
+        nb = len(self.parts)
+        self._read_res: list[Fault | None] = [None] * nb  # this cycle's result per bus
+        self._write_res: list[Fault | None] = [None] * nb
+        self._read_streak = [0] * nb  # failed cycles in a row per bus
+        self._write_streak = [0] * nb
+        self._where = [f"bus {name!r}" for name in self.bus_names]
+        #: per bus: an ENABLE took a step and neither finished nor was undone (some torque may be on)
+        self._partial = [False] * nb
+        self._source = source
+
+    def _bus_of(self, parts: list[Actuator]) -> list[str]:
+        return [repr(name) for name, p in zip(self.bus_names, self.parts) if p in parts]
+
+    # ---------------------------------------------------------------- traits
+    def _traits_hook(self) -> Traits:
+        return self._combined
+
+    def _combine(self) -> None:
+        """The robot's traits and what follows from them, once every bus is open."""
+        owner = [(int(self._owner[i]), int(self._local[i])) for i in range(self.n)]
+        self._combined = combine_traits([p.traits for p in self.parts], owner, self.bus_names, self._source)
         self._fb = [p.new_feedback() for p in self.parts]
         self._cmd = [p.new_command() for p in self.parts]
         # native cartesian rows (a UR arm beside a servo gripper): bus b's rows are the robot's lo:hi
@@ -142,48 +262,53 @@ class CompositeActuator(Actuator):
             if k:
                 self._cart_rows.append((b, lo, lo + k))
                 lo += k
-        self._workers: list[_BusWorker] | None = None  # started at the first cycle (see _start_workers)
-        nb = len(self.parts)
-        self._read_res: list[Fault | None] = [None] * nb  # this cycle's result per bus
-        self._write_res: list[Fault | None] = [None] * nb
-        self._read_streak = [0] * nb  # failed cycles in a row per bus
-        self._write_streak = [0] * nb
-        self._where = [f"bus {name!r}" for name in self.bus_names]
-        #: per bus: an ENABLE took a step and neither finished nor was undone (some torque may be on)
-        self._partial = [False] * nb
-        # what the buses declare, for the robot: written every cycle if any bus needs it (the
-        # others are then skipped while not enabled); paced by the one bus that paces, if any;
-        # the fault reaction that leaves nothing powered that needs switching off
-        self.cyclic_write = any(p.cyclic_write for p in self.parts)
-        self._cyclic = [p.cyclic_write for p in self.parts]
-        pacers = [p for p in self.parts if p.paces_cycle]
-        if len(pacers) > 1:
-            raise ProfileError(f"{source}: backends: buses {', '.join(self._bus_of(pacers))} both pace the "
-                               f"control loop; at most one bus of a robot may")
-        self._pacer = pacers[0] if pacers else None
-        self.paces_cycle = self._pacer is not None
-        # core runs the fault reaction's transition if any bus needs torque off; it then applies
-        # each bus's own reaction (begin_fault_reaction)
-        reactions = {p.fault_reaction for p in self.parts}
-        self.fault_reaction = next(r for r in (FaultReaction.TORQUE_OFF, FaultReaction.HOLD, FaultReaction.NONE)
-                                   if r in reactions)
-
-    def _bus_of(self, parts: list[Actuator]) -> list[str]:
-        return [repr(name) for name, p in zip(self.bus_names, self.parts) if p in parts]
+        # written every cycle if its bus needs it; the others only while enabled
+        self._cyclic = [p.traits.cyclic_write for p in self.parts]
+        self._pacer = next((p for p in self.parts if p.traits.clock is Clock.DEVICE), None)
+        self._scaled = [p for p in self.parts if p.traits.speed_scaling]
 
     # ---------------------------------------------------------------- pacing
     def cycle_period_s(self) -> float | None:
         return self._pacer.cycle_period_s() if self._pacer is not None else None
 
-    def wait_cycle(self, timeout_s: float) -> bool:
-        return self._pacer.wait_cycle(timeout_s)
+    def wait_cycle(self, deadline: float) -> bool:
+        """The pacing bus's wait (the device's clock) first, if any; then every other bus's
+        start of the cycle (a CANopen SYNC), in bus order."""
+        pacer = self._pacer
+        ok = pacer.wait_cycle(deadline) if pacer is not None else True
+        for p in self.parts:
+            if p is not pacer:
+                p.wait_cycle(deadline)
+        return ok
 
-    # ---------------------------------------------------------------- capabilities
-    def joint_capabilities(self, i: int) -> Capabilities:
-        return self._joint_caps[i]
+    @property
+    def speed_fraction(self) -> float:  # type: ignore[override]
+        """The speed slider of the bus that has one (the slowest, if several do); NaN: none known."""
+        known = [v for v in (p.speed_fraction for p in self._scaled) if v == v]
+        return min(known) if known else math.nan
+
+    def goal_check_steps(self, ns: str, cmd: str, goal: np.ndarray) -> Steps | None:
+        """The goal check of namespace ``ns``'s own bus (None where that bus has none)."""
+        b = self._ns_bus[ns]
+        part = self.parts[b]
+        if not part.traits.goal_check:
+            return None
+        steps = part.goal_check_steps(ns, cmd, goal)
+        return None if steps is None else self._named_steps(b, steps)
+
+    def _named_steps(self, b: int, steps: Steps) -> Steps:
+        """A bus's steps whose BackendError names the bus (a refusal, CommandError, passes as is)."""
+        try:
+            yield from steps
+        except BackendError as exc:
+            raise self._named(b, exc) from exc
 
     def deceleration_limit(self, i: int) -> float:
         return self.parts[self._owner[i]].deceleration_limit(int(self._local[i]))
+
+    def lerobot_maps(self) -> list[dict[str, list[float]] | None]:
+        maps = [p.lerobot_maps() for p in self.parts]
+        return [maps[self._owner[i]][self._local[i]] for i in range(self.n)]
 
     def cartesian_namespaces(self) -> list[str]:
         """Every bus's natively cartesian namespaces, bus after bus (the rows of the robot's
@@ -192,7 +317,7 @@ class CompositeActuator(Actuator):
 
     def info(self) -> ActuatorInfo:
         details: dict[str, Any] = {name: p.info().details for name, p in zip(self.bus_names, self.parts)}
-        return ActuatorInfo(list(self.joint_names), self.capabilities, {"buses": details})
+        return ActuatorInfo(list(self.joint_names), {"buses": details})
 
     # ---------------------------------------------------------------- lifecycle
     def _open_hook(self) -> None:
@@ -201,6 +326,7 @@ class CompositeActuator(Actuator):
             for b, p in enumerate(self.parts):
                 self._on_bus(b, p.open)
                 opened.append(p)
+            self._combine()
         except BaseException:
             for p in opened:
                 p.close()
@@ -211,6 +337,10 @@ class CompositeActuator(Actuator):
             self._on_bus(b, p.configure)
 
     # ---- lifecycle transitions: every bus's, stepped together ----
+    def _enable_then_fresh(self, feedback: JointFeedback) -> Steps:
+        """The buses' ENABLE steps: each bus's own ends on a fresh read of it (Actuator's)."""
+        return self._enable_steps(feedback)
+
     def _enable_steps(self, feedback: JointFeedback) -> Steps:
         return self._together(Lifecycle.ENABLE, feedback)
 
@@ -226,13 +356,10 @@ class CompositeActuator(Actuator):
     def _fault_reset_steps(self) -> Steps:
         return self._together(Lifecycle.FAULT_RESET)
 
-    def transition_timeout_s(self, kind: Lifecycle) -> float:
-        # the buses' steps share the loop's thread, so in the worst case their times add up; an
-        # enable may end in a rollback (every bus's disable)
-        limit = sum(p.transition_timeout_s(kind) for p in self.parts)
-        if kind is Lifecycle.ENABLE:
-            limit += self.transition_timeout_s(Lifecycle.DISABLE)
-        return limit
+    def _home_steps(self) -> Steps:
+        """HOME on the buses that home natively, together (the others need no homing:
+        :func:`combine_traits` refuses a robot where they would)."""
+        return self._together(Lifecycle.HOME, buses=[b for b, p in enumerate(self.parts) if p.traits.native_homing])
 
     def _together(self, kind: Lifecycle, feedback: JointFeedback | None = None,
                   buses: list[int] | None = None) -> Steps:
@@ -293,7 +420,7 @@ class CompositeActuator(Actuator):
         enabled), stepped together one per cycle like any transition, within the buses' disable
         time limits; then ``error`` (the bus that failed) is raised, saying if torque off was not
         confirmed."""
-        limit = sum(self.parts[b].transition_timeout_s(Lifecycle.DISABLE) for b in buses)
+        limit = sum(self.parts[b].traits.timeout_s(Lifecycle.DISABLE) for b in buses)
         deadline = time.monotonic() + limit
         steps = self._together(Lifecycle.DISABLE, buses=buses)
         try:
@@ -314,17 +441,6 @@ class CompositeActuator(Actuator):
         finally:
             steps.close()
         raise error
-
-    def begin_fault_reaction(self) -> Transition:
-        """Each bus's own fault reaction, in one transition stepping the buses together: torque
-        off (the DISABLE steps) on the buses that declare TORQUE_OFF and on any bus left partly
-        enabled by an abandoned enable; the HOLD and NONE buses are left as they are (a UR arm
-        that stopped itself keeps its pose beside a servo gripper switched off)."""
-        self._enabled = False  # the robot is not enabled from now on
-        buses = [b for b, p in enumerate(self.parts)
-                 if p.fault_reaction is FaultReaction.TORQUE_OFF or self._partial[b]]
-        return Transition(self.robot, Lifecycle.DISABLE, self._together(Lifecycle.DISABLE, buses=buses),
-                          self.transition_timeout_s(Lifecycle.DISABLE))
 
     def _named(self, b: int, exc: BaseException) -> BackendError:
         """A bus's lifecycle error, re-raised naming the bus."""
@@ -433,6 +549,11 @@ class CompositeActuator(Actuator):
             dst.seq[:] = src.seq[lo:hi]
 
     def _write(self, command: JointCommand) -> Fault | None:
+        workers = self._workers
+        if workers is None:
+            if not self._open:
+                return self._closed("write")
+            workers = self._start_workers()
         for b, idx in enumerate(self._idx):
             c = self._cmd[b]
             np.take(command.mode, idx, out=c.mode)
@@ -441,11 +562,6 @@ class CompositeActuator(Actuator):
             np.take(command.effort, idx, out=c.effort)
         if self._cart_rows:
             self._scatter_cartesian(command.cartesian)
-        workers = self._workers
-        if workers is None:
-            if not self._open:
-                return self._closed("write")
-            workers = self._start_workers()
         parts, cyclic, res = self.parts, self._cyclic, self._write_res
         for b, w in enumerate(workers, 1):  # a bus that is not written outside ENABLED / PAUSED is skipped
             if cyclic[b] or parts[b].is_enabled:

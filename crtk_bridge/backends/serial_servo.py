@@ -56,10 +56,21 @@ from typing import Any, ClassVar
 import numpy as np
 import serial
 
-from ..core.actuator import Actuator, ActuatorInfo, DeviceStatus, Fault, Lifecycle, Steps, background_thread
+from ..core.actuator import (
+    Actuator,
+    ActuatorInfo,
+    Capabilities,
+    DeviceStatus,
+    Fault,
+    Lifecycle,
+    Steps,
+    Traits,
+    background_thread,
+)
 from ..errors import BackendError, ProfileError
 from ..profile import Profile, backend_config
-from .calibration import RangeWatch, from_lerobot, sweep_calibration
+from .calibration import RangeWatch, from_lerobot, lerobot_maps, sweep_calibration
+from .optional import BusScanner, DeviceSetup
 from .port_errors import open_error_reason, silent_bus_hint
 from .ports import resolve_port
 from .servo_keys import Calibration, ServoJoint, servo_joints
@@ -268,8 +279,9 @@ class BusScan:
     elsewhere: dict[int, list[tuple[int, int]]]
 
 
-class SerialServoBackend(Actuator):
+class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
     """Servos with one id each on one half-duplex serial bus. Subclasses fill the hooks below.
+    Both optional capabilities (backends/optional.py): ``check --scan`` and ``setup-servos``.
 
     Constructing validates the profile (raises ProfileError naming ``backend.<key>`` or the joint
     key); nothing touches the bus before :meth:`open`.
@@ -444,7 +456,16 @@ class SerialServoBackend(Actuator):
     port_name = _where  # the device path once opened (or scanned), else backend.port as given
 
     def info(self) -> ActuatorInfo:
-        return ActuatorInfo(list(self.joint_names), self.capabilities, dict(self._details))
+        return ActuatorInfo(list(self.joint_names), dict(self._details))
+
+    #: per joint, what it can do (set by the vendor's __init__ from the profile)
+    _joint_caps: list[Capabilities]
+
+    def _traits_hook(self) -> Traits:
+        """Serial servos: the loop's clock; written only while ENABLED / PAUSED; core's braking
+        ramp pauses them; no native homing, goal check or speed scaling; per joint what the
+        profile gives (``_joint_caps``)."""
+        return Traits(joints=tuple(self._joint_caps), transition_timeouts_s=self.TRANSITION_TIMEOUTS_S)
 
     def _result_text(self, result: int) -> str:
         text = self._ph.getTxRxResult(result) if self._ph else str(result)
@@ -679,6 +700,12 @@ class SerialServoBackend(Actuator):
                                          [int(r) for r in self._resolution], [int(d) for d in self._direction],
                                          list(grippers), self.SOFTWARE_DRIVE_MODE))
 
+    def lerobot_maps(self) -> list[dict[str, list[float]] | None]:
+        """Per joint, LeRobot's numbers as affine maps of its radians (backends/calibration.py,
+        ``lerobot_maps``), from the joint's calibration keys; the ticks stay here."""
+        return [lerobot_maps(j.calibration.offset, j.calibration.direction, j.calibration.range, int(r))
+                for j, r in zip(self.joint_keys, self._resolution)]
+
     # ------------------------------------------------------------------ hot replug
     #: s between two attempts of the reopen worker (adapter unplugged, module docstring)
     REOPEN_INTERVAL_S = 0.2
@@ -810,6 +837,16 @@ class SerialServoBackend(Actuator):
         return port, margin
 
     # ------------------------------------------------------------------ bus scan (check --scan)
+    def scan_plan(self, all_bauds: bool) -> tuple[int | None, str]:
+        return self.config.baudrate, (f"at {self.config.baudrate} baud{' (then every other rate)' if all_bauds else ''}, "
+                                      f"ids 0-{self.MAX_ID}")
+
+    def setup_devices(self, joints, emit, ask, timeout_s: float) -> int:
+        """``crtk-bridge setup-servos`` (backends/servo_setup.py)."""
+        from .servo_setup import ServoSetup
+
+        return ServoSetup(self, emit, ask, timeout_s).run(joints)
+
     def scan(self, all_bauds: bool = False) -> BusScan:
         """Every servo answering on the bus at the profile's baud rate, by id: model number,
         firmware, torque state, and for a joint's servo of the right model its EEPROM
@@ -948,6 +985,7 @@ class SerialServoBackend(Actuator):
                              f"{self.config.baudrate}")
                 problems.append(f"id {sid} ({what}) answers at {baud} baud, not the profile's "
                                 f"{self.config.baudrate}{hint}")
+        findings["servos_answered"] = len(scan.servos)
         return lines, problems, findings
 
     def _open_hook(self) -> None:
@@ -989,6 +1027,11 @@ class SerialServoBackend(Actuator):
         if problems:
             raise BackendError(f"{self.robot}: " + "; ".join(problems))
 
+    def _disable_steps(self) -> Steps:
+        """DISABLE: :meth:`_disable_hook` in one step."""
+        self._disable_hook()
+        yield from ()
+
     def _disable_hook(self) -> None:
         """Torque_Enable = 0 on every servo, each acknowledged. Blocks.
 
@@ -1008,8 +1051,8 @@ class SerialServoBackend(Actuator):
         if failed:
             raise BackendError(f"{self.robot}: torque off not confirmed: " + "; ".join(failed))
 
-    #: time limits (s) of the lifecycle transitions (ENABLE may grow: transition_timeout_s)
-    transition_timeouts_s = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 1.0,
+    #: time limits (s) of the lifecycle transitions (a vendor's ``_traits_hook`` may grow ENABLE's)
+    TRANSITION_TIMEOUTS_S = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 1.0,
                              Lifecycle.RESUME: 1.0, Lifecycle.FAULT_RESET: 1.0}
 
     def _enable_steps(self, feedback) -> Steps:

@@ -460,10 +460,11 @@ def _dict_line(data: dict) -> str:
 # -- commands -----------------------------------------------------------------------------------
 
 def _check_len(dev: Device, cmd: str, values: Sequence[float]) -> None:
-    n = len(dev.joint_names)
-    if n and len(values) != n:
-        raise CommandError("bad_request", f"{dev.name}: {cmd} needs {n} values "
-                           f"({', '.join(dev.joint_names)}), got {len(values)}")
+    """One number per joint of ``dev`` (when it lists its joints), all finite: refused here, before
+    anything is sent, by the daemon's own reader (crtk_bridge/vectors.py)."""
+    from crtk_bridge.vectors import floats
+    names = dev.joint_names
+    floats(list(values), f"{dev.name}: {cmd}", len(names) or None, names or None)
 
 
 def _pose_arg(dev: Device, cmd: str, values: Sequence[float], relative: bool) -> tuple:

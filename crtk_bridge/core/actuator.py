@@ -11,42 +11,47 @@ Three paths, as in ros2_control hardware components:
   fault reset and, where the backend homes natively, home. They take as long as the hardware
   needs but never block the cycle: :meth:`Actuator.begin` returns a :class:`Transition` that the
   loop advances with ONE :meth:`Transition.step` per cycle, after that cycle's ``read``, until it
-  reports done (or raises, or exceeds the backend's time limit, :meth:`Actuator.transition_timeout_s`).
+  reports done (or raises, or exceeds the backend's time limit, ``traits.transition_timeouts_s``).
   Meanwhile the loop keeps reading and publishing, the CRTK state stays as it was and ``is_busy``
   is true. A backend writes a transition as a generator (``_enable_steps`` ...): each ``yield``
   hands the cycle back and resumes one cycle later, so a CiA 402 controlword walk or "torque on,
   then wait until the servo confirms" interleaves with the cycle's own bus traffic on the same
   thread (a serial bus is used by one thread at a time). Blocking vendor calls that cannot be
   split go to :func:`on_worker`, a step generator that runs them on a thread and yields until
-  they return. Backends with no steps of their own implement the blocking ``_enable_hook`` /
-  ``_disable_hook`` instead, run in one step.
+  they return.
 * Real-time path -- ``read(feedback)`` and ``write(command)``. Bounded time, never sleeps on
   purpose, never raises: they return ``None`` when all went well, else a :class:`Fault` naming the
   cause. Backends implement the hooks ``_read`` / ``_write``; the public methods turn any exception
   a hook lets escape into a Fault, so a backend bug faults the robot instead of killing the loop.
-  ``write`` is called only while ENABLED or PAUSED unless the backend sets ``cyclic_write``
+  ``write`` is also the one finiteness gate: a non-finite setpoint never reaches ``_write``
+  (:meth:`Actuator.write`), and core's motion output is already within the profile's limits, so
+  a backend clamps only to its device's ranges (docs/architecture.md, Limits).
+  ``write`` is called only while ENABLED or PAUSED unless the backend declares ``cyclic_write``
   (a CiA 402 chain needs SYNC, RPDOs and the controlword every cycle in every state); then it is
   called every cycle, with every joint in :attr:`CommandMode.NONE` outside ENABLED / PAUSED.
 
-What else a backend declares (class attributes, refined per profile in ``__init__`` if needed):
+What a backend declares about itself is ONE immutable :class:`Traits` (per-joint capabilities and
+what each joint measures, clock, write policy, pause behaviour, goal check, native homing, speed
+scaling, transition time limits), returned by its ``_traits_hook`` when it opens and read by core
+as :attr:`Actuator.traits` only; a robot on several buses combines its buses' traits with one
+function (backends/composite.py). When the robot enters FAULT, core runs the DISABLE transition
+(torque off; a UR stops, powers off and applies its brakes).
 
-* ``fault_reaction`` (:class:`FaultReaction`): what core does to the device when the robot
-  enters FAULT -- switch torque off (serial servos; core runs :meth:`Actuator.begin_fault_reaction`,
-  the DISABLE transition unless a composite applies each bus's own reaction), leave it holding,
-  or nothing because the device already stopped itself.
 * Device status (:class:`DeviceStatus`): a backend reports what the device says about itself
   (paused by the device, powered off by the device, fault with cause, fault cleared) with
   :meth:`Actuator.report_status` from its ``_read``; core takes it once per cycle
   (:meth:`Actuator.take_status`) and maps it onto the CRTK states with ONE table
   (``core/state.py``, ``DEVICE_STATUS``). A non-transient :class:`Fault` from ``read`` is a
   device FAULT too.
-* Pacing: ``paces_cycle`` and :meth:`Actuator.wait_cycle` let the hardware pace the loop (wait for
-  its next packet, or produce the SYNC); otherwise the loop sleeps to its own clock.
+* Pacing: every cycle starts with :meth:`Actuator.wait_cycle` (``deadline``: the cycle
+  runner's, core/cycle.py). With ``traits.clock`` Clock.DEVICE the device's clock paces the loop
+  (a UR's next packet); on Clock.LOOP the runner sleeps to its own clock's deadline and
+  ``wait_cycle`` does what starts the backend's cycle (a CANopen SYNC).
   :func:`effective_period_s` is the ONE period the loop, motion, the server's rates and the
   statistics use, computed once at start-up.
 * ``simulator`` (:class:`SimWiring`): how ``--sim`` wires the backend to its wire-level
-  simulator (which ``crtk-sim`` device, which backend key takes the simulator's endpoint).
-* Native cartesian control (``Capabilities.native_cartesian``): a controller with its own
+  simulator (which backend key takes the simulator's endpoint; which simulator is the registry's).
+* Native cartesian control (``Capabilities.native_cartesian`` of the joints): a controller with its own
   cartesian control and TCP pose (UR ``servoL`` / ``speedL`` / ``moveL``) receives cartesian
   setpoints in :attr:`JointCommand.cartesian` (one row per namespace of
   :meth:`Actuator.cartesian_namespaces`; the joints of a row are then in CommandMode.NONE) and
@@ -60,12 +65,15 @@ from __future__ import annotations
 
 import abc
 import enum
+import math
 import os
 import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Sequence
+from functools import cached_property
+from types import MappingProxyType
+from typing import Any, ClassVar, Mapping, Sequence
 
 import msgspec
 import numpy as np
@@ -87,7 +95,6 @@ class Capabilities:
     measures_effort: bool = False
     needs_homing: bool = False  # incremental encoders: is_homed starts False
     can_free: bool = True  # torque can be switched off with the robot powered (`free`)
-    native_rate_hz: float | None = None  # rate the hardware paces (CANopen SYNC, RTDE); None = any
     native_cartesian: bool = False  # follows cartesian setpoints and measures the tip pose itself
     measures_wrench: bool = False  # native cartesian: also measures the tip wrench (CartesianFeedback.wrench)
 
@@ -97,12 +104,11 @@ def combine_capabilities(caps: Sequence[Capabilities]) -> Capabilities:
     if every joint can follow it, and the group needs homing if any joint does."""
     if not caps:
         return Capabilities()
-    rates = [c.native_rate_hz for c in caps if c.native_rate_hz is not None]
     return Capabilities(
         position=all(c.position for c in caps), velocity=all(c.velocity for c in caps),
         effort=all(c.effort for c in caps), measures_velocity=all(c.measures_velocity for c in caps),
         measures_effort=all(c.measures_effort for c in caps), needs_homing=any(c.needs_homing for c in caps),
-        can_free=all(c.can_free for c in caps), native_rate_hz=rates[0] if rates else None,
+        can_free=all(c.can_free for c in caps),
         native_cartesian=all(c.native_cartesian for c in caps),
         measures_wrench=all(c.measures_wrench for c in caps),
     )
@@ -209,7 +215,6 @@ class ActuatorInfo:
     """Static description a backend reports once it is open."""
 
     joint_names: list[str]
-    capabilities: Capabilities
     details: dict[str, Any] = field(default_factory=dict)  # model numbers, firmware, port...
 
 
@@ -217,7 +222,7 @@ class Lifecycle(str, enum.Enum):
     """The lifecycle transitions a backend may take cycles over (see the module docstring)."""
 
     ENABLE = "enable"
-    DISABLE = "disable"  # also the torque-off of a fault (FaultReaction.TORQUE_OFF)
+    DISABLE = "disable"  # also the torque-off of a fault (core's fault reaction)
     PAUSE = "pause"
     RESUME = "resume"
     FAULT_RESET = "fault_reset"  # before ENABLE when leaving FAULT
@@ -236,29 +241,112 @@ class DeviceStatus(str, enum.Enum):
     FAULT_CLEARED = "fault_cleared"  # the cause of a reported fault went away
 
 
-class FaultReaction(str, enum.Enum):
-    """What core does to the device when the robot enters FAULT."""
-
-    TORQUE_OFF = "torque_off"  # run the DISABLE transition (serial servos: nothing holds them safely)
-    HOLD = "hold"  # leave the device powered: it holds its position itself (drive quick stop)
-    NONE = "none"  # nothing: the device already stopped itself (UR protective stop)
-
-
 @dataclass(frozen=True)
 class SimWiring:
-    """How ``--sim`` runs a backend on its simulator (no port patching in the entry layer).
+    """How ``--sim`` wires a backend to its simulator (no port patching in the entry layer).
 
-    ``device`` is the ``crtk-sim`` device name (``crtk_bridge.sim.cli``); the simulator prints or
-    links an endpoint (a pty path, an address) that :meth:`Actuator.sim_profile` writes into the
-    backend key ``endpoint_key`` of the profile the backend is then built from.
+    Which simulator is the registry's (:mod:`crtk_bridge.registry`, one registration names the
+    backend and its simulator); the simulator prints or links an endpoint (a pty path, an address)
+    that :meth:`Actuator.sim_profile` writes into the backend key ``endpoint_key`` of the profile
+    the backend is then built from.
     """
 
-    device: str
     endpoint_key: str = "port"
     #: a simulator that serves fixed TCP ports (a UR controller's) instead of a pty: ``--sim``
     #: picks a loopback address 127.0.0.x where these ports are free, passes it as ``--host`` and
     #: waits until the first one accepts; that address is the endpoint. Empty: a pty link.
     host_ports: tuple[int, ...] = ()
+
+
+#: cycles an ENABLE stepped over cycles waits, after its steps, for a read with torque on
+ENABLE_FRESH_READ_CYCLES = 3
+
+#: default time limits (s) of lifecycle transitions; a backend's :class:`Traits` names its own
+DEFAULT_TRANSITION_TIMEOUTS_S: Mapping[Lifecycle, float] = MappingProxyType({
+    Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 2.0, Lifecycle.RESUME: 2.0,
+    Lifecycle.FAULT_RESET: 5.0, Lifecycle.HOME: 60.0, Lifecycle.CALIBRATE: 5.0,
+    Lifecycle.GOAL_CHECK: 2.0,
+})
+
+
+class Clock(str, enum.Enum):
+    """Who says when a cycle starts (:attr:`Traits.clock`)."""
+
+    #: the cycle runner sleeps to its own clock (the profile's ``loop.rate_hz``), then
+    #: :meth:`Actuator.wait_cycle` starts the backend's cycle (a CiA 402 master's SYNC)
+    LOOP = "loop"
+    #: the device paces the loop: the runner waits in :meth:`Actuator.wait_cycle` (a UR's next RTDE
+    #: package), at :meth:`Actuator.cycle_period_s`
+    DEVICE = "device"
+
+
+@dataclass(frozen=True)
+class Traits:
+    """What a backend declares about itself: ONE immutable declaration, final once the backend is
+    open (:attr:`Actuator.traits`, from the backend's :meth:`Actuator._traits_hook`, which
+    :meth:`Actuator.open` calls after ``_open_hook``: a backend that learns its joints'
+    capabilities from the devices, a CiA 402 drive's supported modes, knows them then). Core reads
+    every one of these from here and nowhere else; a robot on several buses combines its buses'
+    with one function, one rule per field (backends/composite.py ``combine_traits``).
+
+    Fields given per joint accept one value for every joint (it is repeated)."""
+
+    #: per joint: what it can do and what it measures (velocity, effort, the tip's wrench), whether
+    #: it needs homing (incremental encoders: ``is_homed`` starts False)
+    joints: tuple[Capabilities, ...]
+    #: who starts the cycle: the loop's clock, or the device's (:class:`Clock`)
+    clock: Clock = Clock.LOOP
+    #: write policy. True: ``write`` every cycle in every state (a CiA 402 chain: SYNC, RPDOs,
+    #: controlword), every joint in CommandMode.NONE outside ENABLED / PAUSED. False: only while
+    #: ENABLED / PAUSED (serial servos: nothing goes on the bus while disabled)
+    cyclic_write: bool = False
+    #: per joint: PAUSE stops the device by itself (a CiA 402 quick stop ramp, a UR safeguard stop)
+    #: and it holds where its own stop ended, not where core's braking ramp did; core takes the
+    #: measured position on RESUME for the namespaces of these joints
+    stops_itself_on_pause: tuple[bool, ...] | bool = False
+    #: the device checks move goals against its own limits (:meth:`Actuator.goal_check_steps`,
+    #: run by core as a GOAL_CHECK transition before the move starts)
+    goal_check: bool = False
+    #: the backend homes its joints itself (the HOME transition, :meth:`Actuator._home_steps`);
+    #: False: core homes by moving to the profile's ``home`` pose
+    native_homing: bool = False
+    #: the device has an operator's speed scaling (a UR's speed slider): :attr:`Actuator.speed_fraction`
+    #: (0..1) is reported to clients in ``operating_state``
+    speed_scaling: bool = False
+    #: time limit (s) of each lifecycle transition (exceeding it faults the robot); kinds not
+    #: given keep :data:`DEFAULT_TRANSITION_TIMEOUTS_S`
+    transition_timeouts_s: Mapping[Lifecycle, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        joints = tuple(self.joints)
+        if not joints or not all(isinstance(c, Capabilities) for c in joints):
+            raise ValueError("Traits.joints: one Capabilities per joint")
+        object.__setattr__(self, "joints", joints)
+        pause = self.stops_itself_on_pause
+        pause = (bool(pause),) * len(joints) if isinstance(pause, bool) else tuple(bool(p) for p in pause)
+        if len(pause) != len(joints):
+            raise ValueError(f"Traits.stops_itself_on_pause: {len(pause)} values for {len(joints)} joints")
+        object.__setattr__(self, "stops_itself_on_pause", pause)
+        object.__setattr__(self, "clock", Clock(self.clock))
+        timeouts = {**DEFAULT_TRANSITION_TIMEOUTS_S, **self.transition_timeouts_s}
+        object.__setattr__(self, "transition_timeouts_s", MappingProxyType(timeouts))
+
+    @property
+    def n(self) -> int:
+        return len(self.joints)
+
+    @cached_property
+    def capabilities(self) -> Capabilities:
+        """What every joint can do together (the robot's)."""
+        return combine_capabilities(self.joints)
+
+    def capabilities_of(self, joints: Sequence[int]) -> Capabilities:
+        """What the joints ``joints`` (indices) can do together, e.g. one namespace's."""
+        return combine_capabilities([self.joints[i] for i in joints])
+
+    def timeout_s(self, kind: Lifecycle) -> float:
+        """The time limit (s) of transition ``kind``."""
+        return self.transition_timeouts_s[kind]
 
 
 Steps = Iterator[None]
@@ -271,7 +359,7 @@ class Transition:
     steps raise (a BackendError naming robot, joint and register) when it failed. ``abort()``
     abandons it (closes the step generator, so its ``finally`` clauses run; idempotent).
     ``timeout_s`` is the backend's limit; enforcing it is the caller's job (core faults the robot
-    naming the transition, :meth:`Actuator.run` raises).
+    naming the transition, :func:`~crtk_bridge.core.cycle.run_transition` raises).
     """
 
     __slots__ = ("robot", "kind", "timeout_s", "done", "_steps", "_on_finish")
@@ -356,14 +444,6 @@ def effective_period_s(profile: Profile, actuator: "Actuator") -> float:
     return float(hw) if hw is not None else 1.0 / profile.loop.rate_hz
 
 
-#: default time limits (s) of lifecycle transitions; a backend overrides ``transition_timeouts_s``
-DEFAULT_TRANSITION_TIMEOUTS_S: dict[Lifecycle, float] = {
-    Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 2.0, Lifecycle.RESUME: 2.0,
-    Lifecycle.FAULT_RESET: 5.0, Lifecycle.HOME: 60.0, Lifecycle.CALIBRATE: 5.0,
-    Lifecycle.GOAL_CHECK: 2.0,
-}
-
-
 class Actuator(abc.ABC):
     """Base class of every backend. Subclasses fill the ``_hooks``; see the module docstring.
 
@@ -371,31 +451,15 @@ class Actuator(abc.ABC):
     -> close. ``close`` is legal at any time and idempotent; the backend is also a context manager.
     """
 
-    #: capabilities of this backend type (a subclass may refine them per profile in __init__)
-    capabilities: ClassVar[Capabilities] = Capabilities()
-    #: the pip extra that installs this backend's SDK, named in BackendUnavailableError
-    extra: ClassVar[str | None] = None
-    #: what core does to the device when the robot enters FAULT
-    fault_reaction: ClassVar[FaultReaction] = FaultReaction.TORQUE_OFF
-    #: True: ``write`` every cycle in every state (SYNC, RPDOs, controlword); False: only while
-    #: ENABLED / PAUSED (serial servos: nothing goes on the bus while disabled)
-    cyclic_write: ClassVar[bool] = False
-    #: True: the hardware paces the loop through :meth:`wait_cycle` (and :meth:`cycle_period_s`)
-    paces_cycle: ClassVar[bool] = False
-    #: how ``--sim`` wires this backend to its simulator; None: no simulator
+    #: how ``--sim`` wires this backend to its simulator; None: no simulator. A fact of the backend
+    #: TYPE (``--sim`` needs it before any backend is built), so a class attribute, not a trait
     simulator: ClassVar[SimWiring | None] = None
     #: backend keys ``--sim`` sets where the profile gives no value (absent or null): limits that
     #: the simulator, a Python process on the daemon's own (possibly loaded) PC, needs wider than
     #: the real device (a serial reply margin, a CAN TPDO deadline, an RTDE link timeout)
     SIM_DEFAULTS: ClassVar[dict[str, Any]] = {}
-    #: time limit (s) of each lifecycle transition; exceeding it faults the robot
-    transition_timeouts_s: ClassVar[dict[Lifecycle, float]] = DEFAULT_TRANSITION_TIMEOUTS_S
-    #: True: PAUSE stops the device by itself (a CiA 402 quick stop ramp; a UR safeguard stop stops
-    #: the arm with its own ramp) and it holds where it stopped, not where core's braking ramp
-    #: ended; core takes the measured position on RESUME
-    stops_itself_on_pause: ClassVar[bool] = False
-    #: the device's speed scaling (0..1) set by its operator (a UR's speed slider), reported to
-    #: clients in ``operating_state``; NaN: the device has none
+    #: the device's speed scaling (0..1) set by its operator (a UR's speed slider), where
+    #: ``traits.speed_scaling``: updated by the backend's ``_read``; NaN: not known (yet)
     speed_fraction: float = float("nan")
 
     def __init__(self, profile: Profile, *, source: str = "<profile>"):
@@ -405,16 +469,40 @@ class Actuator(abc.ABC):
         self.n = len(self.joint_names)
         self._open = False
         self._enabled = False
+        self._traits: Traits | None = None
         #: the device's last reported status (see :meth:`report_status`)
         self.device_status = DeviceStatus.OK
         self._status_news: tuple[DeviceStatus, Fault | None] | None = None
+        self._read_fault: Fault | None = None  # the last read's fault (None: it succeeded)
 
     # ---- start-up path (may block, raises BackendError) ----
     def open(self) -> None:
         """Open the bus and check every device answers. Blocks. Raises BackendError."""
         if not self._open:
             self._open_hook()
+            if self._traits is None:  # final: a second open (after close) declares nothing new
+                try:
+                    traits = self._traits_hook()
+                except BaseException:
+                    self._close_hook()
+                    raise
+                if traits.n != self.n:
+                    self._close_hook()
+                    raise BackendError(f"{self.robot}: {type(self).__name__} declared traits for {traits.n} "
+                                       f"joints, the profile has {self.n}")
+                self._traits = traits
             self._open = True
+
+    @property
+    def traits(self) -> Traits:
+        """What the backend declares about itself (:class:`Traits`): immutable, final once open.
+        Raises BackendError before the first :meth:`open` (a CiA 402 drive's capabilities are
+        read from the drive)."""
+        traits = self._traits
+        if traits is None:
+            raise BackendError(f"{self.robot}: the {type(self).__name__} traits were read before open(); "
+                               f"they are final only once the backend is open")
+        return traits
 
     def configure(self) -> None:
         """Write the device configuration from the profile; torque stays off. Blocks."""
@@ -453,11 +541,11 @@ class Actuator(abc.ABC):
         ENABLE holds the joints where they are (no surprise motion): ``feedback`` is the latest
         measured state; backends set fresh goals from the device itself before torque on.
         DISABLE stops the real-time writes at once (before its first step). HOME is legal only
-        when :attr:`native_homing`. Does not touch the bus itself; the first step does.
+        when ``traits.native_homing``. Does not touch the bus itself; the first step does.
         """
         on_finish = None
         if kind is Lifecycle.ENABLE:
-            steps = self._enable_steps(feedback if feedback is not None else self.new_feedback())
+            steps = self._enable_then_fresh(feedback if feedback is not None else self.new_feedback())
             on_finish = self._finished_enable
         elif kind is Lifecycle.DISABLE:
             self._enabled = False  # no goal goes out from now on
@@ -469,51 +557,52 @@ class Actuator(abc.ABC):
         elif kind is Lifecycle.FAULT_RESET:
             steps = self._fault_reset_steps()
         elif kind is Lifecycle.HOME:
-            if not self.native_homing:
+            if not self.traits.native_homing:
                 raise BackendError(f"{self.robot}: the backend does not home natively")
             steps = self._home_steps()
         else:  # pragma: no cover - Lifecycle is closed
             raise ValueError(kind)
-        return Transition(self.robot, kind, steps, self.transition_timeout_s(kind), on_finish)
+        return Transition(self.robot, kind, steps, self._timeout_s(kind), on_finish)
 
-    def begin_fault_reaction(self) -> Transition:
-        """The transition core runs when the robot enters FAULT and ``fault_reaction`` is
-        TORQUE_OFF (kind DISABLE, stepped like any). Default: the DISABLE transition. A robot on
-        several buses (the composite) overrides it to apply each bus's own reaction."""
-        return self.begin(Lifecycle.DISABLE)
+    def _timeout_s(self, kind: Lifecycle) -> float:
+        # close() may run the DISABLE of a backend whose open failed before it declared its traits
+        return self._traits.timeout_s(kind) if self._traits is not None else DEFAULT_TRANSITION_TIMEOUTS_S[kind]
 
     def _finished_enable(self) -> None:
         self._enabled = True
 
-    def transition_timeout_s(self, kind: Lifecycle) -> float:
-        """The backend's time limit (s) for transition ``kind`` (may depend on the profile)."""
-        return self.transition_timeouts_s.get(kind, DEFAULT_TRANSITION_TIMEOUTS_S[kind])
-
-    @property
-    def native_homing(self) -> bool:
-        """True when the backend homes itself (``_home_steps`` implemented)."""
-        return type(self)._home_steps is not Actuator._home_steps
-
-    def run(self, transition: Transition, interval_s: float = 0.001) -> None:
-        """Run ``transition`` to its end outside the loop (start-up, shutdown, tests). Blocks;
-        sleeps ``interval_s`` between steps. Raises what a step raises, or BackendError after the
-        transition's time limit (the transition is aborted)."""
-        deadline = time.monotonic() + transition.timeout_s
-        while not transition.step():
-            if time.monotonic() > deadline:
-                transition.abort()
-                raise BackendError(f"{self.robot}: {transition.kind.value} did not finish within "
-                                   f"{transition.timeout_s:g} s")
-            time.sleep(interval_s)
+    def _enable_then_fresh(self, feedback: JointFeedback) -> Steps:
+        """The backend's ENABLE steps, ending with the pose the joints are held at in
+        ``feedback`` (core holds exactly there, never a stale pose: a joint may have sagged while
+        torque was off). An ENABLE done in one step writes it into ``feedback`` itself; one
+        stepped over cycles ends in a later cycle whose read succeeded (its sample is core's),
+        trying ENABLE_FRESH_READ_CYCLES reads (a loaded host may miss one reply: not a FAULT for
+        one late byte); none: BackendError. Nothing here touches the bus: the cycle reads it."""
+        inner = self._enable_steps(feedback)
+        stepped = False
+        try:
+            for _ in inner:
+                stepped = True
+                yield
+        finally:
+            inner.close()
+        if not stepped:
+            return
+        for _ in range(ENABLE_FRESH_READ_CYCLES):
+            yield
+            if self._read_fault is None:
+                return
+        raise BackendError(f"{self.robot}: no fresh position after torque on: {self._read_fault.message}")
 
     def enable(self, feedback: JointFeedback) -> None:
-        """The ENABLE transition run to its end (:meth:`run`). Blocks. Raises BackendError."""
-        self.run(self.begin(Lifecycle.ENABLE, feedback))
+        """The ENABLE transition run to its end, cycle by cycle (:func:`~crtk_bridge.core.cycle.run_transition`:
+        wait, read, step, write, as in the loop). Blocks. Raises BackendError."""
+        run_transition(self, self.begin(Lifecycle.ENABLE, feedback))
 
     def disable(self) -> None:
-        """The DISABLE transition run to its end. Blocks. Raises BackendError if a joint did not
-        confirm torque off."""
-        self.run(self.begin(Lifecycle.DISABLE))
+        """The DISABLE transition run to its end, cycle by cycle. Blocks. Raises BackendError if
+        a joint did not confirm torque off."""
+        run_transition(self, self.begin(Lifecycle.DISABLE))
 
     # ---- calibration (docs/calibration.md): joints moved by hand while DISABLED ----
     def calibration_begin(self) -> Steps:
@@ -543,6 +632,13 @@ class Actuator(abc.ABC):
         joint -> the backend's ``calibration`` keys. Never touches the bus. Raises BackendError."""
         raise BackendError(f"{self.robot}: the {self.profile.backend_type} backend cannot import {fmt} calibrations")
 
+    def lerobot_maps(self) -> list[dict[str, list[float]] | None]:
+        """Per joint: ``{mode: [scale, bias]}``, LeRobot's number in each of its norm modes
+        (``degrees``, ``range_m100_100``, ``range_0_100``) as ``scale * value + bias`` of the
+        joint's SI value, from the joint's calibration, or None where LeRobot has no such number
+        (docs/protocol.md, "LeRobot units"; ``list`` carries them). Default: None for every joint."""
+        return [None] * self.n
+
     # ---- device status (backend -> core) ----
     def report_status(self, status: DeviceStatus, cause: Fault | None = None) -> None:
         """Called by the backend (from ``_read`` or a step) when the device's status changes.
@@ -559,19 +655,21 @@ class Actuator(abc.ABC):
             self._status_news = None
         return news
 
-    # ---- pacing ----
+    # ---- pacing (``traits.clock`` is Clock.DEVICE) ----
     def cycle_period_s(self) -> float | None:
-        """The hardware's cycle period (s) when it paces the loop, else None (the profile's
-        ``loop.rate_hz`` rules). Default: ``1 / capabilities.native_rate_hz`` when
-        ``paces_cycle``."""
-        rate = self.capabilities.native_rate_hz
-        return 1.0 / rate if self.paces_cycle and rate else None
+        """The device's cycle period (s) when it paces the loop (``traits.clock`` is
+        Clock.DEVICE), else None (the profile's ``loop.rate_hz`` rules). Default: None. Known from
+        the profile, before open (docs/protocol.md's stopping table is computed from it)."""
+        return None
 
-    def wait_cycle(self, timeout_s: float) -> bool:
-        """Block until the hardware's next cycle (its next packet arrived, or the SYNC went
-        out), at most ``timeout_s``. Returns False on timeout (the read that follows reports
-        the cause). Called by the loop instead of sleeping when ``paces_cycle``."""
-        raise NotImplementedError(f"{type(self).__name__} sets paces_cycle but has no wait_cycle")
+    def wait_cycle(self, deadline: float) -> bool:
+        """The start of the cycle scheduled at ``deadline`` (``time.perf_counter``; the cycle
+        runner's schedule, core/cycle.py), called first thing in every cycle. On the loop's clock
+        the runner has slept to ``deadline`` already: a backend does what starts its cycle (a
+        CANopen SYNC). On the device's clock (``traits.clock`` Clock.DEVICE) it blocks until the
+        device's next packet, giving up one period after ``deadline``. Returns False when
+        nothing came (the read that follows reports the cause). Default: nothing to do (True)."""
+        return True
 
     # ---- simulator wiring ----
     @classmethod
@@ -590,21 +688,80 @@ class Actuator(abc.ABC):
     def read(self, feedback: JointFeedback) -> Fault | None:
         """Fill ``feedback`` in place from one bus transaction. Never raises."""
         try:
-            return self._read(feedback)
+            fault = self._read(feedback)
         except Exception as exc:  # a backend bug must fault the robot, not kill the loop
-            return Fault("backend_exception", f"{self.robot}: read failed: {exc!r}", transient=False)
+            fault = Fault("backend_exception", f"{self.robot}: read failed: {exc!r}", transient=False)
+        self._read_fault = fault
+        return fault
 
     def write(self, command: JointCommand) -> Fault | None:
-        """Send ``command`` in one bus transaction. Never raises."""
-        try:
-            return self._write(command)
-        except Exception as exc:
-            return Fault("backend_exception", f"{self.robot}: write failed: {exc!r}", transient=False)
+        """Send ``command`` in one bus transaction. Never raises.
 
-    def joint_capabilities(self, i: int) -> Capabilities:
-        """What joint ``i`` can do. Default: the backend's :attr:`capabilities`; a backend that
-        knows per joint (a current-sensing servo beside one without) overrides it."""
-        return self.capabilities
+        The one finiteness gate of every backend: a joint whose setpoint (the field its mode
+        follows, and a position's velocity feed-forward) or a cartesian row whose pose or twist
+        is not finite is handed to ``_write`` in :attr:`CommandMode.NONE` (its joints keep their
+        last goal; the others are sent) and the write returns a non-transient ``invalid_command``
+        Fault naming the robot and joint, so core faults the robot. No backend checks NaN itself."""
+        refused = None if _all_finite(command) else self._refuse_non_finite(command)
+        try:
+            fault = self._write(command)
+        except Exception as exc:
+            fault = Fault("backend_exception", f"{self.robot}: write failed: {exc!r}", transient=False)
+        if refused is None:
+            return fault
+        fault_out, modes, cart_modes = refused
+        command.mode[:] = modes  # the caller's buffer as it was
+        if cart_modes is not None:
+            command.cartesian.mode[:] = cart_modes
+        return fault_out
+
+    def _refuse_non_finite(self, command: JointCommand) -> tuple[Fault, np.ndarray, np.ndarray | None] | None:
+        """Set every joint (cartesian row) with a non-finite setpoint to NONE for this write; ->
+        (the Fault naming the first, the modes to restore), or None when all is finite after all
+        (a sum that overflowed)."""
+        first = None
+        modes = command.mode.copy()
+        for i in range(self.n):
+            m = modes[i]
+            if m == _POSITION:
+                fields = ("position", command.position[i]), ("velocity", command.velocity[i])
+            elif m == _VELOCITY:
+                fields = (("velocity", command.velocity[i]),)
+            elif m == _EFFORT:
+                fields = (("effort", command.effort[i]),)
+            else:
+                continue
+            bad = next(((f, v) for f, v in fields if not np.isfinite(v)), None)
+            if bad is not None:
+                command.mode[i] = _NONE_MODE
+                if first is None:
+                    name = self.joint_names[i]
+                    first = Fault("invalid_command", f"{self.robot}: joint {name!r}: {bad[0]} setpoint {bad[1]} "
+                                  "is not finite; not sent (the joint keeps its last goal)", joint=name,
+                                  transient=False)
+        cart, cart_modes = command.cartesian, None
+        if cart is not None:
+            rows = self.cartesian_namespaces()
+            cart_modes = cart.mode.copy()
+            for k in range(len(cart_modes)):
+                m = cart_modes[k]
+                if m == CartesianMode.TWIST:
+                    ok = np.isfinite(cart.linear[k]).all() and np.isfinite(cart.angular[k]).all()
+                    what = "twist"
+                elif m in (CartesianMode.POSE, CartesianMode.MOVE):
+                    ok = np.isfinite(cart.position[k]).all() and np.isfinite(cart.orientation[k]).all()
+                    what = "pose"
+                else:
+                    continue
+                if not ok:
+                    cart.mode[k] = CartesianMode.NONE
+                    if first is None:
+                        first = Fault("invalid_command", f"{self.robot}: namespace {rows[k]!r}: cartesian {what} "
+                                      "setpoint is not finite; not sent (the arm keeps its last goal)",
+                                      transient=False)
+        if first is None:
+            return None
+        return first, modes, cart_modes
 
     def deceleration_limit(self, i: int) -> float:
         """rad/s^2: the most joint ``i``'s hardware decelerates at as configured (a servo's own
@@ -612,15 +769,11 @@ class Actuator(abc.ABC):
         (:func:`~crtk_bridge.profile.stop_deceleration`). Default: unbounded (inf)."""
         return float("inf")
 
-    def capabilities_of(self, joints: Sequence[int]) -> Capabilities:
-        """What the joints ``joints`` (indices) can do together, e.g. one namespace's."""
-        return combine_capabilities([self.joint_capabilities(i) for i in joints])
-
     def cartesian_namespaces(self) -> list[str]:
         """The namespaces this backend controls in cartesian space itself, in the order of the
         rows of :class:`CartesianCommand` / :class:`CartesianFeedback`. Default: with
-        ``capabilities.native_cartesian``, every namespace with a ``kinematics`` section."""
-        if not self.capabilities.native_cartesian:
+        ``traits.capabilities.native_cartesian``, every namespace with a ``kinematics`` section."""
+        if not self.traits.capabilities.native_cartesian:
             return []
         return [ns.name for ns in self.profile.namespaces if ns.kinematics is not None]
 
@@ -630,7 +783,8 @@ class Actuator(abc.ABC):
         goes on) and starts the move once they end. ``goal``: the namespace's joint positions
         (``move_jp``) or the pose ``[x, y, z, qx, qy, qz, qw]`` (``move_cp`` on a native cartesian
         namespace). They raise :class:`~crtk_bridge.errors.CommandError` (``out_of_limits``, the
-        message naming the joint or pose) to refuse the move. None (the default): no such check."""
+        message naming the joint or pose) to refuse the move. None (the default): no such check.
+        Called only when ``traits.goal_check``."""
         return None
 
     def new_feedback(self) -> JointFeedback:
@@ -649,7 +803,7 @@ class Actuator(abc.ABC):
         return JointCommand(np.zeros(self.n, dtype=np.uint8), z.copy(), z.copy(), z.copy(), cart)
 
     def info(self) -> ActuatorInfo:
-        return ActuatorInfo(list(self.joint_names), self.capabilities)
+        return ActuatorInfo(list(self.joint_names))
 
     @staticmethod
     def now() -> float:
@@ -659,19 +813,23 @@ class Actuator(abc.ABC):
     @abc.abstractmethod
     def _open_hook(self) -> None: ...
 
+    @abc.abstractmethod
+    def _traits_hook(self) -> Traits:
+        """The backend's :class:`Traits`, called once by :meth:`open` right after ``_open_hook``
+        (so what the devices said is known); final from then on."""
+
     def _configure_hook(self) -> None:
         pass
 
+    @abc.abstractmethod
     def _enable_steps(self, feedback: JointFeedback) -> Steps:
-        """Steps of ENABLE. Default: the blocking :meth:`_enable_hook` in one step."""
-        self._enable_hook(feedback)
-        yield from ()
+        """Steps of ENABLE: torque on, holding where the joints are. Steps that end without
+        yielding (all done in the first step) leave the pose they hold in ``feedback``; stepped
+        over cycles, the cycle's read after the last step gives it (:meth:`_enable_then_fresh`)."""
 
+    @abc.abstractmethod
     def _disable_steps(self) -> Steps:
-        """Steps of DISABLE (torque off on every joint). Default: :meth:`_disable_hook` in one
-        step."""
-        self._disable_hook()
-        yield from ()
+        """Steps of DISABLE (torque off on every joint; also core's reaction to a FAULT)."""
 
     def _pause_steps(self) -> Steps:
         """Steps of PAUSE (core already holds every joint). Default: nothing to do."""
@@ -686,18 +844,10 @@ class Actuator(abc.ABC):
         yield from ()
 
     def _home_steps(self) -> Steps:
-        """Steps of native homing (incremental encoders). Not implemented = core homes by moving
-        to the profile's ``home`` positions."""
+        """Steps of native homing (incremental encoders), where ``traits.native_homing``; else
+        core homes by moving to the profile's ``home`` positions."""
         raise NotImplementedError
         yield  # pragma: no cover
-
-    def _enable_hook(self, feedback: JointFeedback) -> None:
-        """Blocking enable, for backends without ``_enable_steps`` of their own."""
-        raise NotImplementedError(f"{type(self).__name__} implements neither _enable_steps nor _enable_hook")
-
-    def _disable_hook(self) -> None:
-        """Blocking torque off, for backends without ``_disable_steps`` of their own."""
-        raise NotImplementedError(f"{type(self).__name__} implements neither _disable_steps nor _disable_hook")
 
     @abc.abstractmethod
     def _close_hook(self) -> None: ...
@@ -708,6 +858,24 @@ class Actuator(abc.ABC):
     @abc.abstractmethod
     def _write(self, command: JointCommand) -> Fault | None: ...
 
+
+_POSITION, _VELOCITY, _EFFORT, _NONE_MODE = (int(CommandMode.POSITION), int(CommandMode.VELOCITY),
+                                             int(CommandMode.EFFORT), int(CommandMode.NONE))
+
+
+def _all_finite(command: JointCommand) -> bool:
+    """True when every number of ``command`` is finite (the cycle's fast path: a sum is finite
+    only if every term is; False may also mean a finite sum that overflowed, checked joint by joint)."""
+    # Python floats: an overflow is inf, never a warning; a third of numpy's cost on a few joints
+    total = sum(command.position.tolist()) + sum(command.velocity.tolist()) + sum(command.effort.tolist())
+    cart = command.cartesian
+    if cart is not None:
+        total += (sum(cart.position.ravel().tolist()) + sum(cart.orientation.ravel().tolist())
+                  + sum(cart.linear.ravel().tolist()) + sum(cart.angular.ravel().tolist()))
+    return math.isfinite(total)
+
+
+from .cycle import run_transition  # noqa: E402 - the runner needs nothing of this module at import
 
 # ---------------------------------------------------------------- ruckig, for the motion layer and
 # backends that plan on their own (a UR's move_cp)

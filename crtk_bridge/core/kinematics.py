@@ -45,6 +45,7 @@ except ImportError as exc:  # pragma: no cover - depends on the installation
     ) from exc
 
 from ..errors import ProfileError
+from ..vectors import matrix_from_quaternion, quaternion_from_matrix  # noqa: F401 - used here and re-exported
 
 _FRAMES = {"spatial": pin.ReferenceFrame.LOCAL_WORLD_ALIGNED, "body": pin.ReferenceFrame.LOCAL}
 
@@ -72,29 +73,6 @@ _TWIST_SINGULAR_BAND = 0.02  # m/rad
 _TWIST_DAMP_P = 1e-4  # m^2 at the singularity
 _TWIST_DAMP_O = 1e-4  # rad^2, orientation in the nullspace (as the IK floor)
 _BEYOND_REACH_ITER = 10  # singular values below this are treated as 0 for the nullspace projector
-
-
-def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``[x, y, z, w]`` (``w >= 0``) of a 3x3 rotation matrix."""
-    c = pin.Quaternion(R).coeffs()  # Eigen coeffs() order is x, y, z, w
-    return -c if c[3] < 0 else c
-
-
-def matrix_from_quaternion(quat: Sequence[float]) -> np.ndarray:
-    """3x3 rotation matrix of a quaternion ``[x, y, z, w]``; normalised first. Raises ValueError
-    on a zero or non-finite quaternion."""
-    x, y, z, w = (float(v) for v in quat)
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    if not (n > 1e-9 and math.isfinite(n)):
-        raise ValueError(f"quaternion [x, y, z, w] = {list(quat)} has no direction")
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 class Kinematics:

@@ -1,7 +1,8 @@
 """The control process: the real-time loop around the backend and the controller.
 
 Each cycle, at the ONE effective period (:func:`~crtk_bridge.core.actuator.effective_period_s`:
-the profile's rate, or the hardware's when the backend paces the cycle): read -> requests + state machine -> motion -> limits -> write
+the profile's rate, or the hardware's when the backend paces the cycle), run by the ONE cycle
+runner (core/cycle.py: wait -> read -> requests + state machine -> motion -> limits -> write), then
 -> publish snapshot -> push the cycle's sample into the ring (core/samples.py: recording, black
 box) -> send replies and events. It asks for SCHED_FIFO and mlockall (and says once,
 with a ``realtime_unavailable`` warning, when it cannot), freezes the GC after start-up, and keeps
@@ -34,6 +35,7 @@ from ..errors import CrtkBridgeError
 from ..profile import Profile
 from .actuator import Actuator, Fault, Lifecycle, effective_period_s
 from .control import Controller
+from .cycle import CycleRunner
 from .samples import SampleRing
 from .snapshot import RING, SnapshotBuffer
 from .state import OperatingState
@@ -115,7 +117,7 @@ class ControlLoop:
         self.realtime = realtime
         self.period = effective_period_s(profile, actuator)  # computed once; everyone uses it
         self.controller = Controller(profile, actuator, steady_epoch_clock(), self.period)
-        self.feedback = actuator.new_feedback()
+        self.runner = CycleRunner(actuator, self.period)  # the one cycle: wait, read, step, write
         self.pending: deque[bytes] = deque()  # messages the pair could not take yet
         self.running = True
         self.front_alive = True
@@ -243,10 +245,10 @@ class ControlLoop:
         problems = request_realtime(self.profile.loop.realtime_priority, self.profile.loop.cpu) if self.realtime else ["disabled by --no-realtime"]
         if problems:
             c.event("warning", "realtime_unavailable",
-                     f"{self.profile.name}: running without full real-time guarantees: " + "; ".join(problems))
-        # prime the measured state before anyone can enable
-        fault = self.actuator.read(self.feedback)
-        c.on_read(self.feedback, fault)
+                    f"{self.profile.name}: running without full real-time guarantees: " + "; ".join(problems))
+        # prime the measured state before anyone can enable: one cycle, before any request
+        runner = self.runner
+        runner.cycle(c)
         c.push_state()
         self._publish()
         samples = self.samples
@@ -267,35 +269,23 @@ class ControlLoop:
         ring_index = v["ring_index"]
         lateness = v["lateness"]
         compute = v["compute"]
-        period = self.period
-        paced = self.actuator.paces_cycle
-        wait_cycle = self.actuator.wait_cycle
         clock = time.perf_counter
-        next_t = clock() + period
+        receive = self._receive
+        runner.restart()
         i = 0
         while (self.running and self.front_alive) or self._parking():
-            now = clock()
-            delay = next_t - now
-            if paced:  # the hardware says when the cycle starts (its packet, its SYNC)
-                wait_cycle(max(delay, 0.0) + period)
-            elif delay > 0:
-                time.sleep(delay)
-            t0 = clock()
-            late = t0 - next_t
+            runner.wait()  # the device's clock (its packet) or the loop's (then the backend's start: a SYNC)
+            t0 = runner.t0
             # -- the cycle --
             try:
-                fault = self.actuator.read(self.feedback)
-                c.on_read(self.feedback, fault)
-                self._receive()
-                if c.step():  # also advances a lifecycle transition by one step
-                    c.on_write(self.actuator.write(c.command))
+                runner.work(c, receive)  # read -> requests -> step (transition, motion) -> write
             except Exception as exc:  # a bug must fault the robot, not kill the loop
                 c.enter_fault(Fault("internal", f"{self.profile.name}: control loop error: {exc!r}",
-                                     transient=False))
+                                    transient=False))
             # stats go in before the snapshot is published, so the same seqlock covers them
             i += 1
             slot = i % RING
-            lateness[slot] = late
+            lateness[slot] = runner.late
             compute[slot] = clock() - t0
             cycles[0] = i
             ring_index[0] = slot
@@ -303,14 +293,9 @@ class ControlLoop:
             if samples is not None:  # a copy into pre-allocated shared memory, never blocks
                 samples.push(i, epoch + t0, state)
             self._flush()
-            # -- schedule the next cycle; after an overrun, skip ahead instead of bursting --
-            # (paced: the next beat is expected one period after this one started)
-            next_t = (t0 if paced else next_t) + period
-            if clock() > next_t:
-                overruns[0] += 1
-                if not paced:
-                    missed = int((clock() - next_t) / period) + 1
-                    next_t += missed * period
+            # -- the next cycle's start; after an overrun, skip ahead instead of bursting --
+            runner.schedule()
+            overruns[0] = runner.overruns
         self.shutdown()
         return 0
 
@@ -326,30 +311,30 @@ class ControlLoop:
             if sd.action != "park" or self.abort_park or not active or not c.park():
                 if active:
                     c.event("status", "shutdown_torque_off", f"{name}: shutting down: torque off "
-                             f"(shutdown.action: {sd.action})")
+                            f"(shutdown.action: {sd.action})")
                 return False
             self._park_t0 = now
             self._park_deadline = now + sd.timeout_s
             c.event("status", "shutdown_park", f"{name}: shutting down: parking at the rest pose "
-                     f"(shutdown.action: park, within {sd.timeout_s:g} s), then torque off")
+                    f"(shutdown.action: park, within {sd.timeout_s:g} s), then torque off")
             return True
         took = now - self._park_t0
         if c.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
             c.event("warning", "shutdown_park_aborted", f"{name}: park ended by {c.state.value} after {took:.2f} s; "
-                     "torque off")
+                    "torque off")
         elif self.abort_park:
             c.event("warning", "shutdown_park_aborted", f"{name}: park cut short by a second signal after "
-                     f"{took:.2f} s; torque off")
+                    f"{took:.2f} s; torque off")
         elif now > self._park_deadline:
             c.event("warning", "shutdown_park_timeout", f"{name}: the rest pose was not reached within "
-                     f"shutdown.timeout_s = {sd.timeout_s:g} s; torque off")
+                    f"shutdown.timeout_s = {sd.timeout_s:g} s; torque off")
         elif c.in_motion():
             return True
         elif c.at_rest_pose():
             c.event("status", "shutdown_parked", f"{name}: parked at the rest pose in {took:.2f} s; torque off")
         else:
             c.event("warning", "shutdown_park_aborted", f"{name}: park stopped short of the rest pose after "
-                     f"{took:.2f} s (a stop command); torque off")
+                    f"{took:.2f} s (a stop command); torque off")
         return False
 
     def request_stop(self) -> None:
@@ -408,7 +393,8 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
     except Exception as exc:
         chan.send(_encode({"event": "_startup_failed", "data": {"message": f"{profile.name}: {exc!r}"}}))
         return 1
-    caps = actuator.capabilities
+    traits = actuator.traits
+    caps = traits.capabilities
     loop = ControlLoop(profile, actuator, chan, snapshot, realtime=realtime, samples=samples)
     loop_ref["loop"] = loop
     c = loop.controller
@@ -421,11 +407,12 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
         "capabilities": as_dict(caps),
         "period_s": loop.period,  # the ONE effective period: the front's rates and statistics
         # the longest a state command may take before the loop itself replies (its time limit)
-        "transition_timeout_s": 2 * max(actuator.transition_timeout_s(k) for k in Lifecycle
-                                        if k is not Lifecycle.HOME or actuator.native_homing),
+        "transition_timeout_s": 2 * max(traits.timeout_s(k) for k in Lifecycle
+                                        if k is not Lifecycle.HOME or traits.native_homing),
         "namespace_commands": c.namespace_commands(),  # motion commands per namespace
         "namespace_capabilities": {ns: as_dict(cap) for ns, cap in c.ns_caps.items()},
         "native_cartesian": list(c.native_cartesian),  # namespaces whose backend does cartesian control
+        "lerobot_maps": actuator.lerobot_maps(),  # per joint: LeRobot's numbers of its SI value (list)
     }}
     for _ in range(signals["count"] - loop._signals):  # those that came before the loop existed
         loop.request_stop()

@@ -19,6 +19,12 @@ Levels and what they produce each cycle (crtk-spec 4.1.1, setpoint fields per 4.
 | HOLD     | the last position setpoint | p | position |
 | FREE     | nothing: torque off on these joints (`free`) | – | free |
 
+Limits in one place (docs/architecture.md): this layer's output (:meth:`NamespaceMotion.fill`)
+is the one guarantee of the profile's limits -- positions within ``[position_min,
+position_max]`` (or coming back toward them), velocities within ``velocity_max``, efforts within
+``effort_max`` -- and :meth:`~crtk_bridge.core.actuator.Actuator.write` refuses a non-finite
+setpoint for every backend; backends clamp only to their devices' own ranges.
+
 Velocity bounds, on every path: every velocity that enters this layer (servo_jv, interpolate_jv
 goals, the servo_jp feed-forward, the velocity a new interpolate_jv ramp or move starts from) is
 clipped to each joint's ``velocity_max``, and the position setpoint never moves faster than
@@ -523,6 +529,10 @@ class NamespaceMotion:
                 # their own (velocity-bounded) rate: it may not go farther out, nor jump onto the limit
                 lo, hi = self._bounds(self._filled)
                 np.clip(self.setpoint_p, lo, hi, out=self.setpoint_p)
+        # the velocity and effort stage: every path bounds them already (above); this is the
+        # output's own guarantee, so no backend clamps to a profile limit
+        np.clip(self.setpoint_v, -self.vel_max, self.vel_max, out=self.setpoint_v)
+        np.clip(self.setpoint_f, -self.eff_max, self.eff_max, out=self.setpoint_f)
         self._filled[:] = self.setpoint_p
         cmd.position[idx] = self.setpoint_p
         cmd.velocity[idx] = self.setpoint_v

@@ -38,12 +38,13 @@ from typing import Any
 
 import numpy as np
 
+from .. import vectors
 from ..errors import CommandError, fmt_number
 from ..profile import Safety
 
 from .actuator import FRAME_BODY, FRAME_SPATIAL, CartesianCommand, CartesianFeedback, CartesianMode, CommandMode
 from .motion import NamespaceMotion
-from .twist import parse_twist, parse_vectors
+from .twist import parse_twist
 
 POSE_COMMANDS = ("servo_cp", "interpolate_cp", "move_cp")
 NATIVE_COMMANDS = POSE_COMMANDS + ("servo_cv", "interpolate_cv")
@@ -82,9 +83,9 @@ class NativeCartesian:
         return self.mode is CartesianMode.MOVE and self.done_seq < self.seq
 
     def command(self, cmd: str, data: Any, now: float, measured: CartesianFeedback) -> None:
-        """Take ``cmd`` (validated here; ValueError with a one-line message naming the namespace
-        and field, CommandError for a step or twist beyond the ``safety`` bounds; nothing
-        changes then). ``measured``: the latest feedback, the base of a stream's first step. The
+        """Take ``cmd`` (validated here: :class:`~crtk_bridge.vectors.InvalidVector` naming the
+        namespace and field, CommandError for a step or twist beyond the ``safety`` bounds;
+        nothing changes then). ``measured``: the latest feedback, the base of a stream's first step. The
         namespace's joint motion holds and is no longer written."""
         ns = self.motion.name
         if cmd in POSE_COMMANDS:
@@ -127,12 +128,11 @@ class NativeCartesian:
         else:
             raise CommandError("invalid_state", f"{ns}: {cmd} refused: the backend reports no measured pose "
                                "to bound the step from")
-        dist = float(np.linalg.norm(p - base_p))
+        dist = vectors.distance(p, base_p)
         if dist > sf.cartesian_step_max:
             raise CommandError("step_too_large", f"{ns}: {cmd} refused: the tip would jump {fmt_number(dist)} m "
                                f"from {what} (safety.cartesian_step_max = {sf.cartesian_step_max})")
-        angle = 2.0 * float(np.arccos(min(1.0, abs(float(np.dot(q, base_q)))
-                                          / max(float(np.linalg.norm(base_q)), 1e-12))))
+        angle = vectors.rotation_angle(q, base_q)
         if angle > sf.cartesian_rotation_step_max:
             raise CommandError("step_too_large", f"{ns}: {cmd} refused: the tip would turn {fmt_number(angle)} rad "
                                f"from {what} (safety.cartesian_rotation_step_max = "
@@ -140,8 +140,8 @@ class NativeCartesian:
 
     def _check_twist(self, cmd: str, twist: np.ndarray) -> None:
         ns, sf = self.motion.name, self.safety
-        for speed, key, unit in ((float(np.linalg.norm(twist[:3])), "cartesian_velocity_max", "m/s"),
-                                 (float(np.linalg.norm(twist[3:])), "cartesian_angular_velocity_max", "rad/s")):
+        for speed, key, unit in ((vectors.norm(twist[:3]), "cartesian_velocity_max", "m/s"),
+                                 (vectors.norm(twist[3:]), "cartesian_angular_velocity_max", "rad/s")):
             bound = getattr(sf, key)
             if speed > bound:
                 raise CommandError("out_of_limits", f"{ns}: {cmd} refused: {'linear' if unit == 'm/s' else 'angular'} "
@@ -186,12 +186,8 @@ class NativeCartesian:
 
 def parse_pose(ns: str, cmd: str, data: Any) -> tuple[np.ndarray, np.ndarray]:
     """``{"position": [3], "orientation": [4]}`` -> (position, unit quaternion [x, y, z, w]).
-    Raises ValueError naming the namespace and field."""
-    out = parse_vectors(ns, cmd, data, (("position", 3), ("orientation", 4)))
-    norm = float(np.linalg.norm(out[1]))
-    if not 0.5 < norm < 1.5:
-        raise ValueError(f"{ns}: {cmd} orientation must be a unit quaternion [x, y, z, w]")
-    return out[0], out[1] / norm
+    Raises :class:`~crtk_bridge.vectors.InvalidVector` naming the namespace and field."""
+    return vectors.pose(data, f"{ns}: {cmd}")
 
 
 def build_native_cartesian(namespaces: dict[str, NamespaceMotion], rows: list[str],

@@ -1,5 +1,5 @@
 """Every control cycle's sample, handed from the control process to the front through a ring in
-shared memory (docs/architecture.md, "Recording"). The snapshot (snapshot.py) is the latest
+shared memory (docs/architecture.md, "Recording: the sample ring"). The snapshot (snapshot.py) is the latest
 value only; this ring keeps the last ``capacity`` cycles, so a reader that wakes every few tens of
 milliseconds still sees every cycle.
 

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import vectors
 from ..profile import Profile
 from .motion import Mode, NamespaceMotion
 
@@ -123,34 +124,15 @@ class TwistMotion:
         return qd
 
 
-def parse_vectors(ns: str, cmd: str, data: Any, fields: tuple[tuple[str, int], ...]) -> list[np.ndarray]:
-    """The named fixed-length float vectors of a command's data, e.g. ``(("linear", 3), ...)``.
-    Raises ValueError with a one-line message naming the namespace, command and field."""
-    if not isinstance(data, dict):
-        raise ValueError(f"{ns}: {cmd} needs data with " + ", ".join(f"{f!r} ({n} numbers)" for f, n in fields))
-    out = []
-    for field, n in fields:
-        values = data.get(field)
-        if not isinstance(values, (list, tuple)) or len(values) != n:
-            raise ValueError(f"{ns}: {cmd} needs {field!r} with {n} numbers")
-        try:
-            vec = np.array(values, dtype=float)
-        except (TypeError, ValueError):
-            raise ValueError(f"{ns}: {cmd} {field} must be numbers") from None
-        if not np.all(np.isfinite(vec)):
-            raise ValueError(f"{ns}: {cmd} {field} contains a non-finite value")
-        out.append(vec)
-    return out
-
-
 def parse_twist(ns: str, cmd: str, data: Any) -> tuple[np.ndarray, str]:
     """``{"linear": [3], "angular": [3], "frame"?: "spatial"|"body"}`` -> (twist[6], frame).
-    Raises ValueError with a one-line message naming the namespace and the field."""
-    linear, angular = parse_vectors(ns, cmd, data, (("linear", 3), ("angular", 3)))
+    Raises :class:`~crtk_bridge.vectors.InvalidVector` (``bad_request``, a ValueError) with a
+    one-line message naming the namespace and the field."""
+    twist = vectors.six(data, "linear", "angular", f"{ns}: {cmd}")
     frame = data.get("frame", "spatial")
     if frame not in FRAMES:
-        raise ValueError(f"{ns}: {cmd} frame must be one of {', '.join(FRAMES)}, got {frame!r}")
-    return np.concatenate([linear, angular]), frame
+        raise vectors.InvalidVector(f"{ns}: {cmd} frame must be one of {', '.join(FRAMES)}, got {frame!r}")
+    return twist, frame
 
 
 def build_twist_motions(profile: Profile, namespaces: dict[str, NamespaceMotion]) -> dict[str, TwistMotion]:

@@ -40,8 +40,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..core.kinematics import Kinematics, matrix_from_quaternion, quaternion_from_matrix
+from .. import vectors
+from ..core.kinematics import Kinematics
 from ..profile import KinematicsConfig, Profile
+from ..vectors import matrix_from_quaternion, quaternion_from_matrix
 from .protocol import ProtocolError
 
 POSE_CMDS = ("servo_cp", "interpolate_cp", "move_cp")
@@ -260,21 +262,15 @@ class CartesianSpace:
         return q
 
     def _target(self, data: Any, cmd: str) -> tuple[np.ndarray, np.ndarray]:
-        p = self._vec(data, "position", 3, cmd)
-        quat = self._vec(data, "orientation", 4, cmd)
-        norm = float(np.linalg.norm(quat))
-        if not 0.5 < norm < 1.5:
-            raise ProtocolError("bad_request", f"{self.ns}: {cmd} orientation must be a unit quaternion [x, y, z, w]")
-        return p, quat / norm
+        """(position, unit quaternion) of a pose payload (crtk_bridge/vectors.py). Raises ProtocolError."""
+        try:
+            return vectors.pose(data, f"{self.ns}: {cmd}")
+        except vectors.InvalidVector as exc:
+            raise ProtocolError(exc.code, exc.message) from None
 
     def _vec(self, data: Any, field: str, n: int, cmd: str) -> np.ndarray:
-        values = data.get(field) if isinstance(data, dict) else None
-        if not isinstance(values, (list, tuple)) or len(values) != n:
-            raise ProtocolError("bad_request", f"{self.ns}: {cmd} needs {field!r} with {n} numbers")
+        """``data[field]``: ``n`` finite numbers (crtk_bridge/vectors.py). Raises ProtocolError."""
         try:
-            vec = np.array(values, dtype=float)
-        except (TypeError, ValueError):
-            raise ProtocolError("bad_request", f"{self.ns}: {cmd} {field} must be numbers") from None
-        if not np.all(np.isfinite(vec)):
-            raise ProtocolError("bad_request", f"{self.ns}: {cmd} {field} contains a non-finite value")
-        return vec
+            return vectors.field(data, field, n, f"{self.ns}: {cmd}")
+        except vectors.InvalidVector as exc:
+            raise ProtocolError(exc.code, exc.message) from None

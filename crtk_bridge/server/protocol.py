@@ -296,6 +296,18 @@ def encode(msg: Any) -> bytes:
     return _encoder.encode(msg) + b"\n"
 
 
+def frame_head(topic: str, ns: str | None, sub: int) -> bytes:
+    """A stream frame up to its data: ``frame_head(t, ns, k) + encode_body(data) + b"}\\n"`` is
+    ``encode({"topic": t, "ns": ns, "sub": k, "data": data})`` (server/streams.py encodes the
+    data once for every subscriber of a topic)."""
+    return _encoder.encode({"topic": topic, "ns": ns, "sub": sub, "data": None})[:-len(b"null}")]
+
+
+def encode_body(data: Any) -> bytes:
+    """A stream frame's data, encoded once per tick whatever the number of subscribers."""
+    return _encoder.encode(data)
+
+
 def ok(rid: Any, data: Any = None) -> dict:
     return {"id": rid, "ok": True, "data": data}
 

@@ -26,6 +26,7 @@ from .protocol import (
     STATE_COMMANDS, STOP_COMMANDS, TOPICS, MaintenanceCommand, ProtocolError, decode_payload, decode_request, encode,
     error, ok,
 )
+from .streams import Subscriber, TopicStream, tick_all
 
 log = logging.getLogger("crtk_bridge.server")
 
@@ -42,8 +43,9 @@ class Session:
     def __init__(self, sid: int, writer: asyncio.StreamWriter | None, peer: str | None = None):
         self.id = sid
         self.writer = writer
-        self.subs: dict[int, asyncio.Task] = {}
-        self.dropped = 0
+        self.subs: dict[int, Subscriber] = {}
+        self.dropped = 0  # stream frames dropped (period_statistics' frames_dropped adds them up)
+        self._drop_said = -1.0
         self.closed = False
         self.peer = _peer(writer) if peer is None else peer
 
@@ -55,14 +57,27 @@ class Session:
         if not self.closed:
             self.writer.write(encode(msg))
 
-    def send_frame(self, msg: Any) -> None:
-        """A stream frame: dropped while the client is not reading fast enough."""
+    def send_frame(self, line: bytes) -> None:
+        """A stream frame (a JSON line, encoded once for every subscriber of its topic:
+        server/streams.py): dropped, and counted, while the client is not reading fast enough."""
         if self.closed:
             return
         if self.writer.transport.get_write_buffer_size() > SEND_BUFFER_LIMIT:
-            self.dropped += 1
+            self.count_dropped()
             return
-        self.writer.write(encode(msg))
+        self.writer.write(line)
+
+    def flush(self) -> None:
+        """The stream frames of a tick are all sent (a socket writes each at once)."""
+
+    def count_dropped(self, n: int = 1) -> None:
+        """``n`` stream frames were dropped: counted, and said in the log at most once a second."""
+        self.dropped += n
+        now = time.monotonic()
+        if now - self._drop_said >= 1.0:
+            self._drop_said = now
+            log.warning("%s: %d stream frames dropped so far: it reads slower than its subscriptions send "
+                        "(period_statistics' frames_dropped counts every session's)", self.describe(), self.dropped)
 
     def close(self) -> None:
         self.closed = True
@@ -80,8 +95,15 @@ class Server:
         }
         self.socket_path = socket_path
         self.sessions: dict[int, Session] = {}
+        self._streams: dict[tuple[str, str | None], TopicStream] = {}  # (topic, ns) -> its subscribers
+        self._streams_task: asyncio.Task | None = None  # ticks every stream (_run_streams)
+        self._streams_wake: asyncio.Future | None = None  # _run_streams' sleep; a new subscriber ends it
+        self._dropped_before = 0  # stream frames dropped by sessions that ended
+        #: callables adding figures to period_statistics (the ROS graph's skipped ticks)
+        self.statistics: list = []
         self.controller: Session | None = None
         self.state: dict = {"state": "DISABLED", "is_homed": False, "is_busy": False, "busy_seq": 0, "stamp": 0.0}
+        self.last_error: dict | None = None  # the latest error event: the reason of a FAULT
         self._sids = itertools.count(1)
         self._subids = itertools.count(1)
         self._server: asyncio.base_events.Server | None = None
@@ -115,6 +137,8 @@ class Server:
             self.state = msg["data"]
         elif ev in ("error", "warning", "status"):
             d = msg["data"]
+            if ev == "error":
+                self.last_error = msg  # told again to a session that joins while in FAULT (attach)
             level = {"error": logging.ERROR, "warning": logging.WARNING}.get(ev, logging.INFO)
             log.log(level, "%s [%s] %s", ev, d.get("code"), d.get("message"))
         for s in list(self.sessions.values()):
@@ -185,9 +209,12 @@ class Server:
         return next(self._sids)
 
     def attach(self, s: Session) -> None:
-        """Serve a new session: it gets the current operating_state at once (docs/protocol.md)."""
+        """Serve a new session: it gets the current operating_state at once, and in FAULT the error
+        event that caused it (docs/protocol.md)."""
         self.sessions[s.id] = s
         s.send({"event": "operating_state", "data": self.state})
+        if self.state.get("state") == "FAULT" and self.last_error is not None:
+            s.send(self.last_error)
 
     def detach(self, s: Session, client_lost: bool = True) -> None:
         """A session ended (its socket closed, a remote client's liveliness token went away): its
@@ -197,7 +224,8 @@ class Server:
         s.closed = True
         for t in s.subs.values():
             t.cancel()
-        self.sessions.pop(s.id, None)
+        if self.sessions.pop(s.id, None) is not None:
+            self._dropped_before += s.dropped
         for listener in self.detach_listeners:
             try:
                 listener(s)
@@ -309,7 +337,7 @@ class Server:
         if cmd == "operating_state":
             return self.state
         if cmd == "period_statistics":
-            return self.link.period_statistics()
+            return self.period_statistics()
         if cmd == "list":
             return self.describe()
         if cmd == "subscribe":
@@ -380,25 +408,61 @@ class Server:
         self._check_ns("subscribe", base, topic in JOINT_QUERIES or topic in cart_topics)
         rate = min(data["rate_hz"], 1.0 / self.link.period_s)
         sub = next(self._subids)
-        s.subs[sub] = asyncio.get_running_loop().create_task(self._stream(s, sub, topic, ns, 1.0 / rate))
+        loop = asyncio.get_running_loop()
+        stream = self._streams.get((topic, ns))
+        if stream is None:
+            stream = self._streams[(topic, ns)] = TopicStream(topic, ns, self._producer(topic, ns), self._stream_ended)
+        s.subs[sub] = stream.add(s, sub, 1.0 / rate, loop.time())
+        if self._streams_task is None or self._streams_task.done():
+            self._streams_task = loop.create_task(self._run_streams())
+        elif self._streams_wake is not None and not self._streams_wake.done():
+            self._streams_wake.set_result(None)  # its first frame now, not at the next tick
         return {"sub": sub, "rate_hz": rate}
 
-    async def _stream(self, s: Session, sub: int, topic: str, ns: str | None, period: float) -> None:
-        loop = asyncio.get_running_loop()
+    def _producer(self, topic: str, ns: str | None):
+        """The data of ``topic`` on ``ns`` now (a stream's one read a tick)."""
         base, frame = self._frame(topic, ns)
         cs = self.cartesian.get(base) if base else None
-        next_t = loop.time()
-        while not s.closed:
-            if topic in JOINT_QUERIES:
-                data = self.link.joint_state(topic, ns)
-            elif topic == "operating_state":  # robot-wide, with or without a (cartesian) ns
-                data = self.state
-            elif topic == "period_statistics":
-                data = self.link.period_statistics()
-            else:
-                data = cs.query(topic, self.link.ns_arrays(base), frame)
-            s.send_frame({"topic": topic, "ns": ns, "sub": sub, "data": data})
-            next_t = await sleep_until_next(next_t, period)
+        if topic in JOINT_QUERIES:
+            return lambda: self.link.joint_state(topic, ns)
+        if topic == "operating_state":  # robot-wide, with or without a (cartesian) ns
+            return lambda: self.state
+        if topic == "period_statistics":
+            return self.period_statistics
+        return lambda: cs.query(topic, self.link.ns_arrays(base), frame)
+
+    async def _run_streams(self) -> None:
+        """Tick every stream when its next subscriber is due, until no stream is left."""
+        loop = asyncio.get_running_loop()
+        while self._streams:
+            due = tick_all(list(self._streams.values()), loop.time())
+            if not self._streams:
+                break  # the last subscriber's session ended
+            delay = due - loop.time()
+            if delay <= 0:
+                await asyncio.sleep(0)  # behind: let the rest of the loop run, never hold it
+                continue
+            wake = self._streams_wake = loop.create_future()
+            timer = loop.call_later(delay, _wake, wake)
+            try:
+                await wake
+            finally:
+                timer.cancel()
+                self._streams_wake = None
+
+    def _stream_ended(self, stream: TopicStream) -> None:
+        if self._streams.get((stream.topic, stream.ns)) is stream:
+            del self._streams[(stream.topic, stream.ns)]
+
+    def period_statistics(self) -> dict:
+        """The control loop's statistics, and ``frames_dropped``: the stream frames the front dropped
+        for every session since it started (a client reading slower than it subscribed); with the
+        ROS graph, ``ros_ticks_skipped``."""
+        stats = self.link.period_statistics()
+        stats["frames_dropped"] = self._dropped_before + sum(s.dropped for s in self.sessions.values())
+        for more in self.statistics:
+            stats.update(more())
+        return stats
 
     def describe(self) -> dict:
         namespaces = []
@@ -414,6 +478,12 @@ class Server:
                 "commands": list(STATE_COMMANDS) + self.link.ns_commands[ns.name] + (cs.commands if cs else []),
                 "queries": list(JOINT_QUERIES + ROBOT_QUERIES) + cart_q,
                 "topics": list(TOPICS) + [q for q in cart_q if not q.endswith("kinematics")],
+                # per joint: the profile's [position_min, position_max] (rad or m): where the
+                # loop clips servo / interpolate positions (a client can say what it really sent)
+                "position_limits": [[self.profile.joints[i].limits.position_min, self.profile.joints[i].limits.position_max]
+                                    for i in self.link.ns_joints[ns.name]],
+                # per joint: {mode: [scale, bias]}, LeRobot's number = scale * value + bias; null: none
+                "lerobot": [self.link.lerobot_maps[i] for i in self.link.ns_joints[ns.name]],
             }
             if cs:
                 entry["cartesian"] = {"base_frame": cs.cfg.base_frame, "tip_frame": cs.cfg.tip_frame,
@@ -422,20 +492,13 @@ class Server:
                 entry["bus"] = self.profile.namespace_bus(ns)
             namespaces.append(entry)
         return {"robot": self.robot, "protocol_version": PROTOCOL_VERSION, "daemon_version": __version__,
-                "backend": self.profile.backend_type, "rate_hz": 1.0 / self.link.period_s, "namespaces": namespaces}
+                "backend": self.profile.backend_type, "rate_hz": 1.0 / self.link.period_s,
+                "servo_step_max": self.profile.safety.servo_step_max, "namespaces": namespaces}
 
 
-async def sleep_until_next(next_t: float, period: float) -> float:
-    """Sleep until ``next_t + period`` (the running loop's clock) and return that time; a stream
-    that fell behind skips ticks rather than bursting (the next tick is one period from now)."""
-    loop = asyncio.get_running_loop()
-    next_t += period
-    delay = next_t - loop.time()
-    if delay < 0:
-        next_t = loop.time()
-        delay = 0
-    await asyncio.sleep(delay)
-    return next_t
+def _wake(fut: asyncio.Future) -> None:
+    if not fut.done():
+        fut.set_result(None)
 
 
 _SENT = object()  # the reply was already delivered, in order with the loop's events

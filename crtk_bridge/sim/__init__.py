@@ -1,4 +1,4 @@
-"""Wire-level simulated devices: product code, not test code (DESIGN.md, "Simulators are product").
+"""Wire-level simulated devices: product code, not test code (docs/architecture.md, "Simulators are product").
 
 Each simulator answers the vendor SDK's real packets on a real OS channel (a pseudo-terminal for
 serial buses, TCP on loopback for a UR controller), so ``--sim`` and the tests run the same backend code path as hardware.
@@ -25,26 +25,16 @@ class SimulatorError(CrtkBridgeError):
     """A simulator could not start or was asked something impossible (message names path/id)."""
 
 
-#: ``crtk-sim`` device name -> (module, class), imported only when chosen. A backend names its
-#: device in its ``SimWiring`` (core/actuator.py); ``--sim`` and the conformance suite use this.
-DEVICES: dict[str, tuple[str, str]] = {
-    "feetech": ("crtk_bridge.sim.feetech", "FeetechSimulator"),
-    "dynamixel": ("crtk_bridge.sim.dynamixel", "DynamixelSimulator"),
-    "ur": ("crtk_bridge.sim.ur", "URSimulator"),
-    "canopen": ("crtk_bridge.sim.canopen402", "CanopenSimulator"),
-}
-
-
 def simulator_class(device: str) -> type:
-    """The simulator class of ``crtk-sim`` device ``device``. Raises SimulatorError naming the
-    valid ones."""
-    import importlib
+    """The simulator class of ``crtk-sim`` device ``device``, from the one registry of backends
+    and their simulators (:mod:`crtk_bridge.registry`). Raises SimulatorError naming the valid
+    devices (or what to install)."""
+    from .. import registry
 
     try:
-        module, name = DEVICES[device]
-    except KeyError:
-        raise SimulatorError(f"no simulator {device!r}; valid: {', '.join(DEVICES)}") from None
-    return getattr(importlib.import_module(module), name)
+        return registry.simulator_class(device)
+    except CrtkBridgeError as exc:
+        raise SimulatorError(str(exc)) from exc
 
 
 def __getattr__(name: str):
@@ -60,4 +50,4 @@ def __getattr__(name: str):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["SimulatorError", "FeetechSimulator", "DynamixelSimulator", "DEVICES", "simulator_class"]
+__all__ = ["SimulatorError", "FeetechSimulator", "DynamixelSimulator", "simulator_class"]

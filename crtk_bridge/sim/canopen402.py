@@ -1,8 +1,8 @@
 """Simulated CiA 402 servo drives on a CAN bus (canopen ``LocalNode`` plus what it lacks).
 
 canopen 2.4.1's :class:`canopen.LocalNode` serves SDO, NMT and heartbeat from an object
-dictionary, but has no PDO behaviour and no device profile (canopen issue #558; see
-../shared/reference/canopen-ur.md part A). :class:`Drive402` adds, for one node id:
+dictionary, but has no PDO behaviour and no device profile (canopen issue #558; docs/architecture.md,
+"Sources": CANopen CiA 402). :class:`Drive402` adds, for one node id:
 
 - the object dictionary built in code (:func:`make_object_dictionary`): CiA 301 communication
   objects (0x1000, 0x1001, 0x1005, 0x1014, 0x1016, 0x1017, 0x1018, RPDO 0x1400-0x1403 / 0x1600-0x1603,

@@ -96,6 +96,20 @@ def _parser() -> argparse.ArgumentParser:
                    help="a protective stop may be unlocked this long after it (default 5, as UR)")
     u.add_argument("--log-level", default="warning",
                    choices=["debug", "info", "warning", "error"], help="default: warning")
+    from ..registry import devices
+
+    for device, backend in devices().items():  # another distribution's (crtk_bridge/registry.py)
+        if device in sub.choices:
+            continue
+        d = sub.add_parser(device, help=f"the simulator registered for backend {backend!r}")
+        d.add_argument("--profile", required=True, help="robot profile (YAML)")
+        where = d.add_mutually_exclusive_group()
+        where.add_argument("--link", help="create this symlink to its pty (a serial device)")
+        where.add_argument("--host", help="serve on this loopback address (a device on TCP ports)")
+        d.add_argument("--control", help="serve the JSON-lines control socket at this path")
+        d.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
+        d.add_argument("--log-level", default="warning",
+                       choices=["debug", "info", "warning", "error"], help="default: warning")
     for d in sub.choices.values():
         d.add_argument("--parent-pid", type=int, metavar="PID",
                        help="stop when the process PID (the spawner, our parent) is gone")
@@ -118,6 +132,28 @@ def _serve(sim, ready_line: str) -> int:
                 return 0
     finally:
         sim.stop()
+
+
+#: the devices with options of their own above; any other registered one gets the common options
+_BUILTIN_DEVICES = ("feetech", "dynamixel", "canopen", "ur")
+
+
+def _main_registered(Simulator, args, profile) -> int:
+    """A simulator registered by another distribution (docs/architecture.md, "Adding a
+    backend"): ``Simulator.from_profile(profile, link=... | host=..., control=...)``, then
+    ``start()``; it has ``running``, ``port`` (its endpoint) and ``stop()``."""
+    where = {"host": args.host} if args.host else {"link": args.link}
+    try:
+        sim = Simulator.from_profile(profile, control=args.control, **where)
+        sim.start()
+    except CrtkBridgeError as exc:
+        print(f"crtk-sim: {exc}", file=sys.stderr)
+        return 2 if isinstance(exc, ProfileError) else 1
+    except OSError as exc:
+        print(f"crtk-sim: cannot start the simulator: {exc}", file=sys.stderr)
+        return 1
+    return _serve(sim, f"crtk-sim: {args.device} ready: port={sim.port} "
+                       f"control={sim.control_path or '-'}")
 
 
 def _main_ur(args, profile) -> int:
@@ -183,11 +219,17 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         profile = profile.bus_profile(args.bus)  # one simulator per bus
 
-    Simulator = simulator_class(args.device)
+    try:
+        Simulator = simulator_class(args.device)
+    except CrtkBridgeError as exc:
+        print(f"crtk-sim: {exc}", file=sys.stderr)
+        return 1
 
     # Block the signals before any thread exists, so every thread inherits the mask and only
     # sigtimedwait() below receives them: a clean, race-free shutdown path.
     signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+    if args.device not in _BUILTIN_DEVICES:
+        return _main_registered(Simulator, args, profile)
     try:
         if args.device == "canopen":
             if args.interface == "socketcan" and not args.channel:

@@ -1,7 +1,7 @@
 """Dynamixel X-series bus (Protocol 2.0) simulated at the wire level on a pseudo-terminal.
 
 :class:`DynamixelSimulator` answers the real Protocol 2.0 packets ``dynamixel_sdk`` sends, byte
-for byte (shared/reference/servos.md section 5): header ``FF FF FD 00``, CRC-16 (poly 0x8005),
+for byte (docs/architecture.md, "Sources": Dynamixel): header ``FF FF FD 00``, CRC-16 (poly 0x8005),
 byte stuffing (``FF FF FD`` -> ``FF FF FD FD`` in instruction and status payloads; not in Fast
 Sync Read replies, as on hardware), and the instructions PING, READ, WRITE, REG_WRITE, ACTION,
 REBOOT, SYNC_READ, FAST_SYNC_READ, SYNC_WRITE, BULK_READ and BULK_WRITE. Each servo is an

@@ -1,7 +1,7 @@
 """Feetech STS3215 servo bus simulated at the wire level on a pseudo-terminal.
 
 :class:`FeetechSimulator` answers the real FT-SCS packets the ``scservo_sdk`` sends (PING, READ,
-WRITE, REG_WRITE, ACTION, SYNC_READ, SYNC_WRITE; see shared/reference/servos.md sections 1-2),
+WRITE, REG_WRITE, ACTION, SYNC_READ, SYNC_WRITE; docs/architecture.md, "Sources": Feetech),
 byte for byte, from one background thread blocked in poll() on the pty master. Each servo is a
 256-byte control table (layout from :mod:`crtk_bridge.backends.feetech.tables`) plus a little
 physics, advanced lazily from the monotonic clock whenever a packet or a caller touches it:

@@ -7,7 +7,7 @@ serving thread, under its lock.
 
 Mode tables: Universal Robots, RTDE guide (robot_mode, safety_mode, runtime_state,
 robot_status_bits, safety_status_bits) and dashboard server manual; see
-``../shared/reference/canopen-ur.md`` part B, section 6. How the modes move:
+docs/architecture.md, "Sources": Universal Robots. How the modes move:
 
 - ``power on`` (dashboard): POWER_OFF -> POWER_ON -> IDLE after ``power_on_s``;
   ``brake release``: IDLE -> RUNNING after ``brake_release_s``; from POWER_OFF (or while powering

@@ -1,7 +1,7 @@
 """What ur_rtde's uploaded ``rtde_control`` program does, played by the simulated controller.
 
 ur_rtde (``RTDEControlInterface``) sends ``def rtde_control(): ... end`` over port 30003 and then
-talks to it through RTDE registers (``../shared/reference/canopen-ur.md`` part B, section 4, and
+talks to it through RTDE registers (docs/architecture.md, "Sources": Universal Robots, and
 ur_rtde's ``scripts/rtde_control.script`` / ``rtde.h``, and the script 1.6.5 actually uploads,
 read for the facts below):
 

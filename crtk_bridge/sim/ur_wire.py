@@ -1,8 +1,8 @@
 """The RTDE wire protocol (port 30004) as data: message types, variable types, recipe codecs.
 
 Source: Universal Robots, "Real-Time Data Exchange (RTDE) Guide" (protocol version 2), and what
-ur_rtde 1.6.5 sends, observed from a fake controller (``../shared/reference/canopen-ur.md``
-part B, section 5). Everything is big-endian. A message is ``uint16 size`` (header included),
+ur_rtde 1.6.5 sends, observed from a fake controller (docs/architecture.md, "Sources": Universal
+Robots). Everything is big-endian. A message is ``uint16 size`` (header included),
 ``uint8 type``, payload. ur_rtde decodes data packages with its own static type table, so every
 variable here has the standard size of its type.
 """

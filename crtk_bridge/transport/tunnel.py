@@ -12,17 +12,25 @@ robot stops safely as on any client loss.
 
 Replies and events are published reliably with congestion control BLOCK (never dropped, in
 order); stream frames with DROP on a lower priority (Zenoh queues them apart), so a slow remote
-client loses frames and never slows the daemon, as on the socket. Every put runs on the
-session's sender thread (a stalled link holds that thread, never the event loop). Zenoh delivers
-on its own threads: every sample is handed to the event loop (``call_soon_threadsafe``), where
-the server runs as for the socket.
+client loses frames and never slows the daemon, as on the socket. Stream frames come encoded
+(server/streams.py: one encoding per topic a tick, shared by every subscriber). Every put runs on
+the session's sender thread, never the event loop: eclipse-zenoh's ``put`` is synchronous (it
+releases the GIL), and waits for room in the link's queue (up to ``wait_before_drop`` for DROP,
+``wait_before_close`` for BLOCK), so one thread for every session would let a congested client
+delay the others; a thread per session wakes once for what the event loop handed it since its last
+wake-up and puts it in at most two samples (its replies, in order, then its frames), each one or
+more whole lines, as the client reads them. While the thread is behind, a session keeps at most
+``FRAME_BACKLOG`` frames: the oldest is dropped for the newest, and counted (the session's
+``dropped``, period_statistics' ``frames_dropped``, a log line). Zenoh delivers on its own
+threads: every sample is handed to the event loop (``call_soon_threadsafe``), where the server
+runs as for the socket.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import logging
-import queue
 import threading
 from typing import Any
 
@@ -39,19 +47,20 @@ DUPLICATE_CHECK_S = 1.0
 #: request lines a remote session may have waiting; beyond, new ones are refused (stops never
 #: are): Zenoh has no back-pressure towards a client the way a socket's buffer has
 MAX_PENDING = 4096
-#: messages a remote session may have waiting for its sender thread beyond which stream frames
-#: are dropped (replies and events never are)
+#: stream frames a remote session keeps while its sender thread is behind: beyond, the oldest is
+#: dropped for the newest (replies and events never are)
 FRAME_BACKLOG = 64
 
 
 class TunnelSession(Session):
     """A remote client's session: what the server sends goes to its ``out`` key.
 
-    Puts happen on the session's own sender thread, in the order the server sent: a reply waits
-    for room on a stalled link (congestion control BLOCK, up to Zenoh's ``wait_before_close``,
-    after which Zenoh closes the link and the client is lost), and the event loop, which serves
-    every other client, never waits with it. Stream frames are dropped while more than
-    ``FRAME_BACKLOG`` messages wait for the thread, as a socket drops them when its buffer is full."""
+    Puts happen on the session's own sender thread: replies and events in the order the server
+    sent them; a reply waits for room on a stalled link (congestion control BLOCK, up to Zenoh's
+    ``wait_before_close``, after which Zenoh closes the link and the client is lost), and the
+    event loop, which serves every other client, never waits with it. Stream frames wait in a
+    bounded outbox (``FRAME_BACKLOG``, the oldest dropped and counted when full), as a socket
+    drops them when its buffer is full; Zenoh queues them apart, so a frame may lag a reply."""
 
     def __init__(self, sid: int, cid: str, replies: Any, frames: Any):
         super().__init__(sid, None, peer=f"Zenoh client {cid[:8]}")
@@ -60,34 +69,56 @@ class TunnelSession(Session):
         self._frames = frames  # the same key, congestion control DROP
         self.lines: asyncio.Queue[bytes | None] = asyncio.Queue()
         self.task: asyncio.Task | None = None
-        self._outbox: queue.SimpleQueue[tuple[Any, bytes] | None] = queue.SimpleQueue()
+        self._wake = threading.Condition()
+        self._reply_box: collections.deque[bytes] = collections.deque()  # never dropped
+        self._frame_box: collections.deque[bytes] = collections.deque()  # at most FRAME_BACKLOG
+        self._ending = False
         self._sender = threading.Thread(target=self._send_all, name=f"zenoh out {cid[:8]}", daemon=True)
         self._sender.start()
 
     def send(self, msg: Any) -> None:
         if not self.closed:
-            self._outbox.put((self._replies, encode(msg)))
+            data = encode(msg)
+            with self._wake:
+                self._reply_box.append(data)
+                self._wake.notify()
 
-    def send_frame(self, msg: Any) -> None:
+    def send_frame(self, line: bytes) -> None:
         if self.closed:
             return
-        if self._outbox.qsize() > FRAME_BACKLOG:  # the link is not taking what we send
-            self.dropped += 1
-            return
-        self._outbox.put((self._frames, encode(msg)))
+        with self._wake:
+            full = len(self._frame_box) >= FRAME_BACKLOG  # the link is not taking what we send
+            if full:
+                self._frame_box.popleft()  # the oldest goes: the newest sample is what a client wants
+            self._frame_box.append(line)
+        if full:
+            self.count_dropped()
+
+    def flush(self) -> None:
+        """The tick's frames are all handed over: wake the sender thread once for them."""
+        with self._wake:
+            self._wake.notify()
 
     def _send_all(self) -> None:
-        """Sender thread: put what the server sent, in order; undeclare once the session closed
-        and everything it sent before is out."""
+        """Sender thread: put what the server sent (replies and events in order, then the frames
+        kept); undeclare once the session closed and everything it sent before is out."""
         while True:
-            item = self._outbox.get()
-            if item is None:
+            with self._wake:
+                while not (self._reply_box or self._frame_box or self._ending):
+                    self._wake.wait()
+                replies = b"".join(self._reply_box)
+                frames = b"".join(self._frame_box)
+                self._reply_box.clear()
+                self._frame_box.clear()
+                last = self._ending
+            for publisher, data in ((self._replies, replies), (self._frames, frames)):
+                if data:
+                    try:
+                        publisher.put(data)
+                    except Exception as exc:  # the session is closing under us: the client is gone anyway
+                        log.debug("%s: put failed: %s", self.describe(), exc)
+            if last:
                 break
-            publisher, data = item
-            try:
-                publisher.put(data)
-            except Exception as exc:  # the session is closing under us: the client is gone anyway
-                log.debug("%s: put failed: %s", self.describe(), exc)
         for publisher in (self._replies, self._frames):
             try:
                 publisher.undeclare()
@@ -98,7 +129,9 @@ class TunnelSession(Session):
         """Stop accepting messages; those already sent still go out (never blocks)."""
         if not self.closed:
             self.closed = True
-            self._outbox.put(None)
+            with self._wake:
+                self._ending = True
+                self._wake.notify()
 
 
 class TunnelServer:

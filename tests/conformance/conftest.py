@@ -1,6 +1,6 @@
 """One backend conformance suite over the actuator contract (issue 8 item 8), as python-can tests
-every interface with one suite: every registered backend that declares a simulator
-(``Actuator.simulator``) runs every test here against that simulator, in process, through the
+every interface with one suite: every registered backend whose registration names a simulator
+(crtk_bridge/registry.py) runs every test here against that simulator, in process, through the
 real vendor SDK path.
 
 A backend is a ROW: the profile it runs on and how a test reaches into its simulator (which device
@@ -21,9 +21,12 @@ import msgspec
 import numpy as np
 import pytest
 
-from crtk_bridge.backends import BACKENDS, backend_class, create_backend
-from crtk_bridge.core.actuator import Actuator, effective_period_s
+from crtk_bridge import registry
+from crtk_bridge.backends import backend_class, create_backend
+from crtk_bridge.core.actuator import Actuator, Fault, effective_period_s
+from crtk_bridge.core.cycle import CycleRunner
 from crtk_bridge.core.control import Controller
+from crtk_bridge.registry import backend_simulator
 from crtk_bridge.profile import Profile, load_profile
 from crtk_bridge.sim import simulator_class
 
@@ -242,7 +245,7 @@ class BusSims:
         self.sims = []
         for bus in self.names:
             sub = profile.bus_profile(bus)
-            self.sims.append(simulator_class(backend_class(sub.backend_type).simulator.device).from_profile(sub))
+            self.sims.append(backend_simulator(sub.backend_type).from_profile(sub))
 
     def start(self) -> None:
         for s in self.sims:
@@ -285,12 +288,12 @@ class BusSims:
 def simulated_backends() -> list[str]:
     """Registered backends that declare a simulator (their SDK importable)."""
     out = []
-    for name in BACKENDS:
+    for name in registry.names():
         try:
-            cls = backend_class(name)
+            backend_class(name)
         except Exception:  # SDK missing: that backend is not tested here
             continue
-        if cls.simulator is not None:
+        if registry.registration(name).simulator is not None:
             out.append(name)
     return out
 
@@ -309,7 +312,7 @@ class Rig:
         else:
             cls = backend_class(row.backend)
             self.sim = (row.make_sim(profile) if row.make_sim is not None
-                        else simulator_class(cls.simulator.device).from_profile(profile))
+                        else backend_simulator(row.backend).from_profile(profile))
             self.sim.start()
             self.profile = cls.sim_profile(profile, self.sim.port)
             if getattr(self.sim, "interface", None) == "virtual":  # an in-process CAN simulator
@@ -318,7 +321,9 @@ class Rig:
             self.backend = cls(self.profile)
         self.backend.open()
         self.backend.configure()
-        self.fb = self.backend.new_feedback()
+        #: the cycle as production runs it (core/cycle.py): paced by the backend's wait_cycle
+        self.runner = CycleRunner(self.backend, effective_period_s(self.profile, self.backend))
+        self.fb = self.runner.feedback
         self.ids = [row.device(self.profile, i) for i in range(self.backend.n)]
         self.controller: Controller | None = None
 
@@ -327,19 +332,17 @@ class Rig:
         self.cycle()
         return self.controller
 
-    def cycle(self, n: int = 1, period: float | None = None) -> None:
-        """``n`` loop cycles as core/loop.py runs them: read, (requests), step, write."""
+    def cycle(self, n: int = 1) -> None:
+        """``n`` loop cycles, the loop's own (core/cycle.py): wait, read, step, write."""
         c = self.controller
-        period = c.dt if period is None else period
         for _ in range(n):
-            t0 = time.monotonic()
-            c.on_read(self.fb, self.backend.read(self.fb))
-            if c.step():
-                c.on_write(self.backend.write(c.command))
+            self.runner.cycle(c)
             c.outbox.clear() if len(c.outbox) > 10_000 else None
-            rest = period - (time.monotonic() - t0)
-            if rest > 0:
-                time.sleep(rest)
+
+    def read(self) -> Fault | None:
+        """One cycle without a controller (wait, read, the write of a cyclic_write backend);
+        the read's fault."""
+        return self.runner.idle()
 
     def request(self, rid: int, cmd: str, **kw) -> None:
         self.controller.handle({"id": rid, "cmd": cmd, **kw})
@@ -365,18 +368,14 @@ class Rig:
     def events(self, kind: str) -> list[dict]:
         return [m["data"] for m in self.controller.outbox if m.get("event") == kind]
 
-    def exchange(self) -> None:
-        """One write of a hold command then the read: a backend whose read takes what answered
-        the previous write (CANopen: the TPDOs answering the write's SYNC) sees a change on the
-        bus only then; a serial backend's read is its own transaction either way."""
-        cmd = self.backend.new_command()
-        self.backend.write(cmd)
-
     def measured(self) -> np.ndarray:
-        """The measured position, once the simulator has taken every command sent before."""
+        """The measured position, once the simulator has taken every command sent before: two
+        cycles (a backend whose read takes what answered the previous cycle's SYNC, CANopen's,
+        sees a command written before them in the second)."""
         if self.row.settle is not None:
             self.row.settle(self.sim)
-        assert self.backend.read(self.fb) is None
+        for _ in range(2):
+            assert self.read() is None
         return self.fb.position.copy()
 
     def close(self) -> None:

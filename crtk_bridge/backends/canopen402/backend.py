@@ -3,11 +3,11 @@
 Built on ``canopen`` (object dictionaries, SDO client, NMT, EMCY consumer, PDO maps) over
 ``python-can`` (any interface it speaks: socketcan, slcan, pcan, kvaser, socketcand, virtual...).
 What the library does not do, or does in a way a real-time loop cannot use, is done here
-(``../shared/reference/canopen-ur.md`` part A):
+(docs/architecture.md, "Sources": CANopen CiA 402):
 
-* **The loop paces the bus.** The backend paces the cycle (``paces_cycle``): the loop's sleep is
-  :meth:`Canopen402Backend.wait_cycle`, which sends ONE SYNC (``SyncProducer.transmit()``) at the
-  tick of an absolute schedule, the first thing of the cycle, so the SYNC period jitters by the
+* **The loop paces the bus.** The cycle runs on the loop's clock (core/cycle.py): at the tick of
+  its absolute schedule :meth:`Canopen402Backend.wait_cycle` sends ONE SYNC
+  (``SyncProducer.transmit()``), the first thing of the cycle, so the SYNC period jitters by the
   wake-up alone. At that SYNC the drives apply the RPDOs the previous cycle's ``write`` sent
   (CiA 301: SYNC-type RPDOs take effect at the next SYNC) and answer with their SYNC-type TPDOs
   (statusword, position, mode display; velocity, torque). ``read`` takes the TPDOs that answered
@@ -15,8 +15,8 @@ What the library does not do, or does in a way a real-time loop cannot use, is d
   (controlword, target position, mode; target velocity and torque where the drive has CSV / CST)
   and transmits them with ``PdoMap.transmit()``. Every cycle, in every operating state. No library
   thread sends anything periodic (its ``start()`` threads are not locked to the loop, and its
-  setters do not send SYNC-type RPDOs at all). Outside the loop (start-up, tests) a ``read`` sends
-  its own SYNC and waits for its answers. TPDOs are counted, not tagged: a TPDO that has not
+  setters do not send SYNC-type RPDOs at all). Start-up, shutdown and tests run the same cycle
+  (core/cycle.py), so there is one way the bus is driven. TPDOs are counted, not tagged: a TPDO that has not
   arrived ``tpdo_timeout_ms`` after its SYNC is missing, a transient ``tpdo_missing`` fault naming
   the node (core faults after ``safety.bus_errors_max`` in a row); a late one is not.
 * **Heartbeat consumer** (the library has none): each node's heartbeat is timed here; a node
@@ -40,9 +40,9 @@ What the library does not do, or does in a way a real-time loop cannot use, is d
   robot; the bus is reopened on a worker thread and the reads resume once it is back.
 
 Blocking SDO traffic happens only at ``open`` / ``configure`` and inside lifecycle transitions
-(``on_worker``), never in ``read`` / ``write``. Transitions run inside the loop (whose
-``write`` carries their controlwords) or outside it (``Actuator.run``: start-up, shutdown,
-tests); outside, each step exchanges one SYNC itself (:meth:`Canopen402Backend._pump`).
+(``on_worker``), never in ``read`` / ``write``. Transitions are stepped by the cycle (the loop's,
+or the runner's at start-up and shutdown): the cycle's ``write`` carries their controlwords and
+a later cycle's ``read`` brings the statusword that answers them.
 
 Units (raw counts never leave this module), per joint, ``k = 2*pi / (counts_per_revolution *
 gear_ratio)`` for ``unit: rad`` (``1 / (...)`` for ``unit: m``):
@@ -73,15 +73,16 @@ from ...core.actuator import (
     Actuator,
     ActuatorInfo,
     Capabilities,
+    Clock,
     CommandMode,
     DeviceStatus,
     Fault,
-    FaultReaction,
     JointCommand,
     JointFeedback,
     Lifecycle,
     SimWiring,
     Steps,
+    Traits,
     background_thread,
     on_worker,
 )
@@ -183,9 +184,7 @@ class _Drive:
         self.k_pos = keys.direction * k  # SI per count (signed)
         self.k_vel = keys.direction * k / keys.velocity_factor  # SI/s per velocity unit
         self.k_eff: float | None = None  # N*m (N) per per mille; set at open
-        self.pos_min, self.pos_max = limits.position_min, limits.position_max
-        self.vel_max = limits.velocity_max
-        self.eff_max = limits.effort_max
+        self.eff_max = limits.effort_max  # None: targets capped at the rated torque
         self.node: canopen.RemoteNode | None = None
         self.supported = 0  # 0x6502
         self.csv = self.cst = False
@@ -224,8 +223,8 @@ class _Drive:
         self.emcy: tuple[int, int] | None = None  # (code, error register) not yet reset
 
     def counts(self, si: float) -> int:
-        """Counts of position ``si`` (finite), clipped to the joint's limits and to I32."""
-        si = min(max(si, self.pos_min), self.pos_max)
+        """Counts of position ``si`` (finite, within the profile's limits: core's output), clamped
+        to the I32 range of 0x607A."""
         c = round(self.keys.offset + si / self.k_pos)
         return min(max(c, I32[0]), I32[1])
 
@@ -272,21 +271,14 @@ class Canopen402Backend(Actuator):
     before :meth:`open`.
     """
 
-    capabilities = Capabilities(position=True, velocity=False, effort=False, measures_velocity=True,
-                                measures_effort=False, needs_homing=False, can_free=False)
-    extra = "canopen402"
-    fault_reaction = FaultReaction.TORQUE_OFF  # the DISABLE transition: disable voltage on every drive
-    cyclic_write = True  # RPDOs every cycle, in every state
-    paces_cycle = True  # the loop's tick sends the SYNC (wait_cycle)
-    stops_itself_on_pause = True  # pause is the drives' own quick stop
-    simulator = SimWiring("canopen", endpoint_key="channel")
+    simulator = SimWiring(endpoint_key="channel")  # crtk-sim canopen's SLCAN pty
     #: the interface ``--sim`` uses to reach the simulated USB-CAN adapter
     SIM_INTERFACE = "slcan"
     #: ``tpdo_timeout_ms`` on the simulator unless the profile sets one: the simulated adapter
     #: and drives are Python threads in another process, on a loaded host their answers can take
     #: tens of ms (a real drive answers within a millisecond)
     SIM_DEFAULTS = {"tpdo_timeout_ms": 50.0}
-    transition_timeouts_s = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 3.0,
+    TRANSITION_TIMEOUTS_S = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 3.0,
                              Lifecycle.RESUME: 3.0, Lifecycle.FAULT_RESET: 2.0, Lifecycle.HOME: 60.0}
     #: cycles a drive's statusword may stay missing inside a transition before it fails
     TRANSITION_MISSED_MAX = 25
@@ -331,17 +323,14 @@ class Canopen402Backend(Actuator):
         # time has run out (bounded well inside the ENABLE time limit)
         self._settle_s = min((self._consumer_ms + cfg.master_heartbeat_ms) / 1000.0, 2.0)
         self._settle_until = 0.0
-        self._joint_caps = [self.capabilities] * self.n
+        #: per drive, what its supported modes allow (known at open: _identify)
+        self._joint_caps: list[Capabilities | None] = [None] * self.n
         self._network: canopen.Network | None = None
         self._rx_event = threading.Event()
         self._sync_seq = 0  # SYNCs sent
         self._sync_t = 0.0  # monotonic time of the last SYNC
-        self._sync_fresh = False  # a SYNC went out (wait_cycle) that no read has taken yet
-        self._tick: float | None = None  # perf_counter time of the next SYNC (wait_cycle)
         self._sync_mono = [0.0] * _RING  # monotonic time of SYNC n at [n % _RING]
         self._sync_wall = [0.0] * _RING  # its wall-clock time: the stamp of the samples answering it
-        self._reads = 0  # reads that took the drives' TPDOs (the loop's)
-        self._seen_reads = 0  # self._reads at a transition's previous step
         self._bus_down: str | None = None  # why the bus failed; None: up
         self._reopening: threading.Thread | None = None
         self._error_frames = 0
@@ -393,14 +382,17 @@ class Canopen402Backend(Actuator):
 
     # ------------------------------------------------------------------ info
     def info(self) -> ActuatorInfo:
-        return ActuatorInfo(list(self.joint_names), self.capabilities, dict(self._details))
+        return ActuatorInfo(list(self.joint_names), dict(self._details))
 
-    def joint_capabilities(self, i: int) -> Capabilities:
-        return self._joint_caps[i]
-
-    @property
-    def native_homing(self) -> bool:
-        return any(d.keys.homing is not None for d in self.drives)
+    def _traits_hook(self) -> Traits:
+        """Per drive, what its supported modes (0x6502) and rated torque allow (read at open);
+        the loop's clock, whose tick sends the SYNC (wait_cycle); RPDOs every cycle in
+        every state; pause is the drives' own quick stop; the drives home themselves (CiA 402
+        homing mode) where a joint has ``homing``."""
+        return Traits(joints=tuple(self._joint_caps), clock=Clock.LOOP, cyclic_write=True,
+                      stops_itself_on_pause=True,
+                      native_homing=any(d.keys.homing is not None for d in self.drives),
+                      transition_timeouts_s=self.TRANSITION_TIMEOUTS_S)
 
     @property
     def _where(self) -> str:
@@ -446,7 +438,6 @@ class Canopen402Backend(Actuator):
         except BaseException:
             self._disconnect()
             raise
-        self.capabilities = self._combined_caps()
         self._details = {
             "interface": self.config.interface, "channel": self.config.channel, "bitrate": self.config.bitrate,
             "nodes": {d.name: d.id for d in self.drives},
@@ -558,11 +549,6 @@ class Canopen402Backend(Actuator):
                             measures_velocity=True, measures_effort=d.k_eff is not None,
                             needs_homing=d.keys.homing is not None, can_free=d.cst)
         self._joint_caps[d.i] = caps
-
-    def _combined_caps(self) -> Capabilities:
-        from ...core.actuator import combine_capabilities
-
-        return combine_capabilities(self._joint_caps)
 
     def _configure_hook(self) -> None:
         """Per node: NMT PRE-OPERATIONAL, heartbeat producer, the PDO mapping (SDO, CiA 301
@@ -676,7 +662,6 @@ class Canopen402Backend(Actuator):
         while True:
             self._send(None)
             self._sync_out()
-            self._sync_fresh = False
             missing = self._wait_tpdos(time.monotonic() + min(0.1, self.config.boot_timeout_s))
             self._resync(self._sync_seq)
             if missing is None:
@@ -747,8 +732,8 @@ class Canopen402Backend(Actuator):
             d.state = t.decode_state(d.sw)
 
     def _read(self, feedback: JointFeedback) -> Fault | None:
-        """Take the TPDOs that answered the previous SYNC (paced by the loop; outside it, this
-        read's own SYNC), waiting for a late drive at most until ``tpdo_timeout_ms`` after that
+        """Take the TPDOs that answered the previous SYNC (the one before this cycle's: in
+        already, no waiting in the cycle), waiting for a late drive at most until ``tpdo_timeout_ms`` after that
         SYNC; convert them into ``feedback`` (stamp: the SYNC the oldest sample answered), check
         heartbeats and EMCYs, report the device status. Returns a transient ``tpdo_missing``
         fault, a ``heartbeat_lost`` / ``nmt_state`` / ``bus_error`` fault, or None."""
@@ -757,13 +742,7 @@ class Canopen402Backend(Actuator):
             self._settle_until = time.monotonic() + self._settle_s
             return fault
         self.stats["reads"] += 1
-        self._reads += 1
-        if self._sync_fresh:  # paced by the loop: take the answers to the previous SYNC (in already)
-            want = self._sync_seq - 1
-        else:  # outside the loop (start-up, tests): this read's own SYNC and its answers
-            self._sync_out()
-            want = self._sync_seq
-        self._sync_fresh = False
+        want = self._sync_seq - 1  # this cycle's SYNC went out in wait_cycle: the one before it
         # A late drive is waited for until tpdo_timeout_ms after that SYNC; one that missed the
         # previous read is not, so a silent node does not stretch every cycle: its data is then
         # that of the last SYNC it answered, and it is missing once that is overdue.
@@ -861,10 +840,10 @@ class Canopen402Backend(Actuator):
         Never blocks.
 
         A drive that is OPERATION ENABLED (and not homing) follows its joint's mode: POSITION ->
-        CSP (target clipped to the joint's limits), VELOCITY -> CSV (clipped to velocity_max),
-        EFFORT -> CST (clipped to effort_max), FREE -> CST with zero torque, NONE -> as before.
-        Every other drive holds its measured position as target in CSP. A non-finite setpoint is
-        not sent (the drive keeps its last mode and target) and returns ``invalid_command``."""
+        CSP, VELOCITY -> CSV, EFFORT -> CST, FREE -> CST with zero torque, NONE -> as before.
+        Every other drive holds its measured position as target in CSP. Setpoints arrive finite
+        and within the profile's limits (``Actuator.write``, core's motion output); targets are
+        clamped to their objects' ranges only (I32, I16; the rated torque without effort_max)."""
         return self._send(command)
 
     def _unusable(self, what: str) -> Fault | None:
@@ -888,7 +867,7 @@ class Canopen402Backend(Actuator):
             elif not enabled:
                 d.mode, d.target_pos, d.target_vel, d.target_torque = _CSP, d.pos, 0, 0
             else:
-                fault = self._follow(d, command) or fault
+                self._follow(d, command)
                 if d.mode != _CSP:
                     d.target_pos = d.pos  # a switch back to CSP starts from here
             # each RPDO's payload in one pack (see _decode)
@@ -918,7 +897,6 @@ class Canopen402Backend(Actuator):
             self._sync_wall[self._sync_seq % _RING] = time.time()
             self._network.sync.transmit()
             self.stats["syncs"] += 1
-            self._sync_fresh = True
             due = self._master_hb_due
             if due is not None and self._sync_t >= due:  # the master's heartbeat rides the SYNC
                 self._network.send_message(self._master_hb_cob, self._master_hb_data)
@@ -929,59 +907,33 @@ class Canopen402Backend(Actuator):
             self._bus_down = f"send failed: {exc}"
 
     # ------------------------------------------------------------------ pacing
-    def cycle_period_s(self) -> float:
-        return self._period_s
-
-    def wait_cycle(self, timeout_s: float) -> bool:
-        """The loop's sleep: until the next tick of this backend's SYNC schedule (absolute, so the
-        SYNC period does not drift with the cycle's work), then the SYNC at once -- the first
-        thing of the cycle, so its jitter is the wake-up's alone (and the master's heartbeat with
-        it when due: the first call starts it). Restarts the schedule when the loop fell a period
-        behind. Always True."""
+    def wait_cycle(self, deadline: float) -> bool:
+        """The cycle starts (the runner slept to its tick, ``deadline``, on its absolute
+        schedule): the SYNC at once -- the first thing of the cycle, so its jitter is the
+        wake-up's alone (and the master's heartbeat with it when due: the first call starts it).
+        Always True."""
         if self._master_hb_due is None:
             self._master_hb_due = 0.0
-        now = time.perf_counter()
-        tick = self._tick
-        if tick is None or now - tick > self._period_s:
-            tick = now + max(timeout_s - self._period_s, 0.0)
-        if tick > now:
-            time.sleep(tick - now)
-        self._tick = tick + self._period_s
         self._sync_out()
         return True
 
-    def _follow(self, d: _Drive, command: JointCommand) -> Fault | None:
+    def _follow(self, d: _Drive, command: JointCommand) -> None:
         i = d.i
         mode = command.mode[i]
         if mode == _POSITION:
-            x = command.position[i]
-            if x != x:
-                return self._nan(d, "position", x)
-            d.mode, d.target_pos = _CSP, d.counts(x)
+            d.mode, d.target_pos = _CSP, d.counts(command.position[i])
             d.target_vel = d.target_torque = 0
         elif mode == _VELOCITY and d.csv:
-            x = command.velocity[i]
-            if x != x:
-                return self._nan(d, "velocity", x)
-            x = min(max(x, -d.vel_max), d.vel_max) / d.k_vel
+            x = command.velocity[i] / d.k_vel
             d.mode, d.target_vel, d.target_torque = _CSV, round(min(max(x, I32[0]), I32[1])), 0
         elif mode == _EFFORT and d.cst and d.k_eff is not None:
-            x = command.effort[i]
-            if x != x:
-                return self._nan(d, "effort", x)
-            if d.eff_max is not None:
-                x = min(max(x, -d.eff_max), d.eff_max)
-            x /= d.k_eff
+            x = command.effort[i] / d.k_eff
             # no limits.effort_max: never above the rated torque (1000 per mille), not the I16 range
             cap = I16[1] if d.eff_max is not None else RATED_PER_MILLE
             d.mode, d.target_torque, d.target_vel = _CST, round(min(max(x, -cap), cap)), 0
         elif mode == _FREE and d.cst:
             d.mode, d.target_torque, d.target_vel = _CST, 0, 0
         return None
-
-    def _nan(self, d: _Drive, what: str, x: float) -> Fault:
-        return Fault("invalid_command", f"{self.robot}: joint {d.name!r}: {what} command {x} is not a "
-                     f"number; not sent", joint=d.name, transient=False)
 
     # ------------------------------------------------------------------ bus errors
     def _bus_fault(self) -> Fault:
@@ -1011,23 +963,6 @@ class Canopen402Backend(Actuator):
                 time.sleep(1.0)
 
     # ------------------------------------------------------------------ transitions
-    def _begin_steps(self) -> None:
-        self._seen_reads = self._reads
-
-    def _pump(self) -> None:
-        """Between two steps of a transition: when no read took the TPDOs since the previous
-        step, the transition runs outside the loop (:meth:`Actuator.run`): exchange one SYNC here,
-        so the step sees the statusword its controlword produced. In the loop, its own write
-        carries the controlword and its next read brings the answer."""
-        if self._reads == self._seen_reads and self._network is not None and self._bus_down is None:
-            self._send(None)
-            self._sync_out()
-            self._sync_fresh = False
-            self._wait_tpdos(time.monotonic() + max(self._tpdo_timeout_s, 0.05))
-            self._resync(self._sync_seq)
-            self._decode()
-        self._seen_reads = self._reads
-
     def _walk(self, goal: Goal, drives: list[_Drive] | None = None) -> Steps:
         """Every cycle, each drive's controlword from ``tables.WALK`` for its state and ``goal``,
         until every drive is there. Raises BackendError naming a drive that is in FAULT (when
@@ -1050,7 +985,6 @@ class Canopen402Backend(Actuator):
             if pending is None:
                 return
             yield
-            self._pump()
             missed = missed + 1 if pending.missed else 0
             if missed > self.TRANSITION_MISSED_MAX:
                 raise BackendError(f"{self.robot}: {pending.label}: no statusword for {missed} cycles; "
@@ -1070,7 +1004,6 @@ class Canopen402Backend(Actuator):
         settle = min(self._settle_until, time.monotonic() + self._settle_s)  # a silent node keeps
         while time.monotonic() < settle:  # pushing _settle_until: bounded from here
             yield
-            self._pump()
         # a node whose heartbeat was lost gets a moment to be heard again (it may just be back)
         deadline = time.monotonic() + 2 * self._hb_timeout_s
         while True:
@@ -1082,7 +1015,6 @@ class Canopen402Backend(Actuator):
                 raise BackendError(f"{self.robot}: {silent.label}: no heartbeat for {now - silent.hb_t:.2f} s; "
                                    f"cannot enable")
             yield
-            self._pump()
         faulted = [d for d in self.drives if d.state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE)]
         for d in self.drives:
             d.emcy = None
@@ -1091,13 +1023,11 @@ class Canopen402Backend(Actuator):
         for d in faulted:
             d.cw = int(Command.DISABLE_VOLTAGE)  # bit 7 low first: the reset acts on a rising edge
         yield
-        self._pump()
         cycles = 0
         while True:
             for d in faulted:
                 d.cw = int(Command.FAULT_RESET)
             yield
-            self._pump()
             still = [d for d in faulted if d.state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE)]
             for d in faulted:
                 d.emcy = None
@@ -1112,7 +1042,6 @@ class Canopen402Backend(Actuator):
             d.cw = int(Command.DISABLE_VOLTAGE)
 
     def _fault_reset_steps(self) -> Steps:
-        self._begin_steps()
         yield from self._reset_faults()
 
     def _enable_steps(self, feedback: JointFeedback) -> Steps:
@@ -1120,7 +1049,6 @@ class Canopen402Backend(Actuator):
         -> OPERATION ENABLED, one controlword per cycle, each drive holding its measured position
         as target in CSP. On failure every drive gets disable voltage."""
         self._require_open()
-        self._begin_steps()
         self._paused_by_us = False
         try:
             yield from self._reset_faults()
@@ -1134,7 +1062,6 @@ class Canopen402Backend(Actuator):
         """Disable voltage on every drive (transitions 7, 9, 10, 12) until each confirms."""
         if self._network is None:
             return
-        self._begin_steps()
         self._paused_by_us = False
         for d in self.drives:
             d.homing = False
@@ -1142,14 +1069,12 @@ class Canopen402Backend(Actuator):
 
     def _pause_steps(self) -> Steps:
         """Quick stop (transition 11) until every drive is QUICK STOP ACTIVE (or stopped)."""
-        self._begin_steps()
         self._paused_by_us = True
         yield from self._walk(Goal.QUICK_STOP_ACTIVE)
 
     def _resume_steps(self) -> Steps:
         """Enable operation (transition 16) from QUICK STOP ACTIVE, holding the measured position
         (a drive whose quick stop ended in SWITCH ON DISABLED walks the whole way)."""
-        self._begin_steps()
         try:
             yield from self._walk(Goal.OPERATION_ENABLED)
         finally:
@@ -1160,7 +1085,6 @@ class Canopen402Backend(Actuator):
         edge of controlword bit 4, then statusword bits 10 / 12 / 13 until homing is completed
         (``is_homed`` = bit 12), an error (BackendError naming the joint) or the time limit.
         Joints without ``homing`` (absolute encoders) hold."""
-        self._begin_steps()
         drives = [d for d in self.drives if d.keys.homing is not None]
         try:
             for d in drives:
@@ -1168,15 +1092,12 @@ class Canopen402Backend(Actuator):
                 d.cw = int(Command.ENABLE_OPERATION)  # bit 4 low while the mode switches
             while any(d.mode_display != _HM for d in drives):
                 yield
-                self._pump()
             for d in drives:
                 d.cw = int(Command.ENABLE_OPERATION) | t.CW_HOMING_START
             yield
-            self._pump()
             pending = list(drives)
             while pending:
                 yield
-                self._pump()
                 for d in list(pending):
                     meaning, finished, failed = t.HOMING_STATUS[d.sw & t.HOMING_STATUS_MASK]
                     if failed:

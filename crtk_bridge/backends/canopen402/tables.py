@@ -1,6 +1,6 @@
 """CiA 402 and CiA 301 as data: the drive state machine, modes, homing status, EMCY codes.
 
-Sources (the numbers below are the standards', see ../shared/reference/canopen-ur.md part A):
+Sources (the numbers below are the standards', docs/architecture.md, "Sources": CANopen CiA 402):
 
 * CiA 402-2 (IEC 61800-7-201) section 6.2 "Device control": the power drive system state
   machine, the statusword 0x6041 state coding (its table "State coding") and the controlword

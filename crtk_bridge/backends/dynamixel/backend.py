@@ -40,7 +40,7 @@ Units (raw units never leave this module), per joint with the profile's ``calibr
 * effort commands: Goal_Current = effort / effort_per_amp / unit, clamped to Current_Limit.
 * velocity commands: Goal_Velocity in 0.229 rev/min, clamped to Velocity_Limit.
 
-Capabilities per joint (:meth:`joint_capabilities`): position and velocity always; ``effort``
+Capabilities per joint (``traits.joints``): position and velocity always; ``effort``
 and ``measures_effort`` on a joint with current control (not the XL430) and an
 ``effort_per_amp``. Core offers a namespace the commands all its joints can follow: on a Koch
 v1.1 the gripper (XL330) has servo_jf / interpolate_jf and measured effort, the arm (two XL430s)
@@ -56,6 +56,7 @@ the configuration registers again (a reboot restores RAM defaults) and then enab
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Annotated, Literal
 
@@ -78,7 +79,7 @@ from ...core.actuator import (
     Lifecycle,
     SimWiring,
     Steps,
-    combine_capabilities,
+    Traits,
 )
 from ...errors import BackendError
 from ...profile import Profile
@@ -153,13 +154,10 @@ class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
 class DynamixelBackend(SerialServoBackend):
     """Dynamixel X-series servos on one Protocol 2.0 bus. See the module docstring."""
 
-    capabilities = Capabilities(position=True, velocity=True, effort=False, measures_velocity=True,
-                                measures_effort=False, needs_homing=False, can_free=True)
-    extra = "dynamixel"
     vendor = "dynamixel"
     ACCELERATION_KEY = "profile_acceleration"
     SOFTWARE_DRIVE_MODE = False  # the servo's Drive_Mode register reverses it (LeRobot writes it there)
-    simulator = SimWiring("dynamixel")  # crtk-sim dynamixel; --sim sets backend.port to its pty
+    simulator = SimWiring()  # --sim sets backend.port to its simulator's pty (crtk-sim dynamixel)
     Config = Config
     MODEL_NUMBERS = T.MODEL_NUMBERS
     RESOLUTION = T.RESOLUTION
@@ -198,7 +196,6 @@ class DynamixelBackend(SerialServoBackend):
         self._joint_caps = [Capabilities(position=True, velocity=True, effort=e, measures_velocity=True,
                                          measures_effort=e, needs_homing=False, can_free=True)
                             for e in self._effort_j]
-        self.capabilities = combine_capabilities(self._joint_caps)
         self._vel_per_rad_s = self._direction / T.VELOCITY_UNIT_RAD_S
         self._rad_s_per_vel = self._direction * T.VELOCITY_UNIT_RAD_S
         self._vel_limit = np.array([T.VELOCITY_LIMIT_DEFAULT[m] for m in self._models], dtype=float)
@@ -212,9 +209,6 @@ class DynamixelBackend(SerialServoBackend):
         self._fast_reply_len = (_BLOCK_LEN + 4) * n
         length = 1 + self._fast_reply_len  # the status packet's LEN field
         self._fast_header = [0xFF, 0xFF, 0xFD, 0x00, T.BROADCAST_ID, length & 0xFF, length >> 8, T.INST_STATUS]
-
-    def joint_capabilities(self, i: int) -> Capabilities:
-        return self._joint_caps[i]
 
     def _joint_position_mode(self, name: str) -> OperatingMode:
         return _POSITION_MODE[self.config.joint_position_modes.get(name, self.config.position_mode)]
@@ -347,10 +341,12 @@ class DynamixelBackend(SerialServoBackend):
         if self._has_current[i]:
             self._cur_limit[i] = self._read_register(i, "Current_Limit")
 
-    def transition_timeout_s(self, kind: Lifecycle) -> float:
+    def _traits_hook(self) -> Traits:
         """ENABLE may reboot every servo (each up to REBOOT_TIMEOUT_S to answer again)."""
-        limit = super().transition_timeout_s(kind)
-        return limit + self.n * REBOOT_TIMEOUT_S if kind is Lifecycle.ENABLE else limit
+        traits = super()._traits_hook()
+        enable = traits.timeout_s(Lifecycle.ENABLE) + self.n * REBOOT_TIMEOUT_S
+        return dataclasses.replace(traits, transition_timeouts_s={**traits.transition_timeouts_s,
+                                                                   Lifecycle.ENABLE: enable})
 
     def _before_enable(self) -> Steps:
         """Servo by servo, one per cycle: Hardware_Error_Status read; if nonzero, REBOOT, wait
@@ -526,8 +522,8 @@ class DynamixelBackend(SerialServoBackend):
 
         Joints in NONE are not written (they keep their goal); FREE turns torque off; a change of
         a joint's command mode switches its operating mode first (see the module docstring).
-        Nothing is sent while disabled. A non-finite command is not sent and returns a
-        non-transient ``invalid_command`` Fault.
+        Nothing is sent while disabled. Setpoints arrive finite and within the profile's limits
+        (``Actuator.write``, core's motion output); goals are clamped to the servo's own ranges.
         """
         if not self._enabled or self._port is None:
             return None
@@ -551,24 +547,17 @@ class DynamixelBackend(SerialServoBackend):
             if m == _POSITION:
                 want = self._pos_mode[i]
                 g = goal[i]
-                value = command.position[i]
             elif m == _VELOCITY:  # velocity, effort: clamped BEFORE round(), which a huge value overflows
                 want = OperatingMode.VELOCITY
                 value = command.velocity[i]
                 lim = self._vel_limit[i]
-                g = round(min(max(value * self._vel_per_rad_s[i], -lim), lim)) if value == value else 0
+                g = round(min(max(value * self._vel_per_rad_s[i], -lim), lim))
             elif m == _EFFORT and self._effort_j[i]:
                 want = OperatingMode.CURRENT
                 value = command.effort[i]
                 lim = self._cur_limit[i]
-                g = round(min(max(value * self._unit_per_nm[i], -lim), lim)) if value == value else 0
+                g = round(min(max(value * self._unit_per_nm[i], -lim), lim))
             else:
-                continue
-            if value != value:  # NaN: inf is clamped above
-                if fault is None:
-                    fault = Fault("invalid_command", f"{self.robot}: joint {self.joint_names[i]!r}: "
-                                  f"command {value} is not a number; not sent",
-                                  joint=self.joint_names[i], transient=False)
                 continue
             if want != self._op_mode[i] or self._free[i]:
                 f = self._switch(i, want)

@@ -2,7 +2,7 @@
 
 Sources: ROBOTIS e-Manual, Protocol 2.0 (https://emanual.robotis.com/docs/en/dxl/protocol2/) and
 the X-series pages (https://emanual.robotis.com/docs/en/dxl/x/xl330-m288/, .../xl330-m077/,
-.../xl430-w250/, .../xm430-w350/); dynamixel-sdk 4.1.0; see shared/reference/servos.md sections 5-6.
+.../xl430-w250/, .../xm430-w350/); dynamixel-sdk 4.1.0; docs/architecture.md, "Sources": Dynamixel.
 Multi-byte values are little-endian; signed registers are two's complement of their size.
 
 Plain data shared by the backend and the simulator (a device table is a fact, not logic).

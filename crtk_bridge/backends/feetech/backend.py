@@ -115,13 +115,8 @@ class FeetechBackend(SerialServoBackend):
     key); nothing touches the bus before :meth:`open`.
     """
 
-    capabilities = Capabilities(
-        position=True, velocity=False, effort=False, measures_velocity=True,
-        measures_effort=False, needs_homing=False, can_free=True,
-    )
-    extra = "feetech"
     vendor = "feetech"
-    simulator = SimWiring("feetech")  # crtk-sim feetech; --sim sets backend.port to its pty
+    simulator = SimWiring()  # --sim sets backend.port to its simulator's pty (crtk-sim feetech)
     Config = Config
     MODEL_NUMBERS = tables.MODEL_NUMBERS
     RESOLUTION = tables.RESOLUTION
@@ -149,10 +144,9 @@ class FeetechBackend(SerialServoBackend):
             self._direction * tables.CURRENT_UNIT_A * np.array(epa, dtype=float)
             if self._measures_effort else np.zeros(n)
         )
-        self.capabilities = Capabilities(
-            position=True, velocity=False, effort=False, measures_velocity=True,
-            measures_effort=self._measures_effort, needs_homing=False, can_free=True,
-        )
+        self._joint_caps = [Capabilities(position=True, velocity=False, effort=False, measures_velocity=True,
+                                         measures_effort=self._measures_effort, needs_homing=False,
+                                         can_free=True)] * n
         self._last_goal = [0] * n  # ticks last sent / written at enable (int)
         self._sync_read: GroupSyncRead | None = None
         self._sync_write: GroupSyncWrite | None = None
@@ -387,9 +381,8 @@ class FeetechBackend(SerialServoBackend):
         ``calibration.range`` and 0..4095. Joints in mode NONE get their last goal re-sent (the
         servo holds it anyway; re-sending keeps one fixed packet and repairs a lost one). When
         no joint is in POSITION mode nothing is sent. Nothing is sent while disabled: an STS
-        takes a goal even with torque off, and enable sets fresh goals itself. A non-finite
-        position is not sent (that joint keeps its last goal) and returns a non-transient
-        ``invalid_command`` Fault.
+        takes a goal even with torque off, and enable sets fresh goals itself. Setpoints arrive
+        finite and within the profile's limits (``Actuator.write``, core's motion output).
         """
         if not self._enabled or self._sync_write is None:
             return None
@@ -414,15 +407,7 @@ class FeetechBackend(SerialServoBackend):
                 holding = (holding or []) + [i]
             if mode[i] == _POSITION:
                 send = True
-                g = goal[i]
-                if g != g:  # NaN (inf is clipped to the range)
-                    if fault is None:
-                        fault = Fault("invalid_command",
-                                      f"{self.robot}: joint {self.joint_names[i]!r}: position "
-                                      f"command {command.position[i]} is not a number; not sent",
-                                      joint=self.joint_names[i], transient=False)
-                    continue
-                t = int(g)
+                t = int(goal[i])
                 if t != last[i]:
                     last[i] = t
                     gsw.changeParam(self._ids[i], [t & 0xFF, t >> 8])

@@ -1,8 +1,8 @@
 """Feetech STS/SMS series (STS3215) protocol constants and control table, as data.
 
 Sources: Feetech SMS/STS memory table (STS3215, firmware 3.x) as transcribed in the
-feetech-servo-sdk (scservo_sdk) and LeRobot's ``motors/feetech/tables.py``; see
-shared/reference/servos.md sections 1-2. Multi-byte values are little-endian on STS/SMS.
+feetech-servo-sdk (scservo_sdk) and LeRobot's ``motors/feetech/tables.py``; docs/architecture.md,
+"Sources": Feetech. Multi-byte values are little-endian on STS/SMS.
 Signed registers use sign-magnitude with the sign in the bit given by ``SIGN_BITS``.
 
 This module is plain data shared by the backend and the simulator (a device table is a fact,

@@ -13,7 +13,7 @@ to the controller at ``backend.host`` (the ports are fixed by UR):
 
 * ``RTDEReceiveInterface`` (RTDE 30004), opened with the backend: joint and TCP state, robot /
   safety mode, runtime state and the speed slider, one packet every 2 ms (e-Series, 500 Hz) or
-  8 ms (CB3, 125 Hz). Its packets PACE THE LOOP (``paces_cycle``): the worker forwards each as it
+  8 ms (CB3, 125 Hz). Its packets PACE THE LOOP (``traits.clock`` is the device's): the worker forwards each as it
   comes, and :meth:`UrBackend.wait_cycle` blocks until it does (and counts the packets skipped).
 * ``DashboardClient`` (29999): power on / off, brake release, unlock protective stop, restart
   safety, play (lifecycle path only).
@@ -100,7 +100,6 @@ m, axis-angle (UR) <-> unit quaternion [x, y, z, w] (CRTK) converted here.
 
 from __future__ import annotations
 
-import dataclasses
 import importlib.util
 import math
 import os
@@ -119,6 +118,7 @@ from ...core.actuator import (
     ActuatorInfo,
     Capabilities,
     CartesianMode,
+    Clock,
     CommandMode,
     DeviceStatus,
     Fault,
@@ -128,7 +128,7 @@ from ...core.actuator import (
     SimWiring,
     background_thread,
     Steps,
-    DEFAULT_TRANSITION_TIMEOUTS_S,
+    Traits,
     ruckig_update,
 )
 from ...errors import BackendError, CommandError, ProfileError, fmt_number
@@ -277,16 +277,18 @@ class UrBackend(Actuator):
     before :meth:`open`.
     """
 
-    capabilities = Capabilities(position=True, velocity=True, effort=False, measures_velocity=True,
-                                measures_effort=False, needs_homing=False, can_free=True,
-                                native_rate_hz=500.0, native_cartesian=True, measures_wrench=True)
-    extra = "ur"
-    fault_reaction = Actuator.fault_reaction  # the DISABLE transition: stop, power off, brakes on
-    paces_cycle = True
-    simulator = SimWiring(device="ur", endpoint_key="host", host_ports=(30004, 29999, 30003))
-    stops_itself_on_pause = True  # a safeguard stop stops the arm by itself: resume from where it is
-    transition_timeouts_s = {**DEFAULT_TRANSITION_TIMEOUTS_S, Lifecycle.ENABLE: 20.0, Lifecycle.DISABLE: 6.0,
-                             Lifecycle.RESUME: 3.0, Lifecycle.FAULT_RESET: 12.0, Lifecycle.GOAL_CHECK: 2.0}
+    simulator = SimWiring(endpoint_key="host", host_ports=(30004, 29999, 30003))
+    #: what every UR arm declares (:meth:`_traits_hook`): the controller's packets pace the loop; a
+    #: safeguard stop stops the arm by itself (resume from where it is); the controller checks move
+    #: goals against its safety limits; its speed slider scales every motion. A FAULT runs the
+    #: DISABLE transition: stop, power off, brakes on.
+    TRAITS = Traits(
+        joints=(Capabilities(position=True, velocity=True, effort=False, measures_velocity=True,
+                             measures_effort=False, needs_homing=False, can_free=True, native_cartesian=True,
+                             measures_wrench=True),) * N_JOINTS,
+        clock=Clock.DEVICE, stops_itself_on_pause=True, goal_check=True, speed_scaling=True,
+        transition_timeouts_s={Lifecycle.ENABLE: 20.0, Lifecycle.DISABLE: 6.0, Lifecycle.RESUME: 3.0,
+                               Lifecycle.FAULT_RESET: 12.0, Lifecycle.GOAL_CHECK: 2.0})
 
     def __init__(self, profile: Profile, *, source: str = "<profile>"):
         super().__init__(profile, source=source)
@@ -310,12 +312,8 @@ class UrBackend(Actuator):
                 raise ProfileError(f"{source}: joints[{i}] ({j.name}).{next(iter(j.backend))}: a UR joint has "
                                    "no backend keys (the controller numbers its joints base to wrist 3)")
         self.rate_hz = cfg.rate_hz or SERIES_RATE_HZ[cfg.series]
-        self.capabilities = dataclasses.replace(self.capabilities, native_rate_hz=self.rate_hz)
         self.dt = 1.0 / self.rate_hz
         self._speed_acc = cfg.speed_acceleration or min(j.limits.acceleration_max for j in profile.joints)
-        self._pos_min = np.array([j.limits.position_min for j in profile.joints])
-        self._pos_max = np.array([j.limits.position_max for j in profile.joints])
-        self._vel_max = np.array([j.limits.velocity_max for j in profile.joints])
         #: the ur_rtde worker process (None: none up, e.g. after a link loss until a new one is)
         self._w: WorkerHandle | None = None
         self._opened = False
@@ -428,24 +426,29 @@ class UrBackend(Actuator):
     def info(self) -> ActuatorInfo:
         details = {"host": self.host, "rate_hz": self.rate_hz, "packets": self.packets,
                    "missed_packets": self.missed_packets, "worker_pid": self.worker_pid}
-        return ActuatorInfo(list(self.joint_names), self.capabilities, details)
+        return ActuatorInfo(list(self.joint_names), details)
+
+    def _traits_hook(self) -> Traits:
+        return self.TRAITS
 
     # ------------------------------------------------------------------ pacing
     def cycle_period_s(self) -> float:
         return self.dt
 
-    def wait_cycle(self, timeout_s: float) -> bool:
-        """Until the worker forwards the next RTDE package (its timestamp moved on), at most
-        ``timeout_s``: blocks in poll() on the worker's socket. Counts skipped packages in
-        ``missed_packets``."""
+    def wait_cycle(self, deadline: float) -> bool:
+        """Until the worker forwards the next RTDE package (its timestamp moved on), expected at
+        ``deadline`` (the runner's schedule, ``time.perf_counter``) and given up one period
+        after it (after now, when the deadline has passed: a late cycle still waits for its
+        package): blocks in poll() on the worker's socket. Counts skipped packages in
+        ``missed_packets``. Without a link: one period (the cycle goes on, reporting it)."""
         if not self._rt_checked:
             self._note_realtime()
         clock = time.perf_counter
         w = self._w
         if w is None or not self._link:
-            time.sleep(min(timeout_s, self.dt))
+            time.sleep(self.dt)
             return False
-        deadline = clock() + timeout_s
+        deadline = max(deadline, clock()) + self.dt
         while True:
             if self._take(w):
                 return True
@@ -711,33 +714,20 @@ class UrBackend(Actuator):
             return None
         if np.any(mode == _VELOCITY):
             qd = np.where(mode == _VELOCITY, command.velocity, 0.0)
-            bad = _first_bad(qd)
-            if bad is not None:
-                return self._invalid(bad, "velocity", qd[bad])
-            np.clip(qd, -self._vel_max, self._vel_max, out=qd)
             self._last_kind = "speedj"
             self._target[:] = command.position  # a later hold starts from core's (measured) setpoint
             return self._out(SPEEDJ, qd, self._speed_acc, 0.0)
         q = self._target
-        fault = None
-        for i in range(N_JOINTS):
-            if mode[i] == _POSITION:
-                v = command.position[i]
-                if not math.isfinite(v):
-                    fault = fault or self._invalid(i, "position", v)
-                    continue  # this joint keeps its last target; the others are sent
-                q[i] = min(max(v, self._pos_min[i]), self._pos_max[i])
+        np.copyto(q, command.position, where=mode == _POSITION)  # a joint in NONE keeps its last target
         cfg = self.config
         self._last_kind = "servoj"
-        return self._out(SERVOJ, q, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain) or fault
+        return self._out(SERVOJ, q, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain)
 
     def _write_cartesian(self, cart) -> Fault | None:
         cfg = self.config
         m = int(cart.mode[0])
         if m == _C_TWIST:
             xd = np.concatenate([cart.linear[0], cart.angular[0]])
-            if not np.all(np.isfinite(xd)):
-                return Fault("invalid_command", f"{self.robot}: servo_cv twist is not finite", transient=False)
             if int(cart.frame[0]) == FRAME_BODY:  # speedL takes base-frame axes
                 xd[:3] = self._tcp_r @ xd[:3]
                 xd[3:] = self._tcp_r @ xd[3:]
@@ -764,16 +754,9 @@ class UrBackend(Actuator):
                              f"TCP at {np.round(self._tcp_p, 4).tolist()} m", transient=False)
             pose = [float(p[0]), float(p[1]), float(p[2]), *map(float, pin.log3(rot))]
         else:
-            if not (np.all(np.isfinite(cart.position[0])) and np.all(np.isfinite(cart.orientation[0]))):
-                return Fault("invalid_command", f"{self.robot}: servo_cp pose is not finite", transient=False)
             pose = _pose6(cart.position[0], cart.orientation[0])
         self._last_kind = "servol"
         return self._out(SERVOL, pose, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain)
-
-    def _invalid(self, i: int, field: str, value: float) -> Fault:
-        name = self.joint_names[i]
-        return Fault("invalid_command", f"{self.robot}: joint {name!r}: {field} setpoint {value!r} is not finite; "
-                     "not sent", joint=name, value=float(value), transient=False)
 
     def _set_teach(self, on: bool) -> None:
         self._teach = on
@@ -999,11 +982,6 @@ class UrBackend(Actuator):
 
 def _op_name(op: int) -> str:
     return OP_NAMES.get(op, str(op))
-
-
-def _first_bad(v: np.ndarray) -> int | None:
-    bad = np.flatnonzero(~np.isfinite(v))
-    return int(bad[0]) if bad.size else None
 
 
 def _name(enum_type: type, value: int) -> str:

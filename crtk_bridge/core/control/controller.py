@@ -18,8 +18,8 @@ cartesian control get cartesian setpoints from ``native_cartesian.py``. Safety h
   last setpoint (or goal) is refused; a stream silent for ``safety.servo_timeout_s`` holds;
 * move goals outside the joint limits are refused naming joint and limit;
 * faults (bus, servo error bits, tracking error beyond ``safety.tracking_error_max``) put the
-  robot in FAULT with the cause in an ``error`` event, and the backend's ``fault_reaction``
-  (serial servos: torque off).
+  robot in FAULT with the cause in an ``error`` event, and torque off (the backend's DISABLE
+  transition; a UR stops, powers off and applies its brakes).
 
 Lifecycle transitions (enable, disable, the torque-off of a fault, pause, resume, native home)
 run as the backend's :class:`~crtk_bridge.core.actuator.Transition`, one step per cycle after the
@@ -38,7 +38,6 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ...errors import fmt_number
 from ...profile import Profile, stop_deceleration
 from ..actuator import Actuator, Capabilities, CommandMode, Fault, Lifecycle
 from ..motion import Mode, NamespaceMotion
@@ -67,7 +66,9 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
     def __init__(self, profile: Profile, actuator: Actuator, clock: Callable[[], float], period_s: float):
         self.profile = profile
         self.actuator = actuator
-        self.caps = actuator.capabilities
+        #: what the backend declares (immutable, final once open): read here and nowhere else
+        self.traits = traits = actuator.traits
+        self.caps = traits.capabilities
         self.clock = clock
         self.robot = profile.name
         #: the cycle period (s): :func:`~crtk_bridge.core.actuator.effective_period_s`, the loop's
@@ -82,7 +83,7 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
         self.state_stamp = clock()
         self.outbox: list[dict] = []
         #: what each namespace's joints can do together: commands are offered and refused per namespace
-        self.ns_caps = {ns.name: actuator.capabilities_of([profile.joint_index(j) for j in ns.joints])
+        self.ns_caps = {ns.name: traits.capabilities_of([profile.joint_index(j) for j in ns.joints])
                         for ns in profile.namespaces}
         #: rad/s^2 each joint's stops brake at (the profile's, or its default bounded by the hardware)
         self.stop_dec = np.array([stop_deceleration(j.limits, actuator.deceleration_limit(i))
@@ -99,7 +100,6 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
                                                        profile.safety)
         self.command = actuator.new_command()
         self.feedback = actuator.new_feedback()  # latest sample, copied in by on_read()
-        self._fresh = actuator.new_feedback()  # the read that follows torque on
         self.fault_cause: Fault | None = None
         self._consecutive_bus_errors = 0
         self._tracking_cycles = 0
@@ -222,7 +222,7 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
             what = {"position": "position control", "velocity": "velocity or position control",
                     "effort": "effort control", "free": "a way to switch torque off"}[need]
             lacking = [self.profile.joints[i].name for i in m.idx
-                       if not self._allows(self.actuator.joint_capabilities(int(i)), need)]
+                       if not self._allows(self.traits.joints[int(i)], need)]
             where = (f"joint{'s' if len(lacking) > 1 else ''} {', '.join(map(repr, lacking))}" if lacking
                      else f"the {self.profile.backend_type} backend")
             raise Refused("unsupported", f"{ns}: {cmd} is not supported: no {what} on {where}")
@@ -319,15 +319,8 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
                           "in progress")
 
     def _move(self, m: NamespaceMotion, goal: np.ndarray) -> dict:
-        bad = np.flatnonzero((goal < m.pos_min) | (goal > m.pos_max))
-        if bad.size:
-            j = int(bad[0])
-            raise Refused(
-                "out_of_limits",
-                f"{m.name}: move refused: goal {fmt_number(goal[j])} rad for joint {m.joint_names[j]!r} is outside "
-                f"its limits [{fmt_number(m.pos_min[j])}, {fmt_number(m.pos_max[j])}]",
-            )
-        check = self.actuator.goal_check_steps(m.name, "move_jp", goal)
+        self._check_goal(m, goal)
+        check = self.actuator.goal_check_steps(m.name, "move_jp", goal) if self.traits.goal_check else None
         if check is not None:  # the device's own limits first; the move starts when they agree
             return self._start(self._goal_check(check), lambda: self._start_move(m, goal), self._goal_refused)
         return self._start_move(m, goal)
@@ -390,7 +383,7 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
                 nc.cancel()  # paused, disabled, fault: the backend gets no cartesian setpoint
         if self.state not in (OperatingState.ENABLED, OperatingState.PAUSED):
             self._written = False
-            if self.actuator.cyclic_write:
+            if self.traits.cyclic_write:
                 self.command.mode[:] = _NONE
                 if self.command.cartesian is not None:
                     self.command.cartesian.mode[:] = _NONE

@@ -8,10 +8,12 @@ about itself (ONE table, ``state.DEVICE_STATUS``) and the loss of the controllin
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ...errors import fmt_number
-from ..actuator import CommandMode, DeviceStatus, Fault, FaultReaction, JointFeedback, Lifecycle
+from ..actuator import CommandMode, DeviceStatus, Fault, JointFeedback, Lifecycle
 from ..motion import Mode
 from ..state import DEVICE_STATUS, OperatingState
 from .common import Refused
@@ -43,7 +45,7 @@ class SupervisorMixin:
                 nc.cancel()
             names = [m.name for m in endless] + [nc.motion.name for nc in native]
             self.event("warning", "control_released",
-                        f"{self.robot}: controlling client disconnected; holding {', '.join(names)}")
+                       f"{self.robot}: controlling client disconnected; holding {', '.join(names)}")
 
     def enter_fault(self, fault: Fault) -> None:
         """FAULT with ``fault`` as the cause, and the backend's fault reaction (also the loop's
@@ -55,10 +57,10 @@ class SupervisorMixin:
             self._abort_running(f"{run.transition.kind.value} aborted: {fault.message}")
         self._abort_motion()
         message = fault.message
-        if self.actuator.fault_reaction is FaultReaction.TORQUE_OFF and not torque_going_off:
+        if not torque_going_off:  # every backend's reaction: torque off (the DISABLE transition)
             message += self._torque_off()
         self.event("error", fault.code, message, joint=fault.joint, register=fault.register,
-                    value=fault.value)
+                   value=fault.value)
         self._set_state(OperatingState.FAULT)
 
     def _torque_off(self) -> str:
@@ -82,7 +84,7 @@ class SupervisorMixin:
             self._torque_unconfirmed = True
             return Refused("fault", str(exc))
 
-        self._start(self.actuator.begin_fault_reaction(), done, failed, reply=False)
+        self._start(self.actuator.begin(Lifecycle.DISABLE), done, failed, reply=False)
         first[0] = False
         return said[0] if said else ""
 
@@ -136,7 +138,7 @@ class SupervisorMixin:
         if news is not None:
             self._device_status(*news)
         self._consecutive_bus_errors = 0
-        speed = self.actuator.speed_fraction
+        speed = self.actuator.speed_fraction if self.traits.speed_scaling else math.nan
         if speed == speed and abs(speed - self._speed_fraction) >= 0.005 or (speed == speed) != (
                 self._speed_fraction == self._speed_fraction):
             self._speed_fraction = speed  # the operator moved the slider: clients hear of it

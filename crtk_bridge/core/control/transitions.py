@@ -20,7 +20,6 @@ from ..state import OperatingState, StateCommand, transition
 from .common import DEFERRED, Refused
 
 _DEFERRED = DEFERRED
-ENABLE_FRESH_READ_ATTEMPTS = 3  # reads tried for the pose an enable holds (after torque on)
 
 
 @dataclass
@@ -156,23 +155,14 @@ class TransitionsMixin:
 
     def _enable(self) -> Any:
         kinds = (Lifecycle.FAULT_RESET, Lifecycle.ENABLE) if self.state is OperatingState.FAULT else (Lifecycle.ENABLE,)
-        timeout = sum(self.actuator.transition_timeout_s(k) for k in kinds)
+        timeout = sum(self.traits.timeout_s(k) for k in kinds)
         t = Transition(self.robot, Lifecycle.ENABLE, self._sequence(kinds), timeout)
         return self._start(t, self._enabled, self._failed("enable"))
 
     def _enabled(self) -> dict:
-        # hold exactly where the joints are NOW: the cycle's sample may be stale (a failed read,
-        # or a joint that sagged while torque was off), and the first write must not drive the
-        # arm back to it
-        # a loaded host may miss one reply: a few bounded attempts (each at most one packet
-        # timeout, on this rare path only) rather than a FAULT for one late byte
-        for _ in range(ENABLE_FRESH_READ_ATTEMPTS):
-            fault = self.actuator.read(self._fresh)
-            if fault is None:
-                break
-        if fault is not None:
-            raise self._failed("enable")(BackendError(f"no fresh position after torque on: {fault.message}"))
-        self.on_read(self._fresh, None)
+        # hold exactly where the joints are NOW: the backend's ENABLE ends in a cycle whose read
+        # measured them with torque on (Actuator._enable_then_fresh), the sample on_read took in
+        # this cycle; nothing here touches the bus
         for m in self.namespaces.values():
             m.reset(self.feedback.position[m.idx])
         self.fault_cause = None
@@ -213,14 +203,15 @@ class TransitionsMixin:
         return self.operating_state()
 
     def _resumed(self) -> dict:
-        if self.actuator.stops_itself_on_pause:  # the device holds where its own stop ended
-            for m in self.namespaces.values():
+        stopped_itself = self.traits.stops_itself_on_pause
+        for m in self.namespaces.values():  # a device that stops itself holds where its own stop ended
+            if any(stopped_itself[i] for i in m.idx):
                 m.reset(self.feedback.position[m.idx])
         self._set_state(OperatingState.ENABLED)
         return self.operating_state()
 
     def _home(self) -> Any:
-        if self.actuator.native_homing:
+        if self.traits.native_homing:
             def homed() -> dict:
                 self.is_homed = True
                 for m in self.namespaces.values():

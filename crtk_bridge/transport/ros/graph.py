@@ -1,7 +1,7 @@
 """The robot as a ROS 2 graph over Zenoh (rmw_zenoh's format), in the front process.
 
 One ROS node, ``crtk_bridge_<robot>``, per daemon. Per CRTK namespace (names and types as the
-dVRK uses them, ../shared/reference/crtk-anchors.md):
+dVRK uses them, docs/architecture.md, "Sources": CRTK):
 
 * published at the loop rate (or ``transport.zenoh.publish_rate_hz``): ``measured_js``,
   ``setpoint_js``, ``goal_js`` (sensor_msgs/JointState); where the namespace has kinematics
@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import re
 import time
 from pathlib import Path
@@ -53,6 +52,7 @@ import msgspec
 import numpy as np
 import zenoh
 
+from ... import vectors
 from ...errors import CrtkBridgeError
 from ...server.protocol import STATE_COMMANDS, STOP_COMMANDS
 from ...server.server import Server, Session
@@ -110,7 +110,7 @@ class RosSession(Session):
         except Exception:  # never break the server's fan-out to the other sessions
             log.exception("ROS graph: publishing %s failed", msg.get("event", "a reply"))
 
-    def send_frame(self, msg: Any) -> None:  # the ROS session never subscribes to socket streams
+    def send_frame(self, line: bytes) -> None:  # the ROS session never subscribes to socket streams
         pass
 
     def close(self) -> None:
@@ -168,6 +168,10 @@ class RosGraph:
         spaces = {ns: server.cartesian_space(ns) for ns in server.cartesian}  # the thread's own
         self.periodic = PeriodicTopics(self.link, self.namespaces, self._pubs, spaces, self.rate_hz, robot)
         self.periodic.start()
+        server.statistics.append(self._statistics)
+
+    def _statistics(self) -> dict:
+        return {"ros_ticks_skipped": self.periodic.skipped if self.periodic is not None else 0}
 
     def _declare(self) -> None:
         node = self.node
@@ -407,9 +411,12 @@ class RosGraph:
 
 
 def _finite(ns: str, cmd: str, data: dict) -> dict:
+    """``data`` when every vector in it is finite (crtk_bridge/vectors.py, the reader the socket's
+    clients and core use); else Refused naming the field and entry (JSON cannot carry NaN, CDR can)."""
     for f, values in data.items():
-        for i, v in enumerate(values):
-            if not math.isfinite(v):
-                raise Refused(f"{ns}: {cmd} refused: non-finite value {v} at data.{f}[{i}]")
+        try:
+            vectors.floats(values, f"{ns}: {cmd} refused: data.{f}")
+        except vectors.InvalidVector as exc:
+            raise Refused(exc.message) from None
     return data
 

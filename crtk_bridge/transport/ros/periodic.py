@@ -13,7 +13,8 @@ spread over the tick, ~5 us in a burst, and a third less CPU for the process at 
 Why a thread: the event loop serves the socket and Zenoh clients, and a 1 kHz timer on it costs a
 wake-up per tick and rounds its sleeps to the selector's millisecond. The snapshot in shared
 memory is the latest-value slot: a tick that comes late reads the newest sample and the ticks it
-missed are skipped, never queued. Only this thread touches these publishers (the event-driven
+missed are skipped, never queued; they are counted (``skipped``, period_statistics'
+``ros_ticks_skipped``) and said in the log at most once a second. Only this thread touches these publishers (the event-driven
 topics stay on the event loop), and it computes cartesian topics with its own kinematics
 (pinocchio data is not thread-safe).
 """
@@ -140,6 +141,8 @@ class PeriodicTopics:
         self._thread = threading.Thread(target=self._run, name=f"ros topics {robot}", daemon=True)
         self._error_said = -1.0
         self.published = 0  # ticks that put samples (for tests and the bench)
+        self.skipped = 0  # ticks missed because the thread was late (their samples never published)
+        self._skip_said = -1.0
 
     def start(self) -> None:
         self._thread.start()
@@ -166,8 +169,19 @@ class PeriodicTopics:
             delay = next_t - clock()
             if delay > 0:
                 time.sleep(delay)
-            else:  # behind: skip the missed ticks, never burst
+            else:  # behind: skip the missed ticks, never burst; counted, never silent
+                missed = int(-delay / period)
+                if missed:
+                    self._missed(missed)
                 next_t = clock()
+
+    def _missed(self, n: int) -> None:
+        self.skipped += n
+        now = time.monotonic()
+        if now - self._skip_said >= 1.0:
+            self._skip_said = now
+            log.warning("%s: the ROS topics' thread fell behind: %d ticks skipped so far (their samples were "
+                        "not published; period_statistics' ros_ticks_skipped counts them)", self.robot, self.skipped)
 
     def publish_once(self) -> bool:
         """One sample of every periodic topic somebody subscribes to, from one snapshot read.

@@ -2,8 +2,8 @@
 ``RMW_IMPLEMENTATION=rmw_zenoh_cpp`` see our node, publishers and subscriptions.
 
 Facts from ros2/rmw_zenoh (docs/design.md, rmw_zenoh_cpp/src/detail/liveliness_utils.cpp,
-attachment_helpers.cpp, rmw_publisher_data.cpp) as summarised in
-../shared/reference/ros2-zenoh.md:
+attachment_helpers.cpp, rmw_publisher_data.cpp) (docs/architecture.md,
+"Sources": ROS 2 over Zenoh):
 
 * data key expression: ``<domain>/<topic without leading slash>/<dds type>/<RIHS01 hash>``;
 * liveliness tokens (the ROS graph): node

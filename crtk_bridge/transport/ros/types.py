@@ -3,7 +3,7 @@ RIHS01 type hashes (the ones rmw_zenoh puts in key expressions and liveliness to
 
 The store is ROS 2 Kilted's (std_msgs, sensor_msgs, geometry_msgs, tf2_msgs, builtin_interfaces)
 plus crtk_msgs, registered from the message definitions of crtk_msgs 1.3.0
-(../shared/reference/crtk-anchors.md, section 1.1). Recording (rosbag2 MCAP) is to reuse
+(docs/architecture.md, "Sources": CRTK). Recording (rosbag2 MCAP) is to reuse
 :data:`TYPESTORE`, so a bag and the live graph carry the same types and hashes.
 
 Costs (bench/bench_zenoh.py): a 6-joint JointState encodes in about 5 us.
