@@ -1,11 +1,12 @@
-"""LeRobot's own SO101Follower and the daemon read the same simulated bus with the same LeRobot
-calibration file: the daemon's joints agree with LeRobot's numbers within one tick, at 3 poses
-per joint (issue 21, "Tests (CI)").
+"""LeRobot's own SO101Follower, and the plugin through the daemon, read the same simulated bus with
+the same LeRobot calibration file: the plugin reports LeRobot's numbers within one tick, at 3 poses
+per joint (issue 21, "Tests (CI)"), and the daemon's own joints (radians) are LeRobot's degrees.
 
 One simulator (``crtk-sim feetech``, its pty) serves both, one after the other: LeRobot 0.4.4
 first, in its own venv (tests/lerobot/venv.py), which writes its calibration into the servos as
 ``lerobot-calibrate`` leaves them and reads ``get_observation()`` at each pose; then the daemon
-on the same pty, its profile's calibration imported from the same file (docs/calibration.md).
+on the same pty, its profile's calibration imported from the same file (docs/calibration.md),
+read through the plugin (``--robot.type=crtk``, ``units=lerobot``) and through the client.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import pytest
 from crtk_bridge.client import connect
 
 from ..conftest import wait_until
-from .rig import ARM, CALIBRATION, SO101, CalibratedArm, lerobot_reading
+from .rig import ARM, CALIBRATION, SO101, CalibratedArm, lerobot_reading, one_tick
 
 TICK = 2 * math.pi / 4096
 DEG_TICK = 360 / 4096
@@ -38,7 +39,7 @@ def arm(short_tmp):
     a.close()
 
 
-def test_the_daemon_reads_what_lerobots_own_so101_follower_reads(arm, lerobot_driver):
+def test_the_plugin_reports_what_lerobots_own_so101_follower_reports(arm, lerobot_driver, lerobot_plugin):
     # 1. LeRobot directly on the simulator's pty
     lr = lerobot_driver()
     lr("connect", type="so101_follower", config={"port": arm.port, "id": arm.name,
@@ -57,10 +58,29 @@ def test_the_daemon_reads_what_lerobots_own_so101_follower_reads(arm, lerobot_dr
     for name, c in CALIBRATION.items():  # LeRobot found its calibration in the servos and left it there
         assert arm.read(name, "Homing_Offset") == c["homing_offset"]
 
-    # 2. the daemon on the same pty, calibrated from the same file
+    # 2. the daemon on the same pty, calibrated from the same file, read by the plugin (connect()
+    # enables the arm; disabled again from another client, so a hand can set the poses)
     arm.start_daemon()
     client = connect(socket=str(arm.socket))
+    plugin = lerobot_driver(lerobot_plugin)
     try:
+        plugin("connect", type="crtk", config={"socket": str(arm.socket), "units": "lerobot"})
+        assert client.device("so101").disable()
+        for pose, obs in zip(poses(), direct):
+            arm.place(pose)
+
+            def plugin_reads():
+                return plugin("obs")["obs"]
+
+            def same_as_lerobot():
+                got = plugin_reads()
+                return all(abs(got[k] - obs[k]) <= one_tick(k[:-4]) for k in obs)
+
+            try:
+                wait_until(same_as_lerobot, 5, what=f"the plugin reading LeRobot's {obs} at {pose}")
+            except AssertionError:
+                raise AssertionError(f"plugin {plugin_reads()} vs LeRobot {obs} at {pose}") from None
+        plugin("disconnect")
         grip_scale = 100 / ((CALIBRATION["gripper"]["range_max"] - CALIBRATION["gripper"]["range_min"]) * TICK)
         for pose, obs in zip(poses(), direct):
             arm.place(pose)
@@ -81,4 +101,5 @@ def test_the_daemon_reads_what_lerobots_own_so101_follower_reads(arm, lerobot_dr
             except AssertionError:
                 raise AssertionError(f"daemon {read()} vs LeRobot {obs} at {pose}") from None
     finally:
+        plugin.close()
         client.close()
