@@ -194,7 +194,9 @@ def test_teleoperate_then_the_follower_daemon_faults(pair):
             proc.kill()
     out = log.read_text(errors="replace")
     assert rc != 0, tail(log)
-    assert "elbow_flex" in out or "FAULT" in out.upper(), tail(log)  # the daemon's one-line reason
+    # a clear error: the plugin's, with the daemon's one-line reason (the joint whose servo fell silent)
+    error = [ln for ln in out.splitlines() if "CrtkFaultError" in ln]
+    assert error and "so101 is in FAULT (" in error[-1] and "elbow_flex" in error[-1], tail(log)
     # the follower stopped: the leader moves on, the follower's goals stay where they were
     goals = {m: pair.follower.read(m, "Goal_Position") for m in ("shoulder_pan", "shoulder_lift", "wrist_flex")}
     pair.leader.hand(pose_at(0.4), HAND_SPEED)
