@@ -214,14 +214,17 @@ def loop_round(tmp: Path, zen: str | None, window: float, tree: Path = ROOT, cli
             listener.declare_subscriber(zen, lambda s: got.__setitem__(0, got[0] + 1))
             if clients:
                 remote = RemoteClients(listener, clients)
+        rx0, t_rx = (got[0], remote.lines if remote else 0), time.monotonic()
         time.sleep(0.5)  # the streams run
         cpu0, t0 = cpu_s(d.pid), time.monotonic()
         p99, p50, ovr, cyc = loop_window(sock, window)
         front = (cpu_s(d.pid) - cpu0) / (time.monotonic() - t0)
+        span = time.monotonic() - t_rx
+        ros_rate, remote_rate = (got[0] - rx0[0]) / span, ((remote.lines if remote else 0) - rx0[1]) / span
         robot = connect(socket=str(sock))
         dropped = robot.connection.request("period_statistics").get("frames_dropped", float("nan"))
         robot.close()
-        return p99, p50, ovr, cyc, got[0], remote.lines if remote else 0, dropped, front
+        return p99, p50, ovr, cyc, ros_rate, remote_rate, dropped, front
     finally:
         if remote is not None:
             remote.close()
@@ -305,10 +308,9 @@ def main() -> int:
     print("control loop lateness @1 kHz, enabled, idle (median of ~1 s windows' p50 / p99):")
     for name, rs in rows.items():
         ovr, cyc = sum(col(rs, 2)), sum(col(rs, 3))
-        span = len(rs) * (args.window + 1.1)
-        extra = f"; {sum(col(rs, 4)) / span:.0f} ROS samples/s" if variants[name][0] else ""
+        extra = f"; {float(np.median(col(rs, 4))):.0f} ROS samples/s" if variants[name][0] else ""
         if variants[name][2]:
-            extra += (f", {sum(col(rs, 5)) / span:.0f} remote frames/s (asked {1000 * len(REMOTE_TOPICS) * args.clients}),"
+            extra += (f", {float(np.median(col(rs, 5))):.0f} remote frames/s (asked {1000 * len(REMOTE_TOPICS) * args.clients}),"
                       f" frames_dropped {sum(col(rs, 6))}")
         print(f"  {name:50s}: p50 {ms(col(rs, 1))}, p99 {ms(col(rs, 0))}; overruns {ovr} of {cyc} cycles; "
               f"front process CPU {100 * float(np.median(col(rs, 7))):.0f} % of a core{extra}")
@@ -316,7 +318,7 @@ def main() -> int:
         base_rows = rows[f"{tag}without Zenoh"]
         base = float(np.median(col(base_rows, 0)))
         base_ovr = sum(col(base_rows, 2)) / max(1, sum(col(base_rows, 3)))
-        for name in [n for n in variants if n.startswith(tag + "with")]:
+        for name in [n for n in variants if n.startswith(tag + "with Zenoh")]:
             ovr = sum(col(rows[name], 2)) / max(1, sum(col(rows[name], 3)))
             print(f"  ratio p99 {name} / {tag}without: {float(np.median(col(rows[name], 0))) / base:.2f}  "
                   f"(target <= 1.2); overruns per cycle: {ovr / base_ovr if base_ovr else float('nan'):.2f}x")

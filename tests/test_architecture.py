@@ -11,6 +11,10 @@ import re
 from .conftest import ROOT
 
 PACKAGE = ROOT / "crtk_bridge"
+#: the client distribution's package (clients/python), checked with the same table
+CLIENT = ROOT / "clients" / "python" / "crtk_client"
+#: import package -> its folder's repository path
+PACKAGES = {"crtk_bridge": "crtk_bridge", "crtk_client": "clients/python/crtk_client"}
 ARCHITECTURE = ROOT / "docs" / "architecture.md"
 
 
@@ -45,7 +49,10 @@ def layer_of(path: str, paths: dict[str, str]) -> str | None:
 
 def module_file(module: str) -> str | None:
     """The repository path of module ``module`` (a package: its __init__.py), or None."""
-    rel = module.replace(".", "/")
+    top, _, rest = module.partition(".")
+    if top not in PACKAGES:
+        return None
+    rel = "/".join([PACKAGES[top], *rest.split(".")]) if rest else PACKAGES[top]
     for candidate in (f"{rel}.py", f"{rel}/__init__.py"):
         if (ROOT / candidate).exists():
             return candidate
@@ -53,13 +60,14 @@ def module_file(module: str) -> str | None:
 
 
 def project_imports(path):
-    """(line, imported module) for every import of crtk_bridge in file ``path``."""
+    """(line, imported module) for every import of crtk_bridge or crtk_client in file ``path``."""
     rel = path.relative_to(ROOT)
-    package = list(rel.parent.parts) if path.name != "__init__.py" else list(rel.parent.parts)
+    parts = list(rel.parent.parts)
+    package = parts[2:] if parts[:2] == ["clients", "python"] else parts  # the import package's
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
             for alias in node.names:
-                if alias.name.split(".")[0] == "crtk_bridge":
+                if alias.name.split(".")[0] in PACKAGES:
                     yield node.lineno, alias.name
         elif isinstance(node, ast.ImportFrom):
             if node.level:
@@ -67,7 +75,7 @@ def project_imports(path):
                 target = ".".join(base + ([node.module] if node.module else []))
             else:
                 target = node.module or ""
-            if target.split(".")[0] != "crtk_bridge":
+            if target.split(".")[0] not in PACKAGES:
                 continue
             for alias in node.names:  # ``from pkg import submodule`` imports the submodule
                 sub = f"{target}.{alias.name}"
@@ -77,7 +85,7 @@ def project_imports(path):
 def test_every_import_follows_the_documented_dependencies():
     paths, allowed = dependency_table()
     wrong = []
-    for path in sorted(PACKAGE.rglob("*.py")):
+    for path in sorted([*PACKAGE.rglob("*.py"), *CLIENT.rglob("*.py")]):
         rel = str(path.relative_to(ROOT))
         layer = layer_of(rel, paths)
         assert layer is not None, f"{rel} is in no layer of docs/architecture.md's Dependencies table"
@@ -100,6 +108,11 @@ def test_the_checker_sees_a_forbidden_import(tmp_path):
     assert layer_of("crtk_bridge/backends/robotiq/__init__.py", paths) == "tables"
     assert layer_of("crtk_bridge/backends/__init__.py", paths) == "backends"
     assert "backends" not in allowed["core"] and "core" not in allowed["client"] and "core" not in allowed["sim"]
+    # the client distribution installs alone: its package imports nothing of crtk_bridge
+    assert layer_of("clients/python/crtk_client/device.py", paths) == "client library"
+    assert allowed["client library"] == {"client library"}
+    assert module_file("crtk_client.device") == "clients/python/crtk_client/device.py"
+    assert list(project_imports(CLIENT / "zenoh_link.py"))  # its imports of crtk_client are seen
 
 
 CITATION = re.compile(r"DESIGN\.md|\.\./shared|(?<![\w/.-])shared/(reference|DESIGN|STYLE|crtk-spec)")

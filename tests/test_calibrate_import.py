@@ -17,7 +17,7 @@ import math
 import numpy as np
 import pytest
 
-from crtk_bridge.backends.calibration import RangeWatch, from_lerobot, sweep_calibration
+from crtk_bridge.backends.calibration import RangeWatch, from_lerobot, lerobot_maps, sweep_calibration
 from crtk_bridge.client import connect
 from crtk_bridge.errors import BackendError
 from crtk_bridge.profile import load_profile
@@ -86,6 +86,18 @@ def test_import_then_the_restarted_daemon_reads_as_lerobot_does(short_tmp, profi
                     return np.all(np.abs(arm - want_arm) <= TICK) and abs(grip - want_grip) <= TICK
 
                 wait_until(same, 3, what=f"LeRobot's readings at {present}")
+                # list's LeRobot maps turn the readings into LeRobot's own numbers (docs/protocol.md)
+                maps = {ns["name"]: ns["lerobot"] for ns in robot.list()["namespaces"]}
+                arm_maps, grip_maps = maps[arm_ns(profile)[0]], maps[arm_ns(profile)[1]]
+                arm = robot.device(arm_ns(profile)[0]).measured_jp()[0]
+                grip = robot.device(arm_ns(profile)[1]).measured_jp()[0][0]
+                for name, m, rad in zip(ARM, arm_maps, arm):
+                    scale, bias = m["degrees"]
+                    assert abs(scale * rad + bias - lerobot_reading(name, present[name])) <= 360 / 4095, name
+                scale, bias = grip_maps[0]["range_0_100"]
+                c = LEROBOT["gripper"]
+                assert abs(scale * grip + bias - lerobot_reading("gripper", present["gripper"])) <= \
+                    100 / (c["range_max"] - c["range_min"])
         finally:
             robot.close()
     finally:
@@ -140,6 +152,38 @@ def test_lerobot_conversion_maps_homing_range_and_gripper_ends():
     # a Dynamixel applies drive_mode itself (its Drive_Mode register): nothing to flip in software
     grip = from_lerobot("koch", flipped, NAMES, [1, 2, 3, 4, 5, 6], RES, DIRS, ["gripper"], False)["gripper"]
     assert grip["offset"] == 2010 and grip["direction"] == 1
+
+
+def test_lerobot_maps_give_lerobot_numbers_of_the_radians_by_hand():
+    """Per joint, ``scale * rad + bias`` is LeRobot's number for the same ticks, computed here by
+    hand from LeRobot's formulas (module docstring), in each norm mode, for an imported calibration
+    (half-tick middles, a flipped gripper), a joint the profile flips, and past the range (degrees
+    are not clamped; RANGE modes are, and the maps say which interval)."""
+    def rad_of(t, cal):
+        return cal["direction"] * (t - cal["offset"]) * 2 * math.pi / 4096
+
+    flipped = {**LEROBOT, "gripper": {**LEROBOT["gripper"], "drive_mode": 1}}
+    for data, dirs in ((LEROBOT, DIRS), (flipped, DIRS), (LEROBOT, [-1] * 6)):
+        cal = from_lerobot("so101", data, NAMES, [1, 2, 3, 4, 5, 6], RES, dirs, ["gripper"], True)
+        for name in NAMES:
+            c, k = data[name], cal[name]
+            lo, hi = c["range_min"], c["range_max"]
+            maps = lerobot_maps(k["offset"], k["direction"], k["range"], 4096)
+            for t in (lo, lo + 1, (lo + hi) // 2, hi - 7, hi):
+                rad = rad_of(t, k)
+                deg = (t - (lo + hi) / 2) * 360 / 4095
+                m100 = (t - lo) / (hi - lo) * 200 - 100
+                p100 = (t - lo) / (hi - lo) * 100
+                if name == "gripper" and c["drive_mode"]:
+                    p100 = 100 - p100  # LeRobot's Feetech bus applies drive_mode in software
+                for mode, want in (("degrees", deg), ("range_m100_100", m100), ("range_0_100", p100)):
+                    if mode == "range_0_100" and name != "gripper":
+                        continue  # LeRobot reads only the gripper in 0..100
+                    scale, bias = maps[mode]
+                    assert scale * rad + bias == pytest.approx(want, abs=1e-9), (name, mode, t)
+            scale, bias = maps["degrees"]  # past the range: degrees go on (LeRobot does not clamp them)
+            assert scale * rad_of(hi + 50, k) + bias == pytest.approx((hi + 50 - (lo + hi) / 2) * 360 / 4095)
+    assert lerobot_maps(2048, 1, None, 4096) is None  # no range: LeRobot has no number for it
 
 
 def test_lerobot_file_of_another_arm_is_refused_naming_motor_and_field():

@@ -675,7 +675,7 @@ def test_no_private_controller_attribute_is_used_outside_its_package(rig):
     assert {"_consecutive_bus_errors", "_abort_motion", "_running"} <= private  # the scan knows them
     package = _ROOT / "crtk_bridge" / "core" / "control"
     found = []
-    for top in ("crtk_bridge", "tests", "bench"):
+    for top in ("crtk_bridge", "clients", "tests", "bench"):
         for path in sorted((_ROOT / top).rglob("*.py")):
             if package in path.parents:
                 continue

@@ -7,6 +7,8 @@ installed package's code even from a folder holding another ``crtk_bridge``."""
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -17,7 +19,7 @@ import pytest
 from crtk_bridge import spawn
 from crtk_bridge.profile import load_profile, resolve_profile_arg, shipped_profile_names, shipped_profiles_dir
 
-from .conftest import ROOT, wait_until
+from .conftest import ROOT, only_on, wait_until
 
 SHIPPED = sorted(p.name for p in (ROOT / "profiles").glob("*.yaml"))
 URDFS = sorted(p.name for p in (ROOT / "profiles" / "urdf").glob("*.urdf"))
@@ -209,3 +211,90 @@ def test_init_profile_names_the_key_to_set_for_the_profiles_backend(tmp_path, ca
     out = capsys.readouterr().out
     assert f"set {key}, then" in out, out
     assert out.count("backend") == key.count("backend"), out
+
+
+def test_the_bridge_install_carries_the_client_library_under_both_names(installed):
+    """``pip install .`` installs ``crtk_client`` (clients/python) with crtk-bridge, and the old
+    names (``crtk_bridge.client.device``, ``crtk_bridge.errors``) are the same modules."""
+    site = site_packages(installed)
+    probe = ("import crtk_client, crtk_client.device, crtk_bridge.client.device, crtk_bridge.errors, crtk_client.errors;"
+             "print(crtk_client.__file__);"
+             "print(crtk_bridge.client.device is crtk_client.device and crtk_bridge.errors is crtk_client.errors)")
+    out = subprocess.run([str(installed.python), "-c", probe], cwd=installed.cwd("both"), env=installed.env(),
+                         capture_output=True, text=True, check=True)
+    where, same = out.stdout.split()
+    assert Path(where).parent == site / "crtk_client" and same == "True"
+
+
+#: the vendor SDKs and daemon-only libraries crtk-bridge needs and the client must never load
+DAEMON_ONLY = ("scservo_sdk", "dynamixel_sdk", "canopen", "can", "rtde_control", "rtde_receive", "pinocchio",
+               "ruckig", "yaml", "ruamel", "rosbags", "serial")
+
+#: run by the client-only venv's python: list, state and measured_js from the daemon; then what
+#: it could import: crtk_bridge (must fail) and which DAEMON_ONLY modules got loaded
+_CLIENT_ONLY_PROBE = """
+import importlib.util, json, sys
+from crtk_client import connect
+from crtk_client.errors import CommandError
+with connect(socket=sys.argv[1], timeout=10.0) as robot:
+    arm = robot.device(robot.namespaces[0])
+    p, v, e, ts = arm.measured_js()
+    state = robot.operating_state()
+    try:
+        arm.servo_jp(p)
+        refused = None
+    except CommandError as exc:
+        refused = exc.code
+print(json.dumps({"namespaces": robot.namespaces, "n": len(p), "type": type(p).__name__, "state": state,
+                  "refused": refused, "bridge": importlib.util.find_spec("crtk_bridge") is not None,
+                  "loaded": sorted(m for m in json.loads(sys.argv[2]) if m in sys.modules)}))
+"""
+
+
+@only_on("so101-feetech")
+@pytest.mark.reuse_daemon
+def test_the_client_distribution_alone_works_and_needs_only_numpy_and_msgspec(sim_daemon, tmp_path):
+    """``pip install ./clients/python`` (non-editable) into a venv that sees numpy and msgspec
+    only: its metadata requires those two (zenoh an extra), it talks to a daemon (list, state,
+    measured_js as numpy, a refusal as CommandError), it cannot import crtk_bridge and loads no
+    vendor SDK."""
+    import importlib.metadata
+
+    import msgspec
+    import numpy
+
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
+    python = venv / "bin" / "python"
+    site = Path(subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                               check=True, capture_output=True, text=True).stdout.strip())
+    deps = tmp_path / "deps"  # numpy and msgspec of the test venv, nothing else of it
+    deps.mkdir()
+    for package in (numpy, msgspec):
+        folder = Path(package.__file__).parent
+        (deps / folder.name).symlink_to(folder)
+        libs = folder.parent / f"{folder.name}.libs"  # a manylinux wheel's bundled libraries
+        if libs.is_dir():
+            (deps / libs.name).symlink_to(libs)
+    (site / "_deps.pth").write_text(f"{deps}\n")
+    src = tmp_path / "src"
+    shutil.copytree(ROOT / "clients" / "python", src, ignore=shutil.ignore_patterns("build", "*.egg-info",
+                                                                                   "__pycache__"))
+    subprocess.run([sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps", "-q",
+                    "--disable-pip-version-check", str(src)], check=True, timeout=600, capture_output=True)
+    assert not list(site.glob("__editable__*"))
+    meta = subprocess.run([str(python), "-c", "import importlib.metadata as m, json; "
+                           "print(json.dumps(m.requires('crtk-client')))"], capture_output=True, text=True, check=True)
+    requires = sorted(json.loads(meta.stdout))
+    assert [r.split(";")[0].split(">")[0].split("<")[0].strip() for r in requires] == \
+        ["eclipse-zenoh", "msgspec", "numpy"], requires
+    assert "extra == \"zenoh\"" in next(r for r in requires if r.startswith("eclipse-zenoh")), requires
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    out = subprocess.run([str(python), "-P", "-c", _CLIENT_ONLY_PROBE, str(sim_daemon.socket_path),
+                          json.dumps(DAEMON_ONLY)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["namespaces"] == ["so101", "so101/gripper"] and got["n"] == 5 and got["type"] == "ndarray"
+    assert got["state"] == "DISABLED" and got["refused"] == "invalid_state"  # servo_jp while DISABLED
+    assert got["bridge"] is False and got["loaded"] == []
+    assert importlib.metadata.version("crtk-bridge")  # the test venv's own, untouched

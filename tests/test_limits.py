@@ -1,6 +1,6 @@
 """Limits in one place (issue 19, item 5; docs/architecture.md, "Limits").
 
-* crtk_bridge/vectors.py is the one reader of vectors, poses and quaternions (client, front,
+* crtk_client/vectors.py (crtk_bridge.vectors) is the one reader of vectors, poses and quaternions (client, front,
   core), a leaf module (numpy, stdlib, crtk_bridge.errors);
 * ``Actuator.write`` refuses a non-finite setpoint for every backend: the backend's ``_write``
   never sees one (the joint goes out in NONE, keeping its last goal), the write returns a
@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 import math
 import subprocess
@@ -37,13 +38,15 @@ ARM_IDX = np.array([PROFILE.joint_index(j) for j in PROFILE.namespace(ARM).joint
 
 # ---------------------------------------------------------------- the one reader
 def test_vectors_is_a_leaf_module():
-    """The client distribution carries it: importing it loads no other crtk_bridge module than
-    crtk_bridge.errors (nor pinocchio, msgspec, yaml)."""
-    probe = ("import json, sys; import crtk_bridge.vectors; "
-             "print(json.dumps(sorted(m for m in sys.modules if m.startswith(('crtk_bridge', 'pinocchio', "
-             "'msgspec', 'yaml', 'ruckig')))))")
+    """The client distribution carries it (crtk_client.vectors, also named crtk_bridge.vectors):
+    importing it loads no other module of the project than crtk_client.errors (nor crtk_bridge,
+    pinocchio, msgspec, yaml)."""
+    probe = ("import json, sys; import crtk_client.vectors; "
+             "print(json.dumps(sorted(m for m in sys.modules if m.startswith(('crtk_bridge', 'crtk_client', "
+             "'pinocchio', 'msgspec', 'yaml', 'ruckig')))))")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True)
-    assert json.loads(out.stdout) == ["crtk_bridge", "crtk_bridge.errors", "crtk_bridge.vectors"]
+    assert json.loads(out.stdout) == ["crtk_client", "crtk_client.errors", "crtk_client.vectors"]
+    assert vectors is importlib.import_module("crtk_client.vectors")  # the old name is the same module
 
 
 @pytest.mark.parametrize("values, words", [

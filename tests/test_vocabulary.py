@@ -1,4 +1,4 @@
-"""One protocol vocabulary (issue 8 item 9): the codes in crtk_bridge/vocabulary.py are exactly
+"""One protocol vocabulary (issue 8 item 9): the codes in crtk_client/vocabulary.py are exactly
 those docs/protocol.md lists, the code uses no other, every layer takes its words from there, and
 every exception the project defines derives from CrtkBridgeError."""
 
@@ -12,12 +12,14 @@ import re
 from pathlib import Path
 
 import crtk_bridge
+import crtk_client
 from crtk_bridge import vocabulary as V
 from crtk_bridge.errors import CrtkBridgeError
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC = (ROOT / "docs" / "protocol.md").read_text()
-SOURCES = sorted((ROOT / "crtk_bridge").rglob("*.py"))
+CLIENT = ROOT / "clients" / "python" / "crtk_client"  # the client distribution's package
+SOURCES = sorted([*(ROOT / "crtk_bridge").rglob("*.py"), *CLIENT.rglob("*.py")])
 
 
 def _section(title: str) -> str:
@@ -71,15 +73,18 @@ def test_every_layer_takes_its_words_from_the_vocabulary():
     assert set(device.CARTESIAN_TOPICS) == set(V.CartesianTopic)
     assert set(controller.MOTION_COMMANDS) <= set(V.JointCommand)
     # the vocabulary is neutral: it imports nothing of the project, so every layer may import it
-    tree = ast.parse((ROOT / "crtk_bridge" / "vocabulary.py").read_text())
+    assert V.__file__ == str(CLIENT / "vocabulary.py")  # crtk_bridge.vocabulary is the client's module
+    tree = ast.parse((CLIENT / "vocabulary.py").read_text())
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
-            assert node.level == 0 and not (node.module or "").startswith("crtk_bridge"), ast.dump(node)
+            assert node.level == 0 and not (node.module or "").startswith(("crtk_bridge", "crtk_client")), \
+                ast.dump(node)
 
 
 def test_every_exception_derives_from_crtk_bridge_error():
     defined = []
-    for mod in pkgutil.walk_packages(crtk_bridge.__path__, "crtk_bridge."):
+    for mod in [*pkgutil.walk_packages(crtk_bridge.__path__, "crtk_bridge."),
+                *pkgutil.walk_packages(crtk_client.__path__, "crtk_client.")]:
         module = importlib.import_module(mod.name)
         for _, cls in inspect.getmembers(module, inspect.isclass):
             if cls.__module__ == module.__name__ and issubclass(cls, BaseException):

@@ -160,3 +160,40 @@ def from_lerobot(robot: str, data: Any, names: Sequence[str], ids: Sequence[int]
     if problems:
         raise BackendError(f"{robot}: {source}: " + "; ".join(problems))
     return out
+
+
+#: LeRobot's norm modes (lerobot/motors/motors_bus.py ``MotorNormMode``), as ``list`` names them,
+#: and the interval RANGE modes clamp to (LeRobot clamps the ticks to the calibrated range first)
+LEROBOT_MODES = {"degrees": None, "range_m100_100": (-100.0, 100.0), "range_0_100": (0.0, 100.0)}
+
+
+def lerobot_maps(offset: int, direction: int, range_: Sequence[int] | None, resolution: int) -> dict[str, list[float]] | None:
+    """Per LeRobot norm mode, the affine map ``[scale, bias]`` from a serial-servo joint's value
+    (rad: ``direction * (ticks - offset) * 2*pi / resolution``) to the number LeRobot's motors bus
+    reports for the same ticks with the same calibration (range_min, range_max = ``range_``):
+    ``lerobot = scale * rad + bias`` (docs/protocol.md, "LeRobot units"). Raw ticks never leave:
+    only these coefficients do. None without a range (LeRobot's numbers need one).
+
+    - ``degrees``: ``(ticks - (min + max) / 2) * 360 / (resolution - 1)`` (not clamped).
+    - ``range_m100_100``: ``(ticks - min) / (max - min) * 200 - 100``, clamped to [-100, 100]; an
+      arm joint's ``drive_mode`` is 0 in every SO / Koch calibration LeRobot writes on Feetech, and a
+      Dynamixel applies its own in the servo (LeRobot's ``apply_drive_mode`` is False there).
+    - ``range_0_100``: ``(ticks - min) / (max - min) * 100``, clamped to [0, 100]; ``100 - that``
+      when the calibration's zero is ``max`` with direction -1, which is how a LeRobot gripper with
+      ``drive_mode`` 1 imports (:func:`from_lerobot`) and how a sweep calibrates a gripper that
+      closes toward ``max``."""
+    if range_ is None:
+        return None
+    lo, hi = float(range_[0]), float(range_[1])
+    res = float(resolution)
+    ticks_per_rad = direction * res / (2.0 * math.pi)  # ticks = offset + ticks_per_rad * rad
+    deg = 360.0 / (res - 1.0)
+    m100 = 200.0 / (hi - lo)
+    p100 = 100.0 / (hi - lo)
+    flipped = direction == -1 and offset == int(hi)
+    return {
+        "degrees": [ticks_per_rad * deg, (offset - (lo + hi) / 2.0) * deg],
+        "range_m100_100": [ticks_per_rad * m100, (offset - lo) * m100 - 100.0],
+        "range_0_100": ([-ticks_per_rad * p100, (hi - offset) * p100] if flipped
+                        else [ticks_per_rad * p100, (offset - lo) * p100]),
+    }

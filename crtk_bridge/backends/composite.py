@@ -306,6 +306,10 @@ class CompositeActuator(Actuator):
     def deceleration_limit(self, i: int) -> float:
         return self.parts[self._owner[i]].deceleration_limit(int(self._local[i]))
 
+    def lerobot_maps(self) -> list[dict[str, list[float]] | None]:
+        maps = [p.lerobot_maps() for p in self.parts]
+        return [maps[self._owner[i]][self._local[i]] for i in range(self.n)]
+
     def cartesian_namespaces(self) -> list[str]:
         """Every bus's natively cartesian namespaces, bus after bus (the rows of the robot's
         CartesianCommand / CartesianFeedback)."""

@@ -69,7 +69,7 @@ from ..core.actuator import (
 )
 from ..errors import BackendError, ProfileError
 from ..profile import Profile, backend_config
-from .calibration import RangeWatch, from_lerobot, sweep_calibration
+from .calibration import RangeWatch, from_lerobot, lerobot_maps, sweep_calibration
 from .optional import BusScanner, DeviceSetup
 from .port_errors import open_error_reason, silent_bus_hint
 from .ports import resolve_port
@@ -699,6 +699,12 @@ class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
         return _schema_keys(from_lerobot(self.robot, data, self.joint_names, self._ids,
                                          [int(r) for r in self._resolution], [int(d) for d in self._direction],
                                          list(grippers), self.SOFTWARE_DRIVE_MODE))
+
+    def lerobot_maps(self) -> list[dict[str, list[float]] | None]:
+        """Per joint, LeRobot's numbers as affine maps of its radians (backends/calibration.py,
+        ``lerobot_maps``), from the joint's calibration keys; the ticks stay here."""
+        return [lerobot_maps(j.calibration.offset, j.calibration.direction, j.calibration.range, int(r))
+                for j, r in zip(self.joint_keys, self._resolution)]
 
     # ------------------------------------------------------------------ hot replug
     #: s between two attempts of the reopen worker (adapter unplugged, module docstring)

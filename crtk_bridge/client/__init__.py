@@ -11,37 +11,18 @@
         T[2, 3] += 0.02                     # 2 cm up
         arm.move_cp(T).wait()               # or arm.move_cp((position, quaternion_xyzw))
 
-Names and return conventions follow crtk_python_client 1.4. Names are loaded lazily (PEP 562),
-so ``crtk_bridge.client.paths`` imports only the standard library: the daemon uses it for the
-default socket path.
+Names and return conventions follow crtk_python_client 1.4. The library is the ``crtk-client``
+distribution (clients/python, import package :mod:`crtk_client`), which installs alone beside
+LeRobot; this package is the same library under its historical name (``crtk_bridge.client.device``
+IS ``crtk_client.device``) plus crtk-bridge's own tools (``crtk-ctl``, calibrate, teleop, replay,
+plot). Names are loaded lazily (PEP 562).
 """
 
 from __future__ import annotations
 
 import importlib
 
-_EXPORTS = {
-    "default_socket_path": "paths",
-    "default_socket_dir": "paths",
-    "find_sockets": "paths",
-    "Connection": "connection",
-    "DaemonConnectionError": "connection",
-    "Event": "connection",
-    "PROTOCOL_VERSION": "connection",
-    "connect": "device",
-    "list_robots": "device",
-    "resolve_socket": "device",
-    "Robot": "device",
-    "Device": "device",
-    "MoveHandle": "device",
-    "Subscription": "device",
-    "joint_state": "device",
-    "pose_matrix": "device",
-    "pose_pq": "device",
-    "matrix_from_quaternion": "device",
-    "quaternion_from_matrix": "device",
-    "CommandError": None,
-}
+from crtk_client import EXPORTS as _EXPORTS
 
 __all__ = sorted(_EXPORTS)
 
@@ -49,10 +30,7 @@ __all__ = sorted(_EXPORTS)
 def __getattr__(name: str):
     if name not in _EXPORTS:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    if name == "CommandError":
-        from crtk_bridge.errors import CommandError
-        return CommandError
-    value = getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    value = getattr(importlib.import_module(f"crtk_client.{_EXPORTS[name]}"), name)
     globals()[name] = value
     return value
 

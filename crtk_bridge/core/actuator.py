@@ -632,6 +632,13 @@ class Actuator(abc.ABC):
         joint -> the backend's ``calibration`` keys. Never touches the bus. Raises BackendError."""
         raise BackendError(f"{self.robot}: the {self.profile.backend_type} backend cannot import {fmt} calibrations")
 
+    def lerobot_maps(self) -> list[dict[str, list[float]] | None]:
+        """Per joint: ``{mode: [scale, bias]}``, LeRobot's number in each of its norm modes
+        (``degrees``, ``range_m100_100``, ``range_0_100``) as ``scale * value + bias`` of the
+        joint's SI value, from the joint's calibration, or None where LeRobot has no such number
+        (docs/protocol.md, "LeRobot units"; ``list`` carries them). Default: None for every joint."""
+        return [None] * self.n
+
     # ---- device status (backend -> core) ----
     def report_status(self, status: DeviceStatus, cause: Fault | None = None) -> None:
         """Called by the backend (from ``_read`` or a step) when the device's status changes.

@@ -412,6 +412,7 @@ def control_main(profile: Profile, make_actuator: Callable[[], Actuator], chan: 
         "namespace_commands": c.namespace_commands(),  # motion commands per namespace
         "namespace_capabilities": {ns: as_dict(cap) for ns, cap in c.ns_caps.items()},
         "native_cartesian": list(c.native_cartesian),  # namespaces whose backend does cartesian control
+        "lerobot_maps": actuator.lerobot_maps(),  # per joint: LeRobot's numbers of its SI value (list)
     }}
     for _ in range(signals["count"] - loop._signals):  # those that came before the loop existed
         loop.request_stop()

@@ -56,6 +56,8 @@ class ControlLink:
         self.ns_measures_effort = {ns: False for ns in self.ns_index}
         self.ns_measures_wrench = {ns: False for ns in self.ns_index}  # native cartesian: the tip wrench
         self.ns_commands: dict[str, list[str]] = {ns: [] for ns in self.ns_index}
+        #: per joint (robot order, from _ready): LeRobot's numbers as affine maps of its SI value, or None
+        self.lerobot_maps: list[dict | None] = [None] * len(profile.joints)
         #: namespaces whose backend does cartesian control and measures the tip pose itself
         self.native_cartesian: set[str] = set()
 
@@ -83,6 +85,7 @@ class ControlLink:
                         self.ns_measures_wrench[ns] = bool(c.get("measures_wrench", False))
                     self.ns_commands.update(msg["data"]["namespace_commands"])
                     self.native_cartesian = set(msg["data"].get("native_cartesian", ()))
+                    self.lerobot_maps = list(msg["data"].get("lerobot_maps") or self.lerobot_maps)
                     return msg["data"]
                 if ev == "_startup_failed":
                     raise RuntimeError(msg["data"]["message"])

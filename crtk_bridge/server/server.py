@@ -103,6 +103,7 @@ class Server:
         self.statistics: list = []
         self.controller: Session | None = None
         self.state: dict = {"state": "DISABLED", "is_homed": False, "is_busy": False, "busy_seq": 0, "stamp": 0.0}
+        self.last_error: dict | None = None  # the latest error event: the reason of a FAULT
         self._sids = itertools.count(1)
         self._subids = itertools.count(1)
         self._server: asyncio.base_events.Server | None = None
@@ -136,6 +137,8 @@ class Server:
             self.state = msg["data"]
         elif ev in ("error", "warning", "status"):
             d = msg["data"]
+            if ev == "error":
+                self.last_error = msg  # told again to a session that joins while in FAULT (attach)
             level = {"error": logging.ERROR, "warning": logging.WARNING}.get(ev, logging.INFO)
             log.log(level, "%s [%s] %s", ev, d.get("code"), d.get("message"))
         for s in list(self.sessions.values()):
@@ -206,9 +209,12 @@ class Server:
         return next(self._sids)
 
     def attach(self, s: Session) -> None:
-        """Serve a new session: it gets the current operating_state at once (docs/protocol.md)."""
+        """Serve a new session: it gets the current operating_state at once, and in FAULT the error
+        event that caused it (docs/protocol.md)."""
         self.sessions[s.id] = s
         s.send({"event": "operating_state", "data": self.state})
+        if self.state.get("state") == "FAULT" and self.last_error is not None:
+            s.send(self.last_error)
 
     def detach(self, s: Session, client_lost: bool = True) -> None:
         """A session ended (its socket closed, a remote client's liveliness token went away): its
@@ -472,6 +478,12 @@ class Server:
                 "commands": list(STATE_COMMANDS) + self.link.ns_commands[ns.name] + (cs.commands if cs else []),
                 "queries": list(JOINT_QUERIES + ROBOT_QUERIES) + cart_q,
                 "topics": list(TOPICS) + [q for q in cart_q if not q.endswith("kinematics")],
+                # per joint: the profile's [position_min, position_max] (rad or m): where the
+                # loop clips servo / interpolate positions (a client can say what it really sent)
+                "position_limits": [[self.profile.joints[i].limits.position_min, self.profile.joints[i].limits.position_max]
+                                    for i in self.link.ns_joints[ns.name]],
+                # per joint: {mode: [scale, bias]}, LeRobot's number = scale * value + bias; null: none
+                "lerobot": [self.link.lerobot_maps[i] for i in self.link.ns_joints[ns.name]],
             }
             if cs:
                 entry["cartesian"] = {"base_frame": cs.cfg.base_frame, "tip_frame": cs.cfg.tip_frame,
@@ -480,7 +492,8 @@ class Server:
                 entry["bus"] = self.profile.namespace_bus(ns)
             namespaces.append(entry)
         return {"robot": self.robot, "protocol_version": PROTOCOL_VERSION, "daemon_version": __version__,
-                "backend": self.profile.backend_type, "rate_hz": 1.0 / self.link.period_s, "namespaces": namespaces}
+                "backend": self.profile.backend_type, "rate_hz": 1.0 / self.link.period_s,
+                "servo_step_max": self.profile.safety.servo_step_max, "namespaces": namespaces}
 
 
 def _wake(fut: asyncio.Future) -> None:
