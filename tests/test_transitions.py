@@ -70,10 +70,14 @@ class SlowActuator(Actuator):
             self.bus.append("pause-step")
             yield
 
+    disable_cycles = 0  # DISABLE's confirmation steps after its torque off (a serial bus: one per servo)
+
     def _disable_steps(self):
         self.bus.append("torque-off")
         self.torque = False
-        yield from ()
+        for _ in range(self.disable_cycles):
+            self.bus.append("torque-off-confirmed")
+            yield
 
     def _read(self, fb):
         self.bus.append("read")
@@ -176,6 +180,28 @@ def test_disable_aborts_a_running_enable(rig):
     assert not r["ok"] and r["error"]["code"] == "aborted" and "aborted by disable" in r["error"]["message"]
     assert "enable-finally" in act.bus and not act.torque  # the steps' finally ran; torque off
     assert replies(d)[0]["ok"] and c.state is OperatingState.DISABLED and not c.is_busy
+
+
+def test_enable_during_a_faults_torque_off_is_handled_when_it_ends(rig):
+    """The torque off of a fault confirms one servo per cycle (nobody waits on it): an enable
+    sent meanwhile (the fault was cleared) is not refused as "disable in progress"; it runs when
+    the torque off has ended, and its one reply comes then."""
+    c, act, clock, cycle, send, replies = rig
+    act.disable_cycles = 6
+    send("enable")
+    cycle(8)
+    assert c.state is OperatingState.ENABLED
+    c.enter_fault(Fault("bus_timeout", "so101: no reply", transient=False))
+    assert c.is_busy and not act.torque  # the torque off confirms over the next cycles
+    rid = send("enable")
+    assert replies(rid) == [] and c.state is OperatingState.FAULT
+    cycle(6)
+    assert act.bus.count("torque-off-confirmed") == 6
+    cycle(8)
+    (r,) = replies(rid)
+    assert r["ok"] and c.state is OperatingState.ENABLED and act.torque, r
+    enables = [i for i, b in enumerate(act.bus) if b == "enable-step-0"]
+    assert enables[-1] > max(i for i, b in enumerate(act.bus) if b == "torque-off-confirmed")
 
 
 def test_transition_beyond_its_time_limit_faults_naming_it(rig):

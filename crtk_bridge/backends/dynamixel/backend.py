@@ -642,13 +642,8 @@ class DynamixelBackend(SerialServoBackend):
         return None
 
     def _torque_off(self, joints: list[int]) -> Fault | None:
-        """One sync write of Torque_Enable = 0 (entering `free`)."""
-        param = []
-        for i in joints:
-            param.extend((self._ids[i], 0))
-        self._port.is_using = False
-        result = self._ph.syncWriteTxOnly(self._port, 64, 1, param, len(param))
-        self._port.is_using = False
+        """One sync write of Torque_Enable = 0 (entering `free`), no acknowledgement."""
+        result = self._torque_sync_write(joints, 0)
         if result != COMM_SUCCESS:
             return Fault("bus_timeout", f"{self.robot}: sync write of Torque_Enable=0 on {self._where} "
                          f"failed: {self._result_text(result)}", transient=True)

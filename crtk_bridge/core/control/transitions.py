@@ -32,6 +32,7 @@ class _Running:
     on_fail: Callable[[Exception], "Refused"]  # handles the failure; -> the waiting requests' error
     rids: list = field(default_factory=list)  # requests answered when it ends
     stepped: int = -1  # cycle of the last step (one step per cycle)
+    then: list = field(default_factory=list)  # enable requests handled when it ends
 
 
 class TransitionsMixin:
@@ -53,6 +54,11 @@ class TransitionsMixin:
             if run is not None:
                 self._abort_running(f"{run.transition.kind.value} aborted by {cmd.value}")
         elif run is not None and cmd is not StateCommand.UNHOME:
+            if cmd is StateCommand.ENABLE and run.transition.kind is Lifecycle.DISABLE and not run.rids:
+                # the torque off of a fault (no request waits on it) confirms one servo per
+                # cycle: the enable is handled when it ends, never raced with it
+                run.then.append(self._rid)
+                return _DEFERRED
             if cmd.value == run.transition.kind.value and run.rids:
                 run.rids.append(self._rid)  # the same transition under way: the same reply
                 return _DEFERRED
@@ -129,6 +135,11 @@ class TransitionsMixin:
                 self.outbox.append({"id": rid, "ok": True, "data": data})
         if self._busy_reported and not self.is_busy:
             self.push_state()  # is_busy false edge (when no state change carried it)
+        if run.then:
+            outer = self._rid
+            for rid in run.then:
+                self.handle({"id": rid, "cmd": StateCommand.ENABLE.value})
+            self._rid = outer
 
     def _abort_running(self, why: str) -> None:
         run = self._running
@@ -136,7 +147,7 @@ class TransitionsMixin:
             return
         run.transition.abort()
         self._running = None
-        for rid in run.rids:
+        for rid in run.rids + run.then:
             self.outbox.append({"id": rid, "ok": False, "error": {"code": "aborted", "message": f"{self.robot}: {why}"}})
 
     def abort_transition(self) -> None:
