@@ -161,6 +161,11 @@ def test_a_fault_mid_episode_raises_its_reason_and_connect_refuses_a_faulted_rob
         with pytest.raises(CrtkFaultError, match=r"so101 is in FAULT \(.*no reply.*\); connect refused"):
             late.open()
         assert not late.is_open
+        arm.release("hold")  # LeRobot's finally: disconnect: never raises, in FAULT nor with the daemon gone
+        sim_daemon.proc.kill()
+        sim_daemon.proc.wait(15)
+        arm.release("hold")
+        arm.release("disable")
     finally:
         arm.close()
 

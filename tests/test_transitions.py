@@ -143,6 +143,27 @@ def test_enable_over_cycles_keeps_reading_stays_disabled_busy_and_replies_once(r
     assert len(replies(rid)) == 1
 
 
+def test_one_bus_read_per_cycle_around_an_enable(rig):
+    """The pose an enable holds is the cycle's own read after torque on (the backend's ENABLE
+    ends in that cycle): the controller reads nothing itself, so every cycle, the one the enable
+    ends in too, has exactly one read (on CANopen each read is a SYNC's worth: one per cycle)."""
+    c, act, clock, cycle, send, replies = rig
+    rid = send("enable")
+    reads = []
+    for _ in range(20):
+        act.bus.clear()
+        cycle()
+        reads.append(act.bus.count("read"))
+        if replies(rid):
+            break
+    for _ in range(3):
+        act.bus.clear()
+        cycle()
+        reads.append(act.bus.count("read"))
+    (reply,) = replies(rid)
+    assert reply["ok"] and reads == [1] * len(reads)
+
+
 def test_second_enable_joins_and_both_get_one_reply(rig):
     c, act, clock, cycle, send, replies = rig
     a, b = send("enable"), send("enable")

@@ -12,8 +12,11 @@ Three paths, as in ros2_control hardware components:
   needs (:meth:`Actuator.mode_switch_steps`, prepared off the bus, performed on the cycle: core
   runs them as a MODE_SWITCH transition). They take as long as the hardware
   needs but never block the cycle: :meth:`Actuator.begin` returns a :class:`Transition` that the
-  loop advances with ONE :meth:`Transition.step` per cycle, after that cycle's ``read``, until it
-  reports done (or raises, or exceeds the backend's time limit, ``traits.transition_timeouts_s``).
+  cycle runner (core/cycle.py: the loop, start-up and shutdown alike) advances with ONE
+  :meth:`Transition.step` per cycle, after that cycle's ``read``, until it reports done (or
+  raises, or exceeds the backend's time limit, ``traits.transition_timeouts_s``). A step may do a
+  bounded bus exchange (a sync write, an acknowledged write or two); waiting for the device is
+  done across cycles.
   Meanwhile the loop keeps reading and publishing, the CRTK state stays as it was and ``is_busy``
   is true. A backend writes a transition as a generator (``_enable_steps`` ...): each ``yield``
   hands the cycle back and resumes one cycle later, so a CiA 402 controlword walk or "torque on,

@@ -320,7 +320,9 @@ class DaemonArm:
     def release(self, on_disconnect: str = "hold") -> None:
         """End of the session: ``hold`` (every namespace holds its position, the robot stays
         ENABLED, control is released for the next client) or ``disable`` (torque off: an arm
-        without brakes falls). Never raises for a robot already in FAULT or DISABLED."""
+        without brakes falls). Never raises (LeRobot disconnects in ``finally`` blocks, where an
+        error would hide the one that ended the episode): a robot in FAULT or DISABLED, or a
+        daemon gone, is logged."""
         try:
             if on_disconnect == "disable":
                 next(iter(self.devices.values())).disable(self.timeout_s)
@@ -329,5 +331,5 @@ class DaemonArm:
                     if dev.is_enabled():
                         dev.hold()
                 self.client.release()
-        except CommandError as exc:
+        except (CrtkBridgeError, ConnectionError, TimeoutError) as exc:  # CommandError, the daemon gone
             log.warning("%s: %s: on disconnect: %s", self.who, self.robot_name, exc)
