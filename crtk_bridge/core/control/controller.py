@@ -118,8 +118,9 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
     # ------------------------------------------------------------------ queries
     @property
     def is_busy(self) -> bool:
-        return self.homing or self._running is not None or any(m.busy for m in self.namespaces.values()) \
-            or any(nc.busy for nc in self.native_cartesian.values())
+        run = self._running  # an operating-mode switch is not: servo commands never raise is_busy
+        return self.homing or (run is not None and run.transition.kind is not Lifecycle.MODE_SWITCH) \
+            or any(m.busy for m in self.namespaces.values()) or any(nc.busy for nc in self.native_cartesian.values())
 
     @property
     def measured_valid(self) -> bool:

@@ -92,7 +92,7 @@ class TransitionsMixin:
         reply to the request being handled is sent when ``t`` ends."""
         run = _Running(t, self.clock() + t.timeout_s, on_done, on_fail, [self._rid] if reply else [])
         self._running = run
-        if not self._advance(run):
+        if not self._advance(run) and t.kind is not Lifecycle.MODE_SWITCH:  # (never busy: is_busy)
             self.busy_seq += 1
             self.push_state()  # is_busy edge: the state stays until the transition ends
             if t.kind is Lifecycle.GOAL_CHECK:
@@ -167,7 +167,7 @@ class TransitionsMixin:
     def _switch_modes(self, modes: Any, reply: Any, request: bool = True) -> Any:
         """The backend's operating-mode change for the command modes ``modes``
         (:meth:`~crtk_bridge.core.actuator.Actuator.mode_switch_steps`), run as a MODE_SWITCH
-        transition: while it runs the backend holds the switching joints, motion commands are
+        transition (it does not raise ``is_busy``: servo commands never do): while it runs the backend holds the switching joints, motion commands are
         refused (a stop is not: ``hold``, ``pause``, ``disable``), and the request that asked for
         it gets ``reply`` (its reply data) when it ends (``request`` False: none asked, a stop, a
         watchdog or a park changed the mode). A failure faults the robot (a joint may be unpowered).
