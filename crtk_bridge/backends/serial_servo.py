@@ -20,7 +20,11 @@ The bus is one thread's at a time, and the loop's sync read must go on during an
 ENABLE is steps the loop interleaves with its reads (never a worker holding the bus): one servo
 per cycle (goal = its fresh present position, then torque on), then one check per cycle until
 every servo reads Torque_Enable = 1 (a servo may take its time: the simulators' ``torque_delay``).
-Torque off (DISABLE, the fault reaction) is one step: a stop is not spread over cycles.
+Torque off (DISABLE, the fault reaction) is stepped too, but a stop is not spread over cycles:
+its first step is ONE sync write of Torque_Enable = 0 to every servo (no acknowledgement, the
+whole arm unpowered by one packet), then one acknowledged Torque_Enable = 0 per servo per cycle
+confirms it. No cycle carries more than one servo's acknowledged transactions beside its own
+sync read and sync write (tests/test_stepped_bus.py counts them).
 
 Hot replug. A failed sync read whose port reports an OS error (EIO: the USB adapter was pulled
 out) or whose device path is gone loses the port: the read returns a non-transient ``port_lost``
@@ -348,6 +352,7 @@ class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
         self._tmp = np.zeros(n)
         self._goal = np.zeros(n)  # goal ticks computed this cycle (float)
         self._free = [False] * n  # joints switched torque-off by a FREE command
+        self._torque_param: list[int] = []  # the Torque_Enable sync write's parameters, reused
         self._port: Any = None
         self._port_path: str | None = None  # backend.port resolved at open (a serial_number)
         self._ph: Any = None
@@ -481,7 +486,6 @@ class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
     #: how long `open` keeps pinging a servo that does not answer (shared by all servos): a
     #: missing one costs this once, at start-up, and every servo gets at least LIFECYCLE_ATTEMPTS
     OPEN_PATIENCE_S = 0.5
-    _realtime_txrx = False  # set around acknowledged transactions made from the real-time path
 
     def _txrx(self, fn, *args, length: int | None = None):
         """Call an SDK ``...TxRx`` function, retrying comm failures. Returns its tuple.
@@ -494,7 +498,7 @@ class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
         if self._port is not None:
             self._port.last_os_error = None
             self._port.is_using = False  # we own the port alone; a stale flag = PORT_BUSY forever
-        attempts = self._attempts if self._realtime_txrx else max(self._attempts, self.LIFECYCLE_ATTEMPTS)
+        attempts = max(self._attempts, self.LIFECYCLE_ATTEMPTS)
         for _ in range(attempts):
             try:
                 out = fn(self._port, *args)
@@ -1028,12 +1032,11 @@ class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
             raise BackendError(f"{self.robot}: " + "; ".join(problems))
 
     def _disable_steps(self) -> Steps:
-        """DISABLE: :meth:`_disable_hook` in one step."""
-        self._disable_hook()
-        yield from ()
-
-    def _disable_hook(self) -> None:
-        """Torque_Enable = 0 on every servo, each acknowledged. Blocks.
+        """DISABLE (also the fault reaction's torque off), stepped: in its first step ONE sync
+        write of Torque_Enable = 0 to every servo (one transaction, no acknowledgement: every
+        servo that hears it is unpowered at once, the whole arm safe in one packet), then one
+        servo per step (per cycle): Torque_Enable = 0 written again, acknowledged -- the
+        confirmation, and the torque off of a servo that missed the sync write.
 
         Tries every servo even if one fails, then raises BackendError naming those that did not
         confirm. Status error bits do not count as failure here (torque off is what we want).
@@ -1042,14 +1045,46 @@ class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
         self._check_not_lost("torque off")
         if self._port is None:
             return
+        self._torque_sync_write(range(self.n), 0)  # a failed send is caught by the confirmations
         failed = []
         for i in range(self.n):
+            if i:
+                yield  # one servo's confirmation per cycle, between the cycle's reads
             try:
                 self._write_register(i, "Torque_Enable", 0)
             except BackendError as exc:
                 failed.append(str(exc).removeprefix(f"{self.robot}: "))
+                if i == 0 and self._failed_run is not None:
+                    # the cycle's sync read fails too: the bus itself does not answer (a pulled
+                    # cable). Said now (the fault's own event carries it), not n cycles later;
+                    # core retries the torque off once reads succeed again.
+                    failed.append(f"the other servos' (sent in one sync write) neither: the sync read of "
+                                  f"ids {','.join(map(str, self._ids))} gets no reply either")
+                    break
+        self._free = [False] * self.n
         if failed:
             raise BackendError(f"{self.robot}: torque off not confirmed: " + "; ".join(failed))
+
+    def _disable_hook(self) -> None:
+        """:meth:`_disable_steps` run to the end at once (start-up and reopen paths: configure
+        switches torque off first). Blocks. Raises BackendError."""
+        for _ in self._disable_steps():
+            pass
+
+    def _torque_sync_write(self, joints, value: int) -> int:
+        """ONE sync write of Torque_Enable = ``value`` to the servos of ``joints`` (indices), no
+        acknowledgement. Returns the SDK result. Never waits for a reply."""
+        address, size = self._register(0, "Torque_Enable")
+        param = self._torque_param
+        del param[:]
+        for i in joints:
+            param.append(self._ids[i])
+            param.append(value)
+        port = self._port
+        port.is_using = False
+        result = self._ph.syncWriteTxOnly(port, address, size, param, len(param))
+        port.is_using = False
+        return result
 
     #: time limits (s) of the lifecycle transitions (a vendor's ``_traits_hook`` may grow ENABLE's)
     TRANSITION_TIMEOUTS_S = {Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 1.0,
@@ -1079,8 +1114,10 @@ class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
                 else:
                     yield
         except Exception:
+            # roll back: every servo torque off, stepped like DISABLE (its first step is one sync
+            # write to all of them), then the failure
             try:
-                self._disable_hook()
+                yield from self._disable_steps()
             except BackendError:
                 pass
             raise

@@ -7,7 +7,10 @@ A backend is a ROW: the profile it runs on and how a test reaches into its simul
 a joint is, how to silence it, give it an error, read its goal and torque). A registered backend
 with a simulator and no row fails ``test_every_simulated_backend_has_a_row``: adding CANopen or UR
 means adding one row here (and its simulator's hooks), nothing else. The composite actuator of a
-robot on several buses (backends/composite.py) runs the same suite on two simulated buses.
+robot on several buses (backends/composite.py) runs the same suite on robots of mixed buses
+(:data:`COMPOSITES`: two Feetech arms; a UR arm with a Dynamixel gripper; a CiA 402 pan / tilt
+whose pan homes natively beside a Feetech arm; a Feetech arm with a Dynamixel gripper), each bus
+on its own backend's simulator, driven through its own backend's row.
 """
 
 from __future__ import annotations
@@ -222,30 +225,71 @@ ROWS = {
         free=lambda sim, i: sim.state()["teach_mode"],
     ),
 }
-#: several buses in one robot (backends/composite.py): two SO-101 arms on two simulated Feetech
-#: buses. Its device ids are BusSims keys (bus index * 1000 + servo id).
-COMPOSITE = "composite (bimanual_so101)"
-ROWS[COMPOSITE] = Row(**{**ROWS["feetech"].__dict__, "backend": COMPOSITE,
-                         "profile": ROOT / "profiles" / "bimanual_so101.yaml",
-                         "device": lambda profile, i: _bus_servo_key(profile, i)})
+#: the joints the suite silences and faults (test_conformance.py: min(2, n - 1), min(3, n - 1)): a
+#: composite row takes those behaviours from the row of the bus that owns them
+SILENCED_JOINT, FAULTED_JOINT = 2, 3
+TEST_PROFILES = ROOT / "tests" / "profiles"
 
 
-def _bus_servo_key(profile: Profile, i: int) -> int:
+def _bus_of(profile: Profile, i: int) -> tuple[int, int]:
+    """(bus index, index among that bus's joints) of robot joint ``i``."""
     name = profile.joints[i].name
     ns = next(ns for ns in profile.namespaces if name in ns.joints)
-    return profile.bus_names.index(profile.namespace_bus(ns)) * 1000 + _servo_id(profile, i)
+    bus = profile.namespace_bus(ns)
+    return profile.bus_names.index(bus), profile.bus_profile(bus).joint_names.index(name)
+
+
+def _composite_row(name: str, path: Path) -> Row:
+    """A robot on several buses (backends/composite.py), each bus simulated by its own backend's
+    simulator and driven through its own backend's row (:class:`BusSims`): a device is
+    ``bus index * 1000 + the bus row's device id``; the hooks hand each device to its bus's row.
+    Per-device behaviours come from the bus of the joint the suite uses them on; a skip flag (the
+    joints are one device, braked when disabled) from any bus."""
+    profile = load_profile(path)
+    rows = [ROWS[profile.bus_profile(bus).backend_type] for bus in profile.bus_names]
+    n = len(profile.joints)
+    silent = rows[_bus_of(profile, min(SILENCED_JOINT, n - 1))[0]]
+    error = rows[_bus_of(profile, min(FAULTED_JOINT, n - 1))[0]]
+
+    def device(p: Profile, i: int) -> int:
+        b, k = _bus_of(p, i)
+        return b * 1000 + rows[b].device(p.bus_profile(p.bus_names[b]), k)
+
+    def on_bus(hook: str):
+        return lambda sim, key, *args: getattr(rows[key // 1000], hook)(sim.sims[key // 1000], key % 1000, *args)
+
+    def free(sim, key):
+        row = rows[key // 1000]
+        return row.free(sim.sims[key // 1000], key % 1000) if row.free is not None else \
+            not row.torque(sim.sims[key // 1000], key % 1000)
+
+    return Row(
+        backend=name, profile=path, device=device,
+        silence=on_bus("silence"), inject_error=on_bus("inject_error"),
+        clear_errors=lambda sim: sim.clear_errors(),
+        torque=on_bus("torque"), goal=on_bus("goal"), present=on_bus("present"), set_present=on_bus("set_present"),
+        error_latched=error.error_latched, error_code=error.error_code, error_names_joint=error.error_names_joint,
+        silent_code=silent.silent_code, silent_hears=silent.silent_hears,
+        one_device=silent.one_device, braked_when_disabled=any(r.braked_when_disabled for r in rows),
+        units_per_rad=None if len({r.units_per_rad for r in rows}) > 1 else rows[0].units_per_rad,
+        make_sim=BusSims, settle=lambda sim: sim.settle(), prepare=lambda sim: sim.prepare(), free=free,
+    )
 
 
 class BusSims:
-    """The simulators of a several-bus profile, one per bus, behind the one-simulator calls the
-    rows use; a device is ``bus index * 1000 + servo id``."""
+    """The simulators of a several-bus profile, one per bus, each made the way its backend's row
+    makes it; the calls a test makes of "the simulator" go to every bus's."""
 
     def __init__(self, profile: Profile):
         self.names = profile.bus_names
+        self.rows = []
         self.sims = []
         for bus in self.names:
             sub = profile.bus_profile(bus)
-            self.sims.append(backend_simulator(sub.backend_type).from_profile(sub))
+            row = ROWS[sub.backend_type]
+            self.rows.append(row)
+            self.sims.append(row.make_sim(sub) if row.make_sim is not None
+                             else backend_simulator(sub.backend_type).from_profile(sub))
 
     def start(self) -> None:
         for s in self.sims:
@@ -260,17 +304,27 @@ class BusSims:
         for bus, sim in zip(self.names, self.sims):
             cls = backend_class(profile.backends[bus]["type"])
             backends[bus] = cls.sim_profile(profile.bus_profile(bus), sim.port).backend
+            if getattr(sim, "interface", None) == "virtual":  # an in-process CAN simulator
+                backends[bus] = {**backends[bus], "interface": "virtual", "options": {}}
+            if "timeout_ms" in backends[bus] and profile.backends[bus].get("timeout_ms") is None:
+                # the buses' simulators are threads of this test process (a UR controller ticks at
+                # 500 Hz): a serial reply may wait for the GIL longer than --sim's 30 ms
+                backends[bus] = {**backends[bus], "timeout_ms": 100.0}
         return msgspec.structs.replace(profile, backends=backends)
 
-    def servo(self, key: int):
-        return self.sims[key // 1000].servo(key % 1000)
+    def clear_errors(self) -> None:
+        for row, s in zip(self.rows, self.sims):
+            row.clear_errors(s)
 
-    def set_fault(self, key: int, *args) -> None:
-        self.sims[key // 1000].set_fault(key % 1000, *args)
+    def settle(self) -> None:
+        for row, s in zip(self.rows, self.sims):
+            if row.settle is not None:
+                row.settle(s)
 
-    def clear_faults(self) -> None:
-        for s in self.sims:
-            s.clear_faults()
+    def prepare(self) -> None:
+        for row, s in zip(self.rows, self.sims):
+            if row.prepare is not None:
+                row.prepare(s)
 
     def set_torque_delay(self, seconds: float) -> None:
         for s in self.sims:
@@ -283,6 +337,21 @@ class BusSims:
     @property
     def rx_bytes(self) -> int:
         return sum(s.rx_bytes for s in self.sims)
+
+
+#: several buses in one robot (backends/composite.py), each row a robot the composite serves:
+#: two SO-101 arms on two Feetech buses; a UR arm with a Dynamixel gripper (the CRTK spec's
+#: `/UR`, `/UR/gripper`); a CiA 402 pan / tilt whose pan homes natively beside a Feetech arm; a
+#: Feetech arm with a Dynamixel gripper
+COMPOSITES = {
+    "composite (bimanual_so101)": ROOT / "profiles" / "bimanual_so101.yaml",
+    "composite (ur + dynamixel gripper)": TEST_PROFILES / "ur5e_xl330_gripper.yaml",
+    "composite (canopen homing + feetech)": TEST_PROFILES / "pantilt_homing_so101.yaml",
+    "composite (feetech + dynamixel)": TEST_PROFILES / "so101_xl330_gripper.yaml",
+}
+COMPOSITE = "composite (bimanual_so101)"
+for _name, _path in COMPOSITES.items():
+    ROWS[_name] = _composite_row(_name, _path)
 
 
 def simulated_backends() -> list[str]:
@@ -383,7 +452,7 @@ class Rig:
         self.sim.stop()
 
 
-@pytest.fixture(params=simulated_backends() + [COMPOSITE])
+@pytest.fixture(params=simulated_backends() + list(COMPOSITES))
 def rig(request):
     row = ROWS.get(request.param)
     if row is None:

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from crtk_bridge.core.actuator import CommandMode, DeviceStatus, Fault
+from crtk_bridge.core.actuator import Clock, CommandMode, DeviceStatus, Fault
 from crtk_bridge.core.state import OperatingState
 
 from ..conftest import wait_until
@@ -201,3 +201,86 @@ def test_a_slow_enable_keeps_the_loop_cycling(rig):
     assert np.all(gaps >= 0) and np.mean(gaps > 0) > 0.8 and gaps.max() < 0.4, gaps.max()
     rig.cycle(20)
     assert len(rig.replies(1)) == 1
+
+
+def _owners(b) -> dict[int, tuple]:
+    """Robot joint -> (the backend of its bus, its index there); a one-bus robot is its own bus."""
+    parts = getattr(b, "parts", [b])
+    return {b.joint_names.index(name): (p, k) for p in parts for k, name in enumerate(p.joint_names)}
+
+
+def test_the_robot_declares_exactly_what_its_buses_do(rig):
+    """issue 19 item 7: a robot on several buses reports exactly what each bus declares, and core
+    acts on it: per joint its bus's capabilities (what it follows and measures) and pause
+    behaviour; per namespace the commands its own bus's joints allow; the speed slider, goal
+    checks and native homing of the bus that has them (a robot with a bus that needs homing starts
+    not homed). A one-bus robot: its backend's own."""
+    b, profile = rig.backend, rig.profile
+    owners = _owners(b)
+    parts = list({id(p): p for p, _ in owners.values()}.values())
+    t = b.traits
+    for i, (p, k) in owners.items():
+        assert t.joints[i] == p.traits.joints[k], b.joint_names[i]
+        assert t.stops_itself_on_pause[i] == p.traits.stops_itself_on_pause[k], b.joint_names[i]
+    for name in ("goal_check", "native_homing", "speed_scaling", "cyclic_write"):
+        assert getattr(t, name) == any(getattr(p.traits, name) for p in parts), name
+    assert (t.clock is Clock.DEVICE) == any(p.traits.clock is Clock.DEVICE for p in parts)
+    c = rig.make_controller()
+    for ns in profile.namespaces:
+        idx = [profile.joint_index(j) for j in ns.joints]
+        p = owners[idx[0]][0]
+        assert c.ns_caps[ns.name] == p.traits.capabilities_of([owners[i][1] for i in idx]), ns.name
+    assert c.is_homed == (not any(p.traits.capabilities.needs_homing for p in parts))
+    scaled = [p for p in parts if p.traits.speed_scaling]
+    if scaled:  # the bus's slider, in operating_state once it reported one
+        wait_until(lambda: (rig.cycle(), scaled[0].speed_fraction == scaled[0].speed_fraction)[1], 2, interval=0,
+                   what="the speed slider reported")
+        rig.cycle()
+        assert c.operating_state()["target_speed_fraction"] == pytest.approx(scaled[0].speed_fraction)
+    else:
+        rig.cycle(3)
+        assert "target_speed_fraction" not in c.operating_state()
+    rig.enable(1)
+    measured = rig.measured()
+    for ns in profile.namespaces:  # goal checks: each namespace's own bus asks its device
+        idx = [profile.joint_index(j) for j in ns.joints]
+        steps = b.goal_check_steps(ns.name, "move_jp", measured[idx]) if t.goal_check else None
+        assert (steps is not None) == owners[idx[0]][0].traits.goal_check, ns.name
+        if steps is not None:
+            steps.close()
+
+
+def test_a_robot_that_homes_natively_starts_not_homed_and_homes_on_its_devices(rig):
+    """issue 19 item 7: a bus that homes natively (a CiA 402 drive with ``homing``) makes the robot
+    start not homed, and ``home`` runs the devices' own homing: the homing joints then read their
+    home where they are (method 37 takes the current position as zero), every other joint keeps
+    its place. Core's move-home (to the profile's home pose, 0 rad) would move every joint."""
+    b, sim, row = rig.backend, rig.sim, rig.row
+    if not b.traits.native_homing:
+        pytest.skip("no bus of this robot homes natively")
+    owners = _owners(b)
+    homing = [i for i, (p, k) in owners.items() if p.traits.joints[k].needs_homing]
+    for k, sid in enumerate(rig.ids):  # away from the home pose (0 rad)
+        row.set_present(sim, sid, row.present(sim, sid) + 300 + 40 * k)
+    c = rig.enabled_controller()
+    assert not c.is_homed
+    raw = [row.present(sim, sid) for sid in rig.ids]
+    before = rig.measured()
+    assert np.all(np.abs(before[homing]) > 0.001)
+    rig.request(2, "home")
+    assert c.is_busy and not c.is_homed
+    deadline = time.monotonic() + 10
+    while not rig.replies(2):
+        assert time.monotonic() < deadline, "no reply to home"
+        rig.cycle()
+    assert rig.replies(2)[0]["ok"], rig.replies(2)
+    assert c.is_homed and c.state is OperatingState.ENABLED
+    rig.cycle(10)
+    after = rig.measured()
+    np.testing.assert_allclose(after[homing], 0.0, atol=0.01)  # the homing joints: zero where they are
+    # joints well away from home (0 rad), where core's move-home would have taken them
+    others = [i for i in range(b.n) if i not in homing and abs(before[i]) > 0.05]
+    assert others
+    for i in others:
+        assert abs(row.present(sim, rig.ids[i]) - raw[i]) <= 2, b.joint_names[i]  # nothing moved
+    np.testing.assert_allclose(after[others], before[others], atol=0.01)

@@ -427,13 +427,10 @@ class FeetechBackend(SerialServoBackend):
         return fault
 
     def _torque_sync(self, joints: list[int], value: int) -> Fault | None:
-        """One sync write of Torque_Enable to ``joints`` (transitions of `free` only)."""
-        reg = tables.STS_CONTROL_TABLE["Torque_Enable"]
-        gsw = GroupSyncWrite(self._port, self._ph, reg.address, reg.size)
-        for i in joints:
-            gsw.addParam(self._ids[i], [value])
-        self._port.is_using = False
-        result = gsw.txPacket()
+        """One sync write of Torque_Enable to ``joints`` (transitions of `free` only), no
+        acknowledgement (:meth:`SerialServoBackend._torque_sync_write`: its parameter list is
+        reused, nothing is built per call)."""
+        result = self._torque_sync_write(joints, value)
         if result != COMM_SUCCESS:
             return Fault("bus_timeout", f"{self.robot}: sync write of Torque_Enable={value} on {self._where} "
                          f"failed: {self._result_text(result)}", transient=True)

@@ -32,6 +32,7 @@ class _Running:
     on_fail: Callable[[Exception], "Refused"]  # handles the failure; -> the waiting requests' error
     rids: list = field(default_factory=list)  # requests answered when it ends
     stepped: int = -1  # cycle of the last step (one step per cycle)
+    then: list = field(default_factory=list)  # enable requests handled when it ends
 
 
 class TransitionsMixin:
@@ -53,6 +54,11 @@ class TransitionsMixin:
             if run is not None:
                 self._abort_running(f"{run.transition.kind.value} aborted by {cmd.value}")
         elif run is not None and cmd is not StateCommand.UNHOME:
+            if cmd is StateCommand.ENABLE and run.transition.kind is Lifecycle.DISABLE and not run.rids:
+                # the torque off of a fault (no request waits on it) confirms one servo per
+                # cycle: the enable is handled when it ends, never raced with it
+                run.then.append(self._rid)
+                return _DEFERRED
             if cmd.value == run.transition.kind.value and run.rids:
                 run.rids.append(self._rid)  # the same transition under way: the same reply
                 return _DEFERRED
@@ -86,7 +92,7 @@ class TransitionsMixin:
         reply to the request being handled is sent when ``t`` ends."""
         run = _Running(t, self.clock() + t.timeout_s, on_done, on_fail, [self._rid] if reply else [])
         self._running = run
-        if not self._advance(run):
+        if not self._advance(run) and t.kind is not Lifecycle.MODE_SWITCH:  # (never busy: is_busy)
             self.busy_seq += 1
             self.push_state()  # is_busy edge: the state stays until the transition ends
             if t.kind is Lifecycle.GOAL_CHECK:
@@ -129,6 +135,11 @@ class TransitionsMixin:
                 self.outbox.append({"id": rid, "ok": True, "data": data})
         if self._busy_reported and not self.is_busy:
             self.push_state()  # is_busy false edge (when no state change carried it)
+        if run.then:
+            outer = self._rid
+            for rid in run.then:
+                self.handle({"id": rid, "cmd": StateCommand.ENABLE.value})
+            self._rid = outer
 
     def _abort_running(self, why: str) -> None:
         run = self._running
@@ -136,7 +147,7 @@ class TransitionsMixin:
             return
         run.transition.abort()
         self._running = None
-        for rid in run.rids:
+        for rid in run.rids + run.then:
             self.outbox.append({"id": rid, "ok": False, "error": {"code": "aborted", "message": f"{self.robot}: {why}"}})
 
     def abort_transition(self) -> None:
@@ -153,6 +164,22 @@ class TransitionsMixin:
             finally:
                 t.abort()
 
+    def _switch_modes(self, modes: Any, reply: Any, request: bool = True) -> Any:
+        """The backend's operating-mode change for the command modes ``modes``
+        (:meth:`~crtk_bridge.core.actuator.Actuator.mode_switch_steps`), run as a MODE_SWITCH
+        transition (it does not raise ``is_busy``: servo commands never do): while it runs the backend holds the switching joints, motion commands are
+        refused (a stop is not: ``hold``, ``pause``, ``disable``), and the request that asked for
+        it gets ``reply`` (its reply data) when it ends (``request`` False: none asked, a stop, a
+        watchdog or a park changed the mode). A failure faults the robot (a joint may be unpowered).
+        Returns the reply data, or _DEFERRED."""
+        steps = self.actuator.mode_switch_steps(modes)
+        if steps is None:
+            self._modes_ok = modes.tobytes()
+            return reply
+        self._modes_ok = b""  # asked again once it ended (a stop meanwhile may want the old modes)
+        t = Transition(self.robot, Lifecycle.MODE_SWITCH, steps, self.traits.timeout_s(Lifecycle.MODE_SWITCH))
+        return self._start(t, lambda: reply, self._failed("mode_switch"), reply=request)
+
     def _enable(self) -> Any:
         kinds = (Lifecycle.FAULT_RESET, Lifecycle.ENABLE) if self.state is OperatingState.FAULT else (Lifecycle.ENABLE,)
         timeout = sum(self.traits.timeout_s(k) for k in kinds)
@@ -166,6 +193,7 @@ class TransitionsMixin:
         for m in self.namespaces.values():
             m.reset(self.feedback.position[m.idx])
         self.fault_cause = None
+        self._modes_ok = b""  # the device's modes as enabling left them: asked again
         self._consecutive_bus_errors = 0
         self._tracking_cycles = 0
         self._written = False
