@@ -17,6 +17,7 @@ from crtk_bridge.backends import create_backend
 from crtk_bridge.backends.dynamixel import tables as T
 from crtk_bridge.backends.dynamixel.backend import DynamixelBackend
 from crtk_bridge.core.actuator import CommandMode, effective_period_s
+from crtk_bridge.errors import BackendError
 from crtk_bridge.errors import ProfileError
 from crtk_bridge.profile import parse_profile
 from crtk_bridge.sim.dynamixel import DynamixelSimulator
@@ -69,6 +70,18 @@ def ok(fault):
 
 def reg(sim, sid, name):
     return sim.servo(sid).read(name)
+
+
+def switch(b, cmd, fb=None):
+    """The operating-mode switch ``cmd`` needs (mode_switch_steps), run over cycles as core runs
+    it (the cycle's read, one step); nothing when none is needed. Returns the cycles it took."""
+    steps = b.mode_switch_steps(cmd.mode)
+    fb = fb if fb is not None else b.new_feedback()
+    cycles = 0
+    for _ in steps or ():
+        ok(b.read(fb))
+        cycles += 1
+    return cycles
 
 
 # ---------------------------------------------------------------- profile and capabilities
@@ -146,6 +159,7 @@ def test_current_mode_effort_command_and_measured_effort(rig):
     cmd.mode[:] = CommandMode.NONE
     cmd.mode[2] = CommandMode.EFFORT
     cmd.effort[2] = 0.0175  # N*m = 50 mA at 0.35 N*m/A
+    switch(b, cmd)
     ok(b.write(cmd))
     assert reg(sim, 3, "Operating_Mode") == 0 and reg(sim, 3, "Torque_Enable") == 1
     wait_until(lambda: reg(sim, 3, "Goal_Current") == 50, 2.0, what="Goal_Current 50 mA")
@@ -163,6 +177,9 @@ def test_mode_switch_velocity_then_position_without_a_jump(rig):
     cmd.mode[:] = CommandMode.NONE
     cmd.mode[0] = CommandMode.VELOCITY
     cmd.velocity[0] = 1.0
+    ok(b.write(cmd))  # not in velocity mode yet: nothing sent, the joint holds
+    assert reg(sim, 1, "Operating_Mode") == 4 and reg(sim, 1, "Goal_Velocity") == 0
+    switch(b, cmd)
     ok(b.write(cmd))
     assert reg(sim, 1, "Operating_Mode") == 1
     wait_until(lambda: b.read(fb) is None and fb.position[0] > 0.3, 5.0, what="velocity mode motion")
@@ -170,6 +187,7 @@ def test_mode_switch_velocity_then_position_without_a_jump(rig):
     # under velocity control): the switch holds it, nothing jumps while torque goes off and on
     cmd.mode[0] = CommandMode.POSITION
     cmd.position[0] = fb.position[0]
+    switch(b, cmd, fb)
     ok(b.write(cmd))
     assert reg(sim, 1, "Operating_Mode") == 4 and reg(sim, 1, "Torque_Enable") == 1
     ok(b.read(fb))
@@ -184,8 +202,10 @@ def test_mode_switch_velocity_then_position_without_a_jump(rig):
     wait_until(lambda: reg(sim, 6, "Torque_Enable") == 0, 2.0, what="gripper free")
     cmd.mode[5] = CommandMode.POSITION
     cmd.position[5] = fb.position[5]
-    ok(b.write(cmd))
-    assert reg(sim, 6, "Torque_Enable") == 1 and reg(sim, 6, "Operating_Mode") == 5
+    assert b.mode_switch_steps(cmd.mode) is None  # leaving FREE in its own mode: no switch
+    ok(b.write(cmd))  # the goal, then torque on (one sync write each, no acknowledgement)
+    wait_until(lambda: reg(sim, 6, "Torque_Enable") == 1, 2.0, what="gripper torque on after free")
+    assert reg(sim, 6, "Operating_Mode") == 5
 
 
 def test_hardware_error_is_a_fault_and_enable_reboots(rig):
@@ -251,9 +271,9 @@ def test_one_cycle_is_the_protocol_minimum_of_bytes(fast, reply):
 
 @pytest.mark.parametrize("silent_after, failed", [("Torque_Enable", "Operating_Mode"),
                                                   ("Goal_Velocity", "Torque_Enable")])
-def test_failed_mode_switch_after_torque_off_is_a_fault_at_once(rig, silent_after, failed):
+def test_failed_mode_switch_after_torque_off_names_joint_and_register(rig, silent_after, failed):
     # the servo acknowledges Torque_Enable=0 (and maybe more) and then goes silent: the joint is
-    # limp, so the fault must not be transient (retried for bus_errors_max cycles while ENABLED)
+    # limp, so the switch fails at once (core faults the robot), naming the joint and register
     sim, b = rig
     fb = b.new_feedback()
     b.enable(fb)
@@ -269,10 +289,11 @@ def test_failed_mode_switch_after_torque_off_is_a_fault_at_once(rig, silent_afte
     cmd.mode[:] = CommandMode.NONE
     cmd.mode[0] = CommandMode.VELOCITY
     cmd.velocity[0] = 0.5
-    fault = b.write(cmd)
-    assert fault is not None and not fault.transient, fault
-    assert fault.joint == "shoulder_pan" and fault.register == failed
-    assert "shoulder_pan" in fault.message and "velocity mode" in fault.message
+    with pytest.raises(BackendError) as exc:
+        switch(b, cmd)
+    message = str(exc.value)
+    assert "joint 'shoulder_pan'" in message and "velocity mode" in message
+    assert f"register {failed}" in message and "torque may be off" in message
     if failed == "Operating_Mode":
         assert reg(sim, 1, "Torque_Enable") == 0  # limp: which is why core must go to FAULT now
     # (a lost ack of Torque_Enable=1: the servo may or may not be torqued; unknown, so FAULT too)
@@ -305,13 +326,15 @@ def test_failed_mode_switch_puts_the_robot_in_fault_at_once_torque_off_everywher
 
     b._write_register = write_then_go_silent
     c.outbox.clear()
+    # the switch to velocity mode starts with the command (its first step: joint 0) and fails
+    # after torque off: FAULT at once, and the command's reply says so
     c.handle({"id": 2, "cmd": "servo_jv", "ns": "koch", "data": {"velocity": [0.3, 0, 0, 0, 0]}})
-    assert c.outbox[-1].get("ok"), c.outbox
-    cycle()  # the switch to velocity mode fails after torque off
     assert c.state.value == "FAULT"
+    (reply,) = [m for m in c.outbox if m.get("id") == 2]
+    assert not reply["ok"] and reply["error"]["code"] == "fault", reply
     errors = [m["data"] for m in c.outbox if m.get("event") == "error"]
-    assert errors and errors[0]["code"] == "bus_timeout" and errors[0]["joint"] == "shoulder_pan"
-    assert errors[0]["register"] == "Operating_Mode"
+    assert errors and errors[0]["code"] == "mode_switch_failed"
+    assert "joint 'shoulder_pan'" in errors[0]["message"] and "register Operating_Mode" in errors[0]["message"]
     b._write_register = real
     sim.clear_faults()  # the servo answers again: the fault's torque off is confirmed
     wait_until(lambda: cycle() or all(reg(sim, sid, "Torque_Enable") == 0 for sid in range(1, 7)), 5.0,

@@ -205,6 +205,28 @@ def test_replies_matched_by_id_across_interleaved_events_frames_and_reordering(f
     assert warnings and warnings[0].kind == "warning"
 
 
+def test_request_all_sends_every_request_before_waiting_and_returns_replies_in_order(fake, robot):
+    """One round trip for several requests (the LeRobot plugin's arm + gripper goals): the fake
+    answers only once it holds all three, so requests sent one after the other would time out."""
+    held = []
+
+    def hold(req, s):
+        held.append(req)
+        if len(held) == 3:
+            for r in held:
+                s.send(err(r, "out_of_limits", "so101: nope") if r["ns"] == "b" else ok(r, {"ns": r["ns"]}))
+
+    fake.handlers["q"] = hold
+    with pytest.raises(CommandError) as info:  # the failed one raises, once every reply is in
+        robot.connection.request_all([("q", "a", None), ("q", "b", {"x": 1}), ("q", "c", None)], timeout=2.0)
+    assert info.value.code == "out_of_limits" and [r["ns"] for r in held] == ["a", "b", "c"]
+    assert held[1]["data"] == {"x": 1}
+    held.clear()
+    assert robot.connection.request_all([("q", ns, None) for ns in "acd"], timeout=2.0) == \
+        [{"ns": "a"}, {"ns": "c"}, {"ns": "d"}]
+    assert robot.connection.request("list")["robot"] == "so101"  # nothing left pending
+
+
 def test_error_reply_raises_command_error_with_code_and_message(fake, robot):
     fake.handlers["move_jp"] = lambda r, s: s.send(err(
         r, "invalid_state", "so101: move_jp refused: robot is DISABLED (enable it first)"))

@@ -155,6 +155,11 @@ def _imported(env: DocEnv) -> None:
 HARDWARE = ("needs the arm on backend.port (/dev/ttyACM0); tests/test_setup_servos.py, test_check_scan.py and "
             "test_installed.py run these commands on crtk-sim")
 ROS = "needs ROS 2 with rmw_zenoh (not installed here); tests/test_zenoh_ros.py checks the ROS key layout"
+LEROBOT = ("LeRobot in a venv of its own (torch: several GB) with the real arms: tests/lerobot/ builds that venv from "
+           "tests/lerobot/requirements.txt, installs this plugin into it and runs these commands on simulated arms "
+           "(test_lerobot_so101.py, test_lerobot_ur5e.py)")
+LEROBOT_INSTALL = ("installs LeRobot (several GB) into the user's own venv: tests/lerobot/venv.py builds that venv and "
+                   "installs ./clients/python and ./lerobot_robot_crtk into it, as here")
 
 #: Which daemons each section's commands need, by (doc, heading); a command's own SPEC entry wins.
 SCENES = {
@@ -273,6 +278,31 @@ SPEC: dict[tuple[str, str], How] = {
         "skip", why="the so101 scene's daemon has the robot's socket, and 8765 is a fixed port a parallel run would "
                     "take: tests/test_foxglove_live.py starts this daemon on a free port and reads it with a "
                     "Foxglove WebSocket client"),
+    # docs/lerobot.md: LeRobot with real arms (tests/lerobot/ runs the same on simulated arms)
+    ("docs/lerobot.md", "python3 -m venv ~/lerobot-venv && . ~/lerobot-venv/bin/activate"): How("skip", why=LEROBOT_INSTALL),
+    ("docs/lerobot.md", "pip install 'lerobot[feetech]>=0.4.3' ./clients/python ./lerobot_robot_crtk"): How(
+        "skip", why=LEROBOT_INSTALL),
+    ("docs/lerobot.md", "crtk-bridge --profile follower.yaml &"): How("skip", why=HARDWARE),
+    ("docs/lerobot.md", "crtk-bridge --profile leader.yaml &"): How("skip", why=HARDWARE.replace("ttyACM0", "ttyACM1")),
+    ("docs/lerobot.md", "crtk-bridge --profile ur5e.yaml &"): How(
+        "skip", why="needs a UR5e at backend.host; tests/lerobot/test_lerobot_ur5e.py runs the daemon on crtk-sim ur"),
+    ("docs/lerobot.md", "lerobot-teleoperate --robot.type=crtk --robot.robot=so101 --teleop.type=crtk "
+                        "--teleop.robot=so101_leader"): How("skip", why=LEROBOT),
+    ("docs/lerobot.md", "lerobot-record --robot.type=crtk --robot.robot=so101 --teleop.type=crtk "
+                        "--teleop.robot=so101_leader --dataset.repo_id=$HF_USER/so101_pick "
+                        '--dataset.single_task="Pick the cube" --dataset.num_episodes=10 --dataset.episode_time_s=30 '
+                        "--dataset.reset_time_s=10 --dataset.push_to_hub=false"): How("skip", why=LEROBOT),
+    ("docs/lerobot.md", "lerobot-replay --robot.type=crtk --robot.robot=so101 --dataset.repo_id=$HF_USER/so101_pick "
+                        "--dataset.episode=0"): How("skip", why=LEROBOT),
+    ("docs/lerobot.md", "lerobot-record --robot.type=crtk --robot.robot=so101 --policy.path=$HF_USER/act_so101_pick "
+                        '--dataset.repo_id=$HF_USER/eval_so101_pick --dataset.single_task="Pick the cube" '
+                        "--dataset.num_episodes=5 --dataset.push_to_hub=false"):
+        How("skip", why="a trained policy from the hub, on the real arm; " + LEROBOT),
+    ("docs/lerobot.md", "lerobot-replay --robot.type=crtk --robot.robot=ur5e --robot.units=si "
+                        "--dataset.repo_id=$HF_USER/ur5e_demo --dataset.episode=0"): How("skip", why=LEROBOT),
+    ("docs/lerobot.md", "lerobot-record --robot.type=crtk --robot.robot=ur5e --robot.units=si --teleop.type=crtk "
+                        "--teleop.robot=ur5e_leader --teleop.units=si --dataset.repo_id=$HF_USER/ur5e_demo "
+                        '--dataset.single_task="Reach" --dataset.push_to_hub=false'): How("skip", why=LEROBOT),
     # systemd/README.md
     ("systemd/README.md", "journalctl -u crtk-bridge@so101 -f"): How("skip", why="the journal of an installed systemd unit"),
     ("systemd/README.md", "journalctl -u 'crtk-bridge@*' -b"): How("skip", why="the journal of an installed systemd unit"),

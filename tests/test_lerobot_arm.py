@@ -46,6 +46,13 @@ def by_hand(name: str, rad: float, use_degrees: bool = True) -> float:
     return v if mode == "degrees" else min(100.0, max(-100.0 if mode == "range_m100_100" else 0.0, v))
 
 
+def robot_settled(sock: str) -> bool:
+    """The arm's setpoint no longer moves (its interpolation reached the goal)."""
+    with connect(socket=sock) as robot:
+        dev = robot.device("so101")
+        return bool(np.allclose(dev.setpoint_jp()[0], dev.goal_jp()[0], atol=1e-6))
+
+
 def rad_of(robot) -> dict[str, float]:
     info = {ns["name"]: ns["joints"] for ns in robot.list()["namespaces"]}
     out = {}
@@ -109,9 +116,12 @@ def test_an_action_is_clipped_and_the_return_is_what_the_daemon_got(sim_daemon):
         # limit, never the refusal a far goal would get
         si = DaemonArm(socket=sock, units="si")
         arm.close()
+        wait_until(lambda: robot_settled(sock), 10, what="the interpolation at its goal")
         si.open()
         si.enable()
-        start = si.read()["shoulder_pan.pos"]
+        with connect(socket=sock) as robot:  # the step bound counts from the daemon's setpoint
+            setpoint = robot.device("so101").setpoint_jp()[0]
+            start = float(setpoint[0]) if len(setpoint) else si.read()["shoulder_pan.pos"]
         step = si.info["servo_step_max"] * arm_module.STEP_MARGIN
         first = si.send({"shoulder_pan.pos": 10.0})
         assert first == {"shoulder_pan.pos": pytest.approx(start + step)}
@@ -151,6 +161,11 @@ def test_a_fault_mid_episode_raises_its_reason_and_connect_refuses_a_faulted_rob
         with pytest.raises(CrtkFaultError, match=r"so101 is in FAULT \(.*no reply.*\); connect refused"):
             late.open()
         assert not late.is_open
+        arm.release("hold")  # LeRobot's finally: disconnect: never raises, in FAULT nor with the daemon gone
+        sim_daemon.proc.kill()
+        sim_daemon.proc.wait(15)
+        arm.release("hold")
+        arm.release("disable")
     finally:
         arm.close()
 

@@ -17,6 +17,8 @@ import yaml
 from crtk_bridge.core.actuator import Lifecycle
 from crtk_bridge.profile import parse_profile
 
+from .conftest import wait_until
+
 with open("profiles/so101.yaml") as f:
     SO101 = yaml.safe_load(f)
 with open("profiles/koch.yaml") as f:
@@ -103,5 +105,109 @@ def test_so101_disable_is_one_sync_write_then_one_servo_per_cycle():
             assert confirmed == [1, 2, 3, 4, 5, 6] and cycles == 6
             assert all(sim.servo(sid).read("Torque_Enable") == 0 for sid in range(1, 7))
             assert not b.is_enabled
+    finally:
+        sim.stop()
+
+
+def koch_rig():
+    from crtk_bridge.backends.dynamixel.backend import DynamixelBackend
+    from crtk_bridge.sim.dynamixel import DynamixelSimulator
+
+    sim = DynamixelSimulator.from_profile(parse_profile(KOCH))
+    sim.start()
+    data = copy.deepcopy(KOCH)
+    data["backend"].update(port=sim.port, timeout_ms=100)
+    return sim, DynamixelBackend(parse_profile(data, "koch.yaml"), source="koch.yaml")
+
+
+def test_koch_disable_is_one_sync_write_then_one_servo_per_cycle():
+    from crtk_bridge.backends.dynamixel import tables as T
+
+    sim, b = koch_rig()
+    try:
+        with b:
+            b.configure()
+            b.enable(b.new_feedback())
+            log = BusLog(b, "dynamixel")
+            assert run(b, b.begin(Lifecycle.DISABLE), log) == 6
+            steps = log.cycles[1:]
+            assert [p[0] for p in steps[0] if p[1] == BROADCAST][-1] == T.INST_SYNC_WRITE
+            for cycle in steps:
+                assert len(BusLog.acknowledged(cycle)) <= 1, cycle
+            assert all(sim.servo(sid).read("Torque_Enable") == 0 for sid in range(1, 7))
+    finally:
+        sim.stop()
+
+
+def test_koch_mode_switch_is_one_joint_per_cycle_and_holds_until_done():
+    """Position -> velocity mode on the six joints of a Koch: the MODE_SWITCH transition (the
+    backend's mode_switch_steps) switches one joint per cycle -- its own acknowledged
+    transactions, to that servo only: torque off, Operating_Mode, a zero goal, torque on -- and
+    no velocity goal goes out before every joint is switched; then the cycle's write sends them."""
+    from crtk_bridge.backends.dynamixel import tables as T
+    from crtk_bridge.core.actuator import CommandMode, Transition
+
+    sim, b = koch_rig()
+    try:
+        with b:
+            b.configure()
+            b.enable(b.new_feedback())
+            cmd = b.new_command()
+            cmd.mode[:] = CommandMode.VELOCITY
+            cmd.velocity[:] = 0.2
+            steps = b.mode_switch_steps(cmd.mode)  # prepare: no bus
+            assert steps is not None
+            log = BusLog(b, "dynamixel")
+            t = Transition(b.robot, Lifecycle.MODE_SWITCH, steps, 2.0)
+            assert run(b, t, log, cmd) == 6
+            goal_velocity = (104).to_bytes(2, "little")
+            cycles = log.cycles[1:]
+            for k, cycle in enumerate(cycles):
+                acked = BusLog.acknowledged(cycle)
+                assert {p[1] for p in acked} == {k + 1}, cycle  # one servo's work per cycle
+                assert len(acked) <= 5, cycle  # its 4 writes and nothing else (no position read)
+                assert sum(p[0] in (T.INST_SYNC_READ, T.INST_FAST_SYNC_READ) for p in cycle) <= b._attempts
+                if k < len(cycles) - 1:  # the switched joints hold until the last one's step
+                    assert not [p for p in cycle if p[0] == T.INST_SYNC_WRITE and p[2][:2] == goal_velocity], cycle
+            assert all(sim.servo(sid).read("Operating_Mode") == 1 for sid in range(1, 7))
+            assert all(sim.servo(sid).read("Torque_Enable") == 1 for sid in range(1, 7))
+            assert b.mode_switch_steps(cmd.mode) is None  # done: the device follows these modes
+            # the last cycle's write (after the step that ended it) sends the velocity goals
+            assert any(p[0] == T.INST_SYNC_WRITE and p[2][:2] == goal_velocity for p in cycles[-1])
+    finally:
+        sim.stop()
+
+
+def test_koch_switch_back_to_position_stops_every_velocity_joint_first():
+    """Velocity -> position mode (a hold): the switch's first cycle sends ONE sync write of zero
+    velocity goals to every joint it will switch (none keeps moving while it waits its turn),
+    then switches one joint per cycle, each to a fresh hold position."""
+    from crtk_bridge.backends.dynamixel import tables as T
+    from crtk_bridge.core.actuator import CommandMode, Transition
+
+    sim, b = koch_rig()
+    try:
+        with b:
+            b.configure()
+            b.enable(b.new_feedback())
+            cmd = b.new_command()
+            cmd.mode[:] = CommandMode.VELOCITY
+            cmd.velocity[:] = 0.3
+            run(b, Transition(b.robot, Lifecycle.MODE_SWITCH, b.mode_switch_steps(cmd.mode), 2.0),
+                BusLog(b, "dynamixel"), cmd)
+            wait_until(lambda: all(sim.servo(sid).read("Goal_Velocity") != 0 for sid in range(1, 7)), 2.0,
+                       what="velocity goals applied (a sync write has no reply)")
+            cmd.mode[:] = CommandMode.POSITION
+            log = BusLog(b, "dynamixel")
+            assert run(b, Transition(b.robot, Lifecycle.MODE_SWITCH, b.mode_switch_steps(cmd.mode), 2.0),
+                       log, b.new_command()) == 6
+            first = log.cycles[1]
+            stop = [p for p in first if p[0] == T.INST_SYNC_WRITE]
+            assert stop and stop[0][2][:2] == (104).to_bytes(2, "little"), first  # Goal_Velocity, all six
+            assert first.index(stop[0]) < first.index(BusLog.acknowledged(first)[0])  # before any switch
+            for k, cycle in enumerate(log.cycles[1:]):
+                acked = BusLog.acknowledged(cycle)
+                assert {p[1] for p in acked} == {k + 1} and len(acked) <= 5, cycle  # incl. the position read
+            assert all(sim.servo(sid).read("Operating_Mode") in (4, 5) for sid in range(1, 7))
     finally:
         sim.stop()

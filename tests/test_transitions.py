@@ -143,6 +143,27 @@ def test_enable_over_cycles_keeps_reading_stays_disabled_busy_and_replies_once(r
     assert len(replies(rid)) == 1
 
 
+def test_one_bus_read_per_cycle_around_an_enable(rig):
+    """The pose an enable holds is the cycle's own read after torque on (the backend's ENABLE
+    ends in that cycle): the controller reads nothing itself, so every cycle, the one the enable
+    ends in too, has exactly one read (on CANopen each read is a SYNC's worth: one per cycle)."""
+    c, act, clock, cycle, send, replies = rig
+    rid = send("enable")
+    reads = []
+    for _ in range(20):
+        act.bus.clear()
+        cycle()
+        reads.append(act.bus.count("read"))
+        if replies(rid):
+            break
+    for _ in range(3):
+        act.bus.clear()
+        cycle()
+        reads.append(act.bus.count("read"))
+    (reply,) = replies(rid)
+    assert reply["ok"] and reads == [1] * len(reads)
+
+
 def test_second_enable_joins_and_both_get_one_reply(rig):
     c, act, clock, cycle, send, replies = rig
     a, b = send("enable"), send("enable")
@@ -361,3 +382,76 @@ def test_enable_tolerates_a_missed_read_after_torque_on(misses, enabled):
     else:
         assert c.state is OperatingState.FAULT and not act.torque
         assert "no fresh position after torque on" in reply["error"]["message"]
+
+
+class SwitchingActuator(SlowActuator):
+    """Velocity capable; a change of a joint's command mode takes ``switch_cycles`` steps per
+    switching joint (a Dynamixel's operating-mode switch), logged in ``bus``."""
+
+    CAPS = Capabilities(position=True, velocity=True)
+
+    def __init__(self, profile, **kw):
+        super().__init__(profile, enable_cycles=1, **kw)
+        self.device_modes = np.full(self.n, int(CommandMode.POSITION), dtype=np.uint8)
+        self.written: list[np.ndarray] = []
+
+    def mode_switch_steps(self, modes):
+        todo = [i for i in range(self.n)
+                if modes[i] in (CommandMode.POSITION, CommandMode.VELOCITY) and modes[i] != self.device_modes[i]]
+        if not todo:
+            return None
+        self.bus.append("prepare")
+        wanted = modes.copy()
+
+        def steps():
+            for k, i in enumerate(todo):
+                if k:
+                    yield
+                self.bus.append(f"switch-{i}")
+                self.device_modes[i] = wanted[i]
+        return steps()
+
+    def _write(self, cmd):
+        self.bus.append("write")
+        self.written.append(cmd.mode.copy())
+        return None
+
+
+def test_mode_switch_runs_over_cycles_replies_at_its_end_and_refuses_motion_meanwhile():
+    """A command that needs another device mode (servo_jv on a velocity-capable backend) starts
+    the backend's MODE_SWITCH transition: one joint per cycle (is_busy stays false); the command's reply
+    comes when it ends; another motion command meanwhile is refused naming the switch; a hold is
+    not refused; when the stop needs position mode again, core switches back by itself."""
+    c, act, clock, cycle, send, replies = make_slow_rig(SwitchingActuator(PROFILE))
+    send("enable")
+    cycle(3)
+    assert c.state is OperatingState.ENABLED and act.bus.count("prepare") == 0
+    arm = [0.1, 0.0, 0.0, 0.0, 0.0]
+    rid = send("servo_jv", "so101", velocity=arm)
+    seq = c.busy_seq
+    assert replies(rid) == [] and act.bus.count("switch-0") == 1  # first step at once
+    assert not c.is_busy  # servo commands never raise is_busy, nor does their mode switch
+    other = send("servo_jv", "so101", velocity=arm)
+    (r,) = replies(other)
+    assert not r["ok"] and r["error"]["code"] == "invalid_state" and "mode_switch in progress" in r["error"]["message"]
+    cycle(3)
+    assert replies(rid) == []  # 5 arm joints, one per cycle
+    cycle(1)
+    (r,) = replies(rid)
+    assert r["ok"] and not c.is_busy and c.busy_seq == seq
+    assert [b for b in act.bus if b.startswith("switch")] == [f"switch-{i}" for i in range(5)]
+    cycle(2)
+    assert list(act.written[-1][:5]) == [CommandMode.VELOCITY] * 5
+    # a stop is never refused; it needs position mode again: its reply when the switch back ends
+    h = send("hold", "so101")
+    assert replies(h) == []
+    cycle(5)
+    assert replies(h)[0]["ok"] and list(act.device_modes[:5]) == [CommandMode.POSITION] * 5
+    assert not c.is_busy and c.state is OperatingState.ENABLED
+    # a hold during a switch is not refused either (the switch goes on, then core switches back)
+    rid = send("servo_jv", "so101", velocity=arm)
+    h = send("hold", "so101")
+    assert replies(h)[0]["ok"] and replies(rid) == []
+    cycle(12)
+    assert replies(rid)[0]["ok"] and list(act.device_modes[:5]) == [CommandMode.POSITION] * 5
+    assert list(act.written[-1][:5]) == [CommandMode.POSITION] * 5 and not c.is_busy

@@ -98,6 +98,17 @@ def test_streams_enables_and_moves_over_zenoh(lab):
         assert np.max(np.abs(local.device("so101").measured_jp()[0] - goal)) < 0.02
 
 
+def test_several_requests_in_one_put_over_zenoh(lab):
+    """Connection.request_all writes several request lines at once (the LeRobot plugin's arm and
+    gripper): over Zenoh they travel in one put and each gets its reply, in order."""
+    endpoint, _, _ = lab
+    with connect(robot="so101", zenoh_connect=endpoint) as robot:
+        arm, grip, state = robot.connection.request_all(
+            [("measured_js", "so101", None), ("measured_js", "so101/gripper", None), ("operating_state", None, None)])
+    assert len(arm["position"]) == 5 and len(grip["position"]) == 1 and arm["stamp"] > 0
+    assert state["state"] in ("DISABLED", "ENABLED")
+
+
 def test_one_controller_across_transports_and_stops_from_anyone(lab):
     endpoint, _, koch = lab
     with connect(robot="koch", zenoh_connect=endpoint) as holder, \

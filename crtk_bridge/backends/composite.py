@@ -296,6 +296,35 @@ class CompositeActuator(Actuator):
         steps = part.goal_check_steps(ns, cmd, goal)
         return None if steps is None else self._named_steps(b, steps)
 
+    def mode_switch_steps(self, modes: np.ndarray) -> Steps | None:
+        """Each bus's own operating-mode switch for its joints' ``modes``, stepped together (one
+        step of each per cycle, as :meth:`_together`); None when no bus needs one."""
+        todo = []
+        for b, idx in enumerate(self._idx):
+            steps = self.parts[b].mode_switch_steps(modes[idx])
+            if steps is not None:
+                todo.append(self._named_steps(b, steps))
+        return self._switch_together(todo) if todo else None
+
+    @staticmethod
+    def _switch_together(todo: list[Steps]) -> Steps:
+        pending = todo
+        try:
+            while pending:
+                running = []
+                for steps in pending:
+                    try:
+                        next(steps)
+                        running.append(steps)
+                    except StopIteration:
+                        pass
+                pending = running
+                if pending:
+                    yield
+        finally:
+            for steps in todo:
+                steps.close()
+
     def _named_steps(self, b: int, steps: Steps) -> Steps:
         """A bus's steps whose BackendError names the bus (a refusal, CommandError, passes as is)."""
         try:

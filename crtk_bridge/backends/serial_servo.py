@@ -486,7 +486,6 @@ class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
     #: how long `open` keeps pinging a servo that does not answer (shared by all servos): a
     #: missing one costs this once, at start-up, and every servo gets at least LIFECYCLE_ATTEMPTS
     OPEN_PATIENCE_S = 0.5
-    _realtime_txrx = False  # set around acknowledged transactions made from the real-time path
 
     def _txrx(self, fn, *args, length: int | None = None):
         """Call an SDK ``...TxRx`` function, retrying comm failures. Returns its tuple.
@@ -499,7 +498,7 @@ class SerialServoBackend(Actuator, BusScanner, DeviceSetup):
         if self._port is not None:
             self._port.last_os_error = None
             self._port.is_using = False  # we own the port alone; a stale flag = PORT_BUSY forever
-        attempts = self._attempts if self._realtime_txrx else max(self._attempts, self.LIFECYCLE_ATTEMPTS)
+        attempts = max(self._attempts, self.LIFECYCLE_ATTEMPTS)
         for _ in range(attempts):
             try:
                 out = fn(self._port, *args)

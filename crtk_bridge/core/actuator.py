@@ -8,10 +8,15 @@ Three paths, as in ros2_control hardware components:
 * Start-up path -- ``open()`` -> ``configure()``, before the loop runs; ``close()`` after it.
   May block on the bus, raises :class:`~crtk_bridge.errors.BackendError`; idempotent.
 * Lifecycle transitions -- enable, disable (also the torque-off of a fault), pause, resume,
-  fault reset and, where the backend homes natively, home. They take as long as the hardware
+  fault reset, where the backend homes natively home, and the operating-mode switches a command
+  needs (:meth:`Actuator.mode_switch_steps`, prepared off the bus, performed on the cycle: core
+  runs them as a MODE_SWITCH transition). They take as long as the hardware
   needs but never block the cycle: :meth:`Actuator.begin` returns a :class:`Transition` that the
-  loop advances with ONE :meth:`Transition.step` per cycle, after that cycle's ``read``, until it
-  reports done (or raises, or exceeds the backend's time limit, ``traits.transition_timeouts_s``).
+  cycle runner (core/cycle.py: the loop, start-up and shutdown alike) advances with ONE
+  :meth:`Transition.step` per cycle, after that cycle's ``read``, until it reports done (or
+  raises, or exceeds the backend's time limit, ``traits.transition_timeouts_s``). A step may do a
+  bounded bus exchange (a sync write, an acknowledged write or two); waiting for the device is
+  done across cycles.
   Meanwhile the loop keeps reading and publishing, the CRTK state stays as it was and ``is_busy``
   is true. A backend writes a transition as a generator (``_enable_steps`` ...): each ``yield``
   hands the cycle back and resumes one cycle later, so a CiA 402 controlword walk or "torque on,
@@ -229,6 +234,7 @@ class Lifecycle(str, enum.Enum):
     HOME = "home"  # only where the backend homes natively (``native_homing``)
     GOAL_CHECK = "goal_check"  # a move goal asked of the device's own limits (:meth:`Actuator.goal_check_steps`)
     CALIBRATE = "calibrate"  # start a calibration sweep (:meth:`Actuator.calibration_begin`)
+    MODE_SWITCH = "mode_switch"  # the device's operating modes changed for a command (:meth:`Actuator.mode_switch_steps`)
 
 
 class DeviceStatus(str, enum.Enum):
@@ -265,7 +271,7 @@ ENABLE_FRESH_READ_CYCLES = 3
 DEFAULT_TRANSITION_TIMEOUTS_S: Mapping[Lifecycle, float] = MappingProxyType({
     Lifecycle.ENABLE: 5.0, Lifecycle.DISABLE: 2.0, Lifecycle.PAUSE: 2.0, Lifecycle.RESUME: 2.0,
     Lifecycle.FAULT_RESET: 5.0, Lifecycle.HOME: 60.0, Lifecycle.CALIBRATE: 5.0,
-    Lifecycle.GOAL_CHECK: 2.0,
+    Lifecycle.GOAL_CHECK: 2.0, Lifecycle.MODE_SWITCH: 2.0,
 })
 
 
@@ -785,6 +791,17 @@ class Actuator(abc.ABC):
         namespace). They raise :class:`~crtk_bridge.errors.CommandError` (``out_of_limits``, the
         message naming the joint or pose) to refuse the move. None (the default): no such check.
         Called only when ``traits.goal_check``."""
+        return None
+
+    def mode_switch_steps(self, modes: np.ndarray) -> Steps | None:
+        """The operating-mode change the device needs to follow the per-joint
+        :class:`CommandMode` ``modes`` (ros2_control's prepare / perform): this call, the
+        prepare, decides off the bus; the steps it returns perform the change on the cycle,
+        stepped (one joint's acknowledged transactions per step), and hold the joints meanwhile;
+        ``_write`` leaves a joint alone until its device mode is the one its command needs.
+        Core calls it when the command's modes changed (before the cycle's write) and runs the
+        steps as a MODE_SWITCH transition; a failure faults the robot (the joint may be
+        unpowered). None (the default): the device follows every mode as it is."""
         return None
 
     def new_feedback(self) -> JointFeedback:

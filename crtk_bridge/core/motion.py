@@ -509,6 +509,17 @@ class NamespaceMotion:
             self.mode = Mode.HOLD
             self.level = Mode.HOLD
 
+    def command_mode(self) -> CommandMode:
+        """The native command mode :meth:`fill` gives this namespace's joints now."""
+        mode = self.mode
+        if mode is Mode.FREE:
+            return CommandMode.FREE
+        if mode in EFFORT_MODES:
+            return CommandMode.EFFORT
+        if mode in VELOCITY_MODES and self.caps.velocity:
+            return CommandMode.VELOCITY
+        return CommandMode.POSITION
+
     def fill(self, cmd: JointCommand) -> None:
         """Write this namespace's setpoints into the native command, in the hardware's terms."""
         idx = self.idx
@@ -517,12 +528,9 @@ class NamespaceMotion:
             cmd.mode[idx] = CommandMode.FREE
             self._filled[:] = self.setpoint_p
             return
-        if mode in EFFORT_MODES:
-            cmd.mode[idx] = CommandMode.EFFORT
-        elif mode in VELOCITY_MODES and self.caps.velocity:
-            cmd.mode[idx] = CommandMode.VELOCITY
-        else:
-            cmd.mode[idx] = CommandMode.POSITION
+        native = self.command_mode()
+        cmd.mode[idx] = native
+        if native is CommandMode.POSITION:
             if mode is not Mode.HOLD:
                 # the limits stage; HOLD is exempt: a joint enabled (or freed) outside its limits
                 # is held where it is, never snapped to the limit; commands then bring it back at

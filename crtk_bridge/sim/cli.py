@@ -86,6 +86,7 @@ def _parser() -> argparse.ArgumentParser:
     u.add_argument("--host", required=True,
                    help="address to serve on, e.g. 127.0.0.2 (the ports are fixed; 'auto': a free 127.0.0.N)")
     u.add_argument("--control", help="serve the JSON-lines control socket at this path")
+    u.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
     u.add_argument("--series", choices=["e-series", "cb3"],
                    help="controller generation: e-series (500 Hz) or cb3 (125 Hz); default: the "
                         "profile's backend.series, else e-series")
@@ -209,15 +210,15 @@ def main(argv: list[str] | None = None) -> int:
     except ProfileError as exc:
         print(f"crtk-sim: {exc}", file=sys.stderr)
         return 2
-    if args.device == "ur":  # signals blocked before any thread exists, as below
-        signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
-        return _main_ur(args, profile)
     if profile.backends is not None or args.bus is not None:
         if args.bus not in profile.bus_names:
             print(f"crtk-sim: {args.profile}: --bus must name one of the profile's buses "
                   f"({', '.join(profile.bus_names) or 'it has one backend: leave --bus out'})", file=sys.stderr)
             return 2
-        profile = profile.bus_profile(args.bus)  # one simulator per bus
+        profile = profile.bus_profile(args.bus)  # one simulator per bus (a UR arm beside a gripper too)
+    if args.device == "ur":  # signals blocked before any thread exists, as below
+        signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+        return _main_ur(args, profile)
 
     try:
         Simulator = simulator_class(args.device)

@@ -234,9 +234,11 @@ class DaemonArm:
         """Measured positions per exposed namespace (SI). Raises CrtkFaultError in FAULT (the
         daemon reports no valid measurement then)."""
         out = {}
-        for ns, dev in self.devices.items():
-            p, _, _, stamp = dev.measured_js()
-            if stamp == 0.0 or len(p) == 0:
+        # every namespace's in one round trip (the daemon answers them in order)
+        replies = self.client.connection.request_all([("measured_js", ns, None) for ns in self.devices])
+        for ns, js in zip(self.devices, replies):
+            p = js.get("position") or []
+            if not js.get("stamp") or len(p) == 0:
                 self.check_fault("reading")
                 raise CrtkBridgeError(f"{self.who}: {ns}: the daemon has no measurement yet")
             out[ns] = np.asarray(p, dtype=float)
@@ -246,6 +248,17 @@ class DaemonArm:
         """``{<joint>.pos: value}`` in the configured units."""
         si = self.read_si()
         return {j.key: j.to_units(float(si[j.ns][j.index])) for j in self.joints}
+
+    def _setpoint_or(self, present: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Per namespace, the daemon's position setpoint (what its step bound is measured from),
+        or the measured position where it has none (just enabled, nothing commanded yet)."""
+        replies = self.client.connection.request_all([("setpoint_js", ns, None) for ns in self.devices])
+        out = {}
+        for ns, js in zip(self.devices, replies):
+            p = js.get("position") or []
+            ok = js.get("stamp") and len(p) == len(present[ns])
+            out[ns] = np.asarray(p, dtype=float) if ok else present[ns].copy()
+        return out
 
     # ---------------------------------------------------------------- commanding
     def send(self, action: Mapping[str, Any], command: str = "interpolate",
@@ -266,8 +279,8 @@ class DaemonArm:
         present = None
         if max_relative_target is not None or not self.goal:
             present = self.read_si()
-        if not self.goal:  # the first goal of this connection: from the measured position
-            self.goal = {ns: p.copy() for ns, p in present.items()}
+        if not self.goal:  # the first goal of this connection: from where the daemon's setpoint is
+            self.goal = self._setpoint_or(present)
         target = {ns: g.copy() for ns, g in self.goal.items()}
         step = float((self.info or {}).get("servo_step_max", math.inf)) * STEP_MARGIN
         clamped = {}
@@ -290,23 +303,26 @@ class DaemonArm:
         if clamped:
             log.warning("%s: %s: relative goal clamped by max_relative_target: %s", self.who, self.robot_name,
                         ", ".join(f"{k} {a:.4g} -> {b:.4g}" for k, (a, b) in clamped.items()))
+        cmd = "servo_jp" if command == "servo" else "interpolate_jp"
         for ns, dev in self.devices.items():
-            try:
-                if command == "servo":
-                    dev.servo_jp(target[ns])
-                else:
-                    dev.interpolate_jp(target[ns])
-            except CommandError as exc:
-                if dev.is_fault() or exc.code == "invalid_state":
-                    self.check_fault("send_action")
-                raise
-            self.goal[ns] = target[ns]
+            if not dev.supports(cmd):
+                raise CommandError("unsupported", f"{self.who}: {ns}: {cmd} is not supported by this robot")
+        try:  # every namespace's goal in one round trip: never more than about one daemon cycle
+            self.client.connection.request_all(
+                [(cmd, ns, {"position": [float(x) for x in target[ns]]}) for ns in self.devices])
+        except CommandError as exc:
+            if exc.code == "invalid_state" or next(iter(self.devices.values())).is_fault():
+                self.check_fault("send_action")
+            raise
+        self.goal = target
         return {j.key: j.to_units(float(self.goal[j.ns][j.index])) for j in joints if j.key in wanted}
 
     def release(self, on_disconnect: str = "hold") -> None:
         """End of the session: ``hold`` (every namespace holds its position, the robot stays
         ENABLED, control is released for the next client) or ``disable`` (torque off: an arm
-        without brakes falls). Never raises for a robot already in FAULT or DISABLED."""
+        without brakes falls). Never raises (LeRobot disconnects in ``finally`` blocks, where an
+        error would hide the one that ended the episode): a robot in FAULT or DISABLED, or a
+        daemon gone, is logged."""
         try:
             if on_disconnect == "disable":
                 next(iter(self.devices.values())).disable(self.timeout_s)
@@ -315,5 +331,5 @@ class DaemonArm:
                     if dev.is_enabled():
                         dev.hold()
                 self.client.release()
-        except CommandError as exc:
+        except (CrtkBridgeError, ConnectionError, TimeoutError) as exc:  # CommandError, the daemon gone
             log.warning("%s: %s: on disconnect: %s", self.who, self.robot_name, exc)

@@ -306,6 +306,10 @@ class BusSims:
             backends[bus] = cls.sim_profile(profile.bus_profile(bus), sim.port).backend
             if getattr(sim, "interface", None) == "virtual":  # an in-process CAN simulator
                 backends[bus] = {**backends[bus], "interface": "virtual", "options": {}}
+            if "timeout_ms" in backends[bus] and profile.backends[bus].get("timeout_ms") is None:
+                # the buses' simulators are threads of this test process (a UR controller ticks at
+                # 500 Hz): a serial reply may wait for the GIL longer than --sim's 30 ms
+                backends[bus] = {**backends[bus], "timeout_ms": 100.0}
         return msgspec.structs.replace(profile, backends=backends)
 
     def clear_errors(self) -> None:

@@ -10,7 +10,8 @@ Requests (each answered by one line, ``{"ok": true, ...}`` or ``{"ok": false, "e
 ``{"op": "write_calibration"}`` (the calibration file's values into the servos' EEPROM, as
 ``lerobot-calibrate`` leaves them), ``{"op": "torque_off"}``, ``{"op": "features"}``,
 ``{"op": "obs"}``, ``{"op": "act", "action": {...}}`` (the reply's ``sent`` is what send_action
-returned), ``{"op": "disconnect"}``. End of input: disconnect if connected, exit 0.
+returned, ``t`` the monotonic time it was called), ``{"op": "step", "action": {...}}`` (both, as
+``lerobot-replay`` does each tick), ``{"op": "disconnect"}``. End of input: disconnect if connected, exit 0.
 """
 
 from __future__ import annotations
@@ -27,6 +28,18 @@ def _plain(value):
         return float(value)
     except (TypeError, ValueError):
         return repr(value)
+
+
+def _retried(read, tries: int = 3):
+    """LeRobot's own sync_read gives up on the first missing status packet, which a simulator on a
+    loaded host can be late with: a read the tests only look at is retried (never an action)."""
+    for attempt in range(tries):
+        try:
+            return read()
+        except ConnectionError as exc:
+            if attempt == tries - 1 or "status packet" not in str(exc):
+                raise
+            print(f"driver: read retried after: {exc}", file=sys.stderr)
 
 
 def main() -> int:
@@ -49,8 +62,18 @@ def main() -> int:
                 if "calibration_dir" in cfg:
                     cfg["calibration_dir"] = Path(cfg["calibration_dir"])
                 config = RobotConfig.get_choice_class(req["type"])(**cfg)
-                robot = make_robot_from_config(config)
-                robot.connect(calibrate=req.get("calibrate", False))
+                for attempt in range(3):
+                    robot = make_robot_from_config(config)
+                    try:
+                        robot.connect(calibrate=req.get("calibrate", False))
+                        break
+                    except RuntimeError as exc:
+                        # LeRobot's broadcast ping waits a few ms for every servo's reply: on a
+                        # loaded host the simulator can miss it. Not what the tests look at: retry.
+                        if "motor check failed" not in str(exc) or attempt == 2:
+                            raise
+                        print(f"driver: connect retried after: {exc}", file=sys.stderr)
+                        robot.bus.port_handler.closePort()
                 reply = {"name": robot.name}
             elif op == "features":
                 reply = {"action": list(robot.action_features), "observation": list(robot.observation_features)}
@@ -62,12 +85,19 @@ def main() -> int:
                 reply = {}
             elif op == "obs":
                 t = time.monotonic()
-                obs = robot.get_observation()
+                obs = _retried(robot.get_observation)
                 reply = {"obs": {k: _plain(v) for k, v in obs.items()}, "t": t, "dt": time.monotonic() - t}
             elif op == "act":
                 t = time.monotonic()
                 sent = robot.send_action(req["action"])
                 reply = {"sent": {k: _plain(v) for k, v in sent.items()}, "t": t, "dt": time.monotonic() - t}
+            elif op == "step":  # what lerobot-replay does each tick: observe, then send the action
+                t0 = time.monotonic()
+                obs = robot.get_observation()
+                t = time.monotonic()
+                sent = robot.send_action(req["action"])
+                reply = {"sent": {k: _plain(v) for k, v in sent.items()}, "obs": {k: _plain(v) for k, v in obs.items()},
+                         "t_obs": t0, "t": t, "dt": time.monotonic() - t}
             elif op == "disconnect":
                 if robot is not None and robot.is_connected:
                     robot.disconnect()

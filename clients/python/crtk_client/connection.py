@@ -184,40 +184,74 @@ class Connection:
         """
         return self._request(cmd, ns, data, timeout, None)
 
+    def request_all(self, requests: list[tuple[str, str | None, Any]], timeout: float | None = None) -> list[Any]:
+        """Send several requests ``(cmd, ns, data)`` at once (one write), then wait for their
+        replies: the daemon handles them in order, so the whole costs about one round trip
+        instead of one each (a LeRobot action on an arm and its gripper). Returns the replies'
+        ``data`` in order; raises like :meth:`request` for the first that failed, after every
+        reply came (or the timeout, which bounds the whole wait)."""
+        sent = self._send([(cmd, ns, data, None) for cmd, ns, data in requests])
+        t = self.timeout if timeout is None else timeout
+        deadline = time.monotonic() + t
+        errors: list[BaseException] = []
+        out = []
+        for rid, pending in sent:
+            try:
+                out.append(self._wait(rid, pending, max(0.0, deadline - time.monotonic()), t))
+            except (CommandError, TimeoutError, DaemonConnectionError) as exc:
+                errors.append(exc)
+                out.append(None)
+        if errors:
+            raise errors[0]
+        return out
+
     def _request(self, cmd, ns, data, timeout, on_reply):
+        ((rid, pending),) = self._send([(cmd, ns, data, on_reply)])
+        t = self.timeout if timeout is None else timeout
+        return self._wait(rid, pending, t, t)
+
+    def _send(self, requests) -> list[tuple[int, _Pending]]:
+        """Register and write the requests ``(cmd, ns, data, on_reply)`` in one write."""
         if threading.current_thread() is self._reader:
             raise RuntimeError(
                 "Connection.request() called from a subscription/event callback: it would wait "
                 "for a reply that only this thread can read; hand the work to another thread")
         if self._closed_error is not None:
             raise DaemonConnectionError(str(self._closed_error))
-        rid = next(self._ids)
-        msg: dict[str, Any] = {"id": rid, "cmd": cmd}
-        if ns is not None:
-            msg["ns"] = ns
-        if data is not None:
-            msg["data"] = data
-        line = _encode(msg) + b"\n"
-        pending = _Pending(cmd, on_reply)
+        lines, sent = [], []
+        for cmd, ns, data, on_reply in requests:
+            rid = next(self._ids)
+            msg: dict[str, Any] = {"id": rid, "cmd": cmd}
+            if ns is not None:
+                msg["ns"] = ns
+            if data is not None:
+                msg["data"] = data
+            lines.append(_encode(msg) + b"\n")
+            sent.append((rid, _Pending(cmd, on_reply)))
         with self.cond:
             if self._closed_error is not None:
                 raise DaemonConnectionError(str(self._closed_error))
-            self._pending[rid] = pending
+            self._pending.update(sent)
         try:
             with self._send_lock:
-                self._sock.sendall(line)
+                self._sock.sendall(b"".join(lines))
         except OSError as exc:
             with self.cond:
-                self._pending.pop(rid, None)
+                for rid, _ in sent:
+                    self._pending.pop(rid, None)
             err = self._closed_error or DaemonConnectionError(
                 f"crtk-bridge at {self.path} went away ({exc})")
             raise DaemonConnectionError(str(err)) from exc
-        t = self.timeout if timeout is None else timeout
-        if not pending.done.wait(t):
+        return sent
+
+    def _wait(self, rid: int, pending: _Pending, wait_s: float, timeout_s: float) -> Any:
+        """The reply of request ``rid``: its data, or the error it carries."""
+        cmd = pending.cmd
+        if not pending.done.wait(wait_s):
             with self.cond:
                 self._pending.pop(rid, None)
             if not pending.done.is_set():
-                raise TimeoutError(f"{cmd}: no reply from crtk-bridge at {self.path} within {t:g} s")
+                raise TimeoutError(f"{cmd}: no reply from crtk-bridge at {self.path} within {timeout_s:g} s")
         if pending.error is not None:
             raise DaemonConnectionError(f"{cmd}: {pending.error}") from pending.error
         reply = pending.msg

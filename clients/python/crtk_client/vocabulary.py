@@ -157,6 +157,7 @@ class EventCode(StrEnum):
     PAUSE_FAILED = "pause_failed"
     RESUME_FAILED = "resume_failed"
     HOME_FAILED = "home_failed"
+    MODE_SWITCH_FAILED = "mode_switch_failed"  # a Dynamixel operating-mode switch
     DEVICE_POWERED_OFF = "device_powered_off"
     TORQUE_OFF_UNCONFIRMED = "torque_off_unconfirmed"
     DISABLE_FAILED = "disable_failed"

@@ -20,14 +20,16 @@ bus transactions:
 Operating mode per joint follows the command's :class:`CommandMode`: POSITION -> position mode
 (3), or extended position (4) / current-based position (5) where ``position_mode`` /
 ``joint_position_modes`` ask; VELOCITY -> velocity mode (1); EFFORT -> current mode (0); FREE ->
-torque off. A switch happens in ``write`` when a joint's command mode changes, as the servo
-requires (Operating_Mode is EEPROM, writable with torque off only): Torque_Enable 0 -> Operating_Mode
--> Goal_Position = Present_Position (position modes) or a zero velocity/current goal ->
-Torque_Enable 1, then the cycle's goal. These are 4-5 ACKNOWLEDGED transactions on the real-time
-path (about 4 x (wire time + turnaround) ~= 1-2 ms at 1 Mbps, up to 4 x ``timeout_ms`` if a servo
-is slow), only in the cycle of a switch; the joint is unpowered for that time. Steady streams
-pay nothing. A switch that fails is a non-transient Fault at once (FAULT, torque off everywhere),
-naming the joint and register: the joint may already be unpowered, so it is not retried.
+torque off (one sync write; leaving it in the same mode: the goal, then one sync write of torque
+on). A change of operating mode is NOT made in ``write`` (nothing there waits for an
+acknowledgement): core asks :meth:`DynamixelBackend.mode_switch_steps` when a command's modes
+change and runs the steps it returns as a MODE_SWITCH transition, one joint per cycle, as the
+servo requires (Operating_Mode is EEPROM, writable with torque off only): Torque_Enable 0 ->
+Operating_Mode -> Goal_Position = Present_Position (position modes) or a zero velocity/current
+goal -> Torque_Enable 1, each acknowledged; the joint is unpowered within its own step only, and
+``write`` leaves the switching joints alone until the last one is done. A switch that fails
+faults the robot (FAULT, torque off everywhere), naming the joint and register: the joint may
+already be unpowered, so it is not retried.
 
 Units (raw units never leave this module), per joint with the profile's ``calibration``:
 
@@ -204,6 +206,7 @@ class DynamixelBackend(SerialServoBackend):
         self._errors = [0] * n  # status ERR byte of each servo, last read
         self._hw_bits = [0] * n  # Hardware_Error_Status read when the Alert appeared
         self._op_mode: list[OperatingMode | None] = [None] * n  # mode the servo is in (None: unknown)
+        self._switching = [False] * n  # joints of a mode switch under way (held by its steps)
         self._fast = False
         self._id_param = list(self._ids)
         self._fast_reply_len = (_BLOCK_LEN + 4) * n
@@ -536,6 +539,7 @@ class DynamixelBackend(SerialServoBackend):
         np.clip(goal, self._goal_min, self._goal_max, out=goal)
         writes = None  # (joint, address, size, raw) of this cycle
         freeing = None
+        holding = None
         for i in range(self.n):
             m = mode[i]
             if m == _NONE:
@@ -559,10 +563,10 @@ class DynamixelBackend(SerialServoBackend):
                 g = round(min(max(value * self._unit_per_nm[i], -lim), lim))
             else:
                 continue
-            if want != self._op_mode[i] or self._free[i]:
-                f = self._switch(i, want)
-                if f is not None:
-                    return f
+            if want != self._op_mode[i] or self._switching[i]:
+                continue  # held by the mode switch (mode_switch_steps), which core runs
+            if self._free[i]:  # leaving FREE in the same mode: torque on after this goal
+                holding = (holding or []) + [i]
             name, address, size = _GOAL[want]
             writes = (writes or []) + [(i, address, size, int(g))]
         if writes:
@@ -571,26 +575,70 @@ class DynamixelBackend(SerialServoBackend):
                 return f
         if freeing:
             fault = self._torque_off(freeing) or fault
+        if holding:
+            # the controller commands a joint leaving FREE its measured position (nothing jumps)
+            if self._torque_sync_write(holding, 1) != COMM_SUCCESS:
+                return Fault("bus_timeout", f"{self.robot}: sync write of Torque_Enable=1 on {self._where} "
+                             f"failed", transient=True)
+            for i in holding:
+                self._free[i] = False
         return fault
 
-    def _switch(self, i: int, want: OperatingMode) -> Fault | None:
-        """Operating-mode switch (or leaving FREE) of joint ``i``, holding it. Acknowledged writes,
-        on the real-time path: each gets the real-time attempts (1 + read_retries), not the
-        patient lifecycle ones, so a silent servo stalls one cycle by a few packet timeouts.
+    def _wanted_mode(self, i: int, m: int) -> OperatingMode | None:
+        """The operating mode joint ``i`` needs for command mode ``m`` (None: any, it is not driven)."""
+        if m == _POSITION:
+            return self._pos_mode[i]
+        if m == _VELOCITY:
+            return OperatingMode.VELOCITY
+        if m == _EFFORT and self._effort_j[i]:
+            return OperatingMode.CURRENT
+        return None
 
-        Any failure here is a NON-transient Fault: from the Torque_Enable=0 write on (or when the
-        joint was FREE) the joint may be unpowered, and a retry next cycle would leave it limp
-        while the robot reports ENABLED for up to ``safety.bus_errors_max`` cycles. The Fault
-        names the joint and the register whose transaction failed; core goes to FAULT, torque off.
-        """
-        self._realtime_txrx = True
+    def mode_switch_steps(self, modes: np.ndarray) -> Steps | None:
+        """Prepare (no bus): the joints whose operating mode differs from what ``modes`` needs.
+        Perform (the steps, one joint per cycle): first ONE sync write of a zero goal to every
+        switching joint in velocity or current mode (they stop at once, none keeps moving while
+        it waits for its turn), then per joint, in its own step, the servo's own sequence, each
+        acknowledged: Torque_Enable 0 (Operating_Mode is EEPROM, written with torque off) ->
+        Operating_Mode -> Goal_Position = a fresh Present_Position (position modes) or a zero
+        velocity / current goal -> Torque_Enable 1. The joint is unpowered within its step only;
+        switched joints hold their goal until the last one is done (``_write`` leaves them
+        alone). Raises BackendError naming the joint and the register (core faults the robot)."""
+        todo = []
+        for i in range(self.n):
+            want = self._wanted_mode(i, int(modes[i]))
+            if want is not None and want != self._op_mode[i]:
+                todo.append((i, want))
+        return self._switch_steps(todo) if todo else None
+
+    def _switch_steps(self, todo: list[tuple[int, OperatingMode]]) -> Steps:
+        self._require_open("switch operating modes")
+        for i, _ in todo:
+            self._switching[i] = True
+        try:
+            stop = [(i, *_GOAL[self._op_mode[i]][1:], 0) for i, _ in todo
+                    if self._op_mode[i] in (OperatingMode.VELOCITY, OperatingMode.CURRENT) and not self._free[i]]
+            if stop:
+                self._send_goals(stop)  # unacknowledged: each joint's own step below is
+            for k, (i, want) in enumerate(todo):
+                if k:
+                    yield
+                self._switch(i, want)
+        finally:
+            for i, _ in todo:
+                self._switching[i] = False
+
+    def _switch(self, i: int, want: OperatingMode) -> None:
+        """Operating-mode switch of joint ``i`` (one step of :meth:`mode_switch_steps`), holding
+        it. Raises BackendError naming the joint and the register whose transaction failed: from
+        the Torque_Enable=0 write on (or when the joint was FREE) it may be unpowered."""
         register = "Torque_Enable"
         try:
-            if self._op_mode[i] != want:
+            if not self._free[i]:
                 self._write_register(i, "Torque_Enable", 0)
-                register = "Operating_Mode"
-                self._write_register(i, "Operating_Mode", int(want))
-                self._op_mode[i] = want
+            register = "Operating_Mode"
+            self._write_register(i, "Operating_Mode", int(want))
+            self._op_mode[i] = want
             if want in T.POSITION_MODES:
                 register = "Present_Position"
                 present = self._read_register(i, "Present_Position")
@@ -606,15 +654,9 @@ class DynamixelBackend(SerialServoBackend):
             self._write_register(i, "Torque_Enable", 1)
         except BackendError as exc:
             self._op_mode[i] = None
-            return Fault("bus_timeout", f"{exc} (switching joint {self.joint_names[i]!r} to "
-                         f"{want.name.lower()} mode; its torque may be off)",
-                         joint=self.joint_names[i], register=register, value=int(want),
-                         transient=False)
-        finally:
-            self._realtime_txrx = False
-            self._port.is_using = False
+            raise BackendError(f"{exc} (switching joint {self.joint_names[i]!r} to {want.name.lower()} "
+                               f"mode, register {register}; its torque may be off)") from exc
         self._free[i] = False
-        return None
 
     def _send_goals(self, writes: list) -> Fault | None:
         ph, port = self._ph, self._port

@@ -108,6 +108,9 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
         self._last_torque_retry = -math.inf
         self._consecutive_write_errors = 0
         self._running: _Running | None = None  # the lifecycle transition in progress
+        #: the command modes the backend follows as it is (:meth:`_switch_modes`), as bytes
+        self._modes_ok = b""
+        self._next_modes = self.command.mode.copy()  # a motion command's modes, before its fill
         self._cycle = 0  # counts on_read calls: one transition step per cycle
         self._rid: Any = None  # id of the request being handled
         self._speed_fraction = float("nan")  # the device's speed slider as last reported (NaN: none)
@@ -115,8 +118,9 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
     # ------------------------------------------------------------------ queries
     @property
     def is_busy(self) -> bool:
-        return self.homing or self._running is not None or any(m.busy for m in self.namespaces.values()) \
-            or any(nc.busy for nc in self.native_cartesian.values())
+        run = self._running  # an operating-mode switch is not: servo commands never raise is_busy
+        return self.homing or (run is not None and run.transition.kind is not Lifecycle.MODE_SWITCH) \
+            or any(m.busy for m in self.namespaces.values()) or any(nc.busy for nc in self.native_cartesian.values())
 
     @property
     def measured_valid(self) -> bool:
@@ -241,6 +245,12 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
                 m.free()  # a refused command changes nothing: the joints stay free (torque off)
             raise
         self._end_cartesian(ns)  # a joint command takes over from a cartesian one
+        if result is not _DEFERRED and self._running is None and self.state is OperatingState.ENABLED:
+            modes = self._next_modes
+            modes[:] = self.command.mode
+            modes[m.idx] = m.command_mode()
+            if modes.tobytes() != self._modes_ok:  # the device may need another operating mode
+                return self._switch_modes(modes, result)
         return result
 
     def _motion(self, cmd: str, m: NamespaceMotion, vec: np.ndarray | None, data: dict, ns: str, now: float) -> Any:
@@ -412,6 +422,8 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
             m.fill(cmd)
             if nc is not None:
                 nc.fill(cmd.mode, cmd.cartesian)  # the backend's cartesian row; its joints left to it
+        if self._running is None and cmd.mode.tobytes() != self._modes_ok:
+            self._switch_modes(cmd.mode, None, request=False)  # a stop, a watchdog, a park changed a joint's mode
         if self.homing and not any(m.busy for m in self.namespaces.values()):
             self.homing = False
             self.is_homed = True

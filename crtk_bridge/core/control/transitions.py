@@ -92,7 +92,7 @@ class TransitionsMixin:
         reply to the request being handled is sent when ``t`` ends."""
         run = _Running(t, self.clock() + t.timeout_s, on_done, on_fail, [self._rid] if reply else [])
         self._running = run
-        if not self._advance(run):
+        if not self._advance(run) and t.kind is not Lifecycle.MODE_SWITCH:  # (never busy: is_busy)
             self.busy_seq += 1
             self.push_state()  # is_busy edge: the state stays until the transition ends
             if t.kind is Lifecycle.GOAL_CHECK:
@@ -164,6 +164,22 @@ class TransitionsMixin:
             finally:
                 t.abort()
 
+    def _switch_modes(self, modes: Any, reply: Any, request: bool = True) -> Any:
+        """The backend's operating-mode change for the command modes ``modes``
+        (:meth:`~crtk_bridge.core.actuator.Actuator.mode_switch_steps`), run as a MODE_SWITCH
+        transition (it does not raise ``is_busy``: servo commands never do): while it runs the backend holds the switching joints, motion commands are
+        refused (a stop is not: ``hold``, ``pause``, ``disable``), and the request that asked for
+        it gets ``reply`` (its reply data) when it ends (``request`` False: none asked, a stop, a
+        watchdog or a park changed the mode). A failure faults the robot (a joint may be unpowered).
+        Returns the reply data, or _DEFERRED."""
+        steps = self.actuator.mode_switch_steps(modes)
+        if steps is None:
+            self._modes_ok = modes.tobytes()
+            return reply
+        self._modes_ok = b""  # asked again once it ended (a stop meanwhile may want the old modes)
+        t = Transition(self.robot, Lifecycle.MODE_SWITCH, steps, self.traits.timeout_s(Lifecycle.MODE_SWITCH))
+        return self._start(t, lambda: reply, self._failed("mode_switch"), reply=request)
+
     def _enable(self) -> Any:
         kinds = (Lifecycle.FAULT_RESET, Lifecycle.ENABLE) if self.state is OperatingState.FAULT else (Lifecycle.ENABLE,)
         timeout = sum(self.traits.timeout_s(k) for k in kinds)
@@ -177,6 +193,7 @@ class TransitionsMixin:
         for m in self.namespaces.values():
             m.reset(self.feedback.position[m.idx])
         self.fault_cause = None
+        self._modes_ok = b""  # the device's modes as enabling left them: asked again
         self._consecutive_bus_errors = 0
         self._tracking_cycles = 0
         self._written = False

@@ -1,0 +1,273 @@
+"""LeRobot's own SO101Follower against LeRobot through the plugin and the daemon (issue 21, Bench).
+
+One simulated SO-101 bus (``crtk-sim feetech``, holding a LeRobot calibration as
+``lerobot-calibrate`` leaves it), one run: the same 30 Hz action stream (an episode as a leader
+arm records it: smooth hand motion read in whole ticks, LeRobot's units) is replayed as
+``lerobot-replay`` replays (``get_observation()`` then ``send_action()`` each tick)
+
+  (a) by LeRobot's own ``so101_follower`` writing the goals to the bus itself, then
+  (b) by ``--robot.type=crtk`` through the daemon on the same bus (calibration imported from the
+      same file, so the same numbers are the same ticks; ``command=interpolate``).
+
+Meanwhile the simulator's registers are sampled (``dump`` on its control socket, every
+``--sample-ms``) and reported per mode: RMS jerk of the follower's measured positions (deg/s^3,
+on a 10 ms grid of the positions averaged over 10 ms: whole ticks would otherwise read as jerk), the largest step of the measured position and of the goal
+register between two samples (one daemon bus cycle at the default 5 ms), the tracking lag (the
+time shift that best aligns the measured trajectory with the actions as sent), and the time from
+``send_action`` to the servo's Goal_Position register changing (a separate probe: single steps,
+the register read in a tight loop). Then the ratios (b)/(a). Medians over ``--runs`` runs.
+
+Needs the LeRobot venv (tests/lerobot/venv.py builds it: ``python -m tests.lerobot.venv``) and
+this checkout's plugin (installed into a temporary folder here). Run from the repository:
+
+    python bench/bench_lerobot.py [--seconds 10] [--runs 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import socket
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from tests.lerobot import venv as lrvenv  # noqa: E402
+from tests.lerobot.conftest import LeRobotDriver  # noqa: E402
+from tests.lerobot.rig import CALIBRATION, MOTORS, SO101, CalibratedArm, lerobot_reading  # noqa: E402
+
+FPS = 30
+JERK_S = 0.01  # s: the grid (and smoothing window) of the jerk figure
+IDS = {m: c["id"] for m, c in CALIBRATION.items()}
+
+
+def episode(seconds: float, seed: int = 7) -> list[dict[str, float]]:
+    """A 30 Hz episode as a leader records it: each joint a smooth hand motion (two sines),
+    read in whole servo ticks and converted as LeRobot converts them."""
+    rng = np.random.default_rng(seed)
+    n = int(seconds * FPS)
+    t = np.arange(n) / FPS
+    out = [dict() for _ in range(n)]
+    for m, c in CALIBRATION.items():
+        lo, hi = c["range_min"], c["range_max"]
+        mid, span = (lo + hi) / 2, hi - lo
+        amp = 0.12 * min(span, 2600)  # ticks: about 25 degrees on the arm, 12 % on the gripper
+        f1, f2 = rng.uniform(0.2, 0.45), rng.uniform(0.5, 0.8)
+        p1, p2 = rng.uniform(0, 2 * math.pi, 2)
+        ticks = np.rint(mid + amp * (0.75 * np.sin(2 * math.pi * f1 * t + p1) + 0.25 * np.sin(2 * math.pi * f2 * t + p2)))
+        for i, v in enumerate(ticks):
+            out[i][f"{m}.pos"] = lerobot_reading(m, int(v))
+    return out
+
+
+class Control:
+    """The simulator's control socket, one connection (one JSON line per request)."""
+
+    def __init__(self, path: str):
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.sock.connect(path)
+        self.f = self.sock.makefile("rwb")
+
+    def __call__(self, **req) -> dict:
+        self.f.write((json.dumps(req) + "\n").encode())
+        self.f.flush()
+        return json.loads(self.f.readline())
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class Sampler(threading.Thread):
+    """Every ``period`` s: (monotonic t, Present_Position by motor, Goal_Position by motor) from one dump."""
+
+    def __init__(self, control_path: str, period: float):
+        super().__init__(daemon=True)
+        self.control, self.period = Control(control_path), period
+        self.rows: list[tuple[float, list[int], list[int]]] = []
+        self.stop_event = threading.Event()
+
+    def run(self) -> None:
+        nxt = time.monotonic()
+        while not self.stop_event.is_set():
+            t_ask = time.monotonic()
+            d = self.control(cmd="dump")
+            t = (t_ask + time.monotonic()) / 2  # the simulator read its clock in between
+            servos = d["servos"]
+            self.rows.append((t, [servos[str(IDS[m])]["present_position"] for m in MOTORS],
+                              [servos[str(IDS[m])]["goal_position"] for m in MOTORS]))
+            nxt += self.period
+            self.stop_event.wait(max(0.0, nxt - time.monotonic()))
+
+    def stop(self):
+        self.stop_event.set()
+        self.join(5)
+        self.control.close()
+        return self.rows
+
+
+def to_units(ticks_rows: np.ndarray) -> np.ndarray:
+    """Rows of ticks (by MOTORS) in LeRobot's units: degrees (arm), percent (gripper)."""
+    return np.array([[lerobot_reading(m, v) for m, v in zip(MOTORS, row)] for row in ticks_rows])
+
+
+def analyse(rows, sends: list[tuple[float, dict]], period: float) -> dict:
+    t = np.array([r[0] for r in rows])
+    present = to_units(np.array([r[1] for r in rows]))
+    goal = to_units(np.array([r[2] for r in rows]))
+    t0, t1 = sends[0][0], sends[-1][0]
+    grid = np.arange(t0, t1, period)
+    pos = np.stack([np.interp(grid, t, present[:, j]) for j in range(len(MOTORS))], axis=1)
+    arm = slice(0, 5)
+    # jerk on a JERK_S grid of the positions smoothed over JERK_S: the registers are whole ticks,
+    # whose steps alone would read as jerk at the sampling period
+    k = max(1, round(JERK_S / period))
+    smooth = np.stack([np.convolve(pos[:, j], np.ones(k) / k, mode="valid") for j in range(5)], axis=1)[::k]
+    jerk = np.diff(smooth, n=3, axis=0) / (k * period) ** 3
+    steps = np.abs(np.diff(pos[:, arm], axis=0)).max()
+    inwin = (t >= t0) & (t <= t1)
+    goal_steps = np.abs(np.diff(goal[inwin][:, arm], axis=0)).max()
+    # tracking lag: the shift of the sent actions (held until the next) that best matches the motion
+    st = np.array([s[0] for s in sends])
+    acts = np.array([[s[1][f"{m}.pos"] for m in MOTORS] for s in sends])
+    best = (math.inf, 0.0)
+    for lag_ms in range(0, 301):
+        lag = lag_ms / 1000
+        idx = np.searchsorted(st, grid - lag, side="right") - 1
+        ok = idx >= 0
+        err = np.sqrt(np.mean((pos[ok][:, arm] - acts[idx[ok]][:, arm]) ** 2))
+        if err < best[0]:
+            best = (err, lag)
+    return {"rms_jerk": float(np.sqrt(np.mean(jerk ** 2))), "max_step": float(steps), "max_goal_step": float(goal_steps),
+            "lag_ms": best[1] * 1000, "rms_error_at_lag": best[0]}
+
+
+def goal_latency(driver: LeRobotDriver, control_path: str, base: dict[str, float], n: int) -> list[float]:
+    """send_action -> Goal_Position: single steps of shoulder_pan (+-2 deg), the register read in a
+    tight loop from the moment the request is written until it changes."""
+    ctl = Control(control_path)
+    out = []
+    try:
+        for k in range(n):
+            action = dict(base)
+            action["shoulder_pan.pos"] = base["shoulder_pan.pos"] + (2.0 if k % 2 == 0 else -2.0)
+            before = ctl(cmd="read", id=IDS["shoulder_pan"], register="Goal_Position")["value"]
+            driver.proc.stdin.write(json.dumps({"op": "act", "action": action}) + "\n")
+            driver.proc.stdin.flush()
+            deadline = time.monotonic() + 1.0
+            changed = None
+            while time.monotonic() < deadline:
+                v = ctl(cmd="read", id=IDS["shoulder_pan"], register="Goal_Position")["value"]
+                if v != before:
+                    changed = time.monotonic()
+                    break
+            reply = json.loads(driver.proc.stdout.readline())
+            assert reply["ok"], reply
+            if changed is not None:
+                out.append((changed - reply["t"]) * 1000)
+            time.sleep(0.3)  # the arm settles on the new goal
+    finally:
+        ctl.close()
+    return out
+
+
+def replay(driver: LeRobotDriver, control_path: str, stream: list[dict], sample_s: float):
+    driver("act", action=stream[0])  # to the episode's start, then let it settle
+    time.sleep(2.0)
+    sampler = Sampler(control_path, sample_s)
+    sampler.start()
+    time.sleep(0.2)
+    sends, failed = [], 0
+    nxt = time.monotonic()
+    for action in stream:  # lerobot-replay's loop: observe, act, sleep out the period
+        reply = driver.request("step", action=action)
+        if not reply["ok"]:  # LeRobot's own bus read gave up (it would end lerobot-replay): counted
+            failed += 1
+            reply = driver("act", action=action)
+        sends.append((reply["t"], reply["sent"]))
+        nxt += 1 / FPS
+        time.sleep(max(0.0, nxt - time.monotonic()))
+    time.sleep(0.5)
+    return sampler.stop(), sends, failed
+
+
+def run_mode(mode: str, arm: CalibratedArm, venv: Path, plugin: Path | None, stream, args, log: Path) -> dict:
+    driver = LeRobotDriver(venv, log, plugin)
+    try:
+        if mode == "direct":
+            driver("connect", type="so101_follower", config={"port": arm.port, "id": arm.name,
+                                                             "calibration_dir": str(arm.calibration_dir)})
+        else:
+            driver("connect", type="crtk", config={"socket": str(arm.socket), "units": "lerobot"})
+        rows, sends, failed = replay(driver, arm.sim, stream, args.sample_ms / 1000)
+        figures = analyse(rows, sends, args.sample_ms / 1000)
+        figures["failed_ticks"] = failed
+        lat = goal_latency(driver, arm.sim, stream[-1], args.probes)
+        figures["goal_ms"] = statistics.median(lat) if lat else math.nan
+        figures["goal_ms_p90"] = float(np.percentile(lat, 90)) if lat else math.nan
+        driver("disconnect")
+        return figures
+    finally:
+        driver.close()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seconds", type=float, default=10.0, help="episode length (s, at 30 Hz)")
+    ap.add_argument("--runs", type=int, default=3, help="runs of each mode (medians reported)")
+    ap.add_argument("--sample-ms", type=float, default=5.0, help="register sampling period (ms)")
+    ap.add_argument("--probes", type=int, default=20, help="send_action -> goal register probes per run")
+    ap.add_argument("--direct-only", action="store_true", help="only (a): LeRobot's own follower")
+    args = ap.parse_args()
+
+    venv = lrvenv.ensure_venv()
+    tmp = Path(tempfile.mkdtemp(prefix="crtk-bench-lr-"))
+    try:
+        plugin = None if args.direct_only else lrvenv.install_plugin(venv, tmp / "plugin")
+        stream = episode(args.seconds)
+        results: dict[str, list[dict]] = {"direct": [], "crtk": []}
+        for run in range(args.runs):
+            arm = CalibratedArm(SO101, tmp, f"run{run}")
+            try:
+                results["direct"].append(run_mode("direct", arm, venv, None, stream, args, tmp / f"direct{run}.log"))
+                if args.direct_only:
+                    continue
+                arm.start_daemon()
+                results["crtk"].append(run_mode("crtk", arm, venv, plugin, stream, args, tmp / f"crtk{run}.log"))
+            finally:
+                arm.close()
+        keys = [("rms_jerk", "RMS jerk (deg/s^3)"), ("max_step", "largest step of measured position per sample (deg)"),
+                ("max_goal_step", "largest step of the goal register per sample (deg)"),
+                ("lag_ms", "tracking lag (ms)"), ("rms_error_at_lag", "RMS error at that lag (deg)"),
+                ("goal_ms", "send_action -> goal register, median (ms)"),
+                ("goal_ms_p90", "send_action -> goal register, p90 (ms)"),
+                ("failed_ticks", "ticks whose bus read failed (LeRobot would stop)")]
+        if args.direct_only:
+            results["crtk"] = results["direct"]
+        med = {mode: {k: statistics.median(r[k] for r in rs) for k, _ in keys} for mode, rs in results.items()}
+        print(f"bench_lerobot: {args.runs} run(s) x {args.seconds:g} s at {FPS} Hz, samples every {args.sample_ms:g} ms "
+              f"(medians)")
+        print(f"{'':52s} {'(a) LeRobot direct':>20s} {'(b) plugin+daemon':>20s} {'(b)/(a)':>9s}")
+        for k, label in keys:
+            a, b = med["direct"][k], med["crtk"][k]
+            ratio = b / a if a else math.nan
+            print(f"{label:52s} {a:20.3f} {b:20.3f} {ratio:9.3f}")
+        print(f"smoothness (RMS jerk) gain (a)/(b): {med['direct']['rms_jerk'] / med['crtk']['rms_jerk']:.1f}x; "
+              f"extra lag (b)-(a): {med['crtk']['lag_ms'] - med['direct']['lag_ms']:.0f} ms "
+              f"(LeRobot's loop period: {1000 / FPS:.0f} ms)")
+        return 0
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
