@@ -167,8 +167,11 @@ def test_koch_mode_switch_is_one_joint_per_cycle_and_holds_until_done():
                 assert {p[1] for p in acked} == {k + 1}, cycle  # one servo's work per cycle
                 assert len(acked) <= 5, cycle  # its 4 writes and nothing else (no position read)
                 assert sum(p[0] in (T.INST_SYNC_READ, T.INST_FAST_SYNC_READ) for p in cycle) <= b._attempts
-                if k < len(cycles) - 1:  # the switched joints hold until the last one's step
-                    assert not [p for p in cycle if p[0] == T.INST_SYNC_WRITE and p[2][:2] == goal_velocity], cycle
+                if k < len(cycles) - 1:  # the switched joints hold (a zero goal at most) until the last one's step
+                    for p in cycle:
+                        if p[0] == T.INST_SYNC_WRITE and p[2][:2] == goal_velocity:
+                            body = p[2][4:]
+                            assert not any(any(body[j + 1:j + 5]) for j in range(0, len(body), 5)), cycle  # every value zero
             assert all(sim.servo(sid).read("Operating_Mode") == 1 for sid in range(1, 7))
             assert all(sim.servo(sid).read("Torque_Enable") == 1 for sid in range(1, 7))
             assert b.mode_switch_steps(cmd.mode) is None  # done: the device follows these modes
@@ -209,5 +212,37 @@ def test_koch_switch_back_to_position_stops_every_velocity_joint_first():
                 acked = BusLog.acknowledged(cycle)
                 assert {p[1] for p in acked} == {k + 1} and len(acked) <= 5, cycle  # incl. the position read
             assert all(sim.servo(sid).read("Operating_Mode") in (4, 5) for sid in range(1, 7))
+    finally:
+        sim.stop()
+
+
+def test_koch_velocity_joint_waiting_for_its_mode_switch_gets_a_zero_goal_every_cycle():
+    """A stop turns a velocity-mode joint's command into a position hold, but core starts the mode
+    switch only when no other transition runs (a composite's PAUSE, a native HOME, a goal check may
+    last seconds). Until then every write sends that joint a zero Goal_Velocity: it never keeps
+    turning at its last speed (found by the session's review: it did, for the whole transition)."""
+    from crtk_bridge.core.actuator import CommandMode, Transition
+
+    sim, b = koch_rig()
+    try:
+        with b:
+            b.configure()
+            b.enable(b.new_feedback())
+            cmd = b.new_command()
+            cmd.mode[:] = CommandMode.VELOCITY
+            cmd.velocity[:] = 0.3
+            run(b, Transition(b.robot, Lifecycle.MODE_SWITCH, b.mode_switch_steps(cmd.mode), 2.0),
+                BusLog(b, "dynamixel"), cmd)
+            wait_until(lambda: all(sim.servo(sid).read("Goal_Velocity") != 0 for sid in range(1, 7)), 2.0,
+                       what="velocity goals applied (a sync write has no reply)")
+            hold = b.new_command()
+            hold.mode[:] = CommandMode.POSITION  # core's hold; no MODE_SWITCH run (another transition is)
+            fb = b.new_feedback()
+            for _ in range(3):
+                assert b.read(fb) is None
+                assert b.write(hold) is None
+            wait_until(lambda: all(sim.servo(sid).read("Goal_Velocity") == 0 for sid in range(1, 7)), 2.0,
+                       what="a zero velocity goal on every joint still in velocity mode")
+            assert all(sim.servo(sid).read("Operating_Mode") == 1 for sid in range(1, 7))  # not switched yet
     finally:
         sim.stop()

@@ -564,7 +564,15 @@ class DynamixelBackend(SerialServoBackend):
             else:
                 continue
             if want != self._op_mode[i] or self._switching[i]:
-                continue  # held by the mode switch (mode_switch_steps), which core runs
+                # waits for the mode switch (mode_switch_steps), which core runs when no other
+                # transition does (a PAUSE, a native HOME or a goal check may run for seconds
+                # first); meanwhile a joint still in velocity / current mode gets a zero goal every
+                # cycle, so it never keeps its last speed or current while it waits
+                cur = self._op_mode[i]
+                if cur in (OperatingMode.VELOCITY, OperatingMode.CURRENT) and not self._free[i]:
+                    name, address, size = _GOAL[cur]
+                    writes = (writes or []) + [(i, address, size, 0)]
+                continue
             if self._free[i]:  # leaving FREE in the same mode: torque on after this goal
                 holding = (holding or []) + [i]
             name, address, size = _GOAL[want]
