@@ -60,6 +60,7 @@ from typing import Any
 import numpy as np
 
 from ..core.actuator import (
+    DEVICE_NEWS,
     Actuator,
     ActuatorInfo,
     Clock,
@@ -536,7 +537,10 @@ class CompositeActuator(Actuator):
         news = None
         for b, p in enumerate(self.parts):  # device status: the robot's is the most severe bus's
             n = p.take_status()
-            if n is not None:
+            if n is not None and n[0] in DEVICE_NEWS:  # news, not a status: passed on as it is
+                self.report_status(n[0], self._bus_fault([n[1] if k == b else None for k in range(len(self.parts))])
+                                   if n[1] is not None else None)
+            elif n is not None:
                 news = (b, n)
         if news is not None:
             self._forward_status(*news)
