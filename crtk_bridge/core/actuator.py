@@ -262,6 +262,11 @@ class SimWiring:
     #: picks a loopback address 127.0.0.x where these ports are free, passes it as ``--host`` and
     #: waits until the first one accepts; that address is the endpoint. Empty: a pty link.
     host_ports: tuple[int, ...] = ()
+    #: a TCP port of the device that carries a serial line behind it (a UR's tool flange RS-485,
+    #: UR's tool communication on 54321). Under ``--sim``, another bus of the robot whose endpoint
+    #: is ``socket://<this bus's endpoint>:<port>`` gets its simulator on a pty that this bus's
+    #: simulator relays the port to (``crtk-sim <device> --tool-link PTY``). None: no such port.
+    tool_port: int | None = None
 
 
 #: cycles an ENABLE stepped over cycles waits, after its steps, for a read with torque on
