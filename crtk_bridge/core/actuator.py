@@ -37,7 +37,7 @@ Three paths, as in ros2_control hardware components:
 
 What a backend declares about itself is ONE immutable :class:`Traits` (per-joint capabilities and
 what each joint measures, clock, write policy, pause behaviour, goal check, native homing, speed
-scaling, transition time limits), returned by its ``_traits_hook`` when it opens and read by core
+scaling, the shortest period its bus keeps, transition time limits), returned by its ``_traits_hook`` when it opens and read by core
 as :attr:`Actuator.traits` only; a robot on several buses combines its buses' traits with one
 function (backends/composite.py). When the robot enters FAULT, core runs the DISABLE transition
 (torque off; a UR stops, powers off and applies its brakes).
@@ -270,6 +270,11 @@ class SimWiring:
     #: picks a loopback address 127.0.0.x where these ports are free, passes it as ``--host`` and
     #: waits until the first one accepts; that address is the endpoint. Empty: a pty link.
     host_ports: tuple[int, ...] = ()
+    #: a TCP port of the device that carries a serial line behind it (a UR's tool flange RS-485,
+    #: UR's tool communication on 54321). Under ``--sim``, another bus of the robot whose endpoint
+    #: is ``socket://<this bus's endpoint>:<port>`` gets its simulator on a pty that this bus's
+    #: simulator relays the port to (``crtk-sim <device> --tool-link PTY``). None: no such port.
+    tool_port: int | None = None
 
 
 #: cycles an ENABLE stepped over cycles waits, after its steps, for a read with torque on
@@ -327,6 +332,11 @@ class Traits:
     #: the device has an operator's speed scaling (a UR's speed slider): :attr:`Actuator.speed_fraction`
     #: (0..1) is reported to clients in ``operating_state``
     speed_scaling: bool = False
+    #: the shortest cycle period (s) the bus keeps: one read and one write on its wire (a Robotiq
+    #: gripper's Modbus RTU at 115200 baud takes several ms). 0: any period the loop runs at. In a
+    #: robot on several buses, a bus slower than the robot's cycle is served at its own rate, on
+    #: its own thread, and never stretches the cycle (backends/composite.py)
+    min_period_s: float = 0.0
     #: time limit (s) of each lifecycle transition (exceeding it faults the robot); kinds not
     #: given keep :data:`DEFAULT_TRANSITION_TIMEOUTS_S`
     transition_timeouts_s: Mapping[Lifecycle, float] = field(default_factory=dict)
@@ -342,6 +352,9 @@ class Traits:
             raise ValueError(f"Traits.stops_itself_on_pause: {len(pause)} values for {len(joints)} joints")
         object.__setattr__(self, "stops_itself_on_pause", pause)
         object.__setattr__(self, "clock", Clock(self.clock))
+        if not (math.isfinite(self.min_period_s) and self.min_period_s >= 0):
+            raise ValueError(f"Traits.min_period_s: {self.min_period_s!r} is not a period (s, >= 0)")
+        object.__setattr__(self, "min_period_s", float(self.min_period_s))
         timeouts = {**DEFAULT_TRANSITION_TIMEOUTS_S, **self.transition_timeouts_s}
         object.__setattr__(self, "transition_timeouts_s", MappingProxyType(timeouts))
 
