@@ -14,6 +14,16 @@ are pre-allocated and gathered / scattered with index arrays. The cycle's stamp 
 bus's (the sample is at least that old). A fault on any bus is the robot's, its message naming
 the bus (and the bus's backend names the joint).
 
+A bus slower than the robot's cycle (``traits.min_period_s`` longer than the effective period: a
+Robotiq gripper's Modbus RTU beside a UR's 500 Hz) is served at its own rate and never joined
+(:class:`_OwnRateWorker`): its thread runs the bus's own cycles (core/cycle.py
+``CycleRunner.own_rate``) and publishes each completed read with its own stamp; the cycle takes
+the newest sample, posts the newest setpoint (newest wins: a stop never queues behind stale
+setpoints) and hands the bus's lifecycle transitions to it, seeing at each read how they went (the
+robot's DISABLE ends only once that bus's did). Its failures are counted at its own rate against
+``safety.bus_errors_max`` and reach the loop as a FAULT naming bus and joint
+(docs/architecture.md, "Several buses: the composite").
+
 Start-up: ``open`` / ``configure`` / ``close`` run bus by bus (``open`` closes the buses already
 opened when one fails). Lifecycle transitions (enable, disable, pause, resume, fault reset) run on
 every bus together: each cycle steps every bus's :class:`~crtk_bridge.core.actuator.Transition`
@@ -36,6 +46,8 @@ becomes the robot's through ONE function, :func:`combine_traits`, with one rule 
   needs homing but cannot home itself beside one that can is refused: core's move-home and a
   native HOME cannot share one ``home``);
 * speed scaling: the bus that has a speed slider reports it (the slowest, if several do);
+* the shortest period: the longest of the buses served in every cycle (a slower one is served
+  at its own rate and bounds nothing);
 * transition time limits: the buses' added up (their steps share the loop's thread), plus the
   rollback of a failed enable.
 
