@@ -196,7 +196,7 @@ class _OwnRateWorker:
         self._sample_fault: Fault | None = Fault(
             "bus_timeout", f"{actuator.robot}: no sample yet (served at its own rate)", transient=True)
         self._write_fault: Fault | None = None
-        self._news: tuple[DeviceStatus, Fault | None] | None = None
+        self._news: list[tuple[DeviceStatus, Fault | None]] = []  # the bus's reports, oldest first
         self._result: tuple[Transition, bool, BaseException | None] | None = None
         self._published = time.monotonic()
         self.cycles = 0  # the bus's own cycles run
@@ -234,7 +234,9 @@ class _OwnRateWorker:
                     if write_fault is not None:
                         self._write_fault = write_fault
                     if news is not None:
-                        self._news = news
+                        if len(self._news) >= 16:  # (a loop that stopped taking them: the latest kept)
+                            del self._news[0]
+                        self._news.append(news)
                     if t is not None and self._transition is t:
                         self._result = (t, done, error)
                         if done:
@@ -271,14 +273,15 @@ class _OwnRateWorker:
     # ---- the loop's thread
     def take(self, feedback: JointFeedback) -> Fault | None:
         """The newest completed read into ``feedback`` (its own stamp), the transition's progress
-        into :attr:`seen`, the device status reported since into :attr:`news`; -> the read's
+        into :attr:`seen`, the oldest device report not taken yet into :attr:`news` (one per
+        cycle, in order, as :meth:`Actuator.take_status`); -> the read's
         fault (a FAULT), or a non-transient ``bus_timeout`` when nothing was published for
         ``stale_s`` (a stuck worker)."""
         with self._lock:
             _copy_feedback(feedback, self._sample)
             fault = self._sample_fault
             self.seen = self._result
-            self.news, self._news = self._news, None
+            self.news = self._news.pop(0) if self._news else None
             published = self._published
         if fault is None and time.monotonic() - published > self.stale_s:
             return Fault("bus_timeout", f"{self.actuator.robot}: no sample for {self.stale_s:g} s "
