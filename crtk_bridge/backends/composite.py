@@ -179,7 +179,10 @@ class _OwnRateWorker:
     ``safety.bus_errors_max`` (core counts the loop's cycles, not the bus's): the loop hears of a
     failure once it is a FAULT (non-transient), in the cycle that sees it."""
 
-    def __init__(self, name: str, actuator: Actuator, period_s: float, errors_max: int):
+    def __init__(self, name: str, actuator: Actuator, period_s: float, errors_max: int,
+                 first: JointFeedback | None = None):
+        """``first``: the bus's sample read at open (the loop's first cycles take it until the
+        worker's own first read); None: none (a transient "no sample yet" until then)."""
         self.actuator = actuator
         self.period_s = period_s
         self.errors_max = max(1, int(errors_max))
@@ -195,6 +198,9 @@ class _OwnRateWorker:
         self._sample = actuator.new_feedback()
         self._sample_fault: Fault | None = Fault(
             "bus_timeout", f"{actuator.robot}: no sample yet (served at its own rate)", transient=True)
+        if first is not None:
+            _copy_feedback(self._sample, first)
+            self._sample_fault = None
         self._write_fault: Fault | None = None
         self._news: list[tuple[DeviceStatus, Fault | None]] = []  # the bus's reports, oldest first
         self._result: tuple[Transition, bool, BaseException | None] | None = None
@@ -479,6 +485,8 @@ class CompositeActuator(Actuator):
         self._own_b: list[int] = []  # the buses served at their own rate
         self._joined_b: list[int] = []  # the buses joined every cycle on a worker of theirs
         self._first = -1  # the bus joined every cycle on the calling thread (-1: none)
+        self._first_sample: dict[int, JointFeedback] = {}  # own-rate bus -> its sample read at open
+        self._stamped: list[bool] = []  # per bus: its stamp is one the robot's sample takes
         nb = len(self.parts)
         self._read_res: list[Fault | None] = [None] * nb  # this cycle's result per bus
         self._write_res: list[Fault | None] = [None] * nb
@@ -509,6 +517,11 @@ class CompositeActuator(Actuator):
         joined = [b for b in range(len(self.parts)) if b not in self._own_b]
         self._first = joined[0] if joined else -1
         self._joined_b = joined[1:]
+        # the sample's one stamp: the earliest of the buses read in the cycle (an own-rate bus's
+        # newest read is older by up to its period: stamping the robot's sample with it would
+        # freeze the stamp of a 500 Hz arm for cycles while its joints move); every bus's if
+        # every bus runs at its own rate
+        self._stamped = [b in joined or not joined for b in range(len(self.parts))]
         self._fb = [p.new_feedback() for p in self.parts]
         self._cmd = [p.new_command() for p in self.parts]
         # native cartesian rows (a UR arm beside a servo gripper): bus b's rows are the robot's lo:hi
@@ -631,6 +644,12 @@ class CompositeActuator(Actuator):
                 self._on_bus(b, p.open)
                 opened.append(p)
             self._combine()
+            # a first sample of each bus served at its own rate, read now (open may block), so
+            # the loop's first cycle has it: its worker starts with the first cycle
+            self._first_sample = {b: self.parts[b].new_feedback() for b in self._own_b}
+            for b, fb in list(self._first_sample.items()):
+                if self.parts[b].read(fb) is not None:
+                    del self._first_sample[b]
         except BaseException:
             for p in opened:
                 p.close()
@@ -802,7 +821,7 @@ class CompositeActuator(Actuator):
         errors_max = self.profile.safety.bus_errors_max
         for b, (name, p) in enumerate(zip(self.bus_names, self.parts)):
             if b in self._own_b:
-                bw[b] = _OwnRateWorker(name, p, self.own_rate[name], errors_max)
+                bw[b] = _OwnRateWorker(name, p, self.own_rate[name], errors_max, self._first_sample.pop(b, None))
             elif b != self._first:
                 bw[b] = _BusWorker(name, p, self._fb[b], self._cmd[b])
         self._bw = bw
@@ -812,6 +831,11 @@ class CompositeActuator(Actuator):
     def _ensure_workers(self) -> None:
         if self._workers is None:
             self._start_workers()
+
+    def bus_stamps(self) -> dict[str, float]:
+        """bus -> the stamp of its sample the last read took (a bus at its own rate: its newest
+        read's own time, older than the robot's stamp by up to its period)."""
+        return {name: fb.stamp for name, fb in zip(self.bus_names, self._fb)}
 
     def own_rate_cycles(self) -> dict[str, int]:
         """bus -> the cycles its own-rate worker has run (bench/, tests)."""
@@ -846,13 +870,14 @@ class CompositeActuator(Actuator):
             self._forward_status(*news)
         if failed:
             return self._bus_fault(res, self._read_streak)
-        stamp = self._fb[0].stamp
+        stamp = math.inf
+        stamped = self._stamped
         for b, idx in enumerate(self._idx):
             fb = self._fb[b]
             feedback.position[idx] = fb.position
             feedback.velocity[idx] = fb.velocity
             feedback.effort[idx] = fb.effort
-            if fb.stamp < stamp:
+            if fb.stamp < stamp and stamped[b]:
                 stamp = fb.stamp
         feedback.stamp = stamp
         if self._cart_rows:
