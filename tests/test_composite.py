@@ -228,6 +228,38 @@ def test_device_status_is_the_most_severe_buss():
     c.close()
 
 
+def test_device_news_pass_through_in_order_beside_the_status():
+    """A bus's WARNING / NOTICE reports (a gripper's minor fault, its grasp) are news, not a
+    status: each reaches the robot in order, naming its bus, and none hides a FAULT reported in
+    the same cycle (the robot's status is still the most severe bus's). Also from a bus served at
+    its own rate."""
+    for make in (composite, slow_composite):
+        c, left, right = make()
+        fb = c.new_feedback()
+        grasp = Fault("device_status", "bimanual_so101: gOBJ 2", joint="right_gripper", register="gOBJ", value=2)
+        heat = Fault("device_warning", "bimanual_so101: gFLT 0x08", joint="right_gripper", register="gFLT", value=8)
+        right.report_status(DeviceStatus.NOTICE, grasp)
+        right.report_status(DeviceStatus.FAULT, Fault("servo_error", "bimanual_so101: overload", joint="right_gripper"))
+        right.report_status(DeviceStatus.WARNING, heat)
+        got = []
+
+        def three() -> bool:
+            c.read(fb)
+            news = c.take_status()
+            if news is not None:
+                got.append(news)
+            return len(got) >= 3
+
+        wait_until(three, 5, interval=0.005, what="three reports")
+        assert {g[0] for g in got} == {DeviceStatus.NOTICE, DeviceStatus.WARNING, DeviceStatus.FAULT}
+        notice = next(g[1] for g in got if g[0] is DeviceStatus.NOTICE)
+        assert notice.message.startswith("bimanual_so101: bus 'right': ") and notice.register == "gOBJ"
+        assert [g[0] for g in got if g[0] in (DeviceStatus.NOTICE, DeviceStatus.WARNING)] == \
+            [DeviceStatus.NOTICE, DeviceStatus.WARNING]
+        assert c.device_status is DeviceStatus.FAULT
+        c.close()
+
+
 def test_every_traits_field_has_a_combining_rule():
     """A field added to Traits without a rule in the composite's one combining function fails
     here (and combine_traits raises KeyError): a bus's declaration is never silently dropped."""

@@ -72,6 +72,7 @@ from typing import Any
 import numpy as np
 
 from ..core.actuator import (
+    DEVICE_NEWS,
     Actuator,
     ActuatorInfo,
     Clock,
@@ -202,7 +203,8 @@ class _OwnRateWorker:
             _copy_feedback(self._sample, first)
             self._sample_fault = None
         self._write_fault: Fault | None = None
-        self._news: list[tuple[DeviceStatus, Fault | None]] = []  # the bus's reports, oldest first
+        self._news: tuple[DeviceStatus, Fault | None] | None = None
+        self._device_news: list[tuple[DeviceStatus, Fault | None]] = []  # WARNING / NOTICE reports
         self._result: tuple[Transition, bool, BaseException | None] | None = None
         self._published = time.monotonic()
         self.cycles = 0  # the bus's own cycles run
@@ -212,6 +214,7 @@ class _OwnRateWorker:
         # the loop's own: what the last take() saw
         self.seen: tuple[Transition, bool, BaseException | None] | None = None
         self.news: tuple[DeviceStatus, Fault | None] | None = None
+        self.device_news: list[tuple[DeviceStatus, Fault | None]] = []  # the news reported since
         #: the feedback an ENABLE handed to this bus holds (the worker's, not the loop's buffer)
         self.enable_feedback = actuator.new_feedback()
         self._thread = threading.Thread(target=self._run, name=f"crtk-bus-{name}", daemon=True)
@@ -233,16 +236,19 @@ class _OwnRateWorker:
                 read_fault, write_fault, done, error = runner.own_rate(t, self._newest)
                 read_fault = self._count("read", read_fault)
                 write_fault = self._count("write", write_fault)
-                news = act.take_status()
+                reports = []
+                while (report := act.take_status()) is not None:  # its status, then its news
+                    reports.append(report)
                 with self._lock:
                     _copy_feedback(self._sample, runner.feedback)
                     self._sample_fault = read_fault
                     if write_fault is not None:
                         self._write_fault = write_fault
-                    if news is not None:
-                        if len(self._news) >= 16:  # (a loop that stopped taking them: the latest kept)
-                            del self._news[0]
-                        self._news.append(news)
+                    for report in reports:
+                        if report[0] in DEVICE_NEWS:
+                            self._device_news.append(report)
+                        else:
+                            self._news = report
                     if t is not None and self._transition is t:
                         self._result = (t, done, error)
                         if done:
@@ -279,15 +285,16 @@ class _OwnRateWorker:
     # ---- the loop's thread
     def take(self, feedback: JointFeedback) -> Fault | None:
         """The newest completed read into ``feedback`` (its own stamp), the transition's progress
-        into :attr:`seen`, the oldest device report not taken yet into :attr:`news` (one per
-        cycle, in order, as :meth:`Actuator.take_status`); -> the read's
+        into :attr:`seen`, the device status reported since into :attr:`news` and its news
+        (WARNING / NOTICE) into :attr:`device_news`; -> the read's
         fault (a FAULT), or a non-transient ``bus_timeout`` when nothing was published for
         ``stale_s`` (a stuck worker)."""
         with self._lock:
             _copy_feedback(feedback, self._sample)
             fault = self._sample_fault
             self.seen = self._result
-            self.news = self._news.pop(0) if self._news else None
+            self.news, self._news = self._news, None
+            self.device_news, self._device_news = self._device_news, []
             published = self._published
         if fault is None and time.monotonic() - published > self.stale_s:
             return Fault("bus_timeout", f"{self.actuator.robot}: no sample for {self.stale_s:g} s "
@@ -863,7 +870,15 @@ class CompositeActuator(Actuator):
         news = None
         own = self._own_b
         for b, p in enumerate(parts):  # device status: the robot's is the most severe bus's
-            n = bw[b].news if b in own else p.take_status()
+            if b in own:
+                for n in bw[b].device_news:  # news (DEVICE_NEWS) passed on as they are, in order
+                    self._forward_news(b, n)
+                n = bw[b].news
+            else:
+                n = p.take_status()
+                if n is not None and n[0] in DEVICE_NEWS:
+                    self._forward_news(b, n)
+                    n = None
             if n is not None:
                 news = (b, n)
         if news is not None:
@@ -946,6 +961,14 @@ class CompositeActuator(Actuator):
                 streak[b] += 1
                 failed = True
         return failed
+
+    def _forward_news(self, b: int, news: tuple[DeviceStatus, Fault | None]) -> None:
+        """A bus's news (a WARNING / NOTICE: no status of the robot's) reported as it is, its
+        cause naming the bus."""
+        cause = news[1]
+        if cause is not None:
+            cause = self._bus_fault([cause if k == b else None for k in range(len(self.parts))])
+        self.report_status(news[0], cause)
 
     def _forward_status(self, b: int, news: tuple[DeviceStatus, Fault | None]) -> None:
         """A bus reported a device status: report the robot's, the most severe of all buses'

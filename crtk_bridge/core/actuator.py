@@ -245,6 +245,14 @@ class DeviceStatus(str, enum.Enum):
     POWERED_OFF = "powered_off"  # the device removed power itself (e-stop, power button)
     FAULT = "fault"  # with a cause (a Fault)
     FAULT_CLEARED = "fault_cleared"  # the cause of a reported fault went away
+    # news, not a state of the device (:attr:`Actuator.device_status` stays): each one reported is
+    # passed on, one per cycle, in order
+    WARNING = "warning"  # a condition the device works on through (a gripper's minor fault: heat)
+    NOTICE = "notice"  # news of its work that is no fault (a gripper's fingers stopped on an object)
+
+
+#: device reports that are news (passed on one by one), not a state the device is in
+DEVICE_NEWS = frozenset({DeviceStatus.WARNING, DeviceStatus.NOTICE})
 
 
 @dataclass(frozen=True)
@@ -492,6 +500,7 @@ class Actuator(abc.ABC):
         #: the device's last reported status (see :meth:`report_status`)
         self.device_status = DeviceStatus.OK
         self._status_news: tuple[DeviceStatus, Fault | None] | None = None
+        self._news_queue: list[tuple[DeviceStatus, Fault | None]] = []  # WARNING / NOTICE reports, oldest first
         self._read_fault: Fault | None = None  # the last read's fault (None: it succeeded)
 
     # ---- start-up path (may block, raises BackendError) ----
@@ -661,7 +670,15 @@ class Actuator(abc.ABC):
     # ---- device status (backend -> core) ----
     def report_status(self, status: DeviceStatus, cause: Fault | None = None) -> None:
         """Called by the backend (from ``_read`` or a step) when the device's status changes.
-        Core takes the latest report once per cycle; a report of the current status is ignored."""
+        Core takes the latest report once per cycle; a report of the current status is ignored.
+        WARNING and NOTICE are news, not a status: each is kept (the 16 latest) and taken after
+        any status change, one per cycle."""
+        if status in DEVICE_NEWS:
+            news = self._news_queue
+            if len(news) >= 16:
+                del news[0]
+            news.append((status, cause))
+            return
         if status is not self.device_status or status is DeviceStatus.FAULT_CLEARED:
             self.device_status = DeviceStatus.OK if status is DeviceStatus.FAULT_CLEARED else status
             self._status_news = (status, cause)
@@ -672,6 +689,8 @@ class Actuator(abc.ABC):
         news = self._status_news
         if news is not None:
             self._status_news = None
+        elif self._news_queue:
+            news = self._news_queue.pop(0)
         return news
 
     # ---- pacing (``traits.clock`` is Clock.DEVICE) ----

@@ -150,7 +150,7 @@ _WRITE_REPLY = 8  # id, fc, address 2, count 2, crc 2
 _EXCEPTION_REPLY = 5
 
 
-class _LinkLost(Exception):
+class _LinkLost(BackendError):
     """The port reported an OS error or the other end closed: the link is gone."""
 
 
@@ -437,7 +437,7 @@ class RobotiqBackend(Actuator):
         if self._lost is not None and self._still_lost():
             return self._lost
         if self._link is None:
-            return Fault("bus_closed", f"{self.robot}: {self._label}: read on a closed port ({self._where})",
+            return Fault("bus_timeout", f"{self.robot}: {self._label}: read on a closed port ({self._where})",
                          joint=self.joint_names[0], transient=False)
         stamp = time.time()
         try:
@@ -459,10 +459,10 @@ class RobotiqBackend(Actuator):
             amps = self._gcu * T.CURRENT_A_PER_UNIT * self._effort_per_amp
             feedback.effort[0] = -amps if self._echo > gpo else amps
         feedback.stamp = stamp
-        self._device_news()
+        self._gripper_news()
         return None
 
-    def _device_news(self) -> None:
+    def _gripper_news(self) -> None:
         """gFLT, gSTA and gOBJ changes as device status reports."""
         code = self._fault & T.GFLT_MASK
         if code != self._fault_reported:
@@ -498,16 +498,12 @@ class RobotiqBackend(Actuator):
                 self._notice(f"gOBJ {obj}: {T.GOBJ_TEXT[obj]}", "gOBJ", obj)
 
     def _warn(self, text: str, register: str, value: int) -> None:
-        status = getattr(DeviceStatus, "WARNING", None)  # the seam's warning report, where it has one
-        if status is not None:
-            self.report_status(status, Fault("device_warning", f"{self.robot}: {self._label}: {text}",
-                                             joint=self.joint_names[0], register=register, value=value))
+        self.report_status(DeviceStatus.WARNING, Fault("device_warning", f"{self.robot}: {self._label}: {text}",
+                                                       joint=self.joint_names[0], register=register, value=value))
 
     def _notice(self, text: str, register: str, value: int) -> None:
-        status = getattr(DeviceStatus, "NOTICE", None)
-        if status is not None:
-            self.report_status(status, Fault("device_status", f"{self.robot}: {self._label}: {text}",
-                                             joint=self.joint_names[0], register=register, value=value))
+        self.report_status(DeviceStatus.NOTICE, Fault("device_status", f"{self.robot}: {self._label}: {text}",
+                                                      joint=self.joint_names[0], register=register, value=value))
 
     def _write(self, command: JointCommand) -> Fault | None:
         """ONE function 16 write of the position request, only when it changed."""
