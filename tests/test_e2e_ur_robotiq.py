@@ -61,7 +61,11 @@ def test_a_ur_arm_with_a_robotiq_gripper_on_its_tool_flange(short_tmp):
             after = robot.connection.request("period_statistics")
             assert after["period_s"] == pytest.approx(0.002)
             assert after["cycles"] - before["cycles"] > 100  # (the window's cycles: ~500 a second)
-            assert after["overruns"] - before["overruns"] == 0, (before, after)
+            overruns = after["overruns"] - before["overruns"]
+            if "realtime_unavailable" in d.output():  # (a host that refuses SCHED_FIFO: a stray one)
+                assert overruns <= 0.01 * (after["cycles"] - before["cycles"]), (before, after)
+            else:
+                assert overruns == 0, (before, after)
             assert gripper()["requests"] > requests + 10  # its bus was busy all along, at its own rate
             # the arm moves alone: the gripper holds where it is
             held = hand.measured_js()[0][0]
