@@ -698,6 +698,11 @@ class UrBackend(Actuator):
         if cart is not None and cart.mode[0] != _NONE:
             return self._write_cartesian(cart)
         mode = command.mode
+        if np.all(mode == _NONE):
+            # nothing to follow (a cartesian row the write gate refused, its joints in NONE): send
+            # nothing new, the script keeps its last command. A servoJ here would go to the last
+            # JOINT target, stale while servoL ran (the cycle still feeds the watchdog: _feed_watchdog)
+            return None
         # a blocking call started as the link dies waits for its answer (ur_rtde), and the
         # worker is then ended: teach-mode switches start only on a link whose packet came this cycle
         fresh = time.perf_counter() - self._arrived < 2.0 * self.dt
