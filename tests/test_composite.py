@@ -701,27 +701,35 @@ def in_thread(fn, timeout=10.0):
 
 def test_a_slow_bus_is_served_at_its_own_rate_and_never_holds_the_cycle():
     """A bus whose min_period_s is longer than the robot's cycle (bimanual_so101: 200 Hz) runs its
-    own cycles on its own thread: the robot's read never waits for it (here its wire is held),
-    takes its newest completed read with that read's own stamp, and the robot's period is bound
-    by the other bus only."""
+    own cycles on its own thread: the robot's read never waits for it (here its wire is held) and
+    takes its newest completed read, which keeps its own read's stamp; the robot's sample is
+    stamped by the bus read in the cycle, and its period is bound by that bus only."""
     c, left, right = slow_composite()
     assert c.own_rate == {"right": 0.02}
     assert c.traits.min_period_s == 0.0  # the slow bus bounds nothing: it is not joined
     assert combine_traits([left.traits, right.traits], [(0, 0)] * 6 + [(1, 0)] * 6, ["l", "r"], "x").min_period_s == 0.02
-    right.gate.clear()  # its first read waits at the held wire
+    assert right.reads == 1  # read once at open: the loop's first cycles have a sample
+    right.threads.clear()  # (that read was the start-up path's, on the calling thread)
+    right.gate.clear()  # its worker's first read waits at the held wire
     fb = c.new_feedback()
     faults = [in_thread(lambda: c.read(fb))]  # the first cycle starts its thread
     wait_until(right.waiting.is_set, 5, what="the slow bus waiting at its held wire")
     faults += in_thread(lambda: [c.read(fb) for _ in range(50)])
-    assert right.reads == 0  # it was stuck in its first read all along
-    # no sample yet: a transient fault naming the bus, never a FAULT by itself
-    assert all(f is not None and f.transient and f.message.startswith("bimanual_so101: bus 'right': no sample yet")
-               for f in faults)
+    assert right.reads == 1  # it was stuck in its read all along
+    assert faults == [None] * 51 and fb.stamp == 100.0  # stamped by the bus read in the cycle
+    assert c.bus_stamps() == {"left": 100.0, "right": 51.0}  # the sample read at open, its own stamp
     right.gate.set()
-    wait_until(lambda: c.read(fb) is None, 5, what="the slow bus's first sample")
+    wait_until(lambda: c.read(fb) is None and c.bus_stamps()["right"] > 51.0, 5, what="the slow bus's next sample")
     assert np.array_equal(fb.position, np.r_[np.arange(6.0), 10 + np.arange(6.0)])
-    k = fb.stamp - 50.0  # the slow bus's own read's stamp (the sample is at least that old)
-    assert k == int(k) and 1 <= k <= right.reads
+    k = c.bus_stamps()["right"] - 50.0  # the slow bus's own read's stamp
+    assert k == int(k) and 2 <= k <= right.reads and fb.stamp == 100.0
+    # DISABLED: a setpoint posted is never written; its reads go on at its own rate
+    cmd = c.new_command()
+    cmd.mode[:] = CommandMode.POSITION
+    assert c.write(cmd) is None
+    reads = right.reads
+    wait_until(lambda: right.reads >= reads + 3, 5, what="three more reads of the slow bus")
+    assert right.writes == []
     assert threading.get_ident() not in right.threads  # its I/O on its own thread only
     c.close()
 

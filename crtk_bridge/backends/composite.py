@@ -14,6 +14,16 @@ are pre-allocated and gathered / scattered with index arrays. The cycle's stamp 
 bus's (the sample is at least that old). A fault on any bus is the robot's, its message naming
 the bus (and the bus's backend names the joint).
 
+A bus slower than the robot's cycle (``traits.min_period_s`` longer than the effective period: a
+Robotiq gripper's Modbus RTU beside a UR's 500 Hz) is served at its own rate and never joined
+(:class:`_OwnRateWorker`): its thread runs the bus's own cycles (core/cycle.py
+``CycleRunner.own_rate``) and publishes each completed read with its own stamp; the cycle takes
+the newest sample, posts the newest setpoint (newest wins: a stop never queues behind stale
+setpoints) and hands the bus's lifecycle transitions to it, seeing at each read how they went (the
+robot's DISABLE ends only once that bus's did). Its failures are counted at its own rate against
+``safety.bus_errors_max`` and reach the loop as a FAULT naming bus and joint
+(docs/architecture.md, "Several buses: the composite").
+
 Start-up: ``open`` / ``configure`` / ``close`` run bus by bus (``open`` closes the buses already
 opened when one fails). Lifecycle transitions (enable, disable, pause, resume, fault reset) run on
 every bus together: each cycle steps every bus's :class:`~crtk_bridge.core.actuator.Transition`
@@ -36,6 +46,8 @@ becomes the robot's through ONE function, :func:`combine_traits`, with one rule 
   needs homing but cannot home itself beside one that can is refused: core's move-home and a
   native HOME cannot share one ``home``);
 * speed scaling: the bus that has a speed slider reports it (the slowest, if several do);
+* the shortest period: the longest of the buses served in every cycle (a slower one is served
+  at its own rate and bounds nothing);
 * transition time limits: the buses' added up (their steps share the loop's thread), plus the
   rollback of a failed enable.
 
@@ -168,7 +180,10 @@ class _OwnRateWorker:
     ``safety.bus_errors_max`` (core counts the loop's cycles, not the bus's): the loop hears of a
     failure once it is a FAULT (non-transient), in the cycle that sees it."""
 
-    def __init__(self, name: str, actuator: Actuator, period_s: float, errors_max: int):
+    def __init__(self, name: str, actuator: Actuator, period_s: float, errors_max: int,
+                 first: JointFeedback | None = None):
+        """``first``: the bus's sample read at open (the loop's first cycles take it until the
+        worker's own first read); None: none (a transient "no sample yet" until then)."""
         self.actuator = actuator
         self.period_s = period_s
         self.errors_max = max(1, int(errors_max))
@@ -184,6 +199,9 @@ class _OwnRateWorker:
         self._sample = actuator.new_feedback()
         self._sample_fault: Fault | None = Fault(
             "bus_timeout", f"{actuator.robot}: no sample yet (served at its own rate)", transient=True)
+        if first is not None:
+            _copy_feedback(self._sample, first)
+            self._sample_fault = None
         self._write_fault: Fault | None = None
         self._news: tuple[DeviceStatus, Fault | None] | None = None
         self._device_news: list[tuple[DeviceStatus, Fault | None]] = []  # WARNING / NOTICE reports
@@ -267,7 +285,8 @@ class _OwnRateWorker:
     # ---- the loop's thread
     def take(self, feedback: JointFeedback) -> Fault | None:
         """The newest completed read into ``feedback`` (its own stamp), the transition's progress
-        into :attr:`seen`, the device status reported since into :attr:`news`; -> the read's
+        into :attr:`seen`, the device status reported since into :attr:`news` and its news
+        (WARNING / NOTICE) into :attr:`device_news`; -> the read's
         fault (a FAULT), or a non-transient ``bus_timeout`` when nothing was published for
         ``stale_s`` (a stuck worker)."""
         with self._lock:
@@ -473,6 +492,8 @@ class CompositeActuator(Actuator):
         self._own_b: list[int] = []  # the buses served at their own rate
         self._joined_b: list[int] = []  # the buses joined every cycle on a worker of theirs
         self._first = -1  # the bus joined every cycle on the calling thread (-1: none)
+        self._first_sample: dict[int, JointFeedback] = {}  # own-rate bus -> its sample read at open
+        self._stamped: list[bool] = []  # per bus: its stamp is one the robot's sample takes
         nb = len(self.parts)
         self._read_res: list[Fault | None] = [None] * nb  # this cycle's result per bus
         self._write_res: list[Fault | None] = [None] * nb
@@ -503,6 +524,11 @@ class CompositeActuator(Actuator):
         joined = [b for b in range(len(self.parts)) if b not in self._own_b]
         self._first = joined[0] if joined else -1
         self._joined_b = joined[1:]
+        # the sample's one stamp: the earliest of the buses read in the cycle (an own-rate bus's
+        # newest read is older by up to its period: stamping the robot's sample with it would
+        # freeze the stamp of a 500 Hz arm for cycles while its joints move); every bus's if
+        # every bus runs at its own rate
+        self._stamped = [b in joined or not joined for b in range(len(self.parts))]
         self._fb = [p.new_feedback() for p in self.parts]
         self._cmd = [p.new_command() for p in self.parts]
         # native cartesian rows (a UR arm beside a servo gripper): bus b's rows are the robot's lo:hi
@@ -625,6 +651,12 @@ class CompositeActuator(Actuator):
                 self._on_bus(b, p.open)
                 opened.append(p)
             self._combine()
+            # a first sample of each bus served at its own rate, read now (open may block), so
+            # the loop's first cycle has it: its worker starts with the first cycle
+            self._first_sample = {b: self.parts[b].new_feedback() for b in self._own_b}
+            for b, fb in list(self._first_sample.items()):
+                if self.parts[b].read(fb) is not None:
+                    del self._first_sample[b]
         except BaseException:
             for p in opened:
                 p.close()
@@ -796,7 +828,7 @@ class CompositeActuator(Actuator):
         errors_max = self.profile.safety.bus_errors_max
         for b, (name, p) in enumerate(zip(self.bus_names, self.parts)):
             if b in self._own_b:
-                bw[b] = _OwnRateWorker(name, p, self.own_rate[name], errors_max)
+                bw[b] = _OwnRateWorker(name, p, self.own_rate[name], errors_max, self._first_sample.pop(b, None))
             elif b != self._first:
                 bw[b] = _BusWorker(name, p, self._fb[b], self._cmd[b])
         self._bw = bw
@@ -806,6 +838,11 @@ class CompositeActuator(Actuator):
     def _ensure_workers(self) -> None:
         if self._workers is None:
             self._start_workers()
+
+    def bus_stamps(self) -> dict[str, float]:
+        """bus -> the stamp of its sample the last read took (a bus at its own rate: its newest
+        read's own time, older than the robot's stamp by up to its period)."""
+        return {name: fb.stamp for name, fb in zip(self.bus_names, self._fb)}
 
     def own_rate_cycles(self) -> dict[str, int]:
         """bus -> the cycles its own-rate worker has run (bench/, tests)."""
@@ -848,13 +885,14 @@ class CompositeActuator(Actuator):
             self._forward_status(*news)
         if failed:
             return self._bus_fault(res, self._read_streak)
-        stamp = self._fb[0].stamp
+        stamp = math.inf
+        stamped = self._stamped
         for b, idx in enumerate(self._idx):
             fb = self._fb[b]
             feedback.position[idx] = fb.position
             feedback.velocity[idx] = fb.velocity
             feedback.effort[idx] = fb.effort
-            if fb.stamp < stamp:
+            if fb.stamp < stamp and stamped[b]:
                 stamp = fb.stamp
         feedback.stamp = stamp
         if self._cart_rows:

@@ -336,8 +336,16 @@ class RobotiqBackend(Actuator):
         """One joint, position only, the loop's clock, written only while ENABLED / PAUSED; the
         activation's time limit is ``activation_timeout_s`` (reset + activation + go)."""
         limit = self.config.activation_timeout_s
-        return Traits(joints=(self._caps,), transition_timeouts_s={
+        return Traits(joints=(self._caps,), min_period_s=self.wire_period_s(), transition_timeouts_s={
             Lifecycle.ENABLE: limit + 2.0, Lifecycle.FAULT_RESET: 5.0, Lifecycle.DISABLE: 2.0})
+
+    def wire_period_s(self) -> float:
+        """The shortest cycle the bus keeps (``Traits.min_period_s``): one read and one write on
+        the wire, Modbus RTU's 11 bits a character and 3.5 characters of silence after each of the
+        four frames. Beside a faster loop (a UR's 500 Hz) the composite serves the gripper at
+        this rate, on its own thread (docs/architecture.md, "Several buses: the composite")."""
+        frames = (len(self._read_frame), _READ_REPLY, 9 + 2 * T.WORDS, _WRITE_REPLY)
+        return (sum(frames) + 3.5 * len(frames)) * 11.0 / self.config.baudrate
 
     def _close_hook(self) -> None:
         self._reopen_stop.set()
