@@ -135,7 +135,10 @@ def test_enable_of_an_activated_gripper_does_not_activate_it_again():
     r = Rig(activated=True)
     try:
         r.sim.gripper.write("Present_Position", 120)  # the fingers are somewhere in the middle
+        with r.sim.gripper.lock:
+            r.sim.gripper._last_heard -= 1.5  # nothing asked it for a second (a daemon restarting): minor 0x09
         r.cycle(2)
+        assert any(e["code"] == "device_warning" and e["value"] == 0x09 for e in r.events("warning"))
         r.enable()
         dump = r.sim.gripper.dump()
         assert dump["gSTA"] == T.GSTA_ACTIVE and dump["rPR"] == 120 and dump["gPO"] == 120

@@ -61,7 +61,11 @@ def test_a_ur_arm_with_a_robotiq_gripper_on_its_tool_flange(short_tmp):
             after = robot.connection.request("period_statistics")
             assert after["period_s"] == pytest.approx(0.002)
             assert after["cycles"] - before["cycles"] > 100  # (the window's cycles: ~500 a second)
-            assert after["overruns"] - before["overruns"] == 0, (before, after)
+            overruns = after["overruns"] - before["overruns"]
+            if "realtime_unavailable" in d.output():  # (a host that refuses SCHED_FIFO: a stray one)
+                assert overruns <= 0.01 * (after["cycles"] - before["cycles"]), (before, after)
+            else:
+                assert overruns == 0, (before, after)
             assert gripper()["requests"] > requests + 10  # its bus was busy all along, at its own rate
             # the arm moves alone: the gripper holds where it is
             held = hand.measured_js()[0][0]
@@ -90,6 +94,18 @@ def test_a_ur_arm_with_a_robotiq_gripper_on_its_tool_flange(short_tmp):
             # and the gripper still follows after the resume
             hand.move_jp([0.02])
             wait_until(lambda: abs(hand.measured_js()[0][0] - 0.02) < 0.002, 10, what="the gripper at 2 cm")
+            # the tool flange's link lost (the gripper's RS-485 through the arm's port 54321): the
+            # robot FAULTs naming the bus and the port, the arm included; enable recovers
+            mark = robot.connection.event_count
+            ctl(sims, "arm", {"cmd": "link_loss", "duration_s": 0.5, "ports": ["tool"]})
+            ev = robot.wait_for_event("port_lost", 5, kind="error", since=mark)
+            assert ev is not None, list(robot.connection.events_since(mark))
+            assert ev.data["message"].startswith("ur5e_robotiq: bus 'hand': ") and ":54321" in ev.data["message"], ev.data
+            wait_until(arm.is_fault, 2, what="FAULT state")
+            wait_until(lambda: not arm.is_busy(), 10, what="the fault's DISABLE")
+            assert ur()["robot_mode"] == "POWER_OFF"
+            wait_until(lambda: ur()["tool_clients"] == 1, 10, what="the gripper's link back")
+            assert arm.enable(20.0) and hand.operating_state() == "ENABLED"
             # DISABLE ends once both buses are off: the arm powered off, the gripper's go bit off
             assert arm.disable(10.0)
             assert ur()["robot_mode"] == "POWER_OFF" and gripper()["gGTO"] == 0
