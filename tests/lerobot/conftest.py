@@ -1,32 +1,115 @@
 """Fixtures of the LeRobot tests: the real LeRobot in a venv of its own (built once, see venv.py),
-this checkout's plugin installed beside it, and a LeRobot robot driven line by line (driver.py)."""
+this checkout's plugin installed beside it, and a LeRobot robot driven line by line (driver.py).
+
+A build of that venv takes minutes of mostly one core, and most of the suite waits on sockets and
+simulators: when a session selects LeRobot tests and no complete venv exists, the build starts in
+the background as soon as collection ends (:class:`BackgroundBuild`, ``python -m
+tests.lerobot.venv``, niced), and the LeRobot tests run last, waiting for it."""
 
 from __future__ import annotations
 
 import json
 import os
 import shutil
+import signal
 import subprocess
+import sys
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
 
 from . import venv as lrvenv
 
-DRIVER = Path(__file__).resolve().parent / "driver.py"
+HERE = Path(__file__).resolve().parent
+DRIVER = HERE / "driver.py"
 
 
 def _in_ci() -> bool:
     return os.environ.get("CI", "").lower() not in ("", "0", "false", "no")
 
 
+def _is_lerobot(item) -> bool:
+    return HERE in Path(str(item.path)).resolve().parents
+
+
+class BackgroundBuild:
+    """``python -m tests.lerobot.venv`` in a process group of its own (so its pip goes with it),
+    output to a log file. venv.ensure_venv's file lock and completion marker keep a concurrent
+    build (another session, a bench) from using or removing a half-built venv."""
+
+    def __init__(self):
+        fd, name = tempfile.mkstemp(prefix="crtk-lerobot-venv-", suffix=".log")
+        self.log = Path(name)
+        with os.fdopen(fd, "wb") as f:
+            self.proc = subprocess.Popen([sys.executable, "-m", "tests.lerobot.venv"], cwd=lrvenv.ROOT, stdout=f,
+                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
+                                         preexec_fn=lambda: os.nice(10))  # the tests' daemons come first
+        self.started = time.monotonic()
+
+    def wait(self, timeout: float) -> None:
+        """Return once the build succeeded; raise :class:`venv.LeRobotVenvError` with its log's tail."""
+        try:
+            rc = self.proc.wait(max(0.0, timeout - (time.monotonic() - self.started)))
+        except subprocess.TimeoutExpired:
+            self.stop()
+            raise lrvenv.LeRobotVenvError(f"the background build timed out after {timeout:.0f} s "
+                                          f"(log {self.log}):\n{self.tail()}") from None
+        if rc != 0:
+            raise lrvenv.LeRobotVenvError(f"the background build failed (exit {rc}, log {self.log}):\n{self.tail()}")
+
+    def tail(self, lines: int = 20) -> str:
+        try:
+            return "\n".join(self.log.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return "(no log)"
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                os.killpg(self.proc.pid, signal.SIGTERM)
+                self.proc.wait(30)
+            except (OSError, subprocess.TimeoutExpired):
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+
+
+_build: BackgroundBuild | None = None
+
+
+def pytest_collection_modifyitems(config, items):
+    # the LeRobot tests last (stable order otherwise): the venv builds meanwhile
+    items[:] = [i for i in items if not _is_lerobot(i)] + [i for i in items if _is_lerobot(i)]
+
+
+def pytest_collection_finish(session):
+    global _build
+    if _build is not None or session.config.option.collectonly:
+        return
+    if not any(_is_lerobot(i) and "lerobot_venv" in getattr(i, "fixturenames", ()) for i in session.items):
+        return
+    if (lrvenv.venv_path() / lrvenv.MARKER).exists():
+        return
+    _build = BackgroundBuild()
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is not None:
+        reporter.write_line(f"building the LeRobot venv {lrvenv.venv_path()} in the background (log {_build.log})")
+
+
+def pytest_sessionfinish(session):
+    if _build is not None:
+        _build.stop()  # no LeRobot test ran (-x, an interrupt): a later build starts over
+
+
 @pytest.fixture(scope="session")
 def lerobot_venv() -> Path:
-    """The LeRobot venv (tests/lerobot/requirements.txt), built on first use and reused while its
-    requirements do not change. In CI (``CI`` set) a failed build fails the tests; elsewhere they
-    are skipped saying why."""
+    """The LeRobot venv (tests/lerobot/requirements.txt), built on first use (or in the background
+    since collection ended) and reused while its requirements do not change. In CI (``CI`` set) a
+    failed build fails the tests; elsewhere they are skipped saying why."""
     try:
+        if _build is not None:
+            _build.wait(lrvenv.BUILD_TIMEOUT_S + 60)
         return lrvenv.ensure_venv()
     except (lrvenv.LeRobotVenvError, OSError) as exc:
         msg = f"the LeRobot venv could not be built ({lrvenv.venv_path()}): {exc}"
