@@ -172,6 +172,106 @@ class LeRobotDriver:
         return self.proc.returncode
 
 
+class LaunchedProcess:
+    """A LeRobot command the :class:`Launcher` forked: what the tests use of a ``subprocess.Popen``."""
+
+    def __init__(self, launcher: Launcher, pid: int, command: str):
+        self.launcher, self.pid, self.args = launcher, pid, [command]
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            self.returncode = self.launcher("poll", pid=self.pid)["returncode"]
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.poll() is None:
+            if deadline is not None and time.monotonic() > deadline:
+                raise subprocess.TimeoutExpired(self.args, timeout)
+            time.sleep(0.05)
+        return self.returncode
+
+    def kill(self) -> None:
+        if self.returncode is None:
+            try:
+                os.kill(self.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+class Launcher:
+    """launcher.py in the LeRobot venv: LeRobot's console scripts run as forks of one interpreter
+    that imported LeRobot once (``run``), with this checkout's plugin on its path."""
+
+    def __init__(self, venv: Path, plugin_dir: Path, base: Path):
+        self.log_path = base / "launcher.log"
+        self._log = open(self.log_path, "wb")
+        self.proc = subprocess.Popen([str(lrvenv.python(venv)), str(HERE / "launcher.py")], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=self._log, text=True, cwd=base,
+                                     env=lrvenv.lerobot_env(plugin_dir, HF_LEROBOT_HOME=str(base / "hf")))
+        self._ready = False
+
+    def _line(self, op: str) -> dict:
+        line = self.proc.stdout.readline()
+        if not line:
+            self._log.flush()
+            raise AssertionError(f"the LeRobot launcher exited ({self.proc.poll()}) on {op}:\n"
+                                 f"{self.log_path.read_text(errors='replace')[-3000:]}")
+        return json.loads(line)
+
+    def __call__(self, op: str, **kw) -> dict:
+        if not self._ready:
+            self._ready = self._line("start")["ready"]
+        self.proc.stdin.write(json.dumps({"op": op, **kw}) + "\n")
+        self.proc.stdin.flush()
+        reply = self._line(op)
+        assert reply["ok"], f"LeRobot launcher {op}: {reply['error']}"
+        return reply
+
+    def run(self, command: str, args: list[str], log: Path, cwd: Path, env: dict) -> LaunchedProcess:
+        log.write_bytes(b"")  # there from the start, as a Popen's redirected output is
+        pid = self("run", command=command, args=[str(a) for a in args], log=str(log), cwd=str(cwd), env=env)["pid"]
+        return LaunchedProcess(self, pid, command)
+
+    def close(self) -> None:
+        try:
+            self.proc.stdin.close()
+            self.proc.wait(30)
+        except (OSError, subprocess.TimeoutExpired):
+            self.proc.kill()
+            self.proc.wait()
+        self._log.close()
+
+
+@pytest.fixture(scope="session")
+def lerobot_launcher(lerobot_venv, lerobot_plugin):
+    """:class:`Launcher`: LeRobot's commands with LeRobot imported once for the session (a module
+    fixture asks for it first, so its import overlaps the start of the simulators and daemons)."""
+    base = Path(tempfile.mkdtemp(prefix="crtk-lrlaunch-"))
+    launcher = Launcher(lerobot_venv, lerobot_plugin, base)
+    try:
+        yield launcher
+    finally:
+        launcher.close()
+        shutil.rmtree(base, ignore_errors=True)
+
+
+@pytest.fixture(scope="session")
+def lerobot_reader(lerobot_venv):
+    """A :class:`LeRobotDriver` the session's tests read their datasets with (rig.read_dataset):
+    LeRobot imported once, early (a module fixture asks for it first, so the import overlaps the
+    start of its simulators and daemons), not once per dataset."""
+    base = Path(tempfile.mkdtemp(prefix="crtk-lrread-"))
+    d = LeRobotDriver(lerobot_venv, base / "reader.log", HF_LEROBOT_HOME=str(base / "hf"))
+    try:
+        yield d
+    finally:
+        d.proc.kill()  # it only reads files: no teardown of its interpreter to wait for
+        d.close()
+        shutil.rmtree(base, ignore_errors=True)
+
+
 @pytest.fixture
 def lerobot_driver(lerobot_venv, short_tmp):
     """Start :class:`LeRobotDriver` processes (``start(plugin_dir=None, **env)``); all closed at
