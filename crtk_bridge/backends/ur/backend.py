@@ -705,6 +705,11 @@ class UrBackend(Actuator):
             return self._write_cartesian(cart)
         mode = command.mode
         modes = mode.tolist()  # a list: a few joints' checks cost a tenth of numpy's (bench_cpu.py)
+        if modes.count(_NONE) == len(modes):
+            # nothing to follow (a cartesian row the write gate refused, its joints in NONE): send
+            # nothing new, the script keeps its last command. A servoJ here would go to the last
+            # JOINT target, stale while servoL ran (the cycle still feeds the watchdog: _feed_watchdog)
+            return None
         # a blocking call started as the link dies waits for its answer (ur_rtde), and the
         # worker is then ended: teach-mode switches start only on a link whose packet came this cycle
         fresh = time.perf_counter() - self._arrived < 2.0 * self.dt
