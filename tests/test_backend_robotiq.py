@@ -311,3 +311,26 @@ def test_open_names_the_port_and_the_register_when_nothing_answers(tmp_path):
             b.open()
     finally:
         sim.stop()
+
+
+def test_disable_during_activation_stops_the_fingers(rig):
+    """rGTO 0 does not stop an activation: a disable while the gripper activates resets it (rACT
+    0) and replies DISABLED only once gACT is 0 and the fingers stand still; the abandoned
+    activation is run anew by the next enable."""
+    rig.sim.set_activation_s(3.0)
+    rid = rig.request("enable")
+    rig.until("the activation under way", lambda: rig.sim.gripper.dump()["gSTA"] == T.GSTA_ACTIVATING)
+    rig.cycle(2)  # the backend read it too (gACT 1, gSTA 1)
+    reply = rig.reply(rig.request("disable"))
+    assert reply["ok"] and rig.c.state is OperatingState.DISABLED, reply
+    assert not rig.reply(rid)["ok"]  # the enable was aborted
+    before = rig.sim.gripper.dump()
+    assert before["gACT"] == 0 and before["rACT"] == 0
+    end = time.monotonic() + 1.0  # a second of cycles (a 3 s activation would run on meanwhile)
+    while time.monotonic() < end:
+        rig.cycle()
+    after = rig.sim.gripper.dump()
+    assert after["gPO"] == before["gPO"] and after["gACT"] == 0 and after["gSTA"] == T.GSTA_RESET
+    rig.sim.set_activation_s(ACTIVATION_S)
+    rig.enable()  # activates from the start, calibrated
+    assert rig.backend.info().details["calibration"] == {"open": OPEN_COUNT, "closed": CLOSED_COUNT}

@@ -38,7 +38,10 @@ Lifecycle (steps, one transaction at most per cycle, waiting on the gripper acro
   request; the fingers stop where they are. The manual does not say the grip force is kept with
   rGTO 0: a held object is not promised held once DISABLED (the 2F's fingers are not back-driven
   easily, so in practice it usually stays), and the next ENABLE holds the fingers where they are
-  then, without re-activating.
+  then, without re-activating. During an activation (gSTA 1, or an activation started and not
+  seen complete: an ENABLE abandoned by a disable, a pause, its time limit or a composite's
+  rollback) rGTO 0 stops nothing: DISABLE is then rACT 0 (reset), confirmed by gACT 0 and the
+  position unchanged across reads (the fingers stopped); the next ENABLE activates anew.
 * FAULT_RESET (leaving FAULT) = rACT 0 (a reset clears the gripper's faults), then ENABLE
   activates again (rACT 0 -> 1, manual 4.4.3: major faults need it).
 
@@ -145,6 +148,8 @@ CALIBRATION_MIN_SPAN = 100
 #: acknowledged lifecycle writes: attempts (one per cycle) before the transition fails
 WRITE_ATTEMPTS = 4
 REOPEN_INTERVAL_S = 0.5
+#: a stopped activation: the fingers' position the same in this many reads in a row after gACT 0
+STEADY_READS = 3
 _READ_REPLY = 5 + 2 * T.WORDS  # id, fc, byte count, 6 data bytes, crc 2
 _WRITE_REPLY = 8  # id, fc, address 2, count 2, crc 2
 _EXCEPTION_REPLY = 5
@@ -302,6 +307,7 @@ class RobotiqBackend(Actuator):
         self._seen = [255, 0]
         self._go = False  # rGTO is on (ENABLED): the gripper must stay activated
         self._must_reset = False
+        self._activation_pending = False  # rACT 1 written for an activation not yet seen complete
         # the link lost: the Fault, and the link the reopen worker found
         self._lost: Fault | None = None
         self._reopened: _Link | None = None
@@ -570,6 +576,10 @@ class RobotiqBackend(Actuator):
                 yield from self._reset()
             self._seen = [255, 0]
             self._activating = True
+            # from the rACT 1 on, until gSTA 3: an activation abandoned now (a disable, a pause, the
+            # time limit, a composite's rollback) is stopped by the DISABLE that follows
+            # (_disable_steps), and the next ENABLE activates from the start
+            self._activation_pending = self._must_reset = True
             try:
                 yield from self._acknowledged(T.RACT, 0, "activation (rACT 1)")
                 while True:
@@ -582,6 +592,7 @@ class RobotiqBackend(Actuator):
                         break
             finally:
                 self._activating = False
+            self._activation_pending = self._must_reset = False
             lo, hi = self._seen
             if self.keys.calibration is None and hi - lo >= CALIBRATION_MIN_SPAN:
                 self._open_count, self._closed_count = lo, hi  # the gripper's own stroke ends
@@ -590,10 +601,16 @@ class RobotiqBackend(Actuator):
         self._obj_reported = T.GOBJ_MOVING
 
     def _disable_steps(self) -> Steps:
-        """rGTO 0 (the gripper stays activated), confirmed by gGTO 0 in a later read."""
+        """rGTO 0 (the gripper stays activated), confirmed by gGTO 0 in a later read. A gripper
+        activating (gSTA 1 in the cycle's read, or an activation this backend started and did
+        not see complete) is reset instead: rGTO 0 does not stop an activation, rACT 0 does."""
         self._go = False
         if self._lost is not None:
             raise BackendError(f"{self.robot}: disable: {self._lost.message}")
+        gsta = T.gsta(self._status)
+        if gsta == T.GSTA_ACTIVATING or self._activation_pending and gsta != T.GSTA_ACTIVE:
+            yield from self._stop_activation()
+            return
         if not self._status & (T.GGTO | T.GACT) and self._written is None:
             return  # never activated nor told to go: nothing to stop
         position = self._written[1] if self._written is not None else self._gpo
@@ -603,6 +620,25 @@ class RobotiqBackend(Actuator):
             if not self._status & T.GGTO:
                 return
         raise BackendError(f"{self.robot}: disable: {self._label} on {self._where} still reports gGTO 1")
+
+    def _stop_activation(self) -> Steps:
+        """rACT 0, confirmed by gACT 0 and the fingers' position the same in STEADY_READS reads
+        in a row (they stopped); the next ENABLE activates from the start (``_must_reset``)."""
+        self._must_reset = True
+        yield from self._acknowledged(0, 0, "disable: stop the activation (rACT 0)")
+        last, steady = -1, 0
+        for _ in range(100):
+            yield  # the cycle's read comes first
+            if self._status & T.GACT:
+                last, steady = -1, 0
+                continue
+            steady = steady + 1 if self._gpo == last else 0
+            last = self._gpo
+            if steady >= STEADY_READS:
+                self._activation_pending = False
+                return
+        raise BackendError(f"{self.robot}: disable: {self._label} on {self._where}: the activation did not stop "
+                           f"(gACT {self._status & T.GACT}, gPO {self._gpo})")
 
     # ------------------------------------------------------------------ the link lost
     def _lose_link(self, reason: str) -> Fault:
