@@ -43,7 +43,10 @@ Lifecycle (steps, one transaction at most per cycle, waiting on the gripper acro
   rollback) rGTO 0 stops nothing: DISABLE is then rACT 0 (reset), confirmed by gACT 0 and the
   position unchanged across reads (the fingers stopped); the next ENABLE activates anew.
 * FAULT_RESET (leaving FAULT) = rACT 0 (a reset clears the gripper's faults), then ENABLE
-  activates again (rACT 0 -> 1, manual 4.4.3: major faults need it).
+  activates again (rACT 0 -> 1, manual 4.4.3: major faults need it) -- only for the gripper's
+  own reason: a major gFLT, or its activation lost (gSTA dropped) or abandoned. After a FAULT of
+  the robot's (a UR's tracking error, an invalid command, the link dropped and back) an activated
+  gripper without a major fault is not reset: ENABLE is only the go (a held object stays held).
 
 Device status: ``gFLT`` (tables.FAULTS, from the manual): a major fault is a FAULT naming its
 code and meaning (``gripper_fault``); minor ones (overheating, a 1 s gap in communication) are
@@ -51,7 +54,8 @@ warnings (``device_warning``) and priority ones (an action refused before activa
 ENABLED gripper that leaves its activated state by itself (gSTA drops) is a FAULT. The link gone
 (an OS error on the port, the TCP connection closed) is a non-transient ``port_lost`` FAULT naming
 the port, and a background thread reopens it every 0.5 s; the next read after it did reports the
-fault cleared, and ``enable`` activates as after any fault.
+fault cleared, and ``enable`` decides from the status read then (activated, no major fault: only
+the go; else reset and activation).
 
 Commands: position (``servo_jp``, ``interpolate_jp``, ``move_jp``, ``hold``): each cycle's
 position setpoint from core's trajectory goes out as the position request with the joint's
@@ -549,9 +553,19 @@ class RobotiqBackend(Actuator):
             raise BackendError(f"{self.robot}: {what}: {self._lost.message}")
 
     def _fault_reset_steps(self) -> Steps:
-        """rACT 0: the reset clears the gripper's faults; ENABLE then activates (rACT 0 -> 1)."""
+        """rACT 0 only for the gripper's own reason (a major gFLT in the last read, its
+        activation lost or abandoned: ``_must_reset``): the reset clears its faults and ENABLE
+        then activates (rACT 0 -> 1). A FAULT of the robot's own (a UR's tracking error, an
+        invalid command, the link dropped and back) leaves an activated gripper as it is: ENABLE
+        is then only the go, the fingers stay where they are (activation runs the whole stroke)."""
         self._check_link("fault reset")
-        yield from self._reset()
+        if self._must_reset or self._major_fault():
+            yield from self._reset()
+
+    def _major_fault(self) -> bool:
+        """The last read's gFLT is a major fault (or a code the manual does not list)."""
+        code = self._fault & T.GFLT_MASK
+        return code != T.GFLT_NONE and (code not in T.FAULTS or T.FAULTS[code].major)
 
     def _reset(self) -> Steps:
         self._go = False
@@ -569,9 +583,7 @@ class RobotiqBackend(Actuator):
         yield  # decide on this cycle's read (the request may have arrived after it)
         self._check_link("enable")
         active = T.gsta(self._status) == T.GSTA_ACTIVE and self._status & T.GACT
-        code = self._fault & T.GFLT_MASK
-        if self._must_reset or not active or code not in T.FAULTS and code != T.GFLT_NONE or (
-                code in T.FAULTS and T.FAULTS[code].major):  # a minor fault (0x09 after a quiet second) is no reason
+        if self._must_reset or not active or self._major_fault():  # a minor fault (0x09 after a quiet second) is no reason
             if self._status & T.GACT:
                 yield from self._reset()
             self._seen = [255, 0]
@@ -648,8 +660,7 @@ class RobotiqBackend(Actuator):
             self._link.close()
             self._link = None
         self._lost = fault
-        self._go = False
-        self._must_reset = True
+        self._go = False  # no _must_reset: enable decides from the status read once the link is back
         self.report_status(DeviceStatus.FAULT, fault)
         self._reopen_stop.clear()
         self._reopen_thread = background_thread(self._reopen_loop, f"reopen-{self.robot}")
@@ -674,7 +685,8 @@ class RobotiqBackend(Actuator):
         self._lost = None
         self._written = None
         self.report_status(DeviceStatus.FAULT_CLEARED, Fault(
-            "fault_cleared", f"{self.robot}: {self._label}: port {self._where} is back; enable re-activates the gripper"))
+            "fault_cleared", f"{self.robot}: {self._label}: port {self._where} is back; enable re-activates the "
+            f"gripper only if it lost its activation or reports a major fault"))
         return False
 
 
