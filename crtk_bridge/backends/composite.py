@@ -11,14 +11,15 @@ bus is served by the calling thread itself, which saves a hand-off) and join, so
 I/O overlaps: serial I/O waits in ``select`` / ``os.read`` with the GIL released. The hand-off is
 two pre-allocated locks per worker (no allocation, no Condition per cycle); the per-bus buffers
 are pre-allocated and gathered / scattered with index arrays. The cycle's stamp is the earliest
-bus's (the sample is at least that old). A fault on any bus is the robot's, its message naming
+bus's read in the cycle (the sample is at least that old). A fault on any bus is the robot's, its message naming
 the bus (and the bus's backend names the joint).
 
 A bus slower than the robot's cycle (``traits.min_period_s`` longer than the effective period: a
 Robotiq gripper's Modbus RTU beside a UR's 500 Hz) is served at its own rate and never joined
 (:class:`_OwnRateWorker`): its thread runs the bus's own cycles (core/cycle.py
-``CycleRunner.own_rate``) and publishes each completed read with its own stamp; the cycle takes
-the newest sample, posts the newest setpoint (newest wins: a stop never queues behind stale
+``CycleRunner.own_rate``) and publishes each completed read with its own stamp (the robot's
+sample keeps the stamp of the buses read in the cycle: :meth:`CompositeActuator.bus_stamps` has
+that bus's); the cycle takes the newest sample, posts the newest setpoint (newest wins: a stop never queues behind stale
 setpoints) and hands the bus's lifecycle transitions to it, seeing at each read how they went (the
 robot's DISABLE ends only once that bus's did). Its failures are counted at its own rate against
 ``safety.bus_errors_max`` and reach the loop as a FAULT naming bus and joint
