@@ -365,3 +365,24 @@ def test_enable_after_a_fault_not_of_the_gripper_does_not_reactivate_it(cause):
         assert dump["gPO"] == 120 and dump["rPR"] == 120 and dump["gSTA"] == T.GSTA_ACTIVE and dump["gGTO"] == 1, dump
     finally:
         r.close()
+
+
+def test_a_gripper_fallen_into_reset_beside_a_minor_fault_faults_and_is_not_reactivated(rig):
+    """While ENABLED with a minor gFLT showing (0x08, overheating), a gripper that left its
+    activated state (gACT 0, gSTA 0) is a FAULT naming gSTA; the next position request is not
+    written (rACT|rGTO to a gripper in reset is an activation: the whole stroke)."""
+    rig.enable()
+    rig.move(0.05)
+    with rig.sim.gripper.lock:
+        rig.sim.gripper.fault = 0x08
+        rig.sim.gripper.gact, rig.sim.gripper.gsta = False, T.GSTA_RESET
+    rig.cycle(3)
+    rig.request("move_jp", ns="gripper", data={"position": [0.02]})
+    for _ in range(10):
+        rig.cycle()
+        dump = rig.sim.gripper.dump()
+        assert dump["gACT"] == 0 and dump["gSTA"] == T.GSTA_RESET, dump  # no activation started
+    assert rig.c.state is OperatingState.FAULT
+    err = [e for e in rig.events("error") if e["code"] == "gripper_fault"]
+    assert len(err) == 1 and err[0]["register"] == "gSTA" and err[0]["value"] == T.GSTA_RESET, err
+    assert "no longer activated (gSTA 0" in err[0]["message"], err

@@ -491,7 +491,9 @@ class RobotiqBackend(Actuator):
             else:
                 self._warn(f"gFLT 0x{code:02X} ({fault.severity} fault): {fault.meaning}", "gFLT", code)
         status = self._status
-        if self._go and T.gsta(status) != T.GSTA_ACTIVE and self._lost is None and code == T.GFLT_NONE:
+        # whatever a priority or minor code says (a major one is its own FAULT above): a gripper
+        # that left its activated state while ENABLED is a FAULT (its next go would re-activate it)
+        if self._go and not self._active(status) and self._lost is None and not self._major_fault():
             self._go = False
             self._must_reset = True
             self.report_status(DeviceStatus.FAULT, Fault(
@@ -507,6 +509,11 @@ class RobotiqBackend(Actuator):
             elif obj == T.GOBJ_AT_REQUEST:
                 self._notice(f"gOBJ {obj}: {T.GOBJ_TEXT[obj]}", "gOBJ", obj)
 
+    @staticmethod
+    def _active(status: int) -> bool:
+        """gACT 1 and gSTA 3 (activation completed) in GRIPPER STATUS ``status``."""
+        return bool(status & T.GACT) and T.gsta(status) == T.GSTA_ACTIVE
+
     def _warn(self, text: str, register: str, value: int) -> None:
         self.report_status(DeviceStatus.WARNING, Fault("device_warning", f"{self.robot}: {self._label}: {text}",
                                                        joint=self.joint_names[0], register=register, value=value))
@@ -518,6 +525,8 @@ class RobotiqBackend(Actuator):
     def _write(self, command: JointCommand) -> Fault | None:
         """ONE function 16 write of the position request, only when it changed."""
         if not self._go or self._lost is not None or command.mode[0] != 1:  # 1: CommandMode.POSITION
+            return None
+        if not self._active(self._status):  # rACT|rGTO to a gripper in reset would be an activation
             return None
         request = (T.RACT | T.RGTO, self.count(float(command.position[0])), self._speed, self._force)
         if request == self._written:
