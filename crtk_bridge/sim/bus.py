@@ -193,6 +193,11 @@ class BusServo:
         """Actual (encoder) ticks at which the servo reports Present_Position ``present``."""
         raise NotImplementedError
 
+    def _present_exact(self) -> float | None:
+        """Present_Position before its rounding to whole ticks: where the simulated horn is
+        (None: the model has no such position)."""
+        return None
+
     # --- vendor hooks (caller holds the simulator lock) ---
     def _get(self, name: str) -> int:
         raise NotImplementedError
@@ -723,6 +728,9 @@ class BusSimulator:
                 s = self._servos[sid]
                 s._update(now)
                 servos[str(sid)] = {**self._snapshot(s), "serial": self._serial_of(s)}
+                exact = s._present_exact()
+                if exact is not None:
+                    servos[str(sid)]["present_position_exact"] = exact
                 f = self._faults(s)
                 if f:
                     faults[str(sid)] = f
