@@ -497,17 +497,15 @@ class NamespaceMotion:
         # never faster than the joint can go: a goal arriving early or far is followed at v_max
         ref = self._ref
         d = target - ref
-        np.copyto(ref, ref + np.clip(d, -self._step_max, self._step_max), where=np.abs(d) > self._step_max)
-        np.copyto(ref, target, where=np.abs(d) <= self._step_max)
+        ref[:] = np.where(np.abs(d) <= self._step_max, target, ref + np.clip(d, -self._step_max, self._step_max))
         rows, hist = self._ref_rows, self._ref_hist
         i = self._ref_i = (self._ref_i + 1) % rows
         hist[i] = ref
         hist[i + rows] = ref
-        # the window: the last cmd_period / dt rows, the oldest weighted by the fraction (so the
-        # average moves continuously as the period estimate does); the mean as the reference
-        # minus the mean of its lead over each row: exactly the goal once all rows hold it
-        # it follows the period estimate slowly: a window that changed at each goal with the
-        # estimate would shift the average by a fraction of a step each time
+        # the window: the last cmd_period / dt rows, the oldest weighted by the fraction, its
+        # width following the period estimate slowly (a window that changed with the estimate at
+        # each goal would shift the average by a fraction of a step each time); the mean as the
+        # reference minus the mean of its lead over each row: exactly the goal once all rows hold it
         self._width += _WIDTH_GAIN * (min(max(1.0, self.cmd_period / self.dt), rows - 1.0) - self._width)
         width = self._width
         k = int(width)
