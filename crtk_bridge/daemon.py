@@ -13,6 +13,7 @@ import asyncio
 import logging
 import multiprocessing
 import os
+import re
 import signal
 import socket
 import stat
@@ -82,23 +83,29 @@ def _accepts(host: str, port: int) -> bool:
         return probe.connect_ex((host, port)) == 0
 
 
+def pty_link(workdir: str, bus: str | None = None) -> str:
+    """Where ``--sim`` links a serial bus simulator's pty (``bus``: one of several buses)."""
+    return os.path.join(workdir, f"tty-{bus}" if bus else "tty")
+
+
 class SimulatorProcess:
     """``crtk-sim <device>`` as a child process, serving its endpoint at ``link``: a pty link, or
     for a simulator with fixed TCP ports (``host_ports``) a free loopback address."""
 
     def __init__(self, profile_path: str, device: str, workdir: str, bus: str | None = None,
-                 host_ports: tuple[int, ...] = (), raise_priority: bool = False):
+                 host_ports: tuple[int, ...] = (), raise_priority: bool = False, tool_link: str | None = None):
         tag = f"-{bus}" if bus else ""  # several buses: one simulator each
         self.control = os.path.join(workdir, f"sim{tag}.sock")
         if host_ports:
             self.link = free_loopback_host(host_ports)
             where = ["--host", self.link]
         else:
-            self.link = os.path.join(workdir, f"tty{tag}")
+            self.link = pty_link(workdir, bus)
             where = ["--link", self.link]
         self.proc = subprocess.Popen(
             module_argv("crtk_bridge.sim.cli", device, "--profile", profile_path, *where, "--control", self.control,
-                        *(["--bus", bus] if bus else []), "--parent-pid", str(os.getpid())),
+                        *(["--bus", bus] if bus else []), *(["--tool-link", tool_link] if tool_link else []),
+                        "--parent-pid", str(os.getpid())),
             stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
             env=module_env(),  # this package's simulator, whatever the current folder holds (spawn.py)
             start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
@@ -323,20 +330,54 @@ def _sim_wiring(backend_type: str, source: str) -> tuple[str, SimWiring]:
 def _simulate_buses(profile: Profile, profile_path: str, workdir: str,
                     simulators: list[SimulatorProcess], realtime: bool) -> Profile:
     """--sim with several buses: one simulator per bus; the profile wired to their ports.
-    Appends each started simulator to ``simulators`` (so they are stopped however this ends)."""
-    backends = {}
+    Appends each started simulator to ``simulators`` (so they are stopped however this ends).
+
+    A bus behind another bus's device (its endpoint ``socket://HOST:PORT``, where HOST is the
+    other bus's endpoint and PORT that device's ``SimWiring.tool_port``: a gripper on a UR's tool
+    flange) gets its simulator on a pty, which the other bus's simulator relays PORT to; its
+    backend then reaches it through that simulator's PORT, as on the real robot."""
+    wirings = {bus: _sim_wiring(str(section["type"]), profile_path) for bus, section in profile.backends.items()}
+    behind = _behind(profile, wirings)  # bus -> (the bus whose device it is behind, the port)
+    relays = {front: pty_link(workdir, bus) for bus, (front, _) in behind.items()}
+    backends, started = {}, {}
     for bus, section in profile.backends.items():
-        device, wiring = _sim_wiring(str(section["type"]), profile_path)
+        device, wiring = wirings[bus]
         simulator = SimulatorProcess(profile_path, device, workdir, bus=bus, host_ports=wiring.host_ports,
-                                     raise_priority=realtime)
+                                     raise_priority=realtime, tool_link=relays.get(bus))
         simulators.append(simulator)
+        started[bus] = simulator
+    for bus, section in profile.backends.items():
+        simulator = started[bus]
+        endpoint, where = simulator.link, f"on {simulator.link}"
+        if bus in behind:
+            front, port = behind[bus]
+            endpoint = f"socket://{started[front].link}:{port}"
+            where = f"behind bus {front!r}'s port {port} ({endpoint}; its line {simulator.link})"
         # the bus's section wired the way --sim wires a one-bus profile (the backend's sim_profile:
         # its endpoint, and the simulator's defaults where the section sets no value of its own)
         one_bus = msgspec.structs.replace(profile, backend=dict(section))
-        backends[bus] = backend_class(str(section["type"]), profile_path).sim_profile(one_bus, simulator.link).backend
-        print(f"crtk-bridge: simulated {section['type']} bus {bus!r} on {simulator.link} "
+        backends[bus] = backend_class(str(section["type"]), profile_path).sim_profile(one_bus, endpoint).backend
+        print(f"crtk-bridge: simulated {section['type']} bus {bus!r} {where} "
               f"(simulator control socket {simulator.control})", flush=True)
     return msgspec.structs.replace(profile, backends=backends)
+
+
+def _behind(profile: Profile, wirings: dict[str, tuple[str, SimWiring]]) -> dict[str, tuple[str, int]]:
+    """bus -> (the bus whose device it sits behind, that device's tool port), for every bus whose
+    endpoint is ``socket://HOST:PORT`` with HOST another bus's endpoint and PORT its device's
+    ``SimWiring.tool_port`` (a gripper on a UR's tool flange)."""
+    out: dict[str, tuple[str, int]] = {}
+    for bus, section in profile.backends.items():
+        endpoint = str(section.get(wirings[bus][1].endpoint_key) or "")
+        m = re.fullmatch(r"socket://([^:/]+):(\d+)/?", endpoint)
+        if m is None:
+            continue
+        for front, other in profile.backends.items():
+            wiring = wirings[front][1]
+            if (front != bus and wiring.tool_port == int(m.group(2))
+                    and str(other.get(wiring.endpoint_key)) == m.group(1)):
+                out[bus] = (front, wiring.tool_port)
+    return out
 
 
 def _remove_dir(path: str | None) -> None:

@@ -61,6 +61,7 @@ BUILTIN: dict[str, Registration] = {
     "canopen402": Registration("crtk_bridge.backends.canopen402.backend:Canopen402Backend",
                                simulator="crtk_bridge.sim.canopen402:CanopenSimulator", device="canopen"),
     "ur": Registration("crtk_bridge.backends.ur.backend:UrBackend", simulator="crtk_bridge.sim.ur:URSimulator"),
+    "robotiq": Registration("crtk_bridge.backends.robotiq.backend:RobotiqBackend", simulator="crtk_bridge.sim.robotiq:RobotiqSimulator"),
 }
 
 

@@ -29,6 +29,7 @@ SO101_URDF = ROOT / "profiles" / "urdf" / "so101.urdf"
 KOCH = ROOT / "profiles" / "koch.yaml"
 CANOPEN = ROOT / "profiles" / "canopen_2axis.yaml"
 UR5E = ROOT / "profiles" / "ur5e.yaml"
+ROBOTIQ = ROOT / "profiles" / "robotiq_2f85.yaml"
 
 
 def profile_data(path: Path) -> dict:
@@ -140,8 +141,13 @@ class SimRobot:
         lo = np.array([j.limits.position_min for j in arm])
         hi = np.array([j.limits.position_max for j in arm])
         goals = {k: np.array((tuple(v) + (0.0,) * len(arm))[:len(arm)]) for k, v in SAFE_GOALS.items()}
+        # an arm: the suite's goals fit its limits; a gripper alone (one joint, metres) is no arm:
+        # its goals are the same share of its range as each goal's first joint is of +-1.5 rad
+        is_arm = len(arm) > 1
+        if not is_arm:
+            goals = {k: lo + (hi - lo) * (0.5 + v[0] / 3.0) for k, v in SAFE_GOALS.items()}
         for k, g in goals.items():
-            assert np.all(g >= lo + GOAL_MARGIN) and np.all(g <= hi - GOAL_MARGIN), \
+            assert not is_arm or np.all(g >= lo + GOAL_MARGIN) and np.all(g <= hi - GOAL_MARGIN), \
                 f"{path}: SAFE_GOALS[{k!r}] = {g} is not inside the limits of {arm_ns.name}"
         device = {j.name: row.device(p, index[j.name]) for j in p.joints}
         return cls(id=id, profile=path, backend=p.backend_type, name=p.name, arm=arm_ns.name,
@@ -154,7 +160,7 @@ class SimRobot:
                    home=np.array([j.home for j in arm]),
                    counts_per_rad={str(device[j.name]): _counts_per_rad(j, row) for j in p.joints},
                    servo_timeout_s=p.safety.servo_timeout_s, rate_hz=float(p.loop.rate_hz), goals=goals,
-                   row=row, capabilities=robot_capabilities(p, grip_ns is not None))
+                   row=row, capabilities=robot_capabilities(p, grip_ns is not None, is_arm))
 
     @property
     def n(self) -> int:
@@ -204,8 +210,16 @@ class SimRobot:
         return {i: bool(hook(sim, int(i))) for i in (self.servo_ids if ids is None else ids)}
 
 
-def robot_capabilities(profile, has_gripper: bool) -> frozenset:
+def robot_capabilities(profile, has_gripper: bool, is_arm: bool = True) -> frozenset:
     """What a robot offers the suite, from its profile and its simulator (never its name):
+
+    - ``arm``: its first namespace is an arm of several joints in radians, within whose limits the
+      suite's arm goals (:data:`SAFE_GOALS`) lie. A gripper alone (one joint, its opening in
+      metres, no measured velocity: the Robotiq 2F) is not: the modules that drive arm poses in
+      rad-sized steps, check stopping distances or measured velocity need ``arm``
+      (test_e2e_joint, test_e2e_sim, test_e2e_velocity_bounds); the gripper's own commands are
+      tested in test_backend_robotiq.py, and the rest of the suite (processes, requests, streams,
+      faults, slow enable, crtk-ctl) runs on it with goals that are shares of its range;
 
     - ``gripper``: a second, one-joint namespace;
     - ``servo_bus``: the simulator is a serial servo bus (servo registers and the ``servos`` dump);
@@ -229,6 +243,8 @@ def robot_capabilities(profile, has_gripper: bool) -> frozenset:
         caps.add("servo_bus")
     if has_gripper:
         caps.add("gripper")
+    if is_arm:
+        caps.add("arm")
     if profile.shutdown.action == "park":
         caps.add("park")
     if any(ns.kinematics is not None for ns in profile.namespaces):
@@ -295,7 +311,8 @@ class _RemoteDevice:
 
 
 SIM_ROBOTS = {r.id: r for r in (SimRobot.load("so101-feetech", SO101), SimRobot.load("koch-dynamixel", KOCH),
-                                SimRobot.load("canopen-2axis", CANOPEN), SimRobot.load("ur5e", UR5E))}
+                                SimRobot.load("canopen-2axis", CANOPEN), SimRobot.load("ur5e", UR5E),
+                                SimRobot.load("robotiq-2f85", ROBOTIQ))}
 
 
 def only_on(*ids: str):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -30,6 +31,7 @@ from crtk_bridge.core.state import OperatingState
 from crtk_bridge.errors import BackendError, ProfileError
 from crtk_bridge.profile import load_profile
 
+from .conftest import wait_until
 from .test_controller import Clock
 
 PROFILE = load_profile("profiles/bimanual_so101.yaml")
@@ -224,6 +226,38 @@ def test_device_status_is_the_most_severe_buss():
     c.read(fb)
     assert c.take_status() == (DeviceStatus.OK, None)
     c.close()
+
+
+def test_device_news_pass_through_in_order_beside_the_status():
+    """A bus's WARNING / NOTICE reports (a gripper's minor fault, its grasp) are news, not a
+    status: each reaches the robot in order, naming its bus, and none hides a FAULT reported in
+    the same cycle (the robot's status is still the most severe bus's). Also from a bus served at
+    its own rate."""
+    for make in (composite, slow_composite):
+        c, left, right = make()
+        fb = c.new_feedback()
+        grasp = Fault("device_status", "bimanual_so101: gOBJ 2", joint="right_gripper", register="gOBJ", value=2)
+        heat = Fault("device_warning", "bimanual_so101: gFLT 0x08", joint="right_gripper", register="gFLT", value=8)
+        right.report_status(DeviceStatus.NOTICE, grasp)
+        right.report_status(DeviceStatus.FAULT, Fault("servo_error", "bimanual_so101: overload", joint="right_gripper"))
+        right.report_status(DeviceStatus.WARNING, heat)
+        got = []
+
+        def three() -> bool:
+            c.read(fb)
+            news = c.take_status()
+            if news is not None:
+                got.append(news)
+            return len(got) >= 3
+
+        wait_until(three, 5, interval=0.005, what="three reports")
+        assert {g[0] for g in got} == {DeviceStatus.NOTICE, DeviceStatus.WARNING, DeviceStatus.FAULT}
+        notice = next(g[1] for g in got if g[0] is DeviceStatus.NOTICE)
+        assert notice.message.startswith("bimanual_so101: bus 'right': ") and notice.register == "gOBJ"
+        assert [g[0] for g in got if g[0] in (DeviceStatus.NOTICE, DeviceStatus.WARNING)] == \
+            [DeviceStatus.NOTICE, DeviceStatus.WARNING]
+        assert c.device_status is DeviceStatus.FAULT
+        c.close()
 
 
 def test_every_traits_field_has_a_combining_rule():
@@ -596,3 +630,189 @@ def test_the_rollback_is_bounded_by_the_disable_time_limit():
     assert str(info.value).startswith("bimanual_so101: bus 'right': joint 'right_elbow_flex' did not confirm")
     assert str(info.value).endswith("undoing the enable: torque off not confirmed on 'left', 'right' within 0.1 s")
 
+
+
+# ---------------------------------------------------------------- a bus served at its own rate
+class SlowBus(FakeBus):
+    """A bus slower than the robot's cycle (one read + one write take 20 ms: a Robotiq gripper's
+    Modbus RTU beside a 200 Hz loop). Its read waits at ``gate`` while it is closed (a wire that
+    holds the bus); ``fail_reads`` makes the next reads fail (transient); every read is stamped
+    at its own time (``stamp`` + its number); ``log`` records the thread of every I/O and step."""
+
+    TRAITS = {**FakeBus.TRAITS, "min_period_s": 0.02}
+
+    def __init__(self, profile, base, stamp, **kw):
+        super().__init__(profile, base, stamp, **kw)
+        self.gate = threading.Event()
+        self.gate.set()
+        self.waiting = threading.Event()  # a read waits at the closed gate
+        self.reads = 0
+        self.fail_reads = 0
+        self.writes: list[np.ndarray] = []
+        self.disable_cycles = 1
+        self.step_threads: set[int] = set()
+
+    def _read(self, fb):
+        if not self.gate.is_set():
+            self.waiting.set()
+            self.gate.wait()
+        self.reads += 1
+        super()._read(fb)
+        fb.stamp = self.stamp + self.reads
+        if self.fail_reads:
+            self.fail_reads -= 1
+            return Fault("bus_timeout", f"{self.robot}: no reply from joint 'right_gripper' (id 6)",
+                         joint="right_gripper")
+        return self.fault
+
+    def _write(self, cmd):
+        self.writes.append(cmd.position.copy())
+        return super()._write(cmd)
+
+    def _enable_steps(self, feedback):
+        self.step_threads.add(threading.get_ident())
+        yield from super()._enable_steps(feedback)
+
+    def _disable_steps(self):
+        for _ in range(self.disable_cycles - 1):
+            self.step_threads.add(threading.get_ident())
+            yield
+        self.step_threads.add(threading.get_ident())
+        self.torque = False
+
+
+def slow_composite():
+    left = FakeBus(PROFILE.bus_profile("left"), 0.0, 100.0)
+    right = SlowBus(PROFILE.bus_profile("right"), 10.0, 50.0)
+    c = CompositeActuator(PROFILE, {"left": left, "right": right})
+    c.open()
+    return c, left, right
+
+
+def in_thread(fn, timeout=10.0):
+    """``fn()`` on a thread; fails (instead of hanging the suite) when it does not return in time."""
+    box = {}
+    t = threading.Thread(target=lambda: box.setdefault("out", fn()), daemon=True)
+    t.start()
+    t.join(timeout)
+    assert not t.is_alive(), "the cycle was held (it did not return)"
+    return box["out"]
+
+
+def test_a_slow_bus_is_served_at_its_own_rate_and_never_holds_the_cycle():
+    """A bus whose min_period_s is longer than the robot's cycle (bimanual_so101: 200 Hz) runs its
+    own cycles on its own thread: the robot's read never waits for it (here its wire is held) and
+    takes its newest completed read, which keeps its own read's stamp; the robot's sample is
+    stamped by the bus read in the cycle, and its period is bound by that bus only."""
+    c, left, right = slow_composite()
+    assert c.own_rate == {"right": 0.02}
+    assert c.traits.min_period_s == 0.0  # the slow bus bounds nothing: it is not joined
+    assert combine_traits([left.traits, right.traits], [(0, 0)] * 6 + [(1, 0)] * 6, ["l", "r"], "x").min_period_s == 0.02
+    assert right.reads == 1  # read once at open: the loop's first cycles have a sample
+    right.threads.clear()  # (that read was the start-up path's, on the calling thread)
+    right.gate.clear()  # its worker's first read waits at the held wire
+    fb = c.new_feedback()
+    faults = [in_thread(lambda: c.read(fb))]  # the first cycle starts its thread
+    wait_until(right.waiting.is_set, 5, what="the slow bus waiting at its held wire")
+    faults += in_thread(lambda: [c.read(fb) for _ in range(50)])
+    assert right.reads == 1  # it was stuck in its read all along
+    assert faults == [None] * 51 and fb.stamp == 100.0  # stamped by the bus read in the cycle
+    assert c.bus_stamps() == {"left": 100.0, "right": 51.0}  # the sample read at open, its own stamp
+    right.gate.set()
+    wait_until(lambda: c.read(fb) is None and c.bus_stamps()["right"] > 51.0, 5, what="the slow bus's next sample")
+    assert np.array_equal(fb.position, np.r_[np.arange(6.0), 10 + np.arange(6.0)])
+    k = c.bus_stamps()["right"] - 50.0  # the slow bus's own read's stamp
+    assert k == int(k) and 2 <= k <= right.reads and fb.stamp == 100.0
+    # DISABLED: a setpoint posted is never written; its reads go on at its own rate
+    cmd = c.new_command()
+    cmd.mode[:] = CommandMode.POSITION
+    assert c.write(cmd) is None
+    reads = right.reads
+    wait_until(lambda: right.reads >= reads + 3, 5, what="three more reads of the slow bus")
+    assert right.writes == []
+    assert threading.get_ident() not in right.threads  # its I/O on its own thread only
+    c.close()
+
+
+def test_lifecycle_steps_of_a_slow_bus_run_on_its_own_cycles_and_disable_waits_for_it():
+    """ENABLE / DISABLE steps of a slow bus run on its own thread over several of its cycles; the
+    robot's DISABLE ends only when the slow bus's did; a setpoint posted while its wire is held
+    is not queued: the newest wins (a stop never waits behind stale setpoints)."""
+    c, left, right = slow_composite()
+    right.enable_cycles = 3
+    c.enable(c.new_feedback())
+    assert right.torque and right.is_enabled and c.is_enabled and right.steps == 3
+    assert right.step_threads and threading.get_ident() not in right.step_threads
+    right.waiting.clear()
+    right.gate.clear()
+    wait_until(right.waiting.is_set, 5, what="the slow bus waiting at its held wire")
+    before = len(right.writes)
+    cmd = c.new_command()
+    cmd.mode[:] = CommandMode.POSITION
+    for value in (1.0, 2.0, 3.0):  # three cycles' setpoints while the bus is held
+        cmd.position[:] = value
+        assert in_thread(lambda: c.write(cmd)) is None
+    right.gate.set()
+    wait_until(lambda: len(right.writes) > before, 5, what="the slow bus's next write")
+    assert np.all(right.writes[before] == 3.0)  # the newest: 1.0 and 2.0 never reached it
+    # DISABLE: 4 of the slow bus's steps; the robot's ends only once its torque is off
+    right.disable_cycles = 4
+    runner = CycleRunner(c, 0.005)
+    t = c.begin(Lifecycle.DISABLE)
+    cycles = 0
+    while not runner.step_transition(t)[0]:
+        cycles += 1
+        assert cycles < 2000, "DISABLE did not end"
+    assert not right.torque and not left.torque and not right.is_enabled
+    assert cycles >= 3  # it took the slow bus's cycles (each several of the robot's)
+    c.close()
+
+
+def test_a_slow_bus_failing_faults_the_robot_naming_bus_and_joint(monkeypatch):
+    """Transient failures of the slow bus are counted at its own rate (safety.bus_errors_max of
+    its reads in a row, not of the robot's cycles); the robot FAULTs in the cycle that sees the
+    FAULT, naming bus and joint, and every bus is switched off. A bus that stops publishing
+    altogether (a stuck worker) is a FAULT too."""
+    import crtk_bridge.backends.composite as composite_module
+
+    left = FakeBus(PROFILE.bus_profile("left"), 0.0, 100.0)
+    right = SlowBus(PROFILE.bus_profile("right"), 10.0, 50.0)
+    act = CompositeActuator(PROFILE, {"left": left, "right": right})
+    act.open()
+    clock = Clock()
+    c = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
+    runner = CycleRunner(act, c.dt, clock=clock, sleep=clock.sleep)
+
+    def until(cond, what, timeout=10.0):
+        deadline = time.monotonic() + timeout
+        while not cond():
+            assert time.monotonic() < deadline, f"timed out waiting for {what}"
+            runner.cycle(c)
+            time.sleep(0.001)
+
+    until(lambda: right.reads > 0, "the slow bus's first sample")
+    c.handle({"id": 1, "cmd": "enable", "ns": None, "data": {}})
+    until(lambda: c.state is OperatingState.ENABLED, "ENABLED")
+    right.fail_reads = PROFILE.safety.bus_errors_max - 1  # fewer than the limit in a row: no FAULT
+    start = right.reads
+    until(lambda: right.reads >= start + PROFILE.safety.bus_errors_max + 2, "the slow bus's reads")
+    assert c.state is OperatingState.ENABLED
+    right.fail_reads = 1000
+    until(lambda: c.state is OperatingState.FAULT, "FAULT")
+    assert c.fault_cause.joint == "right_gripper" and not c.fault_cause.transient
+    assert c.fault_cause.message == ("bimanual_so101: bus 'right': no reply from joint 'right_gripper' (id 6) "
+                                     f"({PROFILE.safety.bus_errors_max} failed reads in a row)")
+    until(lambda: not c.is_busy, "the fault's DISABLE")
+    assert not right.torque and not left.torque
+    act.close()
+    # a worker that publishes nothing any more (its wire holds it for ever)
+    monkeypatch.setattr(composite_module, "OWN_RATE_STALE_S", 0.2)
+    monkeypatch.setattr(composite_module, "OWN_RATE_STALE_PERIODS", 1)
+    c, left, right = slow_composite()
+    fb = c.new_feedback()
+    wait_until(lambda: c.read(fb) is None, 5, what="a first sample")
+    right.gate.clear()
+    f = wait_until(lambda: c.read(fb), 5, what="the stuck bus's fault")
+    assert not f.transient and f.message.startswith("bimanual_so101: bus 'right': no sample for 0.2 s"), f.message
+    right.gate.set()
+    c.close()

@@ -225,6 +225,8 @@ SPEC: dict[tuple[str, str], How] = {
         "daemon", "sim-canopen"),
     ("docs/simulators.md", "crtk-sim ur --profile profiles/ur5e.yaml --host 127.0.0.2 --control /tmp/ur.ctl"): How(
         "forever", rc=0),
+    ("docs/simulators.md", "crtk-sim robotiq --profile profiles/robotiq_2f85.yaml --link /tmp/ttyGRIP --control /tmp/grip.sock"): How(
+        "forever", ready=r"crtk-sim: robotiq ready: port=\S+/ttyGRIP control=\S+/grip.sock", rc=0),
     # docs/teleop.md (its `crtk-bridge ... &` lines: the scene's daemons, by the rule in how())
     ("docs/teleop.md", "crtk-ctl --robot so101 enable"): How(scene="teleop", out=(r"so101: ENABLED",)),
     ("docs/teleop.md", "crtk-ctl teleop --leader so101_leader --follower so101"): How(

@@ -265,6 +265,7 @@ STREAMER = textwrap.dedent("""
 """)
 
 
+@pytest.mark.requires("arm")  # a stream of rad-sized steps
 def test_killed_controlling_client_makes_the_arm_hold(sim_daemon):
     watcher = connect(socket=str(sim_daemon.socket_path))
     arm = watcher.device(sim_daemon.robot.arm)

@@ -20,7 +20,7 @@ from crtk_bridge.core.actuator import Actuator
 from .conftest import RawSession, wait_until
 
 # every simulated robot; each test leaves its arm ENABLED somewhere sim_daemon can move it back from
-pytestmark = [pytest.mark.requires(), pytest.mark.reuse_daemon]
+pytestmark = [pytest.mark.requires("arm"), pytest.mark.reuse_daemon]  # arm poses in rad, stopping distances
 
 TOL = 0.02  # rad: sim quantisation 0.0015 rad; the first-order servo lag settles well inside this
 

@@ -13,7 +13,7 @@ from crtk_bridge.client import CommandError, connect
 
 from .conftest import DaemonProcess, RawSession, standalone_sim, wait_until
 
-pytestmark = pytest.mark.requires()  # every simulated robot
+pytestmark = pytest.mark.requires("arm")  # every simulated arm (it checks measured velocity, rad goals)
 
 TOL = 0.02  # rad: sim servo quantisation is 2*pi/4096 = 0.0015 rad; first-order lag settles well inside this
 

@@ -17,7 +17,7 @@ from crtk_bridge.profile import load_profile
 
 from .conftest import wait_until
 
-pytestmark = pytest.mark.requires()  # every simulated robot
+pytestmark = pytest.mark.requires("arm")  # every simulated arm (goal registers in rad-sized steps)
 
 
 def goal_samples(bot, sim, sid: int, seconds: float, until=None) -> list[tuple[float, float, int]]:

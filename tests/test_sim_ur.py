@@ -10,6 +10,7 @@ is a poll with a deadline.
 from __future__ import annotations
 
 import math
+import os
 import re
 import socket
 import time
@@ -513,3 +514,60 @@ def _try(fn) -> bool:
         return bool(fn())
     except RuntimeError:
         return False
+
+
+def test_the_tool_port_relays_raw_bytes_to_the_serial_line_behind_the_flange(tmp_path):
+    """``tool_link``: TCP 54321 (UR's tool communication) carries raw bytes both ways to the serial
+    device behind the tool connector (here a bare pty, where a Robotiq simulator sits under
+    --sim), reached with pyserial's ``socket://`` URL as the gripper's backend does; one client
+    at a time; a link loss of the port ``tool`` drops it."""
+    import select as _select
+
+    import serial
+
+    from crtk_bridge.sim.loopback import free_loopback_host
+    from crtk_bridge.sim.pty import PtyPort, line_baud
+    from crtk_bridge.sim.ur import PORTS, TOOL_PORT, URController
+
+    line = PtyPort(link=tmp_path / "ttyTOOL")
+    line.open()
+    ctl = URController(free_loopback_host([*PORTS.values(), TOOL_PORT]), tool_link=line.path,
+                       control=str(tmp_path / "ur.ctl"))
+    ctl.start()
+    try:
+        def on_line(n: int) -> bytes:
+            got = b""
+            deadline = time.monotonic() + 5
+            while len(got) < n and time.monotonic() < deadline:
+                if _select.select([line.master_fd], [], [], 0.1)[0]:
+                    got += os.read(line.master_fd, 256)
+            return got
+
+        port = serial.serial_for_url(f"socket://{ctl.host}:{TOOL_PORT}", timeout=2)
+        request = bytes.fromhex("0904 07d0 0003 b1ee".replace(" ", ""))  # an FC4 read, as on RS-485
+        port.write(request)
+        assert on_line(len(request)) == request
+        assert line_baud(line.master_fd) == 115200  # the tool's serial rate
+        reply = bytes(range(256)) * 2  # every byte value, unchanged
+        os.write(line.master_fd, reply)
+        assert port.read(len(reply)) == reply
+        wait_until(lambda: ctl.state()["tool_clients"] == 1, 5, what="the tool client counted")
+        second = socket.create_connection((ctl.host, TOOL_PORT), timeout=2)
+        assert second.recv(16) == b""  # one client at a time: the second is closed
+        second.close()
+        assert ctl.control({"cmd": "link_loss", "duration_s": 0.3, "ports": ["tool"]})["ok"]
+        wait_until(lambda: ctl.state()["tool_clients"] == 0, 5, what="the tool client dropped")
+        port.close()
+        def reconnected():
+            try:
+                p = serial.serial_for_url(f"socket://{ctl.host}:{TOOL_PORT}", timeout=2)
+            except serial.SerialException:
+                return None
+            return p
+        port = wait_until(reconnected, 5, what="the tool port back after the link loss")
+        port.write(b"\x09\x10")
+        assert on_line(2) == b"\x09\x10"
+        port.close()
+    finally:
+        ctl.stop()
+        line.close()

@@ -31,9 +31,10 @@ def test_serial_sim_relaxes_the_reply_margin_only_where_the_profile_is_silent(na
 
 
 class _FakeSimulator:
-    def __init__(self, profile_path, device, workdir, bus="", host_ports=(), raise_priority=False):
-        self.link = f"{workdir}/tty-{bus}"
+    def __init__(self, profile_path, device, workdir, bus="", host_ports=(), raise_priority=False, tool_link=None):
+        self.link = "127.0.0.7" if host_ports else f"{workdir}/tty-{bus}"
         self.control = f"{workdir}/sim-{bus}.sock"
+        self.device, self.tool_link = device, tool_link
 
 
 def test_every_bus_of_a_several_bus_profile_is_wired_by_its_backend(monkeypatch, tmp_path):
@@ -59,3 +60,27 @@ def test_each_backends_sim_defaults_fill_only_what_the_profile_leaves_unset(name
     for own in (None, value * 2):  # null is "no value": the simulator's; a number is kept
         mine = msgspec.structs.replace(profile, backend={**profile.backend, key: own})
         assert cls.sim_profile(mine, "127.0.0.9").backend[key] == (value if own is None else own)
+
+
+def test_a_bus_behind_another_buss_tool_port_is_simulated_behind_it(monkeypatch, tmp_path):
+    """A gripper on a UR's tool flange (its port ``socket://<the arm's host>:54321``): --sim starts
+    its simulator on a pty that the UR simulator relays its tool port to (``--tool-link``), and
+    the gripper's backend reaches it through the UR simulator's address, as on the robot."""
+    profile = load_profile(Path(__file__).resolve().parent / "profiles" / "ur5e_xl330_gripper.yaml")
+    arm = profile.backends["arm"]
+    hand = {**profile.backends["hand"], "port": f"socket://{arm['host']}:54321"}
+    profile = msgspec.structs.replace(profile, backends={"arm": arm, "hand": hand})
+    monkeypatch.setattr(daemon, "SimulatorProcess", _FakeSimulator)
+    started: list = []
+    wired = daemon._simulate_buses(profile, "ur5e_gripper.yaml", str(tmp_path), started, False)
+    ur, gripper = started
+    assert ur.device == "ur" and ur.tool_link == f"{tmp_path}/tty-hand" == gripper.link
+    assert gripper.tool_link is None
+    assert wired.backends["arm"]["host"] == "127.0.0.7"
+    assert wired.backends["hand"]["port"] == "socket://127.0.0.7:54321"
+    # a socket port elsewhere (another host, another port) is that bus's own simulator's pty
+    for port in ("socket://10.0.0.9:54321", f"socket://{arm['host']}:502"):
+        other = msgspec.structs.replace(profile, backends={"arm": arm, "hand": {**hand, "port": port}})
+        started = []
+        wired = daemon._simulate_buses(other, "ur5e_gripper.yaml", str(tmp_path), started, False)
+        assert started[0].tool_link is None and wired.backends["hand"]["port"] == f"{tmp_path}/tty-hand"

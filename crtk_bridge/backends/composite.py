@@ -14,6 +14,16 @@ are pre-allocated and gathered / scattered with index arrays. The cycle's stamp 
 bus's (the sample is at least that old). A fault on any bus is the robot's, its message naming
 the bus (and the bus's backend names the joint).
 
+A bus slower than the robot's cycle (``traits.min_period_s`` longer than the effective period: a
+Robotiq gripper's Modbus RTU beside a UR's 500 Hz) is served at its own rate and never joined
+(:class:`_OwnRateWorker`): its thread runs the bus's own cycles (core/cycle.py
+``CycleRunner.own_rate``) and publishes each completed read with its own stamp; the cycle takes
+the newest sample, posts the newest setpoint (newest wins: a stop never queues behind stale
+setpoints) and hands the bus's lifecycle transitions to it, seeing at each read how they went (the
+robot's DISABLE ends only once that bus's did). Its failures are counted at its own rate against
+``safety.bus_errors_max`` and reach the loop as a FAULT naming bus and joint
+(docs/architecture.md, "Several buses: the composite").
+
 Start-up: ``open`` / ``configure`` / ``close`` run bus by bus (``open`` closes the buses already
 opened when one fails). Lifecycle transitions (enable, disable, pause, resume, fault reset) run on
 every bus together: each cycle steps every bus's :class:`~crtk_bridge.core.actuator.Transition`
@@ -36,6 +46,8 @@ becomes the robot's through ONE function, :func:`combine_traits`, with one rule 
   needs homing but cannot home itself beside one that can is refused: core's move-home and a
   native HOME cannot share one ``home``);
 * speed scaling: the bus that has a speed slider reports it (the slowest, if several do);
+* the shortest period: the longest of the buses served in every cycle (a slower one is served
+  at its own rate and bounds nothing);
 * transition time limits: the buses' added up (their steps share the loop's thread), plus the
   rollback of a failed enable.
 
@@ -60,9 +72,11 @@ from typing import Any
 import numpy as np
 
 from ..core.actuator import (
+    DEVICE_NEWS,
     Actuator,
     ActuatorInfo,
     Clock,
+    CommandMode,
     DeviceStatus,
     Fault,
     JointCommand,
@@ -70,7 +84,9 @@ from ..core.actuator import (
     Lifecycle,
     Steps,
     Traits,
+    Transition,
 )
+from ..core.cycle import CycleRunner
 from ..errors import BackendError, ProfileError
 from ..profile import Profile
 
@@ -126,12 +142,241 @@ class _BusWorker:
             self._thread.join(1.0)
 
 
+#: an own-rate bus with no new sample for this many of its periods (at least OWN_RATE_STALE_S) is
+#: lost: its worker is stuck (its own read failures are counted by the worker itself)
+OWN_RATE_STALE_PERIODS = 50
+OWN_RATE_STALE_S = 2.0
+
+
+def _copy_feedback(dst: JointFeedback, src: JointFeedback) -> None:
+    np.copyto(dst.position, src.position)
+    np.copyto(dst.velocity, src.velocity)
+    np.copyto(dst.effort, src.effort)
+    dst.stamp = src.stamp
+    if dst.cartesian is not None and src.cartesian is not None:
+        dst.cartesian.copy_from(src.cartesian)
+
+
+def _copy_command(dst: JointCommand, src: JointCommand) -> None:
+    np.copyto(dst.mode, src.mode)
+    np.copyto(dst.position, src.position)
+    np.copyto(dst.velocity, src.velocity)
+    np.copyto(dst.effort, src.effort)
+    a, b = dst.cartesian, src.cartesian
+    if a is not None and b is not None:
+        for name in ("mode", "position", "orientation", "linear", "angular", "frame", "seq"):
+            np.copyto(getattr(a, name), getattr(b, name))
+
+
+class _OwnRateWorker:
+    """A bus served at its own rate (its ``traits.min_period_s`` is longer than the robot's
+    cycle): one thread runs the bus's own cycle on its own schedule (core/cycle.py
+    ``CycleRunner.own_rate``: wait, read, one step of the transition handed to it, write the
+    newest setpoint) and publishes each completed read with its own stamp. The loop's cycle never
+    waits for it: it takes the newest published sample (:meth:`take`), hands the newest setpoint
+    over (:meth:`post`: newest wins, so a stop never queues behind stale setpoints) and hands
+    lifecycle transitions over (:meth:`hand`), seeing how they went at its reads. One lock guards
+    the hand-overs (copies of a few numbers). Failed reads / writes are counted here against
+    ``safety.bus_errors_max`` (core counts the loop's cycles, not the bus's): the loop hears of a
+    failure once it is a FAULT (non-transient), in the cycle that sees it."""
+
+    def __init__(self, name: str, actuator: Actuator, period_s: float, errors_max: int,
+                 first: JointFeedback | None = None):
+        """``first``: the bus's sample read at open (the loop's first cycles take it until the
+        worker's own first read); None: none (a transient "no sample yet" until then)."""
+        self.actuator = actuator
+        self.period_s = period_s
+        self.errors_max = max(1, int(errors_max))
+        self.stale_s = max(OWN_RATE_STALE_S, OWN_RATE_STALE_PERIODS * period_s)
+        self.runner = CycleRunner(actuator, period_s)  # the bus's own schedule
+        self._lock = threading.Lock()
+        self._stop = False
+        # loop -> worker (under _lock)
+        self._cmd = actuator.new_command()  # the newest setpoint (every joint NONE: none yet)
+        self._transition: Transition | None = None
+        self._aborts: list[Transition] = []
+        # worker -> loop (under _lock)
+        self._sample = actuator.new_feedback()
+        self._sample_fault: Fault | None = Fault(
+            "bus_timeout", f"{actuator.robot}: no sample yet (served at its own rate)", transient=True)
+        if first is not None:
+            _copy_feedback(self._sample, first)
+            self._sample_fault = None
+        self._write_fault: Fault | None = None
+        self._news: tuple[DeviceStatus, Fault | None] | None = None
+        self._device_news: list[tuple[DeviceStatus, Fault | None]] = []  # WARNING / NOTICE reports
+        self._result: tuple[Transition, bool, BaseException | None] | None = None
+        self._published = time.monotonic()
+        self.cycles = 0  # the bus's own cycles run
+        # the worker's own
+        self._mine = actuator.new_command()
+        self._streak = {"read": 0, "write": 0}
+        # the loop's own: what the last take() saw
+        self.seen: tuple[Transition, bool, BaseException | None] | None = None
+        self.news: tuple[DeviceStatus, Fault | None] | None = None
+        self.device_news: list[tuple[DeviceStatus, Fault | None]] = []  # the news reported since
+        #: the feedback an ENABLE handed to this bus holds (the worker's, not the loop's buffer)
+        self.enable_feedback = actuator.new_feedback()
+        self._thread = threading.Thread(target=self._run, name=f"crtk-bus-{name}", daemon=True)
+        self._thread.start()
+
+    # ---- the worker's thread
+    def _run(self) -> None:
+        act, runner = self.actuator, self.runner
+        runner.restart()
+        try:
+            while not self._stop:
+                with self._lock:
+                    t = self._transition
+                    aborts = self._aborts
+                    if aborts:
+                        self._aborts = []
+                for a in aborts:  # replaced or abandoned by the loop: closed on this thread
+                    a.abort()
+                read_fault, write_fault, done, error = runner.own_rate(t, self._newest)
+                read_fault = self._count("read", read_fault)
+                write_fault = self._count("write", write_fault)
+                reports = []
+                while (report := act.take_status()) is not None:  # its status, then its news
+                    reports.append(report)
+                with self._lock:
+                    _copy_feedback(self._sample, runner.feedback)
+                    self._sample_fault = read_fault
+                    if write_fault is not None:
+                        self._write_fault = write_fault
+                    for report in reports:
+                        if report[0] in DEVICE_NEWS:
+                            self._device_news.append(report)
+                        else:
+                            self._news = report
+                    if t is not None and self._transition is t:
+                        self._result = (t, done, error)
+                        if done:
+                            self._transition = None
+                    self._published = time.monotonic()
+                    self.cycles += 1
+        finally:
+            with self._lock:
+                left = [*self._aborts, self._transition]
+                self._aborts, self._transition = [], None
+            for a in left:
+                if a is not None:
+                    a.abort()
+
+    def _newest(self) -> JointCommand:
+        """The newest setpoint the loop posted, taken just before the bus's write."""
+        with self._lock:
+            _copy_command(self._mine, self._cmd)
+        return self._mine
+
+    def _count(self, what: str, fault: Fault | None) -> Fault | None:
+        """The bus's failed reads (writes) in a row: a transient failure is the loop's only from
+        ``errors_max`` in a row on (then non-transient: the robot's FAULT)."""
+        if fault is None:
+            self._streak[what] = 0
+            return None
+        n = self._streak[what] = self._streak[what] + 1
+        if not fault.transient:
+            return fault
+        if n < self.errors_max:
+            return None
+        return dataclasses.replace(fault, message=f"{fault.message} ({n} failed {what}s in a row)", transient=False)
+
+    # ---- the loop's thread
+    def take(self, feedback: JointFeedback) -> Fault | None:
+        """The newest completed read into ``feedback`` (its own stamp), the transition's progress
+        into :attr:`seen`, the device status reported since into :attr:`news` and its news
+        (WARNING / NOTICE) into :attr:`device_news`; -> the read's
+        fault (a FAULT), or a non-transient ``bus_timeout`` when nothing was published for
+        ``stale_s`` (a stuck worker)."""
+        with self._lock:
+            _copy_feedback(feedback, self._sample)
+            fault = self._sample_fault
+            self.seen = self._result
+            self.news, self._news = self._news, None
+            self.device_news, self._device_news = self._device_news, []
+            published = self._published
+        if fault is None and time.monotonic() - published > self.stale_s:
+            return Fault("bus_timeout", f"{self.actuator.robot}: no sample for {self.stale_s:g} s "
+                         f"(served at its own rate every {self.period_s * 1e3:.3g} ms)", transient=False)
+        return fault
+
+    def post(self, command: JointCommand) -> Fault | None:
+        """``command`` becomes the newest setpoint (the last one posted wins); -> the write fault
+        (a FAULT) the bus reported since the last post, once."""
+        with self._lock:
+            _copy_command(self._cmd, command)
+            fault, self._write_fault = self._write_fault, None
+        return fault
+
+    def clear_command(self) -> None:
+        """No setpoint (every joint NONE) until the loop posts one: an ENABLE must not send a
+        setpoint from before it."""
+        with self._lock:
+            self._cmd.mode[:] = CommandMode.NONE
+            if self._cmd.cartesian is not None:
+                self._cmd.cartesian.mode[:] = 0
+
+    def hand(self, transition: Transition) -> None:
+        """``transition`` is stepped on the bus's own cycles from now on, replacing (aborting)
+        any other."""
+        with self._lock:
+            if self._transition is not None:
+                self._aborts.append(self._transition)
+            self._transition = transition
+            self._result = None
+
+    def abort(self, transition: Transition) -> None:
+        """Stop stepping ``transition``; it is closed on the worker's thread (a no-op if it ended)."""
+        with self._lock:
+            if self._transition is transition:
+                self._transition = None
+            self._aborts.append(transition)
+
+    def stop(self) -> None:
+        self._stop = True
+        if self._thread.is_alive():
+            self._thread.join(max(1.0, 4 * self.period_s))
+
+
+class _Handed:
+    """A bus's lifecycle transition stepped on its own-rate worker (:class:`_OwnRateWorker`), as
+    the composite's steps see it: each loop cycle's step tells how it went as of that cycle's
+    read (so an ENABLE ends with the bus's fresh sample already taken)."""
+
+    __slots__ = ("worker", "transition", "done")
+
+    def __init__(self, worker: _OwnRateWorker, transition: Transition):
+        self.worker, self.transition, self.done = worker, transition, False
+        worker.hand(transition)
+
+    def step(self) -> bool:
+        if self.done:
+            return True
+        seen = self.worker.seen
+        if seen is not None and seen[0] is self.transition:
+            if seen[2] is not None:
+                self.done = True
+                raise seen[2]
+            if seen[1]:
+                self.done = True
+                return True
+        return False
+
+    def abort(self) -> None:
+        if not self.done:
+            self.done = True
+            self.worker.abort(self.transition)
+
+
 class _Buses:
     """What a combining rule may need beside the buses' traits: joint ``i`` of the robot is joint
-    ``owner[i][1]`` of bus ``owner[i][0]``; ``names`` are the buses'; ``where`` names the robot."""
+    ``owner[i][1]`` of bus ``owner[i][0]``; ``names`` are the buses'; ``where`` names the robot;
+    ``period_s`` is the robot's cycle period (None: not known)."""
 
-    def __init__(self, owner: Sequence[tuple[int, int]], names: Sequence[str], where: str):
-        self.owner, self.names, self.where = owner, names, where
+    def __init__(self, owner: Sequence[tuple[int, int]], names: Sequence[str], where: str,
+                 period_s: float | None = None):
+        self.owner, self.names, self.where, self.period_s = owner, names, where, period_s
 
     def named(self, buses: Sequence[int]) -> str:
         return ", ".join(repr(self.names[b]) for b in buses)
@@ -179,6 +424,13 @@ def _timeouts(values: list, parts: list[Traits], buses: _Buses) -> dict[Lifecycl
     return out
 
 
+def _joined_period(values: list, parts: list[Traits], buses: _Buses) -> float:
+    """The longest of the buses the robot's cycle serves in every cycle: a bus slower than the
+    robot's cycle period is served at its own rate (CompositeActuator) and bounds nothing."""
+    period = buses.period_s
+    return max((v for v in values if period is None or v <= period), default=0.0)
+
+
 #: how the robot's traits come from its buses': one rule per :class:`Traits` field, called with
 #: (each bus's value, each bus's traits, the buses); tests/test_composite.py checks every field has one
 TRAIT_RULES: dict[str, Callable[[list, list[Traits], _Buses], Any]] = {
@@ -189,17 +441,19 @@ TRAIT_RULES: dict[str, Callable[[list, list[Traits], _Buses], Any]] = {
     "goal_check": _any,  # delegated per namespace to its bus (CompositeActuator.goal_check_steps)
     "native_homing": _homing,
     "speed_scaling": _any,  # the bus's slider (CompositeActuator.speed_fraction)
+    "min_period_s": _joined_period,
     "transition_timeouts_s": _timeouts,
 }
 
 
 def combine_traits(parts: Sequence[Traits], owner: Sequence[tuple[int, int]], names: Sequence[str],
-                   where: str) -> Traits:
+                   where: str, period_s: float | None = None) -> Traits:
     """The traits of a robot made of buses with traits ``parts`` (see the module docstring):
-    every field of :class:`Traits` by its rule in :data:`TRAIT_RULES`. Raises ProfileError when
+    every field of :class:`Traits` by its rule in :data:`TRAIT_RULES` (``period_s``: the robot's
+    cycle period, which decides which buses are served at their own rate). Raises ProfileError when
     the buses cannot be one robot, naming them; a field without a rule is a bug (KeyError)."""
     parts = list(parts)
-    buses = _Buses(owner, names, where)
+    buses = _Buses(owner, names, where, period_s)
     return Traits(**{f.name: TRAIT_RULES[f.name]([getattr(t, f.name) for t in parts], parts, buses)
                      for f in dataclasses.fields(Traits)})
 
@@ -230,7 +484,16 @@ class CompositeActuator(Actuator):
         self._pacer: Actuator | None = None
         self._scaled: list[Actuator] = []  # the buses with a speed slider
         self._combined: Traits | None = None
-        self._workers: list[_BusWorker] | None = None  # started at the first cycle (see _start_workers)
+        self._workers: list[_BusWorker | _OwnRateWorker] | None = None  # started at the first cycle (_start_workers)
+        #: per bus: its worker (None: the bus served on the calling thread), once started
+        self._bw: list[_BusWorker | _OwnRateWorker | None] = []
+        #: bus -> its own period (s), for the buses served at their own rate (known once open)
+        self.own_rate: dict[str, float] = {}
+        self._own_b: list[int] = []  # the buses served at their own rate
+        self._joined_b: list[int] = []  # the buses joined every cycle on a worker of theirs
+        self._first = -1  # the bus joined every cycle on the calling thread (-1: none)
+        self._first_sample: dict[int, JointFeedback] = {}  # own-rate bus -> its sample read at open
+        self._stamped: list[bool] = []  # per bus: its stamp is one the robot's sample takes
         nb = len(self.parts)
         self._read_res: list[Fault | None] = [None] * nb  # this cycle's result per bus
         self._write_res: list[Fault | None] = [None] * nb
@@ -251,7 +514,21 @@ class CompositeActuator(Actuator):
     def _combine(self) -> None:
         """The robot's traits and what follows from them, once every bus is open."""
         owner = [(int(self._owner[i]), int(self._local[i])) for i in range(self.n)]
-        self._combined = combine_traits([p.traits for p in self.parts], owner, self.bus_names, self._source)
+        self._pacer = next((p for p in self.parts if p.traits.clock is Clock.DEVICE), None)
+        hw = self._pacer.cycle_period_s() if self._pacer is not None else None
+        period = float(hw) if hw is not None else 1.0 / self.profile.loop.rate_hz  # (effective_period_s)
+        self._combined = combine_traits([p.traits for p in self.parts], owner, self.bus_names, self._source, period)
+        # a bus slower than the robot's cycle is served at its own rate, never joined by the cycle
+        self._own_b = [b for b, p in enumerate(self.parts) if p.traits.min_period_s > period]
+        self.own_rate = {self.bus_names[b]: self.parts[b].traits.min_period_s for b in self._own_b}
+        joined = [b for b in range(len(self.parts)) if b not in self._own_b]
+        self._first = joined[0] if joined else -1
+        self._joined_b = joined[1:]
+        # the sample's one stamp: the earliest of the buses read in the cycle (an own-rate bus's
+        # newest read is older by up to its period: stamping the robot's sample with it would
+        # freeze the stamp of a 500 Hz arm for cycles while its joints move); every bus's if
+        # every bus runs at its own rate
+        self._stamped = [b in joined or not joined for b in range(len(self.parts))]
         self._fb = [p.new_feedback() for p in self.parts]
         self._cmd = [p.new_command() for p in self.parts]
         # native cartesian rows (a UR arm beside a servo gripper): bus b's rows are the robot's lo:hi
@@ -264,7 +541,6 @@ class CompositeActuator(Actuator):
                 lo += k
         # written every cycle if its bus needs it; the others only while enabled
         self._cyclic = [p.traits.cyclic_write for p in self.parts]
-        self._pacer = next((p for p in self.parts if p.traits.clock is Clock.DEVICE), None)
         self._scaled = [p for p in self.parts if p.traits.speed_scaling]
 
     # ---------------------------------------------------------------- pacing
@@ -272,12 +548,14 @@ class CompositeActuator(Actuator):
         return self._pacer.cycle_period_s() if self._pacer is not None else None
 
     def wait_cycle(self, deadline: float) -> bool:
-        """The pacing bus's wait (the device's clock) first, if any; then every other bus's
-        start of the cycle (a CANopen SYNC), in bus order."""
+        """The pacing bus's wait (the device's clock) first, if any; then every other joined
+        bus's start of the cycle (a CANopen SYNC), in bus order (a bus served at its own rate
+        starts its own cycles)."""
         pacer = self._pacer
         ok = pacer.wait_cycle(deadline) if pacer is not None else True
-        for p in self.parts:
-            if p is not pacer:
+        own = self._own_b
+        for b, p in enumerate(self.parts):
+            if p is not pacer and b not in own:
                 p.wait_cycle(deadline)
         return ok
 
@@ -294,7 +572,7 @@ class CompositeActuator(Actuator):
         if not part.traits.goal_check:
             return None
         steps = part.goal_check_steps(ns, cmd, goal)
-        return None if steps is None else self._named_steps(b, steps)
+        return None if steps is None else self._named_steps(b, self._bus_steps(b, Lifecycle.GOAL_CHECK, steps))
 
     def mode_switch_steps(self, modes: np.ndarray) -> Steps | None:
         """Each bus's own operating-mode switch for its joints' ``modes``, stepped together (one
@@ -303,7 +581,7 @@ class CompositeActuator(Actuator):
         for b, idx in enumerate(self._idx):
             steps = self.parts[b].mode_switch_steps(modes[idx])
             if steps is not None:
-                todo.append(self._named_steps(b, steps))
+                todo.append(self._named_steps(b, self._bus_steps(b, Lifecycle.MODE_SWITCH, steps)))
         return self._switch_together(todo) if todo else None
 
     @staticmethod
@@ -324,6 +602,23 @@ class CompositeActuator(Actuator):
         finally:
             for steps in todo:
                 steps.close()
+
+    def _bus_steps(self, b: int, kind: Lifecycle, steps: Steps) -> Steps:
+        """Bus ``b``'s own steps: as they are for a bus joined every cycle (the caller steps them
+        on the loop's thread, after its read); stepped on its own cycles for a bus served at its
+        own rate (its bus is its worker's alone), the caller's step seeing how they went."""
+        if b not in self._own_b:
+            return steps
+        return self._handed_steps(b, Transition(self.robot, kind, steps, math.inf))
+
+    def _handed_steps(self, b: int, transition: Transition) -> Steps:
+        self._ensure_workers()
+        handed = _Handed(self._bw[b], transition)
+        try:
+            while not handed.step():
+                yield
+        finally:
+            handed.abort()
 
     def _named_steps(self, b: int, steps: Steps) -> Steps:
         """A bus's steps whose BackendError names the bus (a refusal, CommandError, passes as is)."""
@@ -346,7 +641,7 @@ class CompositeActuator(Actuator):
 
     def info(self) -> ActuatorInfo:
         details: dict[str, Any] = {name: p.info().details for name, p in zip(self.bus_names, self.parts)}
-        return ActuatorInfo(list(self.joint_names), {"buses": details})
+        return ActuatorInfo(list(self.joint_names), {"buses": details, "own_rate_period_s": dict(self.own_rate)})
 
     # ---------------------------------------------------------------- lifecycle
     def _open_hook(self) -> None:
@@ -356,6 +651,12 @@ class CompositeActuator(Actuator):
                 self._on_bus(b, p.open)
                 opened.append(p)
             self._combine()
+            # a first sample of each bus served at its own rate, read now (open may block), so
+            # the loop's first cycle has it: its worker starts with the first cycle
+            self._first_sample = {b: self.parts[b].new_feedback() for b in self._own_b}
+            for b, fb in list(self._first_sample.items()):
+                if self.parts[b].read(fb) is not None:
+                    del self._first_sample[b]
         except BaseException:
             for p in opened:
                 p.close()
@@ -399,15 +700,23 @@ class CompositeActuator(Actuator):
         error is raised. DISABLE goes on on every bus when one fails, then names every bus that
         did not confirm."""
         buses = list(range(len(self.parts))) if buses is None else buses
-        transitions = []
+        transitions: list[tuple[int, Transition | _Handed]] = []
+        if any(b in self._own_b for b in buses):
+            self._ensure_workers()
         for b in buses:
+            own = b in self._own_b
             fb = None
             if feedback is not None:
-                fb = self._fb[b]
+                fb = self._bw[b].enable_feedback if own else self._fb[b]
                 np.take(feedback.position, self._idx[b], out=fb.position)
                 np.take(feedback.velocity, self._idx[b], out=fb.velocity)
                 np.take(feedback.effort, self._idx[b], out=fb.effort)
-            transitions.append((b, self.parts[b].begin(kind, fb)))
+            if own:  # stepped on the bus's own cycles; an ENABLE sends no setpoint from before it
+                if kind is Lifecycle.ENABLE:
+                    self._bw[b].clear_command()
+                transitions.append((b, _Handed(self._bw[b], self.parts[b].begin(kind, fb))))
+            else:
+                transitions.append((b, self.parts[b].begin(kind, fb)))
         failed: list[str] = []
         error: BackendError | None = None
         try:
@@ -480,7 +789,7 @@ class CompositeActuator(Actuator):
     def calibration_begin(self) -> Steps:
         for b, p in enumerate(self.parts):
             try:
-                yield from p.calibration_begin()
+                yield from self._bus_steps(b, Lifecycle.CALIBRATE, p.calibration_begin())
             except BackendError as exc:
                 raise self._named(b, exc) from exc
 
@@ -510,45 +819,80 @@ class CompositeActuator(Actuator):
             raise self._named(b, exc) from exc
 
     # ---------------------------------------------------------------- real-time path
-    def _start_workers(self) -> list[_BusWorker]:
-        """One thread per bus but the first, created once, in the control process (after the
-        fork) and after it asked for its real-time scheduling, which the threads inherit."""
-        self._workers = [_BusWorker(name, p, self._fb[b], self._cmd[b])
-                         for b, (name, p) in enumerate(zip(self.bus_names, self.parts)) if b > 0]
+    def _start_workers(self) -> list[_BusWorker | _OwnRateWorker]:
+        """One thread per bus but the first joined one, created once, in the control process
+        (after the fork) and after it asked for its real-time scheduling, which the threads
+        inherit: a joined bus's does its read / write when told; a bus served at its own rate runs
+        its own cycles (:class:`_OwnRateWorker`)."""
+        bw: list[_BusWorker | _OwnRateWorker | None] = [None] * len(self.parts)
+        errors_max = self.profile.safety.bus_errors_max
+        for b, (name, p) in enumerate(zip(self.bus_names, self.parts)):
+            if b in self._own_b:
+                bw[b] = _OwnRateWorker(name, p, self.own_rate[name], errors_max, self._first_sample.pop(b, None))
+            elif b != self._first:
+                bw[b] = _BusWorker(name, p, self._fb[b], self._cmd[b])
+        self._bw = bw
+        self._workers = [w for w in bw if w is not None]
         return self._workers
+
+    def _ensure_workers(self) -> None:
+        if self._workers is None:
+            self._start_workers()
+
+    def bus_stamps(self) -> dict[str, float]:
+        """bus -> the stamp of its sample the last read took (a bus at its own rate: its newest
+        read's own time, older than the robot's stamp by up to its period)."""
+        return {name: fb.stamp for name, fb in zip(self.bus_names, self._fb)}
+
+    def own_rate_cycles(self) -> dict[str, int]:
+        """bus -> the cycles its own-rate worker has run (bench/, tests)."""
+        return {self.bus_names[b]: self._bw[b].cycles for b in self._own_b} if self._workers is not None else {}
 
     def _closed(self, what: str) -> Fault:
         return Fault("bus_timeout", f"{self.robot}: {what} on closed buses", transient=False)
 
     def _read(self, feedback: JointFeedback) -> Fault | None:
-        workers = self._workers
-        if workers is None:
+        if self._workers is None:
             if not self._open:
                 return self._closed("read")
-            workers = self._start_workers()
-        for w in workers:
-            w.start(_READ)
-        res = self._read_res
-        res[0] = self.parts[0].read(self._fb[0])
-        for b, w in enumerate(workers, 1):
-            res[b] = w.join()
+            self._start_workers()
+        bw, parts, res = self._bw, self.parts, self._read_res
+        for b in self._joined_b:
+            bw[b].start(_READ)
+        first = self._first
+        if first >= 0:
+            res[first] = parts[first].read(self._fb[first])
+        for b in self._joined_b:
+            res[b] = bw[b].join()
+        for b in self._own_b:  # the newest sample of a bus at its own rate: never waited for
+            res[b] = bw[b].take(self._fb[b])
         failed = self._count(res, self._read_streak)
         news = None
-        for b, p in enumerate(self.parts):  # device status: the robot's is the most severe bus's
-            n = p.take_status()
+        own = self._own_b
+        for b, p in enumerate(parts):  # device status: the robot's is the most severe bus's
+            if b in own:
+                for n in bw[b].device_news:  # news (DEVICE_NEWS) passed on as they are, in order
+                    self._forward_news(b, n)
+                n = bw[b].news
+            else:
+                n = p.take_status()
+                if n is not None and n[0] in DEVICE_NEWS:
+                    self._forward_news(b, n)
+                    n = None
             if n is not None:
                 news = (b, n)
         if news is not None:
             self._forward_status(*news)
         if failed:
             return self._bus_fault(res, self._read_streak)
-        stamp = self._fb[0].stamp
+        stamp = math.inf
+        stamped = self._stamped
         for b, idx in enumerate(self._idx):
             fb = self._fb[b]
             feedback.position[idx] = fb.position
             feedback.velocity[idx] = fb.velocity
             feedback.effort[idx] = fb.effort
-            if fb.stamp < stamp:
+            if fb.stamp < stamp and stamped[b]:
                 stamp = fb.stamp
         feedback.stamp = stamp
         if self._cart_rows:
@@ -578,11 +922,10 @@ class CompositeActuator(Actuator):
             dst.seq[:] = src.seq[lo:hi]
 
     def _write(self, command: JointCommand) -> Fault | None:
-        workers = self._workers
-        if workers is None:
+        if self._workers is None:
             if not self._open:
                 return self._closed("write")
-            workers = self._start_workers()
+            self._start_workers()
         for b, idx in enumerate(self._idx):
             c = self._cmd[b]
             np.take(command.mode, idx, out=c.mode)
@@ -591,13 +934,18 @@ class CompositeActuator(Actuator):
             np.take(command.effort, idx, out=c.effort)
         if self._cart_rows:
             self._scatter_cartesian(command.cartesian)
-        parts, cyclic, res = self.parts, self._cyclic, self._write_res
-        for b, w in enumerate(workers, 1):  # a bus that is not written outside ENABLED / PAUSED is skipped
+        parts, cyclic, res, bw = self.parts, self._cyclic, self._write_res, self._bw
+        joined = self._joined_b
+        for b in joined:  # a bus that is not written outside ENABLED / PAUSED is skipped
             if cyclic[b] or parts[b].is_enabled:
-                w.start(_WRITE)
-        res[0] = parts[0].write(self._cmd[0]) if cyclic[0] or parts[0].is_enabled else None
-        for b, w in enumerate(workers, 1):
-            res[b] = w.join() if cyclic[b] or parts[b].is_enabled else None
+                bw[b].start(_WRITE)
+        first = self._first
+        if first >= 0:
+            res[first] = parts[first].write(self._cmd[first]) if cyclic[first] or parts[first].is_enabled else None
+        for b in self._own_b:  # the newest setpoint, written on the bus's own next cycle
+            res[b] = bw[b].post(self._cmd[b])
+        for b in joined:
+            res[b] = bw[b].join() if cyclic[b] or parts[b].is_enabled else None
         if self._count(res, self._write_streak):
             return self._bus_fault(res, self._write_streak)
         return None
@@ -613,6 +961,14 @@ class CompositeActuator(Actuator):
                 streak[b] += 1
                 failed = True
         return failed
+
+    def _forward_news(self, b: int, news: tuple[DeviceStatus, Fault | None]) -> None:
+        """A bus's news (a WARNING / NOTICE: no status of the robot's) reported as it is, its
+        cause naming the bus."""
+        cause = news[1]
+        if cause is not None:
+            cause = self._bus_fault([cause if k == b else None for k in range(len(self.parts))])
+        self.report_status(news[0], cause)
 
     def _forward_status(self, b: int, news: tuple[DeviceStatus, Fault | None]) -> None:
         """A bus reported a device status: report the robot's, the most severe of all buses'

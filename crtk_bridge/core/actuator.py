@@ -37,7 +37,7 @@ Three paths, as in ros2_control hardware components:
 
 What a backend declares about itself is ONE immutable :class:`Traits` (per-joint capabilities and
 what each joint measures, clock, write policy, pause behaviour, goal check, native homing, speed
-scaling, transition time limits), returned by its ``_traits_hook`` when it opens and read by core
+scaling, the shortest period its bus keeps, transition time limits), returned by its ``_traits_hook`` when it opens and read by core
 as :attr:`Actuator.traits` only; a robot on several buses combines its buses' traits with one
 function (backends/composite.py). When the robot enters FAULT, core runs the DISABLE transition
 (torque off; a UR stops, powers off and applies its brakes).
@@ -245,6 +245,14 @@ class DeviceStatus(str, enum.Enum):
     POWERED_OFF = "powered_off"  # the device removed power itself (e-stop, power button)
     FAULT = "fault"  # with a cause (a Fault)
     FAULT_CLEARED = "fault_cleared"  # the cause of a reported fault went away
+    # news, not a state of the device (:attr:`Actuator.device_status` stays): each one reported is
+    # passed on, one per cycle, in order
+    WARNING = "warning"  # a condition the device works on through (a gripper's minor fault: heat)
+    NOTICE = "notice"  # news of its work that is no fault (a gripper's fingers stopped on an object)
+
+
+#: device reports that are news (passed on one by one), not a state the device is in
+DEVICE_NEWS = frozenset({DeviceStatus.WARNING, DeviceStatus.NOTICE})
 
 
 @dataclass(frozen=True)
@@ -262,6 +270,11 @@ class SimWiring:
     #: picks a loopback address 127.0.0.x where these ports are free, passes it as ``--host`` and
     #: waits until the first one accepts; that address is the endpoint. Empty: a pty link.
     host_ports: tuple[int, ...] = ()
+    #: a TCP port of the device that carries a serial line behind it (a UR's tool flange RS-485,
+    #: UR's tool communication on 54321). Under ``--sim``, another bus of the robot whose endpoint
+    #: is ``socket://<this bus's endpoint>:<port>`` gets its simulator on a pty that this bus's
+    #: simulator relays the port to (``crtk-sim <device> --tool-link PTY``). None: no such port.
+    tool_port: int | None = None
 
 
 #: cycles an ENABLE stepped over cycles waits, after its steps, for a read with torque on
@@ -319,6 +332,11 @@ class Traits:
     #: the device has an operator's speed scaling (a UR's speed slider): :attr:`Actuator.speed_fraction`
     #: (0..1) is reported to clients in ``operating_state``
     speed_scaling: bool = False
+    #: the shortest cycle period (s) the bus keeps: one read and one write on its wire (a Robotiq
+    #: gripper's Modbus RTU at 115200 baud takes several ms). 0: any period the loop runs at. In a
+    #: robot on several buses, a bus slower than the robot's cycle is served at its own rate, on
+    #: its own thread, and never stretches the cycle (backends/composite.py)
+    min_period_s: float = 0.0
     #: time limit (s) of each lifecycle transition (exceeding it faults the robot); kinds not
     #: given keep :data:`DEFAULT_TRANSITION_TIMEOUTS_S`
     transition_timeouts_s: Mapping[Lifecycle, float] = field(default_factory=dict)
@@ -334,6 +352,9 @@ class Traits:
             raise ValueError(f"Traits.stops_itself_on_pause: {len(pause)} values for {len(joints)} joints")
         object.__setattr__(self, "stops_itself_on_pause", pause)
         object.__setattr__(self, "clock", Clock(self.clock))
+        if not (math.isfinite(self.min_period_s) and self.min_period_s >= 0):
+            raise ValueError(f"Traits.min_period_s: {self.min_period_s!r} is not a period (s, >= 0)")
+        object.__setattr__(self, "min_period_s", float(self.min_period_s))
         timeouts = {**DEFAULT_TRANSITION_TIMEOUTS_S, **self.transition_timeouts_s}
         object.__setattr__(self, "transition_timeouts_s", MappingProxyType(timeouts))
 
@@ -479,6 +500,7 @@ class Actuator(abc.ABC):
         #: the device's last reported status (see :meth:`report_status`)
         self.device_status = DeviceStatus.OK
         self._status_news: tuple[DeviceStatus, Fault | None] | None = None
+        self._news_queue: list[tuple[DeviceStatus, Fault | None]] = []  # WARNING / NOTICE reports, oldest first
         self._read_fault: Fault | None = None  # the last read's fault (None: it succeeded)
 
     # ---- start-up path (may block, raises BackendError) ----
@@ -648,7 +670,15 @@ class Actuator(abc.ABC):
     # ---- device status (backend -> core) ----
     def report_status(self, status: DeviceStatus, cause: Fault | None = None) -> None:
         """Called by the backend (from ``_read`` or a step) when the device's status changes.
-        Core takes the latest report once per cycle; a report of the current status is ignored."""
+        Core takes the latest report once per cycle; a report of the current status is ignored.
+        WARNING and NOTICE are news, not a status: each is kept (the 16 latest) and taken after
+        any status change, one per cycle."""
+        if status in DEVICE_NEWS:
+            news = self._news_queue
+            if len(news) >= 16:
+                del news[0]
+            news.append((status, cause))
+            return
         if status is not self.device_status or status is DeviceStatus.FAULT_CLEARED:
             self.device_status = DeviceStatus.OK if status is DeviceStatus.FAULT_CLEARED else status
             self._status_news = (status, cause)
@@ -659,6 +689,8 @@ class Actuator(abc.ABC):
         news = self._status_news
         if news is not None:
             self._status_news = None
+        elif self._news_queue:
+            news = self._news_queue.pop(0)
         return news
 
     # ---- pacing (``traits.clock`` is Clock.DEVICE) ----

@@ -95,6 +95,9 @@ DEVICE_STATUS: dict[tuple[OperatingState, DeviceStatus], StatusReaction] = {
     (S.FAULT, D.POWERED_OFF): StatusReaction(None, "warning", "device_powered_off"),
     (S.FAULT, D.FAULT): _STAY,  # already in FAULT with its cause
     (S.FAULT, D.FAULT_CLEARED): _CLEARED,  # stays FAULT: enable (retry) or disable to leave it
+    # news from the device, in every state: an event, the state stays
+    **{(s, D.WARNING): StatusReaction(None, "warning", "device_warning") for s in S},
+    **{(s, D.NOTICE): StatusReaction(None, "status", "device_status") for s in S},
 }
 del D, S
 

@@ -8,6 +8,7 @@
                      [--interface slcan|socketcan --channel vcan0] [--enable-delay S]
     crtk-sim ur --profile profiles/ur5e.yaml --host 127.0.0.2 [--control /tmp/ur.ctl]
                 [--series e-series|cb3] [--power-on-s S] [--brake-release-s S] [--unlock-delay-s S]
+                [--tool-link /tmp/ttyGRIPPER [--tool-baud 115200]]
 
 Day-one buses (what `crtk-bridge setup-servos` and `check --scan --all-bauds` meet on a new arm):
 
@@ -95,6 +96,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="brake release -> RUNNING (default 0.5)")
     u.add_argument("--unlock-delay-s", type=float, default=5.0, metavar="S",
                    help="a protective stop may be unlocked this long after it (default 5, as UR)")
+    u.add_argument("--tool-link", metavar="PATH",
+                   help="serve the tool flange's RS-485 on TCP 54321 (UR's tool communication), relayed "
+                        "to the serial device PATH (e.g. a Robotiq gripper simulator's pty)")
+    u.add_argument("--tool-baud", type=int, default=115200, metavar="BAUD",
+                   help="the tool's serial rate (default 115200)")
     u.add_argument("--log-level", default="warning",
                    choices=["debug", "info", "warning", "error"], help="default: warning")
     from ..registry import devices
@@ -169,13 +175,15 @@ def _main_ur(args, profile) -> int:
         host = free_loopback_host(PORTS.values()) if args.host == "auto" else args.host
         sim = URController(host, q0=opts["q0"], limits=Limits(np.array(opts["lower"]), np.array(opts["upper"])),
                            series=args.series or opts["series"], control=args.control,
-                           timings=Timings(args.power_on_s, args.brake_release_s, args.unlock_delay_s))
+                           timings=Timings(args.power_on_s, args.brake_release_s, args.unlock_delay_s),
+                           tool_link=args.tool_link, tool_baud=args.tool_baud)
         sim.start()
     except CrtkBridgeError as exc:
         print(f"crtk-sim: {exc}", file=sys.stderr)
         return 1
     return _serve(sim, f"crtk-sim: ur controller ready: host={sim.host} rtde=30004 dashboard=29999 "
-                       f"script=30003 series={sim.series} rate={sim.rate_hz:g}Hz control={sim.control_path or '-'}")
+                       f"script=30003{' tool=54321' if sim.tool_link else ''} series={sim.series} "
+                       f"rate={sim.rate_hz:g}Hz control={sim.control_path or '-'}")
 
 
 def _day_one(sim, args) -> None:

@@ -27,6 +27,12 @@ Two pieces:
   ``{"cmd": "wrench", "force": [6]}`` the TCP force/torque; ``{"cmd": "stall_script", "on": B}``
   the program takes no command while the arm goes on (its watchdog still runs);
   ``{"cmd": "timings", ...}``.
+
+The tool flange: with ``tool_link`` (``crtk-sim ur --tool-link PATH``) the controller also serves
+TCP :data:`TOOL_PORT` (54321, as UR's / Robotiq's tool-communication URCap does), relaying the
+bytes of one client at a time to and from the serial line behind the tool connector: the serial
+device at ``tool_link`` (a Robotiq gripper simulator's pty, at ``tool_baud``), opened when the
+client connects. ``link_loss`` / ``restart`` take the port ``tool`` too.
 """
 
 from __future__ import annotations
@@ -43,6 +49,7 @@ import subprocess
 import tempfile
 import threading
 import time
+import tty
 
 import numpy as np
 
@@ -51,6 +58,7 @@ from ..spawn import module_argv, module_env
 from . import SimulatorError
 from .control import ControlServer, control_request
 from .loopback import free_loopback_host
+from .pty import set_line_baud
 from .ur_robot import STOPS, Hand, Limits, N, RobotMode, RuntimeState, Servo, Timings, URRobot
 from .ur_script import ControlScript, program_name
 from .ur_wire import (HEADER, IN_USE, INPUTS, NOT_FOUND, OUTPUTS, Msg, Recipe, frame, input_register,
@@ -60,6 +68,8 @@ log = logging.getLogger(__name__)
 
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 PORTS = {"rtde": RTDE_PORT, "dashboard": DASHBOARD_PORT, "script": SCRIPT_PORT}
+#: the tool flange's RS-485 as a TCP socket (UR's tool communication: raw bytes both ways)
+TOOL_PORT = 54321
 #: series -> (controller version major, minor, bugfix, build; data package rate Hz)
 SERIES = {"e-series": ((5, 11, 1, 108318), 500.0), "cb3": ((3, 15, 7, 106331), 125.0)}
 SERIAL_NUMBER = "20235500001"
@@ -139,7 +149,8 @@ class URController:
     """
 
     def __init__(self, host: str, *, q0=None, limits: Limits | None = None, series: str = "e-series",
-                 timings: Timings | None = None, control: str | os.PathLike | None = None):
+                 timings: Timings | None = None, control: str | os.PathLike | None = None,
+                 tool_link: str | os.PathLike | None = None, tool_baud: int = 115200):
         if series not in SERIES:
             raise SimulatorError(f"ur: series {series!r} unknown; valid: {', '.join(SERIES)}")
         self.host = host
@@ -153,9 +164,13 @@ class URController:
         self.reg = Registers()
         self._control = ControlServer(control, self.control) if control else None
         self.control_path = str(control) if control else None
+        #: the ports served: the controller's three, and the tool flange's with a tool link
+        self.ports = {**PORTS, **({"tool": TOOL_PORT} if tool_link else {})}
+        self.tool_link = str(tool_link) if tool_link else None
+        self.tool_baud = int(tool_baud)
         self._listeners: dict[str, socket.socket] = {}
         self._refused_until: dict[str, float] = {}
-        self._clients: dict[str, set[socket.socket]] = {p: set() for p in PORTS}
+        self._clients: dict[str, set[socket.socket]] = {p: set() for p in self.ports}
         self._rtde: list[_RtdeClient] = []
         self._input_owner: dict[str, _RtdeClient] = {}
         self._threads: list[threading.Thread] = []
@@ -174,7 +189,7 @@ class URController:
 
     # ---- lifecycle ----
     def start(self) -> None:
-        for name in PORTS:
+        for name in self.ports:
             self._listen(name)
         if self._control is not None:
             self._control.start()
@@ -192,7 +207,7 @@ class URController:
         with self._lock:
             for name in list(self._listeners):
                 self._close_listener(name)
-            self._drop(tuple(PORTS))
+            self._drop(tuple(self.ports))
         if self._control is not None:
             self._control.stop()
         self.running = False
@@ -207,10 +222,10 @@ class URController:
         s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
-            s.bind((self.host, PORTS[name]))
+            s.bind((self.host, self.ports[name]))
         except OSError as exc:
             s.close()
-            raise SimulatorError(f"ur: cannot bind {self.host}:{PORTS[name]} ({name}): {exc.strerror or exc}") from exc
+            raise SimulatorError(f"ur: cannot bind {self.host}:{self.ports[name]} ({name}): {exc.strerror or exc}") from exc
         s.listen(16)
         s.setblocking(False)
         self._listeners[name] = s
@@ -245,11 +260,12 @@ class URController:
 
     # ---- accepting ----
     def _accept_loop(self) -> None:
-        handlers = {"rtde": self._serve_rtde, "dashboard": self._serve_dashboard, "script": self._serve_script}
+        handlers = {"rtde": self._serve_rtde, "dashboard": self._serve_dashboard, "script": self._serve_script,
+                    "tool": self._serve_tool}
         while not self._stopping.is_set():
             with self._lock:
                 now = self.clock()
-                for name in PORTS:
+                for name in self.ports:
                     until = self._refused_until.get(name)
                     if until is not None and now >= until and not (self._restart_at and now < self._restart_at):
                         try:
@@ -276,6 +292,9 @@ class URController:
                 conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
                 with self._lock:
                     if self._listeners.get(name) is not s:  # refused meanwhile
+                        conn.close()
+                        continue
+                    if name == "tool" and self._clients[name]:  # the tool's serial line: one client
                         conn.close()
                         continue
                     self._clients[name].add(conn)
@@ -493,6 +512,45 @@ class URController:
         self._pose = self.robot.tcp_pose()
         self._speed = self.robot.tcp_speed()
 
+    # ---- the tool flange ----
+    def _serve_tool(self, conn: socket.socket) -> None:
+        """Relay one client's bytes to and from the serial line behind the tool connector (the
+        device at ``tool_link``), unchanged both ways, until either side closes."""
+        try:
+            fd = os.open(self.tool_link, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        except OSError as exc:
+            log.warning("tool port: no serial device at %s (%s): connection closed", self.tool_link, exc)
+            self._forget("tool", conn)
+            return
+        try:
+            tty.setraw(fd)
+            set_line_baud(fd, self.tool_baud)
+            while not self._stopping.is_set():
+                ready, _, _ = select.select([conn, fd], [], [], 0.2)
+                if conn in ready:
+                    data = conn.recv(4096)
+                    if not data:
+                        break
+                    self._received(data)
+                    while data:
+                        try:
+                            data = data[os.write(fd, data):]
+                        except BlockingIOError:
+                            select.select([], [fd], [], 0.1)
+                if fd in ready:
+                    try:
+                        data = os.read(fd, 4096)
+                    except BlockingIOError:
+                        continue
+                    if not data:
+                        break
+                    conn.sendall(data)
+        except OSError as exc:  # the client went, or the device's line did (EIO)
+            log.info("tool port: relay ended: %s", exc)
+        finally:
+            os.close(fd)
+            self._forget("tool", conn)
+
     # ---- dashboard ----
     def _serve_dashboard(self, conn: socket.socket) -> None:
         try:
@@ -626,14 +684,14 @@ class URController:
                 return {"ok": True}
             if cmd == "link_loss":
                 ports = request.get("ports", ["rtde"])
-                bad = [p for p in ports if p not in PORTS]
+                bad = [p for p in ports if p not in self.ports]
                 if bad:
-                    return {"ok": False, "error": f"ports {bad} unknown; valid: {', '.join(PORTS)}"}
+                    return {"ok": False, "error": f"ports {bad} unknown; valid: {', '.join(self.ports)}"}
                 self._refuse(ports, float(request.get("duration_s", 1.0)))
                 return {"ok": True}
             if cmd == "restart":
                 duration = float(request.get("duration_s", 1.0))
-                self._refuse(list(PORTS), duration)
+                self._refuse(list(self.ports), duration)
                 self._restart_at = self.clock() + duration
                 r.restart_safety()
                 r.loaded_program = None
@@ -690,6 +748,7 @@ class URController:
             "motion": type(r.motion).__name__ if r.motion is not None else None,
             "rtde_clients": len(self._rtde), "ticks": self.ticks, "rate_hz": self.rate_hz,
             "out_int_0": self.reg.out_ints[0], "command": self.reg.ints[0], "rx_bytes": self.rx_bytes,
+            "tool_link": self.tool_link, "tool_clients": len(self._clients.get("tool", ())),
         }
 
 
@@ -744,8 +803,10 @@ class URSimulator:
 
     def __init__(self, profile_path: str | os.PathLike, host: str | None = None,
                  control: str | os.PathLike | None = None, series: str | None = None,
-                 timings: Timings | None = None, tmpdir: str | None = None):
+                 timings: Timings | None = None, tmpdir: str | None = None,
+                 tool_link: str | os.PathLike | None = None):
         self.profile_path = str(profile_path)
+        self.tool_link = str(tool_link) if tool_link else None
         self._auto_host = host is None
         self.host = host
         self.series = series
@@ -758,7 +819,8 @@ class URSimulator:
 
     @classmethod
     def from_profile(cls, profile: Profile, host: str | None = None, control: str | os.PathLike | None = None,
-                     series: str | None = None, **timings: float) -> URSimulator:
+                     series: str | None = None, tool_link: str | os.PathLike | None = None,
+                     **timings: float) -> URSimulator:
         """A simulator for ``profile`` (written to a temp file for the child). ``host`` None:
         a free 127.0.0.N is chosen at start. ``timings``: power_on_s, brake_release_s,
         unlock_delay_s (see :class:`Timings`)."""
@@ -770,7 +832,8 @@ class URSimulator:
         path = os.path.join(tmpdir, "profile.yaml")
         with open(path, "w") as f:
             yaml.safe_dump(msgspec.to_builtins(profile), f)
-        sim = cls(path, host=host, control=control, series=series, timings=Timings(**timings), tmpdir=tmpdir)
+        sim = cls(path, host=host, control=control, series=series, timings=Timings(**timings), tmpdir=tmpdir,
+                  tool_link=tool_link)
         sim._own_tmpdir = True
         return sim
 
@@ -822,6 +885,7 @@ class URSimulator:
             "--host", self.host, "--control", self.control_path, "--log-level", "info",
             "--power-on-s", str(t.power_on_s), "--brake-release-s", str(t.brake_release_s),
             "--unlock-delay-s", str(t.unlock_delay_s), *(["--series", self.series] if self.series else []),
+            *(["--tool-link", self.tool_link] if self.tool_link else []),
             "--parent-pid", str(os.getpid()))  # it also stops once this process is gone
         with open(self.log_path, "ab") as logf:
             self.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=logf, stderr=logf, env=env,

@@ -86,6 +86,9 @@ class Row:
     #: wait until the simulator has taken every command sent so far (a servo bus answers in
     #: order: a read is that; RTDE inputs are taken at the controller's next tick)
     settle: Callable[[object], None] | None = None
+    #: the profile's joint limits leave room within the device's own range (a gripper's opening
+    #: limits ARE its stroke's ends: nothing beyond them to clamp or not)
+    room_beyond_limits: bool = True
 
 
 def _servo_id(profile: Profile, i: int) -> int:
@@ -185,6 +188,27 @@ class URSimAdapter:
         wait_until(lambda: self.state()["ticks"] >= t0 + 10, 2, interval=0.001, what="ten controller ticks")
 
 
+class RobotiqSimAdapter:
+    """The simulated 2F gripper (sim/robotiq.py) for the suite: activated already (a gripper keeps
+    its activation while powered; activation runs the fingers over their whole stroke, which would
+    move them before ``enable`` holds them), quick activations (0.3 s); a slow enable
+    (``set_torque_delay``) is a gripper that needs activating again (a power cycle) and activates
+    that slowly."""
+
+    def __init__(self, profile: Profile | None = None, *, handle=None):
+        self.sim = handle if handle is not None else simulator_class("robotiq").from_profile(
+            profile, activation_s=0.3, activated=True)
+
+    def __getattr__(self, name):
+        return getattr(self.sim, name)
+
+    def set_torque_delay(self, seconds: float) -> None:
+        g = self.sim.gripper
+        with g.lock:
+            g.action, g.gact, g.gsta = 0, False, 0
+        self.sim.set_activation_s(seconds)
+
+
 ROWS = {
     "feetech": _servo_row("feetech", "so101.yaml", latched=False),
     "dynamixel": _servo_row("dynamixel", "koch.yaml", latched=True),
@@ -223,6 +247,28 @@ ROWS = {
         make_sim=URSimAdapter, settle=URSimAdapter.settle, remote=URSimAdapter.attach, prepare=URSimAdapter.prepare,
         set_present=lambda sim, i, raw: sim.hand(i, raw),
         free=lambda sim, i: sim.state()["teach_mode"],
+    ),
+    # a Robotiq 2F-85 (crtk_bridge.sim.robotiq, in process on a pty): the device is the gripper
+    # (its slave id), its unit the gripper's position count (0 open .. 255 closed: -2553 per m of
+    # opening between the simulator's stroke ends 13 and 230); torque = gGTO (acting on its
+    # position request); silence = no communication; the error an overcurrent (gFLT 0x0E), a major
+    # fault only the reset of the next enable clears
+    "robotiq": Row(
+        backend="robotiq", profile=ROOT / "profiles" / "robotiq_2f85.yaml", device=_servo_id,
+        silence=lambda sim, sid: sim.set_fault(sid, "no_communication"),
+        inject_error=lambda sim, sid: sim.set_fault(sid, "overcurrent"),
+        clear_errors=lambda sim: sim.clear_faults(),
+        torque=lambda sim, sid: sim.servo(sid).read("Torque_Enable") == 1 if hasattr(sim, "servo")
+        else sim.gripper.read("Torque_Enable") == 1,
+        goal=lambda sim, sid: sim.servo(sid).read("Goal_Position") if hasattr(sim, "servo")
+        else sim.gripper.read("Goal_Position"),
+        present=lambda sim, sid: sim.servo(sid).read("Present_Position") if hasattr(sim, "servo")
+        else sim.gripper.read("Present_Position"),
+        set_present=lambda sim, sid, raw: sim.servo(sid).write("Present_Position", raw) if hasattr(sim, "servo")
+        else sim.gripper.write("Present_Position", raw),
+        error_latched=True, error_code="gripper_fault", silent_code="bus_timeout",
+        units_per_rad=-(230 - 13) / 0.085, make_sim=RobotiqSimAdapter, room_beyond_limits=False,
+        prepare=lambda sim: sim.req(cmd="activation", seconds=0.3) if hasattr(sim, "req") else None,
     ),
 }
 #: the joints the suite silences and faults (test_conformance.py: min(2, n - 1), min(3, n - 1)): a
@@ -272,6 +318,7 @@ def _composite_row(name: str, path: Path) -> Row:
         silent_code=silent.silent_code, silent_hears=silent.silent_hears,
         one_device=silent.one_device, braked_when_disabled=any(r.braked_when_disabled for r in rows),
         units_per_rad=None if len({r.units_per_rad for r in rows}) > 1 else rows[0].units_per_rad,
+        room_beyond_limits=all(r.room_beyond_limits for r in rows),
         make_sim=BusSims, settle=lambda sim: sim.settle(), prepare=lambda sim: sim.prepare(), free=free,
     )
 
@@ -320,6 +367,11 @@ class BusSims:
         for row, s in zip(self.rows, self.sims):
             if row.settle is not None:
                 row.settle(s)
+        # a bus served at its own rate takes a setpoint at its own next cycle: two of them
+        cycles = self.backend.own_rate_cycles() if self.own_rate else {}
+        for bus, n in cycles.items():
+            wait_until(lambda: self.backend.own_rate_cycles()[bus] >= n + 2, 2, interval=0.001,
+                       what=f"two cycles of bus {bus!r} at its own rate")
 
     def prepare(self) -> None:
         for row, s in zip(self.rows, self.sims):
@@ -334,18 +386,25 @@ class BusSims:
         for s in self.sims:
             s.set_unplugged(unplugged)
 
+    #: the buses the composite serves at their own rate (set once it is open): their reads run on
+    #: their own cycles whatever the loop does, so the bytes the loop's calls put on the buses
+    #: leave them out (tests/test_composite.py checks such a bus is not written while disabled)
+    own_rate: frozenset = frozenset()
+    backend = None  # the composite, once open
+
     @property
     def rx_bytes(self) -> int:
-        return sum(s.rx_bytes for s in self.sims)
+        return sum(s.rx_bytes for name, s in zip(self.names, self.sims) if name not in self.own_rate)
 
 
 #: several buses in one robot (backends/composite.py), each row a robot the composite serves:
-#: two SO-101 arms on two Feetech buses; a UR arm with a Dynamixel gripper (the CRTK spec's
-#: `/UR`, `/UR/gripper`); a CiA 402 pan / tilt whose pan homes natively beside a Feetech arm; a
-#: Feetech arm with a Dynamixel gripper
+#: two SO-101 arms on two Feetech buses; a UR arm with a Robotiq 2F-85 gripper (the CRTK spec's
+#: `/UR`, `/UR/gripper`; the gripper's bus, slower than the arm's 500 Hz, served at its own
+#: rate); a CiA 402 pan / tilt whose pan homes natively beside a Feetech arm; a Feetech arm with
+#: a Dynamixel gripper
 COMPOSITES = {
     "composite (bimanual_so101)": ROOT / "profiles" / "bimanual_so101.yaml",
-    "composite (ur + dynamixel gripper)": TEST_PROFILES / "ur5e_xl330_gripper.yaml",
+    "composite (ur + robotiq gripper)": ROOT / "profiles" / "ur5e_robotiq.yaml",
     "composite (canopen homing + feetech)": TEST_PROFILES / "pantilt_homing_so101.yaml",
     "composite (feetech + dynamixel)": TEST_PROFILES / "so101_xl330_gripper.yaml",
 }
@@ -390,6 +449,9 @@ class Rig:
             self.backend = cls(self.profile)
         self.backend.open()
         self.backend.configure()
+        if isinstance(self.sim, BusSims):
+            self.sim.own_rate = frozenset(getattr(self.backend, "own_rate", ()))
+            self.sim.backend = self.backend
         #: the cycle as production runs it (core/cycle.py): paced by the backend's wait_cycle
         self.runner = CycleRunner(self.backend, effective_period_s(self.profile, self.backend))
         self.fb = self.runner.feedback

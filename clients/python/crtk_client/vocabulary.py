@@ -172,6 +172,8 @@ class EventCode(StrEnum):
     TORQUE_OFF_CONFIRMED = "torque_off_confirmed"
     FAULT_CLEARED = "fault_cleared"
     DEVICE_OK = "device_ok"
+    DEVICE_WARNING = "device_warning"  # a device's warning it works on through (a gripper's minor fault)
+    DEVICE_STATUS = "device_status"  # a device's news of its work (a gripper's grasp)
     SHUTDOWN_PARK = "shutdown_park"
     SHUTDOWN_PARKED = "shutdown_parked"
     SHUTDOWN_TORQUE_OFF = "shutdown_torque_off"
@@ -191,6 +193,8 @@ class EventCode(StrEnum):
     COMMAND_FAILED = "command_failed"
     WORKER_DIED = "worker_died"  # the UR backend's ur_rtde worker process died (backends/ur/worker.py)
     WORKER_STALLED = "worker_stalled"  # ...or took no command for a channel's worth
+    # Robotiq 2F grippers (backends/robotiq/tables.py)
+    GRIPPER_FAULT = "gripper_fault"
     # recording and the black box (recording/recorder.py, docs/recording.md)
     SAMPLES_LOST = "samples_lost"
     RECORDING_FAILED = "recording_failed"

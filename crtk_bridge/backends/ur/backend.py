@@ -277,7 +277,7 @@ class UrBackend(Actuator):
     before :meth:`open`.
     """
 
-    simulator = SimWiring(endpoint_key="host", host_ports=(30004, 29999, 30003))
+    simulator = SimWiring(endpoint_key="host", host_ports=(30004, 29999, 30003), tool_port=54321)
     #: what every UR arm declares (:meth:`_traits_hook`): the controller's packets pace the loop; a
     #: safeguard stop stops the arm by itself (resume from where it is); the controller checks move
     #: goals against its safety limits; its speed slider scales every motion. A FAULT runs the

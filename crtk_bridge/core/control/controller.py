@@ -114,6 +114,7 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
         self._cycle = 0  # counts on_read calls: one transition step per cycle
         self._rid: Any = None  # id of the request being handled
         self._speed_fraction = float("nan")  # the device's speed slider as last reported (NaN: none)
+        self._device_notices: dict[str, dict[str, Any]] = {}  # joint -> its device's latest NOTICE
 
     # ------------------------------------------------------------------ queries
     @property
@@ -143,6 +144,8 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
         }
         if self._speed_fraction == self._speed_fraction:  # not NaN: the device has a speed slider
             out["target_speed_fraction"] = self._speed_fraction
+        if self._device_notices:  # what a device last said of its work (a gripper's grasp)
+            out["device_notices"] = {j: dict(n) for j, n in self._device_notices.items()}
         return out
 
     @staticmethod

@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from ...errors import fmt_number
-from ..actuator import CommandMode, DeviceStatus, Fault, JointFeedback, Lifecycle
+from ..actuator import DEVICE_NEWS, CommandMode, DeviceStatus, Fault, JointFeedback, Lifecycle
 from ..motion import Mode
 from ..state import DEVICE_STATUS, OperatingState
 from .common import Refused
@@ -24,6 +24,8 @@ _STATUS_TEXT = {
     DeviceStatus.POWERED_OFF: "the device powered itself off",
     DeviceStatus.FAULT: "the device reports a fault",
     DeviceStatus.FAULT_CLEARED: "the device's fault cleared (enable or disable to go on)",
+    DeviceStatus.WARNING: "the device warns",
+    DeviceStatus.NOTICE: "the device reports",
 }
 TRACKING_CYCLES = 3  # consecutive cycles beyond the bound before FAULT (one glitch is not a fault)
 
@@ -104,7 +106,14 @@ class SupervisorMixin:
         if kind is not None:
             what = _STATUS_TEXT[status]
             message = f"{self.robot}: {what}" + (f": {cause.message}" if cause is not None else "")
-            self.event(kind, code, message, joint=cause.joint if cause else None)
+            if status in DEVICE_NEWS and cause is not None:  # which register said what
+                self.event(kind, code, message, joint=cause.joint, register=cause.register, value=cause.value)
+            else:
+                self.event(kind, code, message, joint=cause.joint if cause else None)
+            if status is DeviceStatus.NOTICE and cause is not None and cause.joint is not None:
+                self._device_notices[cause.joint] = {"register": cause.register, "value": cause.value,
+                                                     "message": cause.message}
+                self.push_state()  # operating_state carries each joint's latest notice
         if target is OperatingState.PAUSED and self.state is OperatingState.ENABLED:
             self._abort_running("aborted: the device paused itself")
             self._stop_all()
