@@ -103,9 +103,8 @@ class Sampler(threading.Thread):
     def run(self) -> None:
         nxt = time.monotonic()
         while not self.stop_event.is_set():
-            t_ask = time.monotonic()
             d = self.control(cmd="dump")
-            t = (t_ask + time.monotonic()) / 2  # the simulator read its clock in between
+            t = d["clock"]  # when the simulator's physics were at these values (time.monotonic)
             servos = d["servos"]
             self.rows.append((t, [servos[str(IDS[m])]["present_position"] for m in MOTORS],
                               [servos[str(IDS[m])]["goal_position"] for m in MOTORS],
@@ -181,8 +180,14 @@ def goal_latency(driver: LeRobotDriver, control_path: str, base: dict[str, float
                 if v != before:
                     changed = time.monotonic()
                     break
+                # not a busy loop: each read takes the simulator's lock, and on a loaded host a
+                # tight loop of them starved its bus replies until the daemon faulted
+                time.sleep(0.0005)
             reply = json.loads(driver.proc.stdout.readline())
-            assert reply["ok"], reply
+            if not reply["ok"]:  # the probes end here; the figures so far stand
+                print(f"bench_lerobot: send_action failed during the latency probes: {reply['error']}",
+                      file=sys.stderr)
+                break
             if changed is not None:
                 out.append((changed - reply["t"]) * 1000)
             time.sleep(0.3)  # the arm settles on the new goal

@@ -736,7 +736,7 @@ class BusSimulator:
                     faults[str(sid)] = f
             detached = {str(serial): {**self._snapshot(s), "serial": serial}
                         for serial, s in sorted(self._detached.items())}
-            return {"servos": servos, "faults": faults, "unplugged": self.unplugged,
+            return {"clock": now, "servos": servos, "faults": faults, "unplugged": self.unplugged,
                     "baudrate": self.baudrate, "wire_baud": self._wire_baud,
                     "torque_delay_s": self.torque_delay_s, "detached": detached,
                     "usb_plugged": self.plugged, "pty": self.pty_path,
