@@ -613,3 +613,34 @@ def test_an_unreachable_controller_is_said_with_what_to_check(peer):
     message = str(err.value)
     assert f"the UR controller at {host} did not answer RTDE (port 30004)" in message, message
     assert "backend.host" in message and "remote control" in message and "\n" not in message
+
+
+def test_a_cartesian_row_refused_by_the_finiteness_gate_sends_nothing_not_the_old_joint_target():
+    """The write gate hands a non-finite cartesian row to the backend in NONE, its joints in NONE
+    too: nothing is left to follow, so the UR backend sends nothing new (the script keeps its last
+    command: the arm keeps its last goal) and the write faults naming the namespace. It fell
+    through to servoJ on its last JOINT target, stale while servoL ran (session 7's review)."""
+    from crtk_bridge.backends.ur.channel import CTL_CONNECTED, CTL_UP, SERVOL
+    from crtk_bridge.core.actuator import CartesianMode
+
+    b = UrBackend(UrBackend.sim_profile(load_profile(UR5E), "127.0.0.1"))
+    b._traits = b._traits_hook()  # what open() declares (no controller here)
+    sent: list[int] = []
+
+    class Worker:  # every gate before the command passes; the command itself is recorded
+        refused = None
+
+    b._w, b._enabled, b._flags = Worker(), True, CTL_UP | CTL_CONNECTED
+    b._movable = lambda: True
+    b._out = lambda op, *args: sent.append(op)
+    b._target[:] = READY - 0.5  # the last servoJ target, long before the servoL stream
+    cmd = b.new_command()
+    cmd.cartesian.mode[0] = CartesianMode.POSE
+    cmd.cartesian.position[0] = [0.3, -0.2, 0.4]
+    assert b.write(cmd) is None and sent == [SERVOL]  # a finite pose is followed
+    sent.clear()
+    cmd.cartesian.position[0] = [0.3, np.nan, 0.4]
+    fault = b.write(cmd)
+    assert fault is not None and fault.code == "invalid_command" and "namespace 'ur5e'" in fault.message, fault
+    assert sent == []  # nothing new: no servoJ to the stale joint target
+    assert cmd.cartesian.mode[0] == CartesianMode.POSE  # the caller's buffer as it was

@@ -1,10 +1,11 @@
 """``crtk-ctl calibrate --import`` of a LeRobot calibration file (issue 12), and the calibration
 arithmetic (backends/calibration.py).
 
-The fixture is written here from LeRobot's format (docs/calibration.md): a JSON object, indent 4,
-one entry per motor name with ``id``, ``drive_mode``, ``homing_offset``, ``range_min``,
-``range_max``. LeRobot's readings are computed here from its documented conversion (joints in
-degrees: ``(present - (range_min + range_max) / 2) * 360 / (resolution - 1)``; the gripper 0..100:
+The fixture is the LeRobot tests' calibration (tests/lerobot/rig.py's CALIBRATION) in LeRobot's
+format (docs/calibration.md): a JSON object, indent 4, one entry per motor name with ``id``,
+``drive_mode``, ``homing_offset``, ``range_min``, ``range_max``. LeRobot's readings are computed
+(rig.lerobot_reading) from its documented conversion (joints in degrees:
+``(present - (range_min + range_max) / 2) * 360 / (resolution - 1)``; the gripper 0..100:
 ``(clamp(present) - range_min) / (range_max - range_min) * 100``), with the servos holding
 LeRobot's homing offsets in EEPROM as ``lerobot-calibrate`` leaves them. The daemon, restarted on
 the imported profile, must report the same angles within one tick."""
@@ -24,29 +25,12 @@ from crtk_bridge.profile import load_profile
 from crtk_bridge.sim.control import control_request
 
 from .conftest import KOCH, DaemonProcess, wait_until
+# the LeRobot calibration file and LeRobot's documented reading of it, as the LeRobot tests use them
+from .lerobot.rig import ARM, lerobot_reading
+from .lerobot.rig import CALIBRATION as LEROBOT
 from .test_calibrate import BOTH, COMMENT, SOURCE, Tool, arm_ns, daemon, hand_all, profile  # noqa: F401 (fixtures)
 
 TICK = 2 * math.pi / 4096
-#: a LeRobot SO-101 follower calibration (so_follower/<id>.json), written from its format
-LEROBOT = {
-    "shoulder_pan": {"id": 1, "drive_mode": 0, "homing_offset": -35, "range_min": 760, "range_max": 3320},
-    "shoulder_lift": {"id": 2, "drive_mode": 0, "homing_offset": 120, "range_min": 831, "range_max": 3290},
-    "elbow_flex": {"id": 3, "drive_mode": 0, "homing_offset": -700, "range_min": 870, "range_max": 3071},
-    "wrist_flex": {"id": 4, "drive_mode": 0, "homing_offset": 400, "range_min": 860, "range_max": 3180},
-    "wrist_roll": {"id": 5, "drive_mode": 0, "homing_offset": 12, "range_min": 0, "range_max": 4095},
-    "gripper": {"id": 6, "drive_mode": 0, "homing_offset": -1500, "range_min": 2010, "range_max": 3450},
-}
-ARM = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll"]
-
-
-def lerobot_reading(name: str, present: int) -> float:
-    """What LeRobot reports for ``present``: degrees for the arm joints, 0..100 for the gripper."""
-    c = LEROBOT[name]
-    lo, hi = c["range_min"], c["range_max"]
-    if name == "gripper":
-        pct = (min(hi, max(lo, present)) - lo) / (hi - lo) * 100
-        return 100 - pct if c["drive_mode"] else pct
-    return (present - (lo + hi) / 2) * 360 / 4095
 
 
 @BOTH
@@ -61,7 +45,7 @@ def test_import_then_the_restarted_daemon_reads_as_lerobot_does(short_tmp, profi
     assert "Imported" in tool.output() and f"Wrote {profile}" in tool.output(), tool.output()
     assert COMMENT[SOURCE[profile]] in profile.read_text()  # comments kept
     cal = {j.name: j.backend["calibration"] for j in load_profile(profile).joints}
-    assert cal["elbow_flex"] == {"offset": 1970, "direction": 1, "range": [870, 3071], "homing_offset": -700}
+    assert cal["elbow_flex"] == {"offset": 1972, "direction": 1, "range": [881, 3064], "homing_offset": -652}
     daemon.stop()
 
     again = DaemonProcess(["--profile", str(profile), "--sim"], short_tmp / "b.sock", short_tmp / "b.log")
@@ -144,14 +128,14 @@ NAMES, RES, DIRS = list(LEROBOT), [4096] * 6, [1] * 6
 
 def test_lerobot_conversion_maps_homing_range_and_gripper_ends():
     cal = from_lerobot("so101", LEROBOT, NAMES, [1, 2, 3, 4, 5, 6], RES, DIRS, ["gripper"], True)
-    assert cal["elbow_flex"] == {"offset": 1970, "direction": 1, "range": [870, 3071], "homing_offset": -700}
-    assert cal["gripper"] == {"offset": 2010, "direction": 1, "range": [2010, 3450], "homing_offset": -1500}
+    assert cal["elbow_flex"] == {"offset": 1972, "direction": 1, "range": [881, 3064], "homing_offset": -652}
+    assert cal["gripper"] == {"offset": 2017, "direction": 1, "range": [2017, 3441], "homing_offset": -1480}
     flipped = {**LEROBOT, "gripper": {**LEROBOT["gripper"], "drive_mode": 1}}
     grip = from_lerobot("so101", flipped, NAMES, [1, 2, 3, 4, 5, 6], RES, DIRS, ["gripper"], True)["gripper"]
-    assert grip["offset"] == 3450 and grip["direction"] == -1  # LeRobot's 0 end is range_max then
+    assert grip["offset"] == 3441 and grip["direction"] == -1  # LeRobot's 0 end is range_max then
     # a Dynamixel applies drive_mode itself (its Drive_Mode register): nothing to flip in software
     grip = from_lerobot("koch", flipped, NAMES, [1, 2, 3, 4, 5, 6], RES, DIRS, ["gripper"], False)["gripper"]
-    assert grip["offset"] == 2010 and grip["direction"] == 1
+    assert grip["offset"] == 2017 and grip["direction"] == 1
 
 
 def test_lerobot_maps_give_lerobot_numbers_of_the_radians_by_hand():

@@ -88,6 +88,50 @@ def test_sending_is_python_cans_without_waiting_for_the_port_to_drain(bus_and_ad
     assert out.endswith(b"t0800\r") and drains == []
 
 
+def test_a_line_is_one_write_of_the_tty_without_pyserials_select_for_room(bus_and_adapter, monkeypatch):
+    """pyserial's write follows each write with a ``select`` for room in the output buffer: a
+    line on a tty is one os.write of the whole line, pyserial's write not called."""
+    bus, master, _ = bus_and_adapter
+    port = bus.serialPortOrig
+    writes, pyserial = [], []
+    real_write = os.write
+
+    def os_write(fd, data):
+        if fd == port.fd:
+            writes.append(bytes(data))
+        return real_write(fd, data)
+
+    monkeypatch.setattr(os, "write", os_write)
+    port.write = lambda data: pyserial.append(bytes(data))
+    bus.send(can.Message(arbitration_id=0x201, data=b"\x0f\x00", is_extended_id=False))
+    assert writes == [b"t20120F00\r"] and pyserial == []
+    out = b""
+    while not out.endswith(b"\r"):
+        out += os.read(master, 64)
+    assert out == b"t20120F00\r"
+
+
+def test_the_rest_of_a_line_the_output_buffer_did_not_take_goes_through_pyserial(bus_and_adapter, monkeypatch):
+    """A full output buffer (os.write takes part of the line, or none): pyserial's write sends the
+    rest (waiting for room), so the line goes out whole and in order."""
+    bus, _, _ = bus_and_adapter
+    port = bus.serialPortOrig
+    taken = iter([3, None])  # 3 bytes of the first line; then a full buffer (EAGAIN)
+    rest = []
+
+    def os_write(fd, data):
+        n = next(taken)
+        if n is None:
+            raise BlockingIOError
+        return n
+
+    monkeypatch.setattr(os, "write", os_write)
+    port.write = lambda data: rest.append(bytes(data))
+    bus.send(can.Message(arbitration_id=0x201, data=b"\x0f\x00", is_extended_id=False))
+    bus.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+    assert rest == [b"120F00\r", b"t0800\r"]
+
+
 def test_a_pyserial_url_without_a_descriptor_is_read_with_its_own_read():
     """``loop://`` (pyserial's loopback URL) has no file descriptor: what the bus sends comes
     back through pyserial's own read, a frame whole (after the open commands' echoes)."""

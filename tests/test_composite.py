@@ -816,3 +816,51 @@ def test_a_slow_bus_failing_faults_the_robot_naming_bus_and_joint(monkeypatch):
     assert not f.transient and f.message.startswith("bimanual_so101: bus 'right': no sample for 0.2 s"), f.message
     right.gate.set()
     c.close()
+
+
+def test_a_bus_that_resumed_first_holds_until_the_robot_resumed():
+    """A device that stops itself on pause (a UR arm) and resumes in one step, beside a bus whose
+    resume takes several cycles (a gripper at its own rate): until the robot's RESUME ends, core's
+    command is still where its braking ramp ended; the device is not written meanwhile (it would
+    rush there), then follows from where it stopped."""
+
+    class SlowResume(FakeBus):
+        def _resume_steps(self):
+            for _ in range(3):
+                yield
+
+    class Counting(Device):  # (a Device is written every cycle: cyclic_write)
+        def _write(self, cmd):
+            self.modes.append(cmd.mode.copy())
+            return super()._write(cmd)
+
+    left = SlowResume(PROFILE.bus_profile("left"), 0.0, 1.0)
+    right = Counting(PROFILE.bus_profile("right"), 10.0, 1.0)
+    right.modes = []
+    act = CompositeActuator(PROFILE, {"left": left, "right": right})
+    act.open()
+    clock = Clock()
+    ctl = Controller(PROFILE, act, clock, effective_period_s(PROFILE, act))
+    runner = CycleRunner(act, ctl.dt, clock=clock, sleep=clock.sleep)
+    runner.cycle(ctl)
+    ctl.handle({"id": 1, "cmd": "enable"})
+    run_until(lambda: runner.cycle(ctl), lambda: ctl.state is OperatingState.ENABLED)
+    ctl.handle({"id": 2, "cmd": "pause"})
+    run_until(lambda: runner.cycle(ctl), lambda: ctl.state is OperatingState.PAUSED)
+    right.base = 10.05  # the device stopped elsewhere than core's hold
+    runner.cycle(ctl)
+    ctl.handle({"id": 3, "cmd": "resume"})
+    runner.cycle(ctl)  # both buses' first resume step: the device's is its last
+    writes = len(right.modes)
+    cycles = 0
+    while ctl.state is not OperatingState.ENABLED:
+        runner.cycle(ctl)
+        cycles += 1
+        assert cycles < 20
+    # while the other bus resumed: written (every cycle, its bus needs it) with no setpoint
+    assert cycles >= 2 and len(right.modes) > writes + 1
+    assert all((m == CommandMode.NONE).all() for m in right.modes[writes:-1])
+    # the cycle the robot's RESUME ended in: core took the device's measured pose, written at once
+    assert (right.modes[-1] == CommandMode.POSITION).all()
+    np.testing.assert_allclose(right.written, 10.05 + np.arange(6.0))  # from where it stopped
+    act.close()

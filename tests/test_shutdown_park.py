@@ -288,6 +288,29 @@ def test_shutdown_while_disabled_or_with_torque_off_moves_nothing(loop_rig):
     assert [e["code"] for e in r.events() if e["code"].startswith("shutdown")] == ["shutdown_torque_off"]
 
 
+def test_a_torque_off_that_fails_at_shutdown_is_said_never_published_as_disabled(loop_rig):
+    """The loop's last torque off fails (a joint does not confirm): clients hear an error naming
+    the joint and the robot's last state is FAULT, never DISABLED (the failure was swallowed and
+    DISABLED published: session 7's review)."""
+    from crtk_bridge.errors import BackendError
+
+    r = loop_rig(with_shutdown(action="torque_off"))
+    enable_and_move(r)
+
+    def no_confirmation():
+        raise BackendError("so101: joint 'gripper' (id 6) did not confirm Torque_Enable = 0")
+        yield  # pragma: no cover
+
+    r.act._disable_steps = no_confirmation
+    r.front.send(_enc({"cmd": "_shutdown"}))
+    r.end()
+    (failed,) = r.events("torque_off_unconfirmed")
+    assert "shutdown" in failed["message"] and "'gripper'" in failed["message"], failed
+    states = [m["data"]["state"] for m in r.msgs if m.get("event") == "operating_state"]
+    assert states[-1] == "FAULT" and r.loop.controller.state is OperatingState.FAULT
+    assert r.loop.controller.torque_unconfirmed
+
+
 def test_no_park_while_a_lifecycle_transition_is_under_way():
     from .test_transitions import SlowActuator, make_slow_rig
 

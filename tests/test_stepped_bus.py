@@ -10,6 +10,7 @@ Transactions are counted, never timed.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 
 import yaml
@@ -109,34 +110,52 @@ def test_so101_disable_is_one_sync_write_then_one_servo_per_cycle():
         sim.stop()
 
 
-def koch_rig():
+@contextlib.contextmanager
+def koch_enabled():
+    """A Koch's simulator and its backend, opened, configured and enabled; stopped after."""
     from crtk_bridge.backends.dynamixel.backend import DynamixelBackend
     from crtk_bridge.sim.dynamixel import DynamixelSimulator
 
     sim = DynamixelSimulator.from_profile(parse_profile(KOCH))
     sim.start()
-    data = copy.deepcopy(KOCH)
-    data["backend"].update(port=sim.port, timeout_ms=100)
-    return sim, DynamixelBackend(parse_profile(data, "koch.yaml"), source="koch.yaml")
+    try:
+        data = copy.deepcopy(KOCH)
+        data["backend"].update(port=sim.port, timeout_ms=100)
+        b = DynamixelBackend(parse_profile(data, "koch.yaml"), source="koch.yaml")
+        with b:
+            b.configure()
+            b.enable(b.new_feedback())
+            yield sim, b
+    finally:
+        sim.stop()
+
+
+def koch_in_velocity_mode(sim, b, speed: float):
+    """Switch every joint of an enabled Koch to velocity mode (its MODE_SWITCH transition) at
+    ``speed``; returns once every servo has taken a non-zero velocity goal. Returns the command."""
+    from crtk_bridge.core.actuator import CommandMode, Transition
+
+    cmd = b.new_command()
+    cmd.mode[:] = CommandMode.VELOCITY
+    cmd.velocity[:] = speed
+    run(b, Transition(b.robot, Lifecycle.MODE_SWITCH, b.mode_switch_steps(cmd.mode), 2.0),
+        BusLog(b, "dynamixel"), cmd)
+    wait_until(lambda: all(sim.servo(sid).read("Goal_Velocity") != 0 for sid in range(1, 7)), 2.0,
+               what="velocity goals applied (a sync write has no reply)")
+    return cmd
 
 
 def test_koch_disable_is_one_sync_write_then_one_servo_per_cycle():
     from crtk_bridge.backends.dynamixel import tables as T
 
-    sim, b = koch_rig()
-    try:
-        with b:
-            b.configure()
-            b.enable(b.new_feedback())
-            log = BusLog(b, "dynamixel")
-            assert run(b, b.begin(Lifecycle.DISABLE), log) == 6
-            steps = log.cycles[1:]
-            assert [p[0] for p in steps[0] if p[1] == BROADCAST][-1] == T.INST_SYNC_WRITE
-            for cycle in steps:
-                assert len(BusLog.acknowledged(cycle)) <= 1, cycle
-            assert all(sim.servo(sid).read("Torque_Enable") == 0 for sid in range(1, 7))
-    finally:
-        sim.stop()
+    with koch_enabled() as (sim, b):
+        log = BusLog(b, "dynamixel")
+        assert run(b, b.begin(Lifecycle.DISABLE), log) == 6
+        steps = log.cycles[1:]
+        assert [p[0] for p in steps[0] if p[1] == BROADCAST][-1] == T.INST_SYNC_WRITE
+        for cycle in steps:
+            assert len(BusLog.acknowledged(cycle)) <= 1, cycle
+        assert all(sim.servo(sid).read("Torque_Enable") == 0 for sid in range(1, 7))
 
 
 def test_koch_mode_switch_is_one_joint_per_cycle_and_holds_until_done():
@@ -147,38 +166,32 @@ def test_koch_mode_switch_is_one_joint_per_cycle_and_holds_until_done():
     from crtk_bridge.backends.dynamixel import tables as T
     from crtk_bridge.core.actuator import CommandMode, Transition
 
-    sim, b = koch_rig()
-    try:
-        with b:
-            b.configure()
-            b.enable(b.new_feedback())
-            cmd = b.new_command()
-            cmd.mode[:] = CommandMode.VELOCITY
-            cmd.velocity[:] = 0.2
-            steps = b.mode_switch_steps(cmd.mode)  # prepare: no bus
-            assert steps is not None
-            log = BusLog(b, "dynamixel")
-            t = Transition(b.robot, Lifecycle.MODE_SWITCH, steps, 2.0)
-            assert run(b, t, log, cmd) == 6
-            goal_velocity = (104).to_bytes(2, "little")
-            cycles = log.cycles[1:]
-            for k, cycle in enumerate(cycles):
-                acked = BusLog.acknowledged(cycle)
-                assert {p[1] for p in acked} == {k + 1}, cycle  # one servo's work per cycle
-                assert len(acked) <= 5, cycle  # its 4 writes and nothing else (no position read)
-                assert sum(p[0] in (T.INST_SYNC_READ, T.INST_FAST_SYNC_READ) for p in cycle) <= b._attempts
-                if k < len(cycles) - 1:  # the switched joints hold (a zero goal at most) until the last one's step
-                    for p in cycle:
-                        if p[0] == T.INST_SYNC_WRITE and p[2][:2] == goal_velocity:
-                            body = p[2][4:]
-                            assert not any(any(body[j + 1:j + 5]) for j in range(0, len(body), 5)), cycle  # every value zero
-            assert all(sim.servo(sid).read("Operating_Mode") == 1 for sid in range(1, 7))
-            assert all(sim.servo(sid).read("Torque_Enable") == 1 for sid in range(1, 7))
-            assert b.mode_switch_steps(cmd.mode) is None  # done: the device follows these modes
-            # the last cycle's write (after the step that ended it) sends the velocity goals
-            assert any(p[0] == T.INST_SYNC_WRITE and p[2][:2] == goal_velocity for p in cycles[-1])
-    finally:
-        sim.stop()
+    with koch_enabled() as (sim, b):
+        cmd = b.new_command()
+        cmd.mode[:] = CommandMode.VELOCITY
+        cmd.velocity[:] = 0.2
+        steps = b.mode_switch_steps(cmd.mode)  # prepare: no bus
+        assert steps is not None
+        log = BusLog(b, "dynamixel")
+        t = Transition(b.robot, Lifecycle.MODE_SWITCH, steps, 2.0)
+        assert run(b, t, log, cmd) == 6
+        goal_velocity = (104).to_bytes(2, "little")
+        cycles = log.cycles[1:]
+        for k, cycle in enumerate(cycles):
+            acked = BusLog.acknowledged(cycle)
+            assert {p[1] for p in acked} == {k + 1}, cycle  # one servo's work per cycle
+            assert len(acked) <= 5, cycle  # its 4 writes and nothing else (no position read)
+            assert sum(p[0] in (T.INST_SYNC_READ, T.INST_FAST_SYNC_READ) for p in cycle) <= b._attempts
+            if k < len(cycles) - 1:  # the switched joints hold (a zero goal at most) until the last one's step
+                for p in cycle:
+                    if p[0] == T.INST_SYNC_WRITE and p[2][:2] == goal_velocity:
+                        body = p[2][4:]
+                        assert not any(any(body[j + 1:j + 5]) for j in range(0, len(body), 5)), cycle  # every value zero
+        assert all(sim.servo(sid).read("Operating_Mode") == 1 for sid in range(1, 7))
+        assert all(sim.servo(sid).read("Torque_Enable") == 1 for sid in range(1, 7))
+        assert b.mode_switch_steps(cmd.mode) is None  # done: the device follows these modes
+        # the last cycle's write (after the step that ended it) sends the velocity goals
+        assert any(p[0] == T.INST_SYNC_WRITE and p[2][:2] == goal_velocity for p in cycles[-1])
 
 
 def test_koch_switch_back_to_position_stops_every_velocity_joint_first():
@@ -188,32 +201,20 @@ def test_koch_switch_back_to_position_stops_every_velocity_joint_first():
     from crtk_bridge.backends.dynamixel import tables as T
     from crtk_bridge.core.actuator import CommandMode, Transition
 
-    sim, b = koch_rig()
-    try:
-        with b:
-            b.configure()
-            b.enable(b.new_feedback())
-            cmd = b.new_command()
-            cmd.mode[:] = CommandMode.VELOCITY
-            cmd.velocity[:] = 0.3
-            run(b, Transition(b.robot, Lifecycle.MODE_SWITCH, b.mode_switch_steps(cmd.mode), 2.0),
-                BusLog(b, "dynamixel"), cmd)
-            wait_until(lambda: all(sim.servo(sid).read("Goal_Velocity") != 0 for sid in range(1, 7)), 2.0,
-                       what="velocity goals applied (a sync write has no reply)")
-            cmd.mode[:] = CommandMode.POSITION
-            log = BusLog(b, "dynamixel")
-            assert run(b, Transition(b.robot, Lifecycle.MODE_SWITCH, b.mode_switch_steps(cmd.mode), 2.0),
-                       log, b.new_command()) == 6
-            first = log.cycles[1]
-            stop = [p for p in first if p[0] == T.INST_SYNC_WRITE]
-            assert stop and stop[0][2][:2] == (104).to_bytes(2, "little"), first  # Goal_Velocity, all six
-            assert first.index(stop[0]) < first.index(BusLog.acknowledged(first)[0])  # before any switch
-            for k, cycle in enumerate(log.cycles[1:]):
-                acked = BusLog.acknowledged(cycle)
-                assert {p[1] for p in acked} == {k + 1} and len(acked) <= 5, cycle  # incl. the position read
-            assert all(sim.servo(sid).read("Operating_Mode") in (4, 5) for sid in range(1, 7))
-    finally:
-        sim.stop()
+    with koch_enabled() as (sim, b):
+        cmd = koch_in_velocity_mode(sim, b, 0.3)
+        cmd.mode[:] = CommandMode.POSITION
+        log = BusLog(b, "dynamixel")
+        assert run(b, Transition(b.robot, Lifecycle.MODE_SWITCH, b.mode_switch_steps(cmd.mode), 2.0),
+                   log, b.new_command()) == 6
+        first = log.cycles[1]
+        stop = [p for p in first if p[0] == T.INST_SYNC_WRITE]
+        assert stop and stop[0][2][:2] == (104).to_bytes(2, "little"), first  # Goal_Velocity, all six
+        assert first.index(stop[0]) < first.index(BusLog.acknowledged(first)[0])  # before any switch
+        for k, cycle in enumerate(log.cycles[1:]):
+            acked = BusLog.acknowledged(cycle)
+            assert {p[1] for p in acked} == {k + 1} and len(acked) <= 5, cycle  # incl. the position read
+        assert all(sim.servo(sid).read("Operating_Mode") in (4, 5) for sid in range(1, 7))
 
 
 def test_koch_velocity_joint_waiting_for_its_mode_switch_gets_a_zero_goal_every_cycle():
@@ -221,28 +222,16 @@ def test_koch_velocity_joint_waiting_for_its_mode_switch_gets_a_zero_goal_every_
     switch only when no other transition runs (a composite's PAUSE, a native HOME, a goal check may
     last seconds). Until then every write sends that joint a zero Goal_Velocity: it never keeps
     turning at its last speed (found by the session's review: it did, for the whole transition)."""
-    from crtk_bridge.core.actuator import CommandMode, Transition
+    from crtk_bridge.core.actuator import CommandMode
 
-    sim, b = koch_rig()
-    try:
-        with b:
-            b.configure()
-            b.enable(b.new_feedback())
-            cmd = b.new_command()
-            cmd.mode[:] = CommandMode.VELOCITY
-            cmd.velocity[:] = 0.3
-            run(b, Transition(b.robot, Lifecycle.MODE_SWITCH, b.mode_switch_steps(cmd.mode), 2.0),
-                BusLog(b, "dynamixel"), cmd)
-            wait_until(lambda: all(sim.servo(sid).read("Goal_Velocity") != 0 for sid in range(1, 7)), 2.0,
-                       what="velocity goals applied (a sync write has no reply)")
-            hold = b.new_command()
-            hold.mode[:] = CommandMode.POSITION  # core's hold; no MODE_SWITCH run (another transition is)
-            fb = b.new_feedback()
-            for _ in range(3):
-                assert b.read(fb) is None
-                assert b.write(hold) is None
-            wait_until(lambda: all(sim.servo(sid).read("Goal_Velocity") == 0 for sid in range(1, 7)), 2.0,
-                       what="a zero velocity goal on every joint still in velocity mode")
-            assert all(sim.servo(sid).read("Operating_Mode") == 1 for sid in range(1, 7))  # not switched yet
-    finally:
-        sim.stop()
+    with koch_enabled() as (sim, b):
+        koch_in_velocity_mode(sim, b, 0.3)
+        hold = b.new_command()
+        hold.mode[:] = CommandMode.POSITION  # core's hold; no MODE_SWITCH run (another transition is)
+        fb = b.new_feedback()
+        for _ in range(3):
+            assert b.read(fb) is None
+            assert b.write(hold) is None
+        wait_until(lambda: all(sim.servo(sid).read("Goal_Velocity") == 0 for sid in range(1, 7)), 2.0,
+                   what="a zero velocity goal on every joint still in velocity mode")
+        assert all(sim.servo(sid).read("Operating_Mode") == 1 for sid in range(1, 7))  # not switched yet

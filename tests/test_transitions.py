@@ -72,7 +72,11 @@ class SlowActuator(Actuator):
 
     disable_cycles = 0  # DISABLE's confirmation steps after its torque off (a serial bus: one per servo)
 
+    disable_fails = False  # DISABLE's first step raises (the bus does not answer)
+
     def _disable_steps(self):
+        if self.disable_fails:
+            raise BackendError("so101: joint 'gripper' (id 6) did not confirm Torque_Enable = 0")
         self.bus.append("torque-off")
         self.torque = False
         for _ in range(self.disable_cycles):
@@ -202,6 +206,35 @@ def test_enable_during_a_faults_torque_off_is_handled_when_it_ends(rig):
     assert r["ok"] and c.state is OperatingState.ENABLED and act.torque, r
     enables = [i for i, b in enumerate(act.bus) if b == "enable-step-0"]
     assert enables[-1] > max(i for i, b in enumerate(act.bus) if b == "torque-off-confirmed")
+
+
+def test_a_client_disable_that_aborts_a_faults_torque_off_then_fails_keeps_it_unconfirmed_and_retries(rig):
+    """A client's disable in FAULT aborts the fault's own torque off (still confirming servos);
+    when that DISABLE fails, the robot says torque off is unconfirmed (error event, the
+    ``torque_unconfirmed`` flag) and retries it once the bus answers, as after the fault's own
+    failure; it said nothing and never retried (session 7's review)."""
+    c, act, clock, cycle, send, replies = rig
+    act.disable_cycles = 6
+    send("enable")
+    cycle(8)
+    c.enter_fault(Fault("bus_timeout", "so101: no reply", transient=False))
+    cycle(2)
+    assert c.is_busy and not c.torque_unconfirmed  # confirming, one servo a cycle
+    act.disable_fails = True
+    rid = send("disable")
+    (r,) = replies(rid)
+    assert not r["ok"] and "disable failed, still FAULT" in r["error"]["message"], r
+    assert c.state is OperatingState.FAULT and c.torque_unconfirmed
+    (unconfirmed,) = [m["data"] for m in c.outbox if m.get("event") == "error"
+                      and m["data"]["code"] == "torque_off_unconfirmed"]
+    assert "torque off not confirmed" in unconfirmed["message"] and "gripper" in unconfirmed["message"]
+    act.disable_fails = False  # the bus answers again: the retry (at most once a second) confirms
+    act.bus.clear()
+    clock.t += 1.1
+    cycle(10)
+    assert act.bus.count("torque-off-confirmed") == 6 and not c.torque_unconfirmed
+    assert [m["data"]["code"] for m in c.outbox if m.get("event") == "status"][-1] == "torque_off_confirmed"
+    assert c.state is OperatingState.FAULT  # still FAULT: only torque off was retried
 
 
 def test_transition_beyond_its_time_limit_faults_naming_it(rig):

@@ -5,6 +5,7 @@ under the same control rules (one controller across transports, stops from anyon
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 import socket
@@ -183,17 +184,16 @@ def test_no_such_robot_on_the_network(lab):
         connect(zenoh_connect=endpoint)
 
 
-def test_a_plain_zenoh_client_and_a_flood_of_requests(lab):
-    """The documented key layout, spoken with eclipse-zenoh alone (no project client): the token
-    opens a session greeted with operating_state; a flood beyond the pending-request bound is
-    refused line by line with each request's id, and a stop in it is still served."""
+@contextlib.contextmanager
+def plain_zenoh_client(endpoint: str, robot: str = "so101"):
+    """The documented key layout spoken with eclipse-zenoh alone (no project client): a client
+    session through the router, subscribed to its own out key, its liveliness token declared (the
+    daemon opens a session for it and greets it). Yields (put, got): ``put(bytes)`` sends request
+    lines to its in key; ``got`` collects every message received, in order."""
     import uuid
 
     import zenoh
 
-    from crtk_bridge.transport.tunnel import MAX_PENDING
-
-    endpoint, _, _ = lab
     conf = zenoh.Config()
     for key, value in (("mode", '"client"'), ("scouting/multicast/enabled", "false"),
                        ("connect/endpoints", json.dumps([endpoint]))):
@@ -202,16 +202,31 @@ def test_a_plain_zenoh_client_and_a_flood_of_requests(lab):
     cid = uuid.uuid4().hex
     got: list[dict] = []
     sub = session.declare_subscriber(
-        f"crtk_bridge/so101/out/{cid}",
+        f"crtk_bridge/{robot}/out/{cid}",
         zenoh.handlers.Callback(lambda s: got.extend(json.loads(x) for x in s.payload.to_bytes().splitlines()),
                                 indirect=False))
-    token = session.liveliness().declare_token(f"crtk_bridge/so101/client/{cid}")
+    token = session.liveliness().declare_token(f"crtk_bridge/{robot}/client/{cid}")
     try:
+        yield (lambda payload: session.put(f"crtk_bridge/{robot}/in/{cid}", payload)), got
+    finally:
+        token.undeclare()
+        sub.undeclare()
+        session.close()
+
+
+def test_a_plain_zenoh_client_and_a_flood_of_requests(lab):
+    """The documented key layout, spoken with eclipse-zenoh alone (no project client): the token
+    opens a session greeted with operating_state; a flood beyond the pending-request bound is
+    refused line by line with each request's id, and a stop in it is still served."""
+    from crtk_bridge.transport.tunnel import MAX_PENDING
+
+    endpoint, _, _ = lab
+    with plain_zenoh_client(endpoint) as (put, got):
         wait_until(lambda: got, 5.0, what="the greeting")
         assert got[0]["event"] == "operating_state" and got[0]["data"]["state"] in ("DISABLED", "ENABLED", "PAUSED")
         n = MAX_PENDING + 100
         flood = b"".join(b'{"id": %d, "cmd": "operating_state"}\n' % i for i in range(n))
-        session.put(f"crtk_bridge/so101/in/{cid}", flood + b'{"id": -1, "cmd": "hold", "ns": "so101"}\n')
+        put(flood + b'{"id": -1, "cmd": "hold", "ns": "so101"}\n')
         replies = lambda: {m["id"]: m for m in list(got) if "id" in m}  # noqa: E731
         wait_until(lambda: -1 in replies() and len(replies()) == n + 1, 30.0, what="every reply")
         discarded = [m for m in replies().values() if not m["ok"] and "request discarded" in m["error"]["message"]]
@@ -219,10 +234,6 @@ def test_a_plain_zenoh_client_and_a_flood_of_requests(lab):
         assert {m["id"] for m in discarded} == set(range(MAX_PENDING, n))
         stop = replies()[-1]
         assert "request discarded" not in json.dumps(stop)  # a stop is never refused for the flood
-    finally:
-        token.undeclare()
-        sub.undeclare()
-        session.close()
 
 
 def test_a_plain_zenoh_subscriber_at_a_low_rate_gets_every_frame(lab):
@@ -230,28 +241,11 @@ def test_a_plain_zenoh_subscriber_at_a_low_rate_gets_every_frame(lab):
     (the topic read and encoded once a tick, the frames put together) arrive whole, each with its
     own subscription id, in order of their bus reads, and the daemon drops none of them
     (period_statistics' frames_dropped does not move)."""
-    import uuid
-
-    import zenoh
-
     endpoint, so101, _ = lab
-    robot = connect(socket=str(so101.socket_path))
-    conf = zenoh.Config()
-    for k, v in (("mode", '"client"'), ("scouting/multicast/enabled", "false"),
-                 ("connect/endpoints", json.dumps([endpoint]))):
-        conf.insert_json5(k, v)
-    session = zenoh.open(conf)
-    cid = uuid.uuid4().hex
-    got: list[dict] = []
-    sub = session.declare_subscriber(
-        f"crtk_bridge/so101/out/{cid}",
-        zenoh.handlers.Callback(lambda s: got.extend(json.loads(x) for x in s.payload.to_bytes().splitlines()),
-                                indirect=False))
-    token = session.liveliness().declare_token(f"crtk_bridge/so101/client/{cid}")
-    try:
+    with connect(socket=str(so101.socket_path)) as robot, plain_zenoh_client(endpoint) as (put, got):
         wait_until(lambda: got, 5.0, what="the greeting")
         dropped_before = robot.period_statistics()["frames_dropped"]
-        session.put(f"crtk_bridge/so101/in/{cid}", b"".join(
+        put(b"".join(
             b'{"id": %d, "cmd": "subscribe", "ns": "so101", "data": {"topic": "measured_js", "rate_hz": 20}}\n' % i
             for i in (1, 2)))
         replies = lambda: {m["id"]: m["data"]["sub"] for m in list(got) if m.get("id") in (1, 2)}  # noqa: E731
@@ -265,11 +259,6 @@ def test_a_plain_zenoh_subscriber_at_a_low_rate_gets_every_frame(lab):
                        for m in frames(sid))
             assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
         assert robot.period_statistics()["frames_dropped"] == dropped_before
-    finally:
-        token.undeclare()
-        sub.undeclare()
-        session.close()
-        robot.close()
 
 
 def test_a_second_daemon_for_the_same_robot_is_refused(lab, short_tmp):

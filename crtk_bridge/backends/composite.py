@@ -11,14 +11,15 @@ bus is served by the calling thread itself, which saves a hand-off) and join, so
 I/O overlaps: serial I/O waits in ``select`` / ``os.read`` with the GIL released. The hand-off is
 two pre-allocated locks per worker (no allocation, no Condition per cycle); the per-bus buffers
 are pre-allocated and gathered / scattered with index arrays. The cycle's stamp is the earliest
-bus's (the sample is at least that old). A fault on any bus is the robot's, its message naming
+bus's read in the cycle (the sample is at least that old). A fault on any bus is the robot's, its message naming
 the bus (and the bus's backend names the joint).
 
 A bus slower than the robot's cycle (``traits.min_period_s`` longer than the effective period: a
 Robotiq gripper's Modbus RTU beside a UR's 500 Hz) is served at its own rate and never joined
 (:class:`_OwnRateWorker`): its thread runs the bus's own cycles (core/cycle.py
-``CycleRunner.own_rate``) and publishes each completed read with its own stamp; the cycle takes
-the newest sample, posts the newest setpoint (newest wins: a stop never queues behind stale
+``CycleRunner.own_rate``) and publishes each completed read with its own stamp (the robot's
+sample keeps the stamp of the buses read in the cycle: :meth:`CompositeActuator.bus_stamps` has
+that bus's); the cycle takes the newest sample, posts the newest setpoint (newest wins: a stop never queues behind stale
 setpoints) and hands the bus's lifecycle transitions to it, seeing at each read how they went (the
 robot's DISABLE ends only once that bus's did). Its failures are counted at its own rate against
 ``safety.bus_errors_max`` and reach the loop as a FAULT naming bus and joint
@@ -494,6 +495,9 @@ class CompositeActuator(Actuator):
         self._first = -1  # the bus joined every cycle on the calling thread (-1: none)
         self._first_sample: dict[int, JointFeedback] = {}  # own-rate bus -> its sample read at open
         self._stamped: list[bool] = []  # per bus: its stamp is one the robot's sample takes
+        self._stops_itself = [False] * len(self.parts)  # per bus: a joint of it stops itself on pause (known once open)
+        #: per bus: not written (it holds where its own RESUME left it) until the robot's RESUME ends
+        self._held = [False] * len(self.parts)
         nb = len(self.parts)
         self._read_res: list[Fault | None] = [None] * nb  # this cycle's result per bus
         self._write_res: list[Fault | None] = [None] * nb
@@ -541,6 +545,7 @@ class CompositeActuator(Actuator):
                 lo += k
         # written every cycle if its bus needs it; the others only while enabled
         self._cyclic = [p.traits.cyclic_write for p in self.parts]
+        self._stops_itself = [any(p.traits.stops_itself_on_pause) for p in self.parts]
         self._scaled = [p for p in self.parts if p.traits.speed_scaling]
 
     # ---------------------------------------------------------------- pacing
@@ -731,6 +736,11 @@ class CompositeActuator(Actuator):
                             running.append((b, t))
                         elif kind in (Lifecycle.ENABLE, Lifecycle.DISABLE):
                             self._partial[b] = False  # enabled (is_enabled says so) or off
+                        elif kind is Lifecycle.RESUME and self._stops_itself[b]:
+                            # resumed before the others: it holds where it resumed (it is not
+                            # written) until the robot's RESUME ends, when core takes its measured
+                            # pose; core's command until then is where its braking ramp ended
+                            self._held[b] = True
                     except Exception as exc:
                         if kind is Lifecycle.DISABLE:
                             failed.append(str(self._named(b, exc)).removeprefix(f"{self.robot}: "))
@@ -748,6 +758,8 @@ class CompositeActuator(Actuator):
         finally:
             for _, t in transitions:
                 t.abort()  # a no-op on finished ones; stops the others (failed or abandoned)
+            if kind is Lifecycle.RESUME:
+                self._held[:] = [False] * len(self._held)
         if error is not None:  # no bus stays powered unsaid
             yield from self._rollback([b for b in buses if self._partial[b] or self.parts[b].is_enabled], error)
         if failed:
@@ -934,18 +946,25 @@ class CompositeActuator(Actuator):
             np.take(command.effort, idx, out=c.effort)
         if self._cart_rows:
             self._scatter_cartesian(command.cartesian)
-        parts, cyclic, res, bw = self.parts, self._cyclic, self._write_res, self._bw
+        parts, cyclic, res, bw, held = self.parts, self._cyclic, self._write_res, self._bw, self._held
+        if any(held):  # held where its RESUME left it: no setpoint (a cyclic bus gets every joint NONE)
+            for b, h in enumerate(held):
+                if h:
+                    self._cmd[b].mode[:] = CommandMode.NONE
+                    if self._cmd[b].cartesian is not None:
+                        self._cmd[b].cartesian.mode[:] = 0
         joined = self._joined_b
         for b in joined:  # a bus that is not written outside ENABLED / PAUSED is skipped
-            if cyclic[b] or parts[b].is_enabled:
+            if cyclic[b] or (parts[b].is_enabled and not held[b]):
                 bw[b].start(_WRITE)
         first = self._first
         if first >= 0:
-            res[first] = parts[first].write(self._cmd[first]) if cyclic[first] or parts[first].is_enabled else None
+            res[first] = parts[first].write(self._cmd[first]) if (
+                cyclic[first] or (parts[first].is_enabled and not held[first])) else None
         for b in self._own_b:  # the newest setpoint, written on the bus's own next cycle
-            res[b] = bw[b].post(self._cmd[b])
+            res[b] = bw[b].post(self._cmd[b]) if not held[b] or cyclic[b] else None
         for b in joined:
-            res[b] = bw[b].join() if cyclic[b] or parts[b].is_enabled else None
+            res[b] = bw[b].join() if cyclic[b] or (parts[b].is_enabled and not held[b]) else None
         if self._count(res, self._write_streak):
             return self._bus_fault(res, self._write_streak)
         return None

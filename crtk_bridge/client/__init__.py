@@ -20,20 +20,8 @@ plot). Names are loaded lazily (PEP 562).
 
 from __future__ import annotations
 
-import importlib
-
 from crtk_client import EXPORTS as _EXPORTS
+from crtk_client import lazy_exports as _lazy_exports
 
 __all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"crtk_client.{_EXPORTS[name]}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return __all__
+__getattr__, __dir__ = _lazy_exports(globals())

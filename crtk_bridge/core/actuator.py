@@ -47,7 +47,8 @@ function (backends/composite.py). When the robot enters FAULT, core runs the DIS
   :meth:`Actuator.report_status` from its ``_read``; core takes it once per cycle
   (:meth:`Actuator.take_status`) and maps it onto the CRTK states with ONE table
   (``core/state.py``, ``DEVICE_STATUS``). A non-transient :class:`Fault` from ``read`` is a
-  device FAULT too.
+  device FAULT too. WARNING and NOTICE are news, not a status (:data:`DEVICE_NEWS`): each report
+  is passed on, in order, without changing the state.
 * Pacing: every cycle starts with :meth:`Actuator.wait_cycle` (``deadline``: the cycle
   runner's, core/cycle.py). With ``traits.clock`` Clock.DEVICE the device's clock paces the loop
   (a UR's next packet); on Clock.LOOP the runner sleeps to its own clock's deadline and

@@ -350,17 +350,19 @@ class ControlLoop:
         self.running = False
 
     def shutdown(self) -> None:
-        """Stop motion and switch torque off. Never raises."""
+        """Stop motion and switch torque off: DISABLED, or FAULT with an error event when a joint
+        did not confirm torque off. Never raises."""
         try:
             self.controller.abort_transition()
         except Exception:
             pass
         try:
             self.actuator.disable()
-        except Exception:
-            pass
+        except Exception as exc:  # never claimed DISABLED: clients hear which joint, state FAULT
+            self.controller.torque_off_failed(exc)
+        else:
+            self.controller.torque_switched_off()
         self.actuator.close()
-        self.controller.torque_switched_off()
         self._publish()
         self._flush()
 

@@ -50,10 +50,8 @@ def _parser() -> argparse.ArgumentParser:
         d = sub.add_parser(device, help=what)
         d.add_argument("--profile", required=True, help="robot profile (YAML); one servo per joint id")
         d.add_argument("--link", help="create this symlink to the pty (default: print the pty path)")
-        d.add_argument("--control", help="serve the JSON-lines control socket at this path")
         d.add_argument("--emulate-baud", action="store_true",
                        help="delay replies by the wire time at the profile's baud rate")
-        d.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
         d.add_argument("--torque-delay", type=float, default=0.0, metavar="S",
                        help="a torque-on takes S seconds to take effect (a slow device; default 0)")
         d.add_argument("--empty", action="store_true",
@@ -67,27 +65,19 @@ def _parser() -> argparse.ArgumentParser:
                             "rate mismatch)")
         d.add_argument("--model", action="append", default=[], metavar="ID=MODEL",
                        help="the servo with this id is of another model; repeatable")
-        d.add_argument("--log-level", default="warning",
-                       choices=["debug", "info", "warning", "error"], help="default: warning")
     d = sub.add_parser("canopen", help="CiA 402 drives behind a simulated SLCAN USB-CAN adapter (pty)")
     d.add_argument("--profile", required=True, help="robot profile (YAML); one drive per joint node_id")
     d.add_argument("--link", help="create this symlink to the adapter's pty (default: print the pty path)")
-    d.add_argument("--control", help="serve the JSON-lines control socket at this path")
     d.add_argument("--interface", default="slcan", choices=["slcan", "socketcan"],
                    help="slcan (default): a simulated USB-CAN adapter on a pty; socketcan: join --channel")
     d.add_argument("--channel", help="with --interface socketcan: the kernel CAN interface (e.g. vcan0)")
-    d.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
     d.add_argument("--enable-delay", type=float, default=0.0, metavar="S",
                    help="enable operation takes S seconds (a brake releasing; default 0)")
-    d.add_argument("--log-level", default="warning",
-                   choices=["debug", "info", "warning", "error"], help="default: warning")
     u = sub.add_parser("ur", help="Universal Robots controller (UR5e): RTDE 30004, dashboard 29999, "
                                   "script 30003 on a loopback address")
     u.add_argument("--profile", required=True, help="robot profile (YAML): six joints, their limits and home")
     u.add_argument("--host", required=True,
                    help="address to serve on, e.g. 127.0.0.2 (the ports are fixed; 'auto': a free 127.0.0.N)")
-    u.add_argument("--control", help="serve the JSON-lines control socket at this path")
-    u.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
     u.add_argument("--series", choices=["e-series", "cb3"],
                    help="controller generation: e-series (500 Hz) or cb3 (125 Hz); default: the "
                         "profile's backend.series, else e-series")
@@ -101,8 +91,6 @@ def _parser() -> argparse.ArgumentParser:
                         "to the serial device PATH (e.g. a Robotiq gripper simulator's pty)")
     u.add_argument("--tool-baud", type=int, default=115200, metavar="BAUD",
                    help="the tool's serial rate (default 115200)")
-    u.add_argument("--log-level", default="warning",
-                   choices=["debug", "info", "warning", "error"], help="default: warning")
     from ..registry import devices
 
     for device, backend in devices().items():  # another distribution's (crtk_bridge/registry.py)
@@ -113,11 +101,11 @@ def _parser() -> argparse.ArgumentParser:
         where = d.add_mutually_exclusive_group()
         where.add_argument("--link", help="create this symlink to its pty (a serial device)")
         where.add_argument("--host", help="serve on this loopback address (a device on TCP ports)")
+    for d in sub.choices.values():  # every device's
         d.add_argument("--control", help="serve the JSON-lines control socket at this path")
         d.add_argument("--bus", help="with a several-bus profile (backends:), the bus to simulate")
         d.add_argument("--log-level", default="warning",
                        choices=["debug", "info", "warning", "error"], help="default: warning")
-    for d in sub.choices.values():
         d.add_argument("--parent-pid", type=int, metavar="PID",
                        help="stop when the process PID (the spawner, our parent) is gone")
     return p
@@ -141,6 +129,21 @@ def _serve(sim, ready_line: str) -> int:
         sim.stop()
 
 
+def _start_and_serve(build, ready_line) -> int:
+    """``build()`` makes and starts the simulator; then :func:`_serve` it, announced by
+    ``ready_line(sim)``. A failure to start is one line on stderr and the exit code (2: the
+    profile or an option; 1: the simulator could not start)."""
+    try:
+        sim = build()
+    except CrtkBridgeError as exc:
+        print(f"crtk-sim: {exc}", file=sys.stderr)
+        return 2 if isinstance(exc, ProfileError) else 1
+    except OSError as exc:
+        print(f"crtk-sim: cannot start the simulator: {exc}", file=sys.stderr)
+        return 1
+    return _serve(sim, ready_line(sim))
+
+
 #: the devices with options of their own above; any other registered one gets the common options
 _BUILTIN_DEVICES = ("feetech", "dynamixel", "canopen", "ur")
 
@@ -150,17 +153,14 @@ def _main_registered(Simulator, args, profile) -> int:
     backend"): ``Simulator.from_profile(profile, link=... | host=..., control=...)``, then
     ``start()``; it has ``running``, ``port`` (its endpoint) and ``stop()``."""
     where = {"host": args.host} if args.host else {"link": args.link}
-    try:
+
+    def build():
         sim = Simulator.from_profile(profile, control=args.control, **where)
         sim.start()
-    except CrtkBridgeError as exc:
-        print(f"crtk-sim: {exc}", file=sys.stderr)
-        return 2 if isinstance(exc, ProfileError) else 1
-    except OSError as exc:
-        print(f"crtk-sim: cannot start the simulator: {exc}", file=sys.stderr)
-        return 1
-    return _serve(sim, f"crtk-sim: {args.device} ready: port={sim.port} "
-                       f"control={sim.control_path or '-'}")
+        return sim
+
+    return _start_and_serve(build, lambda sim: f"crtk-sim: {args.device} ready: port={sim.port} "
+                                               f"control={sim.control_path or '-'}")
 
 
 def _main_ur(args, profile) -> int:
@@ -170,7 +170,7 @@ def _main_ur(args, profile) -> int:
     from .ur import PORTS, URController, profile_options
     from .ur_robot import Limits, Timings
 
-    try:
+    def build():
         opts = profile_options(profile)
         host = free_loopback_host(PORTS.values()) if args.host == "auto" else args.host
         sim = URController(host, q0=opts["q0"], limits=Limits(np.array(opts["lower"]), np.array(opts["upper"])),
@@ -178,12 +178,12 @@ def _main_ur(args, profile) -> int:
                            timings=Timings(args.power_on_s, args.brake_release_s, args.unlock_delay_s),
                            tool_link=args.tool_link, tool_baud=args.tool_baud)
         sim.start()
-    except CrtkBridgeError as exc:
-        print(f"crtk-sim: {exc}", file=sys.stderr)
-        return 1
-    return _serve(sim, f"crtk-sim: ur controller ready: host={sim.host} rtde=30004 dashboard=29999 "
-                       f"script=30003{' tool=54321' if sim.tool_link else ''} series={sim.series} "
-                       f"rate={sim.rate_hz:g}Hz control={sim.control_path or '-'}")
+        return sim
+
+    return _start_and_serve(build, lambda sim: (
+        f"crtk-sim: ur controller ready: host={sim.host} rtde=30004 dashboard=29999 "
+        f"script=30003{' tool=54321' if sim.tool_link else ''} series={sim.series} "
+        f"rate={sim.rate_hz:g}Hz control={sim.control_path or '-'}"))
 
 
 def _day_one(sim, args) -> None:
@@ -239,11 +239,12 @@ def main(argv: list[str] | None = None) -> int:
     signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
     if args.device not in _BUILTIN_DEVICES:
         return _main_registered(Simulator, args, profile)
-    try:
+    if args.device == "canopen" and args.interface == "socketcan" and not args.channel:
+        print("crtk-sim: --interface socketcan needs --channel (e.g. vcan0)", file=sys.stderr)
+        return 2
+
+    def build():
         if args.device == "canopen":
-            if args.interface == "socketcan" and not args.channel:
-                print("crtk-sim: --interface socketcan needs --channel (e.g. vcan0)", file=sys.stderr)
-                return 2
             sim = Simulator.from_profile(profile, link=args.link, control=args.control,
                                          interface=args.interface, channel=args.channel)
             sim.set_torque_delay(args.enable_delay)
@@ -253,19 +254,17 @@ def main(argv: list[str] | None = None) -> int:
             sim.set_torque_delay(args.torque_delay)
             _day_one(sim, args)
         sim.start()
-    except CrtkBridgeError as exc:
-        print(f"crtk-sim: {exc}", file=sys.stderr)
-        return 2 if isinstance(exc, ProfileError) else 1
-    except OSError as exc:
-        print(f"crtk-sim: cannot start the simulator: {exc}", file=sys.stderr)
-        return 1
+        return sim
+
     if args.device == "canopen":
-        return _serve(sim, f"crtk-sim: canopen bus ready: interface={sim.interface} channel={sim.port} "
-                           f"pty={sim.pty_path or '-'} control={sim.control_path or '-'} "
-                           f"nodes={','.join(map(str, sim.ids))} bitrate={sim.bitrate}")
-    return _serve(sim, f"crtk-sim: {args.device} bus ready: port={sim.port} pty={sim.pty_path} "
-                       f"control={sim.control_path or '-'} ids={','.join(map(str, sim.ids))} "
-                       f"baud={sim.baudrate}{' (emulated)' if sim.emulate_baud else ''}")
+        return _start_and_serve(build, lambda sim: (
+            f"crtk-sim: canopen bus ready: interface={sim.interface} channel={sim.port} "
+            f"pty={sim.pty_path or '-'} control={sim.control_path or '-'} "
+            f"nodes={','.join(map(str, sim.ids))} bitrate={sim.bitrate}"))
+    return _start_and_serve(build, lambda sim: (
+        f"crtk-sim: {args.device} bus ready: port={sim.port} pty={sim.pty_path} "
+        f"control={sim.control_path or '-'} ids={','.join(map(str, sim.ids))} "
+        f"baud={sim.baudrate}{' (emulated)' if sim.emulate_baud else ''}"))
 
 
 if __name__ == "__main__":

@@ -117,6 +117,8 @@ class Gripper:
         self.silent = False
         self._act_t0 = 0.0
         self._act_from = float(open_count)
+        self._act_read: set[str] = set()  # the stroke ends a master read during this activation
+        self._act_k = 0.0  # how far the activation's course is (0..1)
         self._t = time.monotonic()
         self._last_heard = time.monotonic()
         self.requests = 0  # requests answered
@@ -151,10 +153,23 @@ class Gripper:
     #: to full opening, a pause, to full closing, a pause, back to full opening, a pause
     _COURSE = ((0.2, "open"), (0.3, "open"), (0.55, "closed"), (0.65, "closed"), (0.9, "open"), (1.0, "open"))
 
+    #: the pauses at the stroke's ends: (where the pause ends, which end)
+    _PAUSES = ((0.3, "open"), (0.65, "closed"))
+
     def _activation(self, now: float) -> None:
         """Open, close, open again over ``activation_s`` (pausing at each end: the readings there
-        are the stroke's ends); an object between the fingers stops it: activation fault 0x0D."""
-        k = (now - self._act_t0) / max(self.activation_s, 1e-3)
+        are the stroke's ends); an object between the fingers stops it: activation fault 0x0D.
+        A pause lasts until a master has read the position there at least once (a short
+        simulated activation on a loaded PC: the master's reads may be further apart than the
+        pause; a real gripper's activation takes seconds)."""
+        span = max(self.activation_s, 1e-3)
+        k = (now - self._act_t0) / span
+        for end, where in self._PAUSES:
+            if k > end and where not in self._act_read:
+                self._act_t0 += (k - end) * span  # the clock of the activation waits
+                k = end
+                break
+        self._act_k = k
         ends = {"open": float(self.open_count), "closed": float(self.closed_count)}
         if k >= 1.0:
             self.pos, self.gsta, self.current = ends["open"], T.GSTA_ACTIVE, 0
@@ -201,6 +216,11 @@ class Gripper:
 
     def input_words(self) -> list[int]:
         with self.lock:
+            if self.gsta == T.GSTA_ACTIVATING:  # a master read an end of the stroke (see _activation)
+                if round(self.pos) == self.open_count and self._act_k >= self._COURSE[0][0]:
+                    self._act_read.add("open")
+                elif round(self.pos) == self.closed_count:
+                    self._act_read.add("closed")
             status = T.status_byte(self.gact, bool(self.action & T.RGTO) and self.gact, self.gsta, self.gobj)
             words = T.pack_input(status, self.fault, self.rpr, round(self.pos), self.current)
         return words + [0] * (INPUT_WORDS - len(words))
@@ -224,6 +244,7 @@ class Gripper:
                 else:
                     self.gact, self.gsta, self.fault = True, T.GSTA_ACTIVATING, 0
                     self._act_t0, self._act_from = time.monotonic(), self.pos
+                    self._act_read, self._act_k = set(), 0.0
             elif action & T.RGTO and self.gsta == T.GSTA_ACTIVATING:
                 self.fault = 0x05  # priority fault: the activation must complete first
             if action & T.RGTO and not action & T.RACT:

@@ -102,36 +102,3 @@ def check_exposure(config: ZenohConfig, robot: str) -> None:
             if not acl or acl.get("enabled") is not True:
                 raise ZenohConfigError(f"{where}: set transport.zenoh.access_control (enabled: true, with "
                                        f"rules naming who may publish on this robot's keys; {hint})")
-
-
-def check_exposure(config: ZenohConfig, robot: str) -> None:
-    """Refuse, in one line naming the key, an endpoint beyond this PC unless it is a TLS endpoint
-    (``tls/`` or ``quic/``), ``transport.zenoh.tls`` has the certificates it needs, and
-    ``transport.zenoh.access_control`` is enabled. Loopback endpoints are always accepted. Pure;
-    raises ZenohConfigError."""
-    for key, flag in (("listen", "--zenoh-listen"), ("connect", "--zenoh-connect")):
-        for endpoint in getattr(config, key):
-            try:
-                local = is_loopback(endpoint)
-            except ZenohConfigError as exc:
-                raise ZenohConfigError(f"{robot}: transport.zenoh.{key} ({flag}): {exc}") from None
-            if local:
-                continue
-            where = f"{robot}: transport.zenoh.{key} ({flag}) {endpoint} reaches beyond this PC"
-            hint = "see docs/zenoh.md, 'Across machines'"
-            proto, _ = endpoint_host(endpoint)
-            if proto not in SECURE_PROTOCOLS:
-                raise ZenohConfigError(f"{where}: only a tls/ endpoint may (with transport.zenoh.tls and "
-                                       f"transport.zenoh.access_control); use loopback, or {hint}")
-            tls = config.tls
-            needed = (("listen_certificate", "listen_private_key") if key == "listen"
-                      else ("root_ca_certificate",))
-            for name in needed:
-                if tls is None or not getattr(tls, name):
-                    raise ZenohConfigError(f"{where}: set transport.zenoh.tls.{name} ({hint})")
-            acl = config.access_control
-            if not acl or acl.get("enabled") is not True:
-                raise ZenohConfigError(f"{where}: set transport.zenoh.access_control (enabled: true, with "
-                                       f"rules naming who may publish on this robot's keys; {hint})")
-
-

@@ -19,13 +19,43 @@ from .config_crtk import CrtkRobotConfig, CrtkTeleoperatorConfig
 log = logging.getLogger(__name__)
 
 
-def _arm(config, who: str) -> DaemonArm:
-    return DaemonArm(socket=config.socket, robot=config.robot, zenoh_connect=config.zenoh_connect,
-                     namespaces=config.namespaces, units=config.units, use_degrees=config.use_degrees,
-                     timeout_s=config.timeout_s, who=who)
+class _OnDaemon:
+    """What the robot and the teleoperator share: their arm on the daemon (``self.arm``), its
+    joints as the action's features, calibration left to the daemon's profile, and the
+    connection guards LeRobot's devices raise."""
+
+    arm: DaemonArm
+
+    def _attach(self, config, role: str) -> None:
+        self.config = config
+        self.arm = DaemonArm(socket=config.socket, robot=config.robot, zenoh_connect=config.zenoh_connect,
+                             namespaces=config.namespaces, units=config.units, use_degrees=config.use_degrees,
+                             timeout_s=config.timeout_s,
+                             who=f"crtk {role} {config.id or config.robot or ''}".rstrip())
+
+    @cached_property
+    def action_features(self) -> dict[str, type]:
+        return dict.fromkeys(self.arm.keys(), float)
+
+    @property
+    def is_calibrated(self) -> bool:
+        return True  # the daemon's profile holds the calibration (crtk-ctl calibrate)
+
+    def configure(self) -> None:
+        pass
+
+    def _open(self) -> None:
+        if self.arm.is_open:
+            raise DeviceAlreadyConnectedError(f"{self} already connected")
+        self.arm.open()
+
+    def _connected(self) -> DaemonArm:
+        if not self.arm.is_open:
+            raise DeviceNotConnectedError(f"{self} is not connected")
+        return self.arm
 
 
-class CrtkRobot(Robot):
+class CrtkRobot(_OnDaemon, Robot):
     """A robot served by a crtk-bridge daemon. ``connect()`` enables it (the user's command);
     ``send_action`` sends goals the daemon interpolates and returns what it sent;
     ``disconnect()`` holds and releases control (``on_disconnect``)."""
@@ -35,8 +65,7 @@ class CrtkRobot(Robot):
 
     def __init__(self, config: CrtkRobotConfig):
         super().__init__(config)
-        self.config = config
-        self.arm = _arm(config, f"crtk robot {config.id or config.robot or ''}".rstrip())
+        self._attach(config, "robot")
         self.cameras = make_cameras_from_configs(config.cameras)
 
     @cached_property
@@ -45,28 +74,15 @@ class CrtkRobot(Robot):
         cams = {name: (cfg.height, cfg.width, 3) for name, cfg in self.config.cameras.items()}
         return {**dict.fromkeys(self.arm.keys(), float), **cams}
 
-    @cached_property
-    def action_features(self) -> dict[str, type]:
-        return dict.fromkeys(self.arm.keys(), float)
-
     @property
     def is_connected(self) -> bool:
         return self.arm.is_open and all(cam.is_connected for cam in self.cameras.values())
 
-    @property
-    def is_calibrated(self) -> bool:
-        return True  # the daemon's profile holds the calibration (crtk-ctl calibrate)
-
     def calibrate(self) -> None:
         log.info("%s: calibration is the daemon's: crtk-ctl calibrate --profile ... (docs/calibration.md)", self)
 
-    def configure(self) -> None:
-        pass
-
     def connect(self, calibrate: bool = True) -> None:
-        if self.arm.is_open:
-            raise DeviceAlreadyConnectedError(f"{self} already connected")
-        self.arm.open()
+        self._open()
         try:
             self.arm.enable()
             for cam in self.cameras.values():
@@ -77,21 +93,16 @@ class CrtkRobot(Robot):
             raise
 
     def get_observation(self) -> dict[str, Any]:
-        if not self.arm.is_open:
-            raise DeviceNotConnectedError(f"{self} is not connected")
-        obs: dict[str, Any] = self.arm.read()
+        obs: dict[str, Any] = self._connected().read()
         for key, cam in self.cameras.items():
             obs[key] = cam.read_latest() if hasattr(cam, "read_latest") else cam.async_read()
         return obs
 
     def send_action(self, action: dict[str, Any]) -> dict[str, Any]:
-        if not self.arm.is_open:
-            raise DeviceNotConnectedError(f"{self} is not connected")
-        return self.arm.send(action, self.config.command, self.config.max_relative_target)
+        return self._connected().send(action, self.config.command, self.config.max_relative_target)
 
     def disconnect(self) -> None:
-        if not self.arm.is_open:
-            raise DeviceNotConnectedError(f"{self} is not connected")
+        self._connected()
         try:
             self.arm.release(self.config.on_disconnect)
         finally:
@@ -101,7 +112,7 @@ class CrtkRobot(Robot):
                     cam.disconnect()
 
 
-class CrtkTeleoperator(Teleoperator):
+class CrtkTeleoperator(_OnDaemon, Teleoperator):
     """A leader arm served by its own daemon: ``get_action`` is its measured position, read with
     the robot as it is (DISABLED: torque off, moved by hand). Never enables it."""
 
@@ -110,12 +121,7 @@ class CrtkTeleoperator(Teleoperator):
 
     def __init__(self, config: CrtkTeleoperatorConfig):
         super().__init__(config)
-        self.config = config
-        self.arm = _arm(config, f"crtk teleoperator {config.id or config.robot or ''}".rstrip())
-
-    @cached_property
-    def action_features(self) -> dict[str, type]:
-        return dict.fromkeys(self.arm.keys(), float)
+        self._attach(config, "teleoperator")
 
     @cached_property
     def feedback_features(self) -> dict[str, type]:
@@ -125,30 +131,18 @@ class CrtkTeleoperator(Teleoperator):
     def is_connected(self) -> bool:
         return self.arm.is_open
 
-    @property
-    def is_calibrated(self) -> bool:
-        return True
-
     def calibrate(self) -> None:
         pass
 
-    def configure(self) -> None:
-        pass
-
     def connect(self, calibrate: bool = True) -> None:
-        if self.arm.is_open:
-            raise DeviceAlreadyConnectedError(f"{self} already connected")
-        self.arm.open()
+        self._open()
 
     def get_action(self) -> dict[str, float]:
-        if not self.arm.is_open:
-            raise DeviceNotConnectedError(f"{self} is not connected")
-        return self.arm.read()
+        return self._connected().read()
 
     def send_feedback(self, feedback: dict[str, Any]) -> None:
         pass
 
     def disconnect(self) -> None:
-        if not self.arm.is_open:
-            raise DeviceNotConnectedError(f"{self} is not connected")
+        self._connected()
         self.arm.close()

@@ -44,11 +44,13 @@ KEYS = tuple(f"{m}.pos" for m in MOTORS)
 
 def lerobot_reading(name: str, present: float, calibration=CALIBRATION) -> float:
     """LeRobot's number for a servo's Present_Position (motors_bus._normalize, SO arms since
-    0.4.4): degrees about the middle of the range for the arm, 0..100 for the gripper."""
+    0.4.4): degrees about the middle of the range for the arm, 0..100 for the gripper (100..0
+    with drive_mode 1)."""
     c = calibration[name]
     lo, hi = c["range_min"], c["range_max"]
     if name == "gripper":
-        return (min(hi, max(lo, present)) - lo) / (hi - lo) * 100
+        pct = (min(hi, max(lo, present)) - lo) / (hi - lo) * 100
+        return 100 - pct if c["drive_mode"] else pct
     return (present - (lo + hi) / 2) * 360 / 4095
 
 

@@ -50,13 +50,23 @@ EXPORTS = {
 __all__ = sorted(EXPORTS)
 
 
-def __getattr__(name: str):
-    if name not in EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{EXPORTS[name]}"), name)
-    globals()[name] = value
-    return value
+def lazy_exports(namespace: dict):
+    """``(__getattr__, __dir__)`` for a package that re-exports EXPORTS lazily (PEP 562): this
+    one, and ``crtk_bridge.client`` under the historical name. A name is imported from its
+    crtk_client module on first use and kept in ``namespace`` (the package's globals())."""
+    package = namespace["__name__"]
+
+    def __getattr__(name: str):
+        if name not in EXPORTS:
+            raise AttributeError(f"module {package!r} has no attribute {name!r}")
+        value = getattr(importlib.import_module(f"{__name__}.{EXPORTS[name]}"), name)
+        namespace[name] = value
+        return value
+
+    def __dir__():
+        return __all__
+
+    return __getattr__, __dir__
 
 
-def __dir__():
-    return __all__
+__getattr__, __dir__ = lazy_exports(globals())

@@ -563,7 +563,9 @@ class RobotiqBackend(Actuator):
         yield  # decide on this cycle's read (the request may have arrived after it)
         self._check_link("enable")
         active = T.gsta(self._status) == T.GSTA_ACTIVE and self._status & T.GACT
-        if self._must_reset or not active or (self._fault & T.GFLT_MASK) in T.FAULTS:
+        code = self._fault & T.GFLT_MASK
+        if self._must_reset or not active or code not in T.FAULTS and code != T.GFLT_NONE or (
+                code in T.FAULTS and T.FAULTS[code].major):  # a minor fault (0x09 after a quiet second) is no reason
             if self._status & T.GACT:
                 yield from self._reset()
             self._seen = [255, 0]

@@ -324,6 +324,7 @@ class UrBackend(Actuator):
         # latest package
         self._ts = -1.0  # controller timestamp of the last package seen (s)
         self._arrived = 0.0  # perf_counter when it was seen
+        self._taken = False  # wait_cycle took a package the cycle's read has not looked at yet
         self.packets = 0
         self.missed_packets = 0
         self._link = False
@@ -451,6 +452,7 @@ class UrBackend(Actuator):
         deadline = max(deadline, clock()) + self.dt
         while True:
             if self._take(w):
+                self._taken = True  # the cycle's read takes no second look (_refresh)
                 return True
             if w.dead:
                 return False
@@ -508,7 +510,11 @@ class UrBackend(Actuator):
         if w is None:
             self._link = False
             return False
-        fresh = self._take(w)
+        if self._taken:  # wait_cycle took this cycle's package a moment ago, and the messages with it
+            self._taken = False
+            fresh = True
+        else:
+            fresh = self._take(w)
         if w.dead:
             if self._down is None:
                 self._down = w.cause()
@@ -698,27 +704,36 @@ class UrBackend(Actuator):
         if cart is not None and cart.mode[0] != _NONE:
             return self._write_cartesian(cart)
         mode = command.mode
+        modes = mode.tolist()  # a list: a few joints' checks cost a tenth of numpy's (bench_cpu.py)
+        if modes.count(_NONE) == len(modes):
+            # nothing to follow (a cartesian row the write gate refused, its joints in NONE): send
+            # nothing new, the script keeps its last command. A servoJ here would go to the last
+            # JOINT target, stale while servoL ran (the cycle still feeds the watchdog: _feed_watchdog)
+            return None
         # a blocking call started as the link dies waits for its answer (ur_rtde), and the
         # worker is then ended: teach-mode switches start only on a link whose packet came this cycle
         fresh = time.perf_counter() - self._arrived < 2.0 * self.dt
-        if np.all(mode == _FREE):
+        if _FREE in modes and modes.count(_FREE) == len(modes):
             if not self._teach and fresh:
                 self._start_job("teachMode", "teach mode", self._set_teach, True)
             return None
-        if np.any(mode == _FREE):
+        if _FREE in modes:
             return Fault("invalid_command", f"{self.robot}: free applies to the whole UR arm (teach mode), "
                          "not to some joints", transient=False)
         if self._teach:
             if fresh:
                 self._start_job("endTeachMode", "end of teach mode", self._set_teach, False)
             return None
-        if np.any(mode == _VELOCITY):
+        if _VELOCITY in modes:
             qd = np.where(mode == _VELOCITY, command.velocity, 0.0)
             self._last_kind = "speedj"
             self._target[:] = command.position  # a later hold starts from core's (measured) setpoint
             return self._out(SPEEDJ, qd, self._speed_acc, 0.0)
         q = self._target
-        np.copyto(q, command.position, where=mode == _POSITION)  # a joint in NONE keeps its last target
+        if modes.count(_POSITION) == len(modes):
+            q[:] = command.position
+        else:
+            np.copyto(q, command.position, where=mode == _POSITION)  # a joint in NONE keeps its last target
         cfg = self.config
         self._last_kind = "servoj"
         return self._out(SERVOJ, q, 0.0, self.dt, cfg.servo_lookahead_time_s, cfg.servo_gain)

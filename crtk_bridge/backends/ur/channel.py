@@ -56,6 +56,7 @@ import time
 from typing import Any
 
 import msgspec
+import numpy as np
 
 from ...spawn import module_argv, module_env
 
@@ -131,7 +132,8 @@ class WorkerHandle:
         self._buf = bytearray(_RECV_BYTES)
         self._view = memoryview(self._buf)
         self._cmd = bytearray(COMMAND.size)
-        self._seq_last = 0
+        self._seq_last = 0  # the seqlock's count at the last read, and what it read
+        self._state: tuple | None = None
 
     # ---------------------------------------------------------------- lifecycle (blocking)
     def start(self) -> None:
@@ -264,15 +266,22 @@ class WorkerHandle:
             s1 = SEQ.unpack_from(mem, 0)[0]
             if s1 & 1:
                 continue
+            if s1 == self._seq_last:
+                return self._state  # nothing new since the last read: no unpacking
             fields = STATE.unpack_from(mem, SEQ.size)
             if SEQ.unpack_from(mem, 0)[0] == s1:
-                return fields if s1 else None
+                if not s1:
+                    return None
+                self._seq_last, self._state = s1, fields
+                return fields
         return None
 
     def command(self, op: int, values, a: float = 0.0, t: float = 0.0, lookahead: float = 0.0,
                 gain: float = 0.0) -> bool:
         """Send one realtime command. Never blocks: False when the socket is full (the worker is
         not taking commands) or closed; the command was dropped."""
+        if isinstance(values, np.ndarray):
+            values = values.tolist()  # Python floats: unpacking an array yields numpy scalars, slowly
         COMMAND.pack_into(self._cmd, 0, b"C", op, *values, a, t, lookahead, gain)
         return self.send(self._cmd)
 

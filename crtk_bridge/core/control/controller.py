@@ -383,6 +383,17 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
         self.state = OperatingState.DISABLED
         self.push_state()
 
+    def torque_off_failed(self, exc: Exception) -> None:
+        """The loop's torque off at shutdown failed (``exc`` names the joint): motion ends, the
+        robot is FAULT with torque off unconfirmed, and clients hear it as an error; never DISABLED."""
+        self._abort_motion()
+        message = (f"{self.robot}: shutdown: torque off not confirmed ({exc}); the joint may still hold "
+                   "torque: check it and switch its power off")
+        self.fault_cause = Fault("torque_off_unconfirmed", message, transient=False)
+        self._torque_unconfirmed = True
+        self.event("error", "torque_off_unconfirmed", message)
+        self._set_state(OperatingState.FAULT)
+
     def step(self) -> bool:
         """Advance the running lifecycle transition by one step (at most one per cycle) and
         motion by one cycle, and fill ``self.command``. Returns True if it must be written: while

@@ -44,6 +44,8 @@ class TransitionsMixin:
         if t.target is None:
             raise Refused("invalid_state", f"{self.robot}: {cmd.value} is not valid in state {self.state.value}")
         run = self._running
+        # the torque off of a fault (no request waits on it), still confirming servos
+        fault_torque_off = run is not None and run.transition.kind is Lifecycle.DISABLE and not run.rids
         if cmd in (StateCommand.DISABLE, StateCommand.PAUSE):  # a stop is never refused
             if run is not None and run.transition.kind is Lifecycle.DISABLE:
                 if cmd is StateCommand.PAUSE:
@@ -54,7 +56,7 @@ class TransitionsMixin:
             if run is not None:
                 self._abort_running(f"{run.transition.kind.value} aborted by {cmd.value}")
         elif run is not None and cmd is not StateCommand.UNHOME:
-            if cmd is StateCommand.ENABLE and run.transition.kind is Lifecycle.DISABLE and not run.rids:
+            if cmd is StateCommand.ENABLE and fault_torque_off:
                 # the torque off of a fault (no request waits on it) confirms one servo per
                 # cycle: the enable is handled when it ends, never raced with it
                 run.then.append(self._rid)
@@ -68,7 +70,7 @@ class TransitionsMixin:
             if self.state is not OperatingState.ENABLED:
                 return self._enable()
         elif cmd is StateCommand.DISABLE:
-            return self._disable(retry=t.retry)
+            return self._disable(retry=t.retry, replaces_torque_off=fault_torque_off)
         elif cmd is StateCommand.PAUSE:
             if self.state is OperatingState.ENABLED:
                 self._stop_all()
@@ -209,11 +211,17 @@ class TransitionsMixin:
             return Refused("fault", f"{self.robot}: {kind} failed: {exc}")
         return failed
 
-    def _disable(self, retry: bool) -> Any:
+    def _disable(self, retry: bool, replaces_torque_off: bool = False) -> Any:
+        """DISABLE for a request. ``replaces_torque_off``: it aborted a fault's own torque off,
+        whose work it takes over: if it fails, torque off is unconfirmed (said, and retried)."""
         self._abort_motion()
 
         def failed(exc: Exception) -> Refused:
             if retry:  # FAULT -> DISABLED (retry) failed: stay in FAULT
+                if replaces_torque_off and not self._torque_unconfirmed:
+                    self._torque_unconfirmed = True  # on_read retries it once the bus answers
+                    self.event("error", "torque_off_unconfirmed", f"{self.robot}; torque off not confirmed "
+                               f"({exc}); retrying when the bus answers")
                 return Refused("fault", f"{self.robot}: disable failed, still FAULT: {exc}")
             self.enter_fault(Fault("disable_failed", str(exc), transient=False))
             return Refused("fault", f"{self.robot}: disable failed: {exc}")
