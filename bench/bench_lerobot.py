@@ -23,7 +23,7 @@ the register read in a tight loop). Then the ratios (b)/(a). Medians over ``--ru
 Needs the LeRobot venv (tests/lerobot/venv.py builds it: ``python -m tests.lerobot.venv``) and
 this checkout's plugin (installed into a temporary folder here). Run from the repository:
 
-    python bench/bench_lerobot.py [--seconds 10] [--runs 3]
+    python bench/bench_lerobot.py [--seconds 10] [--runs 3] [--interpolation smooth]
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -243,6 +244,8 @@ def main() -> int:
     ap.add_argument("--sample-ms", type=float, default=5.0, help="register sampling period (ms)")
     ap.add_argument("--probes", type=int, default=20, help="send_action -> goal register probes per run")
     ap.add_argument("--direct-only", action="store_true", help="only (a): LeRobot's own follower")
+    ap.add_argument("--interpolation", choices=("linear", "smooth"),
+                    help="the daemon profile's loop.interpolation (default: the profile's own)")
     args = ap.parse_args()
 
     venv = lrvenv.ensure_venv()
@@ -257,6 +260,12 @@ def main() -> int:
                 results["direct"].append(run_mode("direct", arm, venv, None, stream, args, tmp / f"direct{run}.log"))
                 if args.direct_only:
                     continue
+                if args.interpolation:
+                    profile = arm.imported_profile()
+                    data = yaml.safe_load(profile.read_text())
+                    data.setdefault("loop", {})["interpolation"] = args.interpolation
+                    profile.write_text(yaml.safe_dump(data))
+                    arm.imported_profile = lambda profile=profile: profile
                 arm.start_daemon()
                 results["crtk"].append(run_mode("crtk", arm, venv, plugin, stream, args, tmp / f"crtk{run}.log"))
             finally:

@@ -6,9 +6,9 @@ never a jump), then the recorded positions at their recorded timing (``--speed``
 joint limits, ``safety.servo_step_max`` and the velocity limits apply to every sample as to any
 client's. ``interpolate_jp`` rather than ``servo_jp``: a recording holds every control cycle
 (up to 1 kHz) but a client's samples go out over a socket at tens of Hz with jitter; the daemon
-interpolates to each goal over one command period, averaged over a period, never faster than the
-velocity limits, so the replay is smooth at any rate the client keeps, where ``servo_jp`` samples
-would step the setpoint (the cost: 1.5 command periods of lag). A recording of another robot, or of a
+moves the setpoint linearly to each goal over one command period, never faster than the velocity
+limits, so the replay is smooth at any rate the client keeps, where ``servo_jp`` samples would
+step the setpoint (the cost: one command period of lag). A recording of another robot, or of a
 namespace whose joints differ, is refused naming the difference.
 """
 

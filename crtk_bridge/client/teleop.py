@@ -45,12 +45,11 @@ SETTING_ARMS_STATE, ALIGNING, ENABLED, DISABLED = "SETTING_ARMS_STATE", "ALIGNIN
 _ALIGN_REPORT_S = 1.0
 
 #: samples per second (--rate). At most the loop rate of either daemon: the follower's
-#: interpolation reaches each sample 1.5 estimated command periods later (docs/protocol.md), a
-#: period it never takes shorter than its loop's, so faster samples only overwrite each other
-#: (and the leader's measured_js changes once per its loop). At least RATE_MIN_HZ: that period
-#: sets the lag the follower adds behind the hand (150 ms at 10 Hz), and it nears the
-#: follower's servo watchdog (safety.servo_timeout_s, 0.5 s by default), after which it holds
-#: between two samples.
+#: interpolation reaches each sample one estimated command period later, a period it never takes
+#: shorter than its loop's, so faster samples only overwrite each other (and the leader's
+#: measured_js changes once per its loop). At least RATE_MIN_HZ: that period is the lag the
+#: follower adds behind the hand (100 ms at 10 Hz), and it nears the follower's servo watchdog
+#: (safety.servo_timeout_s, 0.5 s by default), after which it holds between two samples.
 RATE_MIN_HZ = 10.0
 RATE_DEFAULT_HZ = 50.0
 #: alignment tolerance (--tolerance, rad). The first interpolate_jp after ALIGNING is a step of up

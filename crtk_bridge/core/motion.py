@@ -11,7 +11,7 @@ Levels and what they produce each cycle (crtk-spec 4.1.1, setpoint fields per 4.
 | SERVO_P  | latest servo_jp / servo_jr (+ optional velocity feed-forward), followed at <= velocity_max | p (+v) | position |
 | SERVO_V  | latest servo_jv; integrated into p on position-only hardware | v (+p) | velocity or position |
 | SERVO_F  | latest servo_jf | f | effort |
-| INTERP_P | linear interpolation to each interpolate_jp goal over one estimated command period, averaged over that period | p, v | position |
+| INTERP_P | linear interpolation to each interpolate_jp goal over one estimated command period (``loop.interpolation: smooth``: averaged over that period) | p, v | position |
 | INTERP_V | setpoint velocity ramps to each interpolate_jv goal at the acceleration limit | v (+p) | velocity or position |
 | INTERP_F | linear ramp to each interpolate_jf goal over one estimated command period | f | effort |
 | MOVE     | ruckig jerk-limited trajectory to the move goal, ending at rest | p, v | position |
@@ -46,16 +46,17 @@ own positions. The stopping distance from ``velocity_max`` is ``v^2 / (2 d)`` pl
 
 Interpolation of a position stream (interpolate_jp): a reference moves linearly from where it
 is to each goal over one estimated command period (an exponential average of the
-inter-arrival times, clamped to [loop period, servo_timeout_s]), at most ``velocity_max``; the
-setpoint is that reference averaged over the last command period (a moving average: the
-quadratic B-spline of the stream). So the setpoint's velocity is continuous: it changes
-linearly over a period instead of stepping at each goal, where a stream of 30 Hz goals made the
-bare linear interpolation move in kinks (issue 21). Being an average of positions the
-reference held, the setpoint never passes a goal, never leaves the position limits nor exceeds
-``velocity_max``, and reaches the last goal exactly (then holds it) one period after the
-reference did. Latency: a goal is reached 1.5 estimated command periods after it arrives, on
-average (the reference's period plus half the averaging window); a stream's watchdog waits
-until the setpoint reached its last goal.
+inter-arrival times, clamped to [loop period, servo_timeout_s]), at most ``velocity_max``;
+with ``loop.interpolation: linear`` (the default) the setpoint is that reference: it passes
+through every goal, its velocity stepping at each one, one period of latency. With ``smooth``
+the setpoint is the reference averaged over the last command period (a moving average: the
+quadratic B-spline of the stream), so its velocity is continuous: it changes linearly over a
+period instead of stepping at each goal, where a 30 Hz stream makes the bare linear
+interpolation move in kinks (issue 21); half a period more latency, and a sharp corner of the
+stream is rounded by up to ``|change of velocity| * period / 8``. Being an average of
+positions the reference held, the setpoint never passes a goal, never leaves the position
+limits nor exceeds ``velocity_max``, and reaches the last goal exactly (then holds it). A
+stream's watchdog waits until the setpoint reached its last goal.
 """
 
 from __future__ import annotations
@@ -159,6 +160,7 @@ class NamespaceMotion:
         self._ref_hist = np.zeros((2 * self._ref_rows, n))
         self._ref_i = 0
         self._width = 1.0  # rows the average spans now (cmd_period / dt, followed slowly)
+        self._smooth = profile.loop.interpolation == "smooth"  # else the average spans one row: linear
         self.otg = Ruckig(n, dt)
         self.inp = InputParameter(n)
         self.out = OutputParameter(n)
@@ -283,7 +285,7 @@ class NamespaceMotion:
             # a new stream: the reference and its history start at the setpoint (no jump)
             self._ref[:] = self.setpoint_p
             self._ref_hist[:] = self.setpoint_p
-            self._width = max(0.02, self.dt) / self.dt  # the first period estimate (below)
+            self._width = max(0.02, self.dt) / self.dt if self._smooth else 1.0  # the first period estimate (below)
         self._enter(Mode.INTERP_P, now)
         self.interp_start[:] = self._ref
         self.interp_t0 = now
@@ -512,7 +514,8 @@ class NamespaceMotion:
         # width following the period estimate slowly (a window that changed with the estimate at
         # each goal would shift the average by a fraction of a step each time); the mean as the
         # reference minus the mean of its lead over each row: exactly the goal once all rows hold it
-        self._width += _WIDTH_GAIN * (min(max(1.0, self.cmd_period / self.dt), rows - 1.0) - self._width)
+        if self._smooth:
+            self._width += _WIDTH_GAIN * (min(max(1.0, self.cmd_period / self.dt), rows - 1.0) - self._width)
         width = self._width
         k = int(width)
         lead = (ref - hist[i + rows - k + 1:i + rows + 1]).sum(axis=0)
