@@ -105,7 +105,7 @@ class SimulatorProcess:
         self.proc = subprocess.Popen(
             module_argv("crtk_bridge.sim.cli", device, "--profile", profile_path, *where, "--control", self.control,
                         *(["--bus", bus] if bus else []), *(["--tool-link", tool_link] if tool_link else []),
-                        "--parent-pid", str(os.getpid())),
+                        "--parent-pid", str(os.getpid()), "--workdir", workdir),
             stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
             env=module_env(),  # this package's simulator, whatever the current folder holds (spawn.py)
             start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process

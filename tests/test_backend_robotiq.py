@@ -311,3 +311,57 @@ def test_open_names_the_port_and_the_register_when_nothing_answers(tmp_path):
             b.open()
     finally:
         sim.stop()
+
+
+def test_disable_during_activation_stops_the_fingers(rig):
+    """rGTO 0 does not stop an activation: a disable while the gripper activates resets it (rACT
+    0) and replies DISABLED only once gACT is 0 and the fingers stand still; the abandoned
+    activation is run anew by the next enable."""
+    rig.sim.set_activation_s(3.0)
+    rid = rig.request("enable")
+    rig.until("the activation under way", lambda: rig.sim.gripper.dump()["gSTA"] == T.GSTA_ACTIVATING)
+    rig.cycle(2)  # the backend read it too (gACT 1, gSTA 1)
+    reply = rig.reply(rig.request("disable"))
+    assert reply["ok"] and rig.c.state is OperatingState.DISABLED, reply
+    assert not rig.reply(rid)["ok"]  # the enable was aborted
+    before = rig.sim.gripper.dump()
+    assert before["gACT"] == 0 and before["rACT"] == 0
+    end = time.monotonic() + 1.0  # a second of cycles (a 3 s activation would run on meanwhile)
+    while time.monotonic() < end:
+        rig.cycle()
+    after = rig.sim.gripper.dump()
+    assert after["gPO"] == before["gPO"] and after["gACT"] == 0 and after["gSTA"] == T.GSTA_RESET
+    rig.sim.set_activation_s(ACTIVATION_S)
+    rig.enable()  # activates from the start, calibrated
+    assert rig.backend.info().details["calibration"] == {"open": OPEN_COUNT, "closed": CLOSED_COUNT}
+
+
+@pytest.mark.parametrize("cause", ["robot_fault", "link_drop"])
+def test_enable_after_a_fault_not_of_the_gripper_does_not_reactivate_it(cause):
+    """A FAULT of the robot's own (a tracking error elsewhere, an invalid command) or a drop of
+    the link that came back leaves an activated gripper as it is: the enable that leaves FAULT
+    is only the go, the fingers stay where they are (an activation runs the whole stroke and
+    drops a held object)."""
+    from crtk_bridge.core.actuator import Fault
+
+    r = Rig(activated=True)
+    try:
+        r.sim.gripper.write("Present_Position", 120)
+        r.cycle(2)
+        r.enable()
+        if cause == "robot_fault":
+            r.c.enter_fault(Fault("tracking_error", "arm: joint 'shoulder': tracking error", transient=False))
+        else:
+            r.sim.set_unplugged(True)
+        r.until("FAULT", lambda: r.c.state is OperatingState.FAULT)
+        if cause == "link_drop":
+            r.sim.set_unplugged(False)
+            r.until("the port back", lambda: any(e["code"] == "fault_cleared" for e in r.events("status")))
+        else:
+            r.until("rGTO off (the fault's disable)", lambda: r.sim.gripper.dump()["gGTO"] == 0)
+        r.enable()
+        r.cycle(5)
+        dump = r.sim.gripper.dump()
+        assert dump["gPO"] == 120 and dump["rPR"] == 120 and dump["gSTA"] == T.GSTA_ACTIVE and dump["gGTO"] == 1, dump
+    finally:
+        r.close()

@@ -864,3 +864,109 @@ def test_a_bus_that_resumed_first_holds_until_the_robot_resumed():
     assert (right.modes[-1] == CommandMode.POSITION).all()
     np.testing.assert_allclose(right.written, 10.05 + np.arange(6.0))  # from where it stopped
     act.close()
+
+
+def test_a_disable_right_after_an_enable_of_a_slow_bus_never_meets_a_stale_enable_step():
+    """The loop abandons a slow bus's ENABLE for a DISABLE while the bus's worker is inside its
+    read (held here at its wire): the worker asks which transition to step only after the read,
+    and the part's DISABLE begins on the worker's thread, after the abandoned ENABLE was closed
+    there. So the ENABLE is never stepped again: it does not end (is_enabled stays False) and no
+    setpoint is written once the DISABLE began."""
+    log: list = []
+
+    class Racy(SlowBus):
+        def begin(self, kind, feedback=None):
+            log.append(("begin", kind, threading.get_ident()))
+            return super().begin(kind, feedback)
+
+        def _enable_steps(self, feedback):
+            yield from super()._enable_steps(feedback)  # torque on ...
+            log.append(("torque on",))
+            self.waiting.clear()
+            self.gate.clear()  # ... and the next read holds the wire (the enable's fresh read)
+
+        def _write(self, cmd):
+            log.append(("write",))
+            return super()._write(cmd)
+
+    left = FakeBus(PROFILE.bus_profile("left"), 0.0, 100.0)
+    right = Racy(PROFILE.bus_profile("right"), 10.0, 50.0)
+    c = CompositeActuator(PROFILE, {"left": left, "right": right})
+    c.open()
+    try:
+        fb = c.new_feedback()
+        enable = c.begin(Lifecycle.ENABLE, fb)
+        assert enable.step() is False  # handed to the slow bus's worker
+        wait_until(right.waiting.is_set, 5, what="the slow bus's fresh read after torque on, held")
+        enable.abort()  # the loop abandons it (a client's disable) ...
+        disable = c.begin(Lifecycle.DISABLE)
+        assert disable.step() is False  # ... and hands the DISABLE over, the worker still in its read
+        right.gate.set()
+        deadline = time.monotonic() + 10
+        while not disable.step():
+            assert time.monotonic() < deadline, "DISABLE did not end"
+            c.read(fb)
+            time.sleep(0.001)
+        (begin_disable,) = [k for k, e in enumerate(log) if e[:2] == ("begin", Lifecycle.DISABLE)]
+        assert ("write",) not in log[begin_disable:], log  # nothing written once the DISABLE began
+        assert not right.is_enabled and not right.torque and not c.is_enabled
+        # every begin() of the bus on its worker's thread, never the loop's
+        assert threading.get_ident() not in {e[2] for e in log if e[0] == "begin"}
+        # the bus at its own rate goes on disabled: still nothing written
+        reads = right.reads
+        wait_until(lambda: right.reads >= reads + 3, 5, what="three more reads of the slow bus")
+        assert ("write",) not in log[begin_disable:] and not right.is_enabled
+    finally:
+        right.gate.set()
+        c.close()
+
+
+def test_close_leaves_a_slow_bus_stuck_in_a_call_to_its_worker_and_says_torque_off_is_unconfirmed(monkeypatch):
+    """close() waits a bounded time for a slow bus's worker; one still inside a read (its wire
+    held) keeps the bus: close() neither runs the part's own torque off nor releases its link on
+    a second thread, and says torque off is not confirmed on that bus; the worker closes the bus
+    itself once its read returns."""
+    import crtk_bridge.backends.composite as composite_module
+
+    monkeypatch.setattr(composite_module, "OWN_RATE_STOP_S", 0.2)
+    quick = {"transition_timeouts_s": {Lifecycle.ENABLE: 1.0, Lifecycle.DISABLE: 0.05}}
+
+    class Quick(FakeBus):
+        TRAITS = quick
+
+    class Held(SlowBus):
+        TRAITS = {**quick, "min_period_s": 0.02}
+
+        def _read(self, fb):
+            self.entered.add(threading.get_ident())
+            return super()._read(fb)
+
+        def _close_hook(self):
+            self.closed_by.append(threading.get_ident())
+
+    left = Quick(PROFILE.bus_profile("left"), 0.0, 100.0)
+    right = Held(PROFILE.bus_profile("right"), 10.0, 50.0)
+    right.entered, right.closed_by = set(), []
+    c = CompositeActuator(PROFILE, {"left": left, "right": right})
+    c.open()
+    fb = c.new_feedback()
+    c.read(fb)  # starts the worker
+    right.entered.clear()  # (the read at open was the start-up path's, on this thread)
+    right.gate.clear()
+    wait_until(right.waiting.is_set, 5, what="the slow bus's worker held in its read")
+    (worker,) = right.entered
+    closer = threading.Thread(target=c.close, daemon=True)
+    closer.start()
+    try:
+        wait_until(lambda: not closer.is_alive() or len(right.entered) > 1, 10, what="close() returning")
+        assert right.entered == {worker}, "a second thread entered the bus its worker was still in"
+        assert right.closed_by == []  # its link is not released under the worker
+        status, cause = c.take_status()
+        assert status is DeviceStatus.FAULT and cause.code == "torque_off_unconfirmed" and not cause.transient
+        assert cause.message.startswith("bimanual_so101: close: torque off not confirmed on bus 'right': its "
+                                        "worker was still inside a call on the bus after 0.2 s"), cause.message
+    finally:
+        right.gate.set()
+    closer.join(5)
+    wait_until(lambda: right.closed_by, 5, what="the worker closing its bus once its read returned")
+    assert right.closed_by == [worker] and right.entered == {worker} and not right.torque

@@ -119,13 +119,19 @@ def test_client_loss_notice_reaches_others_as_one_warning_only(sim_daemon):
 
 
 def test_simulator_does_not_outlive_a_killed_daemon(sim_daemon):
-    sim_pid = None
+    """SIGKILL to the daemon: its simulator stops, and the --sim work folder (its link and control
+    socket) goes with it: the daemon had no chance to remove it (folders piled up in /tmp)."""
+    sim_pid = workdir = None
     with open(f"/proc/{sim_daemon.proc.pid}/task/{sim_daemon.proc.pid}/children") as f:
         for pid in map(int, f.read().split()):
             with open(f"/proc/{pid}/cmdline", "rb") as c:
-                if b"crtk_bridge.sim.cli" in c.read():
+                argv = c.read().split(b"\0")
+                if b"crtk_bridge.sim.cli" in argv:
                     sim_pid = pid
-    assert sim_pid is not None
+                    workdir = os.path.dirname(argv[argv.index(b"--control") + 1].decode())
+    assert sim_pid is not None and os.path.basename(workdir).startswith("crtk-bridge-"), workdir
+    assert os.path.isdir(workdir)
     sim_daemon.proc.send_signal(signal.SIGKILL)
     sim_daemon.proc.wait(5)
     wait_until(lambda: not _alive(sim_pid), 5, what="simulator exit after the daemon was killed")
+    assert not os.path.exists(workdir), os.listdir(workdir)

@@ -1,8 +1,8 @@
 """End to end, the CRTK spec's own namespace example on real kinds of devices: a UR5e over RTDE
 with a Robotiq 2F-85 on its tool flange (profiles/ur5e_robotiq.yaml, issue 20), ``--sim`` putting
 the gripper's simulator behind the UR simulator's tool port 54321. The gripper's Modbus RTU bus
-(~5 ms for one read and one write) is served at its own rate: the arm keeps its 500 Hz cycle with
-no overrun while the gripper moves, the two namespaces move independently under one operating
+(~5 ms for one read and one write) is served at its own rate: the arm keeps its 500 Hz cycle
+(no overrun; at most a stray one on a loaded host) while the gripper moves, the two namespaces move independently under one operating
 state, and pause / resume resumes where the arm's own stop left it."""
 
 from __future__ import annotations
@@ -61,11 +61,10 @@ def test_a_ur_arm_with_a_robotiq_gripper_on_its_tool_flange(short_tmp):
             after = robot.connection.request("period_statistics")
             assert after["period_s"] == pytest.approx(0.002)
             assert after["cycles"] - before["cycles"] > 100  # (the window's cycles: ~500 a second)
+            # a cycle that waited for the gripper's bus (~5 ms of wire) would overrun every time;
+            # none did in any run here, but a loaded CI host may stall one cycle of hundreds
             overruns = after["overruns"] - before["overruns"]
-            if "realtime_unavailable" in d.output():  # (a host that refuses SCHED_FIFO: a stray one)
-                assert overruns <= 0.01 * (after["cycles"] - before["cycles"]), (before, after)
-            else:
-                assert overruns == 0, (before, after)
+            assert overruns <= 0.01 * (after["cycles"] - before["cycles"]), (before, after)
             assert gripper()["requests"] > requests + 10  # its bus was busy all along, at its own rate
             # the arm moves alone: the gripper holds where it is
             held = hand.measured_js()[0][0]

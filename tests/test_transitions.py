@@ -227,7 +227,7 @@ def test_a_client_disable_that_aborts_a_faults_torque_off_then_fails_keeps_it_un
     assert c.state is OperatingState.FAULT and c.torque_unconfirmed
     (unconfirmed,) = [m["data"] for m in c.outbox if m.get("event") == "error"
                       and m["data"]["code"] == "torque_off_unconfirmed"]
-    assert "torque off not confirmed" in unconfirmed["message"] and "gripper" in unconfirmed["message"]
+    assert unconfirmed["message"].startswith(f"{c.robot}: torque off not confirmed (") and "gripper" in unconfirmed["message"]
     act.disable_fails = False  # the bus answers again: the retry (at most once a second) confirms
     act.bus.clear()
     clock.t += 1.1

@@ -63,6 +63,7 @@ is raised.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import re
 import threading
@@ -147,6 +148,9 @@ class _BusWorker:
 #: lost: its worker is stuck (its own read failures are counted by the worker itself)
 OWN_RATE_STALE_PERIODS = 50
 OWN_RATE_STALE_S = 2.0
+#: close() waits this long (at least 4 of the bus's periods) for an own-rate worker to end; one
+#: still inside a call on the bus then keeps the bus (it closes it itself once the call returns)
+OWN_RATE_STOP_S = 1.0
 
 
 def _copy_feedback(dst: JointFeedback, src: JointFeedback) -> None:
@@ -194,8 +198,10 @@ class _OwnRateWorker:
         self._stop = False
         # loop -> worker (under _lock)
         self._cmd = actuator.new_command()  # the newest setpoint (every joint NONE: none yet)
-        self._transition: Transition | None = None
-        self._aborts: list[Transition] = []
+        self._handed: _Handed | None = None  # the transition to step (begun on the worker's thread)
+        self._aborts: list[_Handed] = []  # replaced or abandoned: closed on the worker's thread
+        self._orphaned = False  # stop() gave up waiting: the worker closes the bus itself
+        self._exited = False
         # worker -> loop (under _lock)
         self._sample = actuator.new_feedback()
         self._sample_fault: Fault | None = Fault(
@@ -206,14 +212,15 @@ class _OwnRateWorker:
         self._write_fault: Fault | None = None
         self._news: tuple[DeviceStatus, Fault | None] | None = None
         self._device_news: list[tuple[DeviceStatus, Fault | None]] = []  # WARNING / NOTICE reports
-        self._result: tuple[Transition, bool, BaseException | None] | None = None
+        self._result: tuple[_Handed, bool, BaseException | None] | None = None
         self._published = time.monotonic()
         self.cycles = 0  # the bus's own cycles run
         # the worker's own
         self._mine = actuator.new_command()
         self._streak = {"read": 0, "write": 0}
+        self._stepping: _Handed | None = None  # the transition this cycle stepped
         # the loop's own: what the last take() saw
-        self.seen: tuple[Transition, bool, BaseException | None] | None = None
+        self.seen: tuple[_Handed, bool, BaseException | None] | None = None
         self.news: tuple[DeviceStatus, Fault | None] | None = None
         self.device_news: list[tuple[DeviceStatus, Fault | None]] = []  # the news reported since
         #: the feedback an ENABLE handed to this bus holds (the worker's, not the loop's buffer)
@@ -227,14 +234,9 @@ class _OwnRateWorker:
         runner.restart()
         try:
             while not self._stop:
-                with self._lock:
-                    t = self._transition
-                    aborts = self._aborts
-                    if aborts:
-                        self._aborts = []
-                for a in aborts:  # replaced or abandoned by the loop: closed on this thread
-                    a.abort()
-                read_fault, write_fault, done, error = runner.own_rate(t, self._newest)
+                self._stepping = None
+                read_fault, write_fault, done, error = runner.own_rate(self._fetch, self._newest)
+                h = self._stepping
                 read_fault = self._count("read", read_fault)
                 write_fault = self._count("write", write_fault)
                 reports = []
@@ -250,19 +252,47 @@ class _OwnRateWorker:
                             self._device_news.append(report)
                         else:
                             self._news = report
-                    if t is not None and self._transition is t:
-                        self._result = (t, done, error)
+                    if h is not None and self._handed is h:
+                        self._result = (h, done, error)
                         if done:
-                            self._transition = None
+                            self._handed = None
                     self._published = time.monotonic()
                     self.cycles += 1
         finally:
             with self._lock:
-                left = [*self._aborts, self._transition]
-                self._aborts, self._transition = [], None
+                left = [*self._aborts, self._handed]
+                self._aborts, self._handed = [], None
             for a in left:
                 if a is not None:
-                    a.abort()
+                    a.close()
+            with self._lock:
+                self._exited = True
+                orphaned = self._orphaned
+            if orphaned:  # close() gave the bus up to this thread: its torque off and release
+                act.close()
+
+    def _fetch(self) -> Transition | None:
+        """The transition to step in this cycle, asked after its read (``CycleRunner.own_rate``):
+        the ones the loop replaced or abandoned meanwhile are closed first, a newly handed one is
+        begun here (``Actuator.begin``: its bookkeeping, e.g. ``is_enabled``, is this thread's
+        alone, as the bus is), and it is stepped only if it is still the one handed."""
+        with self._lock:
+            h = self._handed
+            aborts = self._aborts
+            if aborts:
+                self._aborts = []
+        for a in aborts:  # replaced or abandoned by the loop: closed on this thread
+            a.close()
+        if h is None:
+            return None
+        self._stepping = h  # (what make() raises is its result)
+        if h.transition is None:
+            h.transition = h.make()
+        with self._lock:
+            if self._handed is not h:  # abandoned while it began: closed at the next cycle
+                self._stepping = None
+                return None
+        return h.transition
 
     def _newest(self) -> JointCommand:
         """The newest setpoint the loop posted, taken just before the bus's write."""
@@ -318,44 +348,55 @@ class _OwnRateWorker:
             if self._cmd.cartesian is not None:
                 self._cmd.cartesian.mode[:] = 0
 
-    def hand(self, transition: Transition) -> None:
-        """``transition`` is stepped on the bus's own cycles from now on, replacing (aborting)
-        any other."""
+    def hand(self, handed: "_Handed") -> None:
+        """``handed`` is begun and stepped on the bus's own cycles from now on, replacing
+        (aborting) any other."""
         with self._lock:
-            if self._transition is not None:
-                self._aborts.append(self._transition)
-            self._transition = transition
+            if self._handed is not None:
+                self._aborts.append(self._handed)
+            self._handed = handed
             self._result = None
 
-    def abort(self, transition: Transition) -> None:
-        """Stop stepping ``transition``; it is closed on the worker's thread (a no-op if it ended)."""
+    def abort(self, handed: "_Handed") -> None:
+        """Stop stepping ``handed``; it is closed on the worker's thread (a no-op if it ended)."""
         with self._lock:
-            if self._transition is transition:
-                self._transition = None
-            self._aborts.append(transition)
+            if self._handed is handed:
+                self._handed = None
+            self._aborts.append(handed)
 
-    def stop(self) -> None:
+    def stop(self) -> bool:
+        """End the worker. True once it ended; False when it is still inside a call on the bus
+        after OWN_RATE_STOP_S (at least 4 periods): then the bus stays its alone (no second
+        thread on it) and it closes the bus itself (torque off, release) once the call returns."""
         self._stop = True
         if self._thread.is_alive():
-            self._thread.join(max(1.0, 4 * self.period_s))
+            self._thread.join(max(OWN_RATE_STOP_S, 4 * self.period_s))
+        with self._lock:
+            if not self._exited:
+                self._orphaned = True
+            return self._exited
 
 
 class _Handed:
     """A bus's lifecycle transition stepped on its own-rate worker (:class:`_OwnRateWorker`), as
     the composite's steps see it: each loop cycle's step tells how it went as of that cycle's
-    read (so an ENABLE ends with the bus's fresh sample already taken)."""
+    read (so an ENABLE ends with the bus's fresh sample already taken). ``make()`` begins it
+    (the part's ``begin``), on the worker's thread at its first step: the bus and the part's
+    state are that thread's alone, so an ENABLE the loop abandoned is closed there before the
+    DISABLE that replaced it begins, never stepped after it."""
 
-    __slots__ = ("worker", "transition", "done")
+    __slots__ = ("worker", "make", "transition", "done")
 
-    def __init__(self, worker: _OwnRateWorker, transition: Transition):
-        self.worker, self.transition, self.done = worker, transition, False
-        worker.hand(transition)
+    def __init__(self, worker: _OwnRateWorker, make: Callable[[], Transition]):
+        self.worker, self.make, self.done = worker, make, False
+        self.transition: Transition | None = None  # the worker's own, once begun
+        worker.hand(self)
 
     def step(self) -> bool:
         if self.done:
             return True
         seen = self.worker.seen
-        if seen is not None and seen[0] is self.transition:
+        if seen is not None and seen[0] is self:
             if seen[2] is not None:
                 self.done = True
                 raise seen[2]
@@ -367,7 +408,12 @@ class _Handed:
     def abort(self) -> None:
         if not self.done:
             self.done = True
-            self.worker.abort(self.transition)
+            self.worker.abort(self)
+
+    def close(self) -> None:
+        """On the worker's thread: the transition, if begun, is closed (its ``finally`` runs)."""
+        if self.transition is not None:
+            self.transition.abort()
 
 
 class _Buses:
@@ -618,7 +664,7 @@ class CompositeActuator(Actuator):
 
     def _handed_steps(self, b: int, transition: Transition) -> Steps:
         self._ensure_workers()
-        handed = _Handed(self._bw[b], transition)
+        handed = _Handed(self._bw[b], lambda: transition)
         try:
             while not handed.step():
                 yield
@@ -719,7 +765,8 @@ class CompositeActuator(Actuator):
             if own:  # stepped on the bus's own cycles; an ENABLE sends no setpoint from before it
                 if kind is Lifecycle.ENABLE:
                     self._bw[b].clear_command()
-                transitions.append((b, _Handed(self._bw[b], self.parts[b].begin(kind, fb))))
+                # begun on the bus's own thread (its begin() never races the worker's steps)
+                transitions.append((b, _Handed(self._bw[b], functools.partial(self.parts[b].begin, kind, fb))))
             else:
                 transitions.append((b, self.parts[b].begin(kind, fb)))
         failed: list[str] = []
@@ -816,12 +863,24 @@ class CompositeActuator(Actuator):
             p.calibration_cancel()
 
     def _close_hook(self) -> None:
+        kept: list[int] = []  # own-rate buses whose worker is still inside a call on the bus
         if self._workers is not None:
-            for w in self._workers:
-                w.stop()
+            for b, w in enumerate(self._bw):
+                if w is not None and w.stop() is False:
+                    kept.append(b)
             self._workers = None
-        for p in self.parts:
-            p.close()
+        for b, p in enumerate(self.parts):
+            if b not in kept:  # a kept bus is its worker's alone: no second thread on it
+                p.close()
+        if kept:
+            w = self._bw[kept[0]]
+            waited = max(OWN_RATE_STOP_S, 4 * w.period_s)
+            self.report_status(DeviceStatus.FAULT, Fault(
+                "torque_off_unconfirmed",
+                f"{self.robot}: close: torque off not confirmed on bus {', '.join(self._where[b][4:] for b in kept)}: "
+                f"its worker was still inside a call on the bus after {waited:g} s (the bus closes itself "
+                f"once the call returns: one thread per bus); check it and switch its power off",
+                transient=False))
 
     def _on_bus(self, b: int, fn) -> None:
         """Run a bus's start-up call; its BackendError is re-raised naming the bus."""

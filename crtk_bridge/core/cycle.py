@@ -110,23 +110,27 @@ class CycleRunner:
         only). Returns the read's fault."""
         return self._bare(None, command)[1]
 
-    def own_rate(self, transition: "Transition | None", command: Callable[[], "JointCommand"]
+    def own_rate(self, transition: Callable[[], "Transition | None"], command: Callable[[], "JointCommand"]
                  ) -> tuple["Fault | None", "Fault | None", bool, BaseException | None]:
         """One cycle of a part served at its own rate (a slow bus beside a fast one, on its own
         thread: backends/composite.py): wait on this runner's own schedule, read, one step of
-        ``transition`` (if any), then the write of ``command()`` (the newest setpoint, taken
-        now) while the backend is enabled (of every joint in CommandMode.NONE outside it, with
+        the transition ``transition()`` returns (None: none; asked AFTER the read, so a
+        transition the caller replaced or abandoned while the wait and the read took their time
+        is never stepped), then the write of ``command()`` (the newest setpoint, taken now) while
+        the backend is enabled (of every joint in CommandMode.NONE outside it, with
         ``cyclic_write``). Never raises: returns
-        (the read's fault, the write's fault, the transition ended, what its step raised)."""
+        (the read's fault, the write's fault, the transition ended, what ``transition()`` or its
+        step raised)."""
         self.wait()
         act = self.actuator
         read_fault = act.read(self.feedback)
         done, error = False, None
-        if transition is not None:
-            try:
-                done = transition.step()
-            except BaseException as exc:  # carried to the loop's thread, which names the bus
-                done, error = True, exc
+        try:
+            t = transition()
+            if t is not None:
+                done = t.step()
+        except BaseException as exc:  # carried to the loop's thread, which names the bus
+            done, error = True, exc
         write_fault = None
         if act.is_enabled:
             write_fault = act.write(command())

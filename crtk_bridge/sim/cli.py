@@ -39,6 +39,10 @@ _HEALTH_CHECK_S = 0.5
 #: --parent-pid: the simulator stops once it is no longer this process's child (its spawner died,
 #: however: SIGKILL, or before PR_SET_PDEATHSIG took effect, or a spawner that never set it)
 _parent_pid: int | None = None
+#: --workdir: the spawner's folder for this simulator's link and control socket, removed (once
+#: empty: several simulators may share it) when the simulator ends, so that a spawner killed
+#: outright (SIGKILL: no clean-up of its own) leaves no folder behind
+_workdir: str | None = None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -108,6 +112,8 @@ def _parser() -> argparse.ArgumentParser:
                        choices=["debug", "info", "warning", "error"], help="default: warning")
         d.add_argument("--parent-pid", type=int, metavar="PID",
                        help="stop when the process PID (the spawner, our parent) is gone")
+        d.add_argument("--workdir", metavar="DIR",
+                       help="the spawner's folder for the link and control socket: removed at exit once empty")
     return p
 
 
@@ -126,7 +132,12 @@ def _serve(sim, ready_line: str) -> int:
                 print(f"crtk-sim: the process that started it (pid {_parent_pid}) is gone; stopping", file=sys.stderr)
                 return 0
     finally:
-        sim.stop()
+        sim.stop()  # removes the link and the control socket
+        if _workdir is not None:
+            try:
+                os.rmdir(_workdir)  # only once empty: another simulator's files keep it
+            except OSError:
+                pass
 
 
 def _start_and_serve(build, ready_line) -> int:
@@ -208,9 +219,9 @@ def _day_one(sim, args) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    global _parent_pid
+    global _parent_pid, _workdir
     args = _parser().parse_args(argv)
-    _parent_pid = args.parent_pid
+    _parent_pid, _workdir = args.parent_pid, args.workdir
     logging.basicConfig(level=args.log_level.upper(), format="crtk-sim: %(levelname)s %(message)s")
     try:
         args.profile = str(resolve_profile_arg(args.profile))  # a file, or a shipped profile's name

@@ -11,6 +11,7 @@ for the Feetech commands: dump, read, write, fault, clear_faults, unplug).
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import os
@@ -27,6 +28,9 @@ log = logging.getLogger(__name__)
 
 Handler = Callable[[dict], dict]
 _MAX_LINE = 1 << 16
+
+
+_PENDING = itertools.count()  # the temporary names of sockets being set up in this process
 
 
 class ControlServer:
@@ -48,17 +52,24 @@ class ControlServer:
     def start(self) -> None:
         if self._sock is not None:
             return
-        if len(os.fsencode(self.path)) >= 108:
+        pending = self.path.with_name(f".{os.getpid()}-{next(_PENDING)}~")  # bound here first (see below)
+        if max(len(os.fsencode(self.path)), len(os.fsencode(pending))) >= 108:
             raise SimulatorError(f"{self.path}: Unix socket path too long (must be < 108 bytes)")
         self._remove_stale()
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        # bound and listening under a temporary name, then renamed into place: whoever sees the
+        # path (--sim and the tests wait for it to exist) can connect at once; bind() alone makes
+        # the file before listen(), and a connect in between is refused
         try:
-            sock.bind(os.fspath(self.path))
-            os.chmod(self.path, 0o660)
+            pending.unlink(missing_ok=True)
+            sock.bind(os.fspath(pending))
+            os.chmod(pending, 0o660)
             sock.listen(8)
             sock.setblocking(False)
+            os.replace(pending, self.path)
         except OSError as exc:
             sock.close()
+            pending.unlink(missing_ok=True)
             raise SimulatorError(f"{self.path}: cannot listen: {exc.strerror or exc}") from exc
         self._sock = sock
         self._wake_r, self._wake_w = os.pipe()

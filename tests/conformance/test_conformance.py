@@ -197,10 +197,11 @@ def test_a_slow_enable_keeps_the_loop_cycling(rig):
     (reply,) = rig.replies(1)
     assert reply["ok"] and c.state is OperatingState.ENABLED and not c.is_busy and took >= 0.95
     # the cycles kept reading: the stamps advanced all along. An enable blocking the cycle would
-    # freeze them for the whole 1 s torque delay; a loaded host may miss a read or stall a little
-    assert len(stamps) > 0.5 * 1.0 / c.dt
+    # freeze them for the whole 1 s torque delay (one or two cycles, one gap of 1 s). How many
+    # cycles fit in the second, and how many saw a fresh sample, is the host's: a starved host
+    # (CI beside other jobs) runs a fraction of them, a device-clocked bus repeats a stamp
     gaps = np.diff(stamps)
-    assert np.all(gaps >= 0) and np.mean(gaps > 0) > 0.8 and gaps.max() < 0.4, gaps.max()
+    assert np.all(gaps >= 0) and np.count_nonzero(gaps > 0) >= 10 and gaps.max() < 0.4, gaps.max()
     rig.cycle(20)
     assert len(rig.replies(1)) == 1
 

@@ -11,7 +11,9 @@ Requests (each answered by one line, ``{"ok": true, ...}`` or ``{"ok": false, "e
 ``lerobot-calibrate`` leaves them), ``{"op": "torque_off"}``, ``{"op": "features"}``,
 ``{"op": "obs"}``, ``{"op": "act", "action": {...}}`` (the reply's ``sent`` is what send_action
 returned, ``t`` the monotonic time it was called), ``{"op": "step", "action": {...}}`` (both, as
-``lerobot-replay`` does each tick), ``{"op": "disconnect"}``. End of input: disconnect if connected, exit 0.
+``lerobot-replay`` does each tick), ``{"op": "disconnect"}``, ``{"op": "dataset", "repo_id": ..., "root": ...}``
+(a dataset's frames as plain lists, read by LeRobot's LeRobotDataset: rig.read_dataset). End of input:
+disconnect if connected, exit 0.
 """
 
 from __future__ import annotations
@@ -40,6 +42,18 @@ def _retried(read, tries: int = 3):
             if attempt == tries - 1 or "status packet" not in str(exc):
                 raise
             print(f"driver: read retried after: {exc}", file=sys.stderr)
+
+
+def _dataset(repo_id: str, root: Path) -> dict:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    d = LeRobotDataset(repo_id, root=root)
+    h = d.hf_dataset
+    return {"robot_type": d.meta.robot_type, "fps": d.fps, "num_episodes": d.num_episodes,
+            "action_names": d.features["action"]["names"], "state_names": d.features["observation.state"]["names"],
+            "episode_index": [int(x) for x in h["episode_index"]], "frame_index": [int(x) for x in h["frame_index"]],
+            "action": [[float(v) for v in a] for a in h["action"]],
+            "observation.state": [[float(v) for v in a] for a in h["observation.state"]]}
 
 
 def main() -> int:
@@ -98,6 +112,8 @@ def main() -> int:
                 sent = robot.send_action(req["action"])
                 reply = {"sent": {k: _plain(v) for k, v in sent.items()}, "obs": {k: _plain(v) for k, v in obs.items()},
                          "t_obs": t0, "t": t, "dt": time.monotonic() - t}
+            elif op == "dataset":
+                reply = {"dataset": _dataset(req["repo_id"], Path(req["root"]))}
             elif op == "disconnect":
                 if robot is not None and robot.is_connected:
                     robot.disconnect()

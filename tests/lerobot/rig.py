@@ -183,15 +183,12 @@ class Sampler:
         return self.samples
 
 
-def run_lerobot(venv: Path, command: str, args: list[str], log: Path, env: dict, timeout: float = 300,
-                cwd: Path | None = None) -> subprocess.Popen:
-    """Start one of LeRobot's console scripts from the LeRobot venv (stdout and stderr to ``log``)."""
-    from .venv import python
-
-    script = python(venv).parent / command
-    with open(log, "wb") as f:
-        return subprocess.Popen([str(script), *args], stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                env=env, cwd=cwd or log.parent)
+def run_lerobot(launcher, command: str, args: list[str], log: Path, cwd: Path | None = None, **env: str):
+    """Start one of LeRobot's console scripts (stdout and stderr to ``log``): its entry point, in a
+    fork of ``launcher`` (conftest.Launcher: the LeRobot venv's interpreter with LeRobot and the
+    plugin's folder on its path, LeRobot imported once). Returns a Popen-like ``poll`` / ``wait`` /
+    ``kill`` handle."""
+    return launcher.run(command, args, log, cwd or log.parent, env)
 
 
 def finish(proc: subprocess.Popen, log: Path, timeout: float = 300) -> int:
@@ -227,26 +224,9 @@ def polyline_distance(points: np.ndarray, path: np.ndarray, scale: np.ndarray) -
     return np.abs(p - nearest).max(-1).min(-1)
 
 
-def read_dataset(venv: Path, root: Path, repo_id: str = "local/crtk_test") -> dict:
-    """The dataset's frames as plain lists, read by LeRobot itself (LeRobotDataset):
-    {"features": {...}, "robot_type", "fps", "episode_index": [...], "frame_index": [...],
-    "action": [[...]], "observation.state": [[...]], "action_names": [...], "state_names": [...]}."""
-    from .venv import lerobot_env, python
-
-    code = f"""
-import json, sys
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
-d = LeRobotDataset({repo_id!r}, root={str(root)!r})
-h = d.hf_dataset
-out = {{"robot_type": d.meta.robot_type, "fps": d.fps, "num_episodes": d.num_episodes,
-       "action_names": d.features["action"]["names"], "state_names": d.features["observation.state"]["names"],
-       "episode_index": [int(x) for x in h["episode_index"]], "frame_index": [int(x) for x in h["frame_index"]],
-       "action": [[float(v) for v in a] for a in h["action"]],
-       "observation.state": [[float(v) for v in a] for a in h["observation.state"]]}}
-sys.__stdout__.write(json.dumps(out))
-"""
-    out = subprocess.run([str(python(venv)), "-c", code], capture_output=True, text=True, env=lerobot_env(),
-                         timeout=300, cwd=root.parent)
-    assert out.returncode == 0, out.stderr[-3000:]
-    return json.loads(out.stdout)
-
+def read_dataset(reader, root: Path, repo_id: str = "local/crtk_test") -> dict:
+    """The dataset's frames as plain lists, read by LeRobot itself (LeRobotDataset, in ``reader``: a
+    conftest.LeRobotDriver, LeRobot imported once for the session): {"features": {...},
+    "robot_type", "fps", "episode_index": [...], "frame_index": [...], "action": [[...]],
+    "observation.state": [[...]], "action_names": [...], "state_names": [...]}."""
+    return reader("dataset", repo_id=repo_id, root=str(root))["dataset"]

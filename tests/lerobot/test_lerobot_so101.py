@@ -25,7 +25,6 @@ import pytest
 from ..conftest import wait_until
 from .rig import (ARM, KEYS, MOTORS, SO101, SO101_LEADER, CalibratedArm, Sampler, finish, lerobot_reading, on_the_way,
                   one_tick, polyline_distance, pose_at, read_dataset, run_lerobot, tail)
-from .venv import lerobot_env
 
 #: "crtk": LeRobot through the plugin and the daemons (what CI runs); "direct": LeRobot's own
 #: so101_follower / so101_leader on the same simulated buses (CRTK_LEROBOT_TEST_MODE=direct), the
@@ -68,19 +67,17 @@ class Pair:
         self.root = tmp / "dataset"
         self.recorded: dict | None = None
 
-    def env(self) -> dict:
-        return lerobot_env(self.plugin, HF_LEROBOT_HOME=str(self.tmp / "hf"))
-
     def close(self) -> None:
         for arm in (self.follower, self.leader):
             arm.close()
 
 
 @pytest.fixture(scope="module")
-def pair(lerobot_venv, request):
+def pair(lerobot_venv, lerobot_launcher, lerobot_reader, request):
     plugin = request.getfixturevalue("lerobot_plugin") if MODE != "direct" else None
     tmp = Path(tempfile.mkdtemp(prefix="crtk-lr-"))
     p = Pair(lerobot_venv, plugin, tmp)
+    p.reader, p.launcher = lerobot_reader, lerobot_launcher
     yield p
     p.close()
     shutil.rmtree(tmp, ignore_errors=True)
@@ -88,12 +85,12 @@ def pair(lerobot_venv, request):
 
 def test_record_two_episodes_teleoperated_by_the_leader(pair):
     log = pair.tmp / "record.log"
-    proc = run_lerobot(pair.venv, "lerobot-record", [
+    proc = run_lerobot(pair.launcher, "lerobot-record", [
         *robot_args(pair.follower), *robot_args(pair.leader, "teleop"),
         f"--dataset.repo_id={REPO}", f"--dataset.root={pair.root}", "--dataset.num_episodes=2",
         f"--dataset.fps={FPS}", f"--dataset.episode_time_s={EPISODE_S}", "--dataset.reset_time_s=1",
         "--dataset.single_task=crtk-bridge test", "--dataset.push_to_hub=false", "--dataset.video=false",
-        "--play_sounds=false", "--display_data=false"], log, pair.env())
+        "--play_sounds=false", "--display_data=false"], log)
     try:
         for k, (_start, end) in enumerate(EPISODES):  # a hand moves the leader once each episode began
             wait_until(lambda: f"Recording episode {k}" in log.read_text(errors="replace") or proc.poll() is not None,
@@ -106,7 +103,7 @@ def test_record_two_episodes_teleoperated_by_the_leader(pair):
             proc.kill()
     assert rc == 0, tail(log)
 
-    data = read_dataset(pair.venv, pair.root, REPO)
+    data = read_dataset(pair.reader, pair.root, REPO)
     assert data["num_episodes"] == 2, data["num_episodes"]
     assert data["action_names"] == list(KEYS) and data["state_names"] == list(KEYS), data
     episodes = np.array(data["episode_index"])
@@ -142,9 +139,9 @@ def test_replay_moves_the_follower_along_the_recorded_positions(pair):
     path = np.array(data["action"])[episodes == 0]
     log = pair.tmp / "replay.log"
     sampler = Sampler(pair.follower, 0.02)
-    proc = run_lerobot(pair.venv, "lerobot-replay", [
+    proc = run_lerobot(pair.launcher, "lerobot-replay", [
         *robot_args(pair.follower), f"--dataset.repo_id={REPO}", f"--dataset.root={pair.root}",
-        "--dataset.episode=0", "--play_sounds=false"], log, pair.env())
+        "--dataset.episode=0", "--play_sounds=false"], log)
     try:
         rc = finish(proc, log)
         # the follower ends where the episode ended (the daemon holds the last action)
@@ -177,9 +174,9 @@ def test_replay_moves_the_follower_along_the_recorded_positions(pair):
 def test_teleoperate_then_the_follower_daemon_faults(pair):
     log = pair.tmp / "teleoperate.log"
     d = pose_at(0.52)
-    proc = run_lerobot(pair.venv, "lerobot-teleoperate", [
+    proc = run_lerobot(pair.launcher, "lerobot-teleoperate", [
         *robot_args(pair.follower), *robot_args(pair.leader, "teleop"), "--fps=30", "--display_data=false"],
-        log, pair.env())
+        log)
     try:
         wait_until(lambda: "teleop" in log.read_text(errors="replace").lower() and
                    pair.follower.read("shoulder_pan", "Torque_Enable") == 1 or proc.poll() is not None,

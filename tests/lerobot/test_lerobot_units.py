@@ -40,8 +40,9 @@ def arm(short_tmp):
 
 
 def test_the_plugin_reports_what_lerobots_own_so101_follower_reports(arm, lerobot_driver, lerobot_plugin):
-    # 1. LeRobot directly on the simulator's pty
+    # 1. LeRobot directly on the simulator's pty (the plugin's driver, used in 2., imports LeRobot meanwhile)
     lr = lerobot_driver()
+    plugin = lerobot_driver(lerobot_plugin)
     lr("connect", type="so101_follower", config={"port": arm.port, "id": arm.name,
                                                  "calibration_dir": str(arm.calibration_dir)})
     lr("torque_off")
@@ -62,7 +63,6 @@ def test_the_plugin_reports_what_lerobots_own_so101_follower_reports(arm, lerobo
     # enables the arm; disabled again from another client, so a hand can set the poses)
     arm.start_daemon()
     client = connect(socket=str(arm.socket))
-    plugin = lerobot_driver(lerobot_plugin)
     try:
         plugin("connect", type="crtk", config={"socket": str(arm.socket), "units": "lerobot"})
         assert client.device("so101").disable()

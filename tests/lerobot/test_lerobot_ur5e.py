@@ -21,7 +21,6 @@ from crtk_bridge.sim.control import control_request
 
 from ..conftest import DaemonProcess, wait_until
 from .rig import UR5E, Sampler, finish, on_the_way, polyline_distance, read_dataset, run_lerobot, tail
-from .venv import lerobot_env
 
 JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint")
 KEYS = [f"{j}.pos" for j in JOINTS]
@@ -70,7 +69,7 @@ class URArm:
 
 
 @pytest.fixture(scope="module")
-def urs(lerobot_venv, lerobot_plugin):
+def urs(lerobot_venv, lerobot_plugin, lerobot_launcher, lerobot_reader):
     tmp = Path(tempfile.mkdtemp(prefix="crtk-lrur-"))
     arms = []
     try:
@@ -84,7 +83,8 @@ def urs(lerobot_venv, lerobot_plugin):
         arm.free()
         wait_until(lambda: leader.state()["teach_mode"], 5, what="the leader in teach mode")
         yield {"venv": lerobot_venv, "plugin": lerobot_plugin, "tmp": tmp, "follower": follower, "leader": leader,
-               "root": tmp / "dataset", "recorded": None, "client": client}
+               "root": tmp / "dataset", "recorded": None, "client": client, "reader": lerobot_reader,
+               "launcher": lerobot_launcher}
         client.close()
     finally:
         for a in arms:
@@ -98,12 +98,11 @@ def args(urs) -> list[str]:
 
 def test_record_on_the_ur5e_in_si_units(urs):
     log = urs["tmp"] / "record.log"
-    env = lerobot_env(urs["plugin"], HF_LEROBOT_HOME=str(urs["tmp"] / "hf"))
-    proc = run_lerobot(urs["venv"], "lerobot-record", [
+    proc = run_lerobot(urs["launcher"], "lerobot-record", [
         *args(urs), "--teleop.type=crtk", f"--teleop.socket={urs['leader'].socket}", "--teleop.units=si",
         f"--dataset.repo_id={REPO}", f"--dataset.root={urs['root']}", "--dataset.num_episodes=2", "--dataset.fps=30",
         f"--dataset.episode_time_s={EPISODE_S}", "--dataset.reset_time_s=1", "--dataset.single_task=reach",
-        "--dataset.push_to_hub=false", "--dataset.video=false", "--play_sounds=false", "--display_data=false"], log, env)
+        "--dataset.push_to_hub=false", "--dataset.video=false", "--play_sounds=false", "--display_data=false"], log)
     try:
         for k, (_start, end) in enumerate(EPISODES):
             wait_until(lambda: f"Recording episode {k}" in log.read_text(errors="replace") or proc.poll() is not None,
@@ -116,7 +115,7 @@ def test_record_on_the_ur5e_in_si_units(urs):
         if proc.poll() is None:
             proc.kill()
     assert rc == 0, tail(log)
-    data = read_dataset(urs["venv"], urs["root"], REPO)
+    data = read_dataset(urs["reader"], urs["root"], REPO)
     assert data["action_names"] == KEYS and data["state_names"] == KEYS, data
     episodes = np.array(data["episode_index"])
     actions, states = np.array(data["action"]), np.array(data["observation.state"])
@@ -140,9 +139,9 @@ def test_replay_on_the_ur5e_moves_it_along_the_recorded_positions(urs):
     start = urs["follower"].q()
     log = urs["tmp"] / "replay.log"
     sampler = Sampler(urs["follower"], 0.02)
-    proc = run_lerobot(urs["venv"], "lerobot-replay", [
+    proc = run_lerobot(urs["launcher"], "lerobot-replay", [
         *args(urs), f"--dataset.repo_id={REPO}", f"--dataset.root={urs['root']}", "--dataset.episode=0",
-        "--play_sounds=false"], log, lerobot_env(urs["plugin"], HF_LEROBOT_HOME=str(urs["tmp"] / "hf")))
+        "--play_sounds=false"], log)
     try:
         rc = finish(proc, log)
         wait_until(lambda: np.allclose(urs["follower"].q(), path[-1], atol=5e-3), 10,

@@ -4,7 +4,9 @@ LeRobot cannot share the project's venv: it pins ``dynamixel-sdk<3.9`` (crtk-bri
 and a torch of several GB. :func:`ensure_venv` builds a venv from ``requirements.txt`` (every
 package pinned, installed with ``--no-deps``: see the file's header) once per requirements hash,
 under ``build/lerobot/`` (or ``$CRTK_LEROBOT_CACHE``), and reuses it while it is complete (a
-marker file written last). Builders in several processes wait for one another on a file lock.
+marker file written last). Builders in several processes wait for one another on a file lock,
+which a builder's children hold too. The LeRobot tests start the build in the background as
+soon as their session is collected (conftest.py).
 
 The plugin and the light client are never installed into that venv: :func:`install_plugin`
 installs them (non-editable, ``--no-deps``) into a folder of their own, which the LeRobot
@@ -104,10 +106,13 @@ def ensure_venv(log=lambda msg: print(msg, file=sys.stderr, flush=True)) -> Path
             shutil.rmtree(venv)  # an interrupted build
         t0 = time.monotonic()
         log(f"building the LeRobot venv {venv} from {REQUIREMENTS.relative_to(ROOT)} (one-off, a few minutes)")
-        _run([sys.executable, "-m", "venv", venv], f"python -m venv {venv}")
+        # the builders hold the lock too: one this process leaves behind (killed mid-build) keeps
+        # the next builder waiting instead of writing into the folder it removes
+        held = {"pass_fds": (lock.fileno(),)}
+        _run([sys.executable, "-m", "venv", venv], f"python -m venv {venv}", **held)
         _run([python(venv), "-m", "pip", "install", "--no-deps", "--no-input", "--disable-pip-version-check",
-              "-r", REQUIREMENTS], f"pip install --no-deps -r {REQUIREMENTS} into {venv}")
-        _run([python(venv), "-c", PROBE], f"importing LeRobot in {venv}", timeout=300, cwd=venv)
+              "-r", REQUIREMENTS], f"pip install --no-deps -r {REQUIREMENTS} into {venv}", **held)
+        _run([python(venv), "-c", PROBE], f"importing LeRobot in {venv}", timeout=300, cwd=venv, **held)
         took = time.monotonic() - t0
         size = _size_mb(venv)
         (venv / MARKER).write_text(f"built in {took:.0f} s, {size:.0f} MB\n")

@@ -31,7 +31,10 @@ What the library does not do, or does in a way a real-time loop cannot use, is d
   loop is gone (the control process killed, the loop stalled) the drive stops by itself within
   the consumer time (EMCY 0x8130 and the 0x6007 reaction). A clean ``close`` clears 0x1016:1 of
   the drives it left disabled, so a normal shutdown does not leave them in FAULT.
-* **EMCY** -> device status FAULT naming the node, the code and its meaning (tables.py).
+* **EMCY** -> device status FAULT naming the node, the code and its meaning (tables.py), unless
+  the drive's statusword after it says a warning (bit 7 set, not in FAULT: CiA 402-2, the drive
+  goes on): then a device WARNING, once per EMCY, and the robot keeps running. The drive's own
+  FAULT state faults whatever its EMCY said.
 * **The CiA 402 state machine** is walked across cycles from ``tables.WALK`` (never the library's
   blocking ``state`` setter): each step sets the controlword the next SYNC carries and looks at
   the statusword the SYNC after brings back. Fault reset is a rising edge of bit 7 (bit 7 low
@@ -221,6 +224,9 @@ class _Drive:
         self.started_t = 0.0  # monotonic time of our NMT start
         self.rebooted = False
         self.emcy: tuple[int, int] | None = None  # (code, error register) not yet reset
+        self.emcy_at = 0  # arrived[0] (statuswords) when that EMCY came
+        # read thread: the EMCY last reported as a warning (once each)
+        self.emcy_warned: tuple[int, int] | None = None
 
     def counts(self, si: float) -> int:
         """Counts of position ``si`` (finite, within the profile's limits: core's output), clamped
@@ -470,7 +476,11 @@ class Canopen402Backend(Actuator):
             self._rx_event.set()
 
         def emcy(err: Any, d: _Drive = d) -> None:  # notifier thread
-            d.emcy = None if err.code & 0xFF00 == 0 else (err.code, err.register)
+            if err.code & 0xFF00 == 0:
+                d.emcy = None
+            else:
+                d.emcy_at = d.arrived[0]  # before d.emcy: the read thread judges it by the TPDOs after
+                d.emcy = (err.code, err.register)
 
         node.nmt.add_heartbeat_callback(heartbeat)
         node.emcy.add_callback(emcy)
@@ -806,9 +816,21 @@ class Canopen402Backend(Actuator):
         paused = powered_off = False
         for d in self.drives:
             s = d.state
-            if d.emcy is not None or s in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
+            emcy = d.emcy
+            if emcy is None:
+                d.emcy_warned = None  # its EMCY 0x0000 came (or a fault reset): a new one is news again
+            if s in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
                 cause = self._drive_fault(d)
                 break
+            if emcy is not None:
+                seen = d.arrived[0] - d.emcy_at  # statuswords since the EMCY
+                if seen > 0 and d.sw & t.SW_WARNING:  # the drive goes on: a warning
+                    if d.emcy_warned != emcy:
+                        d.emcy_warned = emcy
+                        self.report_status(DeviceStatus.WARNING, self._drive_warning(d, emcy))
+                elif seen >= t.EMCY_DECIDE_TPDOS:  # neither its FAULT state nor a warning: a fault
+                    cause = self._drive_fault(d)
+                    break
             if self._enabled and d.cw == Command.ENABLE_OPERATION and not d.homing:
                 if s is State402.QUICK_STOP_ACTIVE and not self._paused_by_us:
                     paused = True
@@ -824,6 +846,13 @@ class Canopen402Backend(Actuator):
             self.report_status(DeviceStatus.PAUSED)
         elif self.device_status is not DeviceStatus.OK:
             self.report_status(DeviceStatus.OK)
+
+    def _drive_warning(self, d: _Drive, emcy: tuple[int, int]) -> Fault:
+        code, register = emcy
+        return Fault("device_warning", f"{self.robot}: {d.label}: EMCY 0x{code:04X} {t.emcy_meaning(code)} "
+                     f"(error register 0x{register:02X}), a warning (statusword 0x{d.sw:04X}, bit 7): "
+                     "the drive goes on; see to its cause", joint=d.name, register="EMCY", value=code,
+                     transient=True)
 
     def _drive_fault(self, d: _Drive) -> Fault:
         state = d.state.value if d.state is not None else f"statusword 0x{d.sw:04X}"

@@ -115,6 +115,12 @@ class Command(enum.IntEnum):
 
 
 CW_FAULT_RESET_BIT = 0x0080
+#: statusword bit 7 "warning" (CiA 402-2): the drive reports a condition and keeps running; its
+#: bit 3 "fault" (the FAULT / FAULT REACTION ACTIVE states) is what stops it
+SW_WARNING = 0x0080
+#: TPDOs after an EMCY within which the drive's statusword says what it is: its FAULT state (a
+#: fault) or its warning bit (a warning); an EMCY still explained by neither then is a fault
+EMCY_DECIDE_TPDOS = 3
 CW_HOMING_START = 0x0010  # bit 4 in homing mode: a rising edge starts homing (CiA 402-2 8.1)
 
 

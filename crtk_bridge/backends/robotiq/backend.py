@@ -38,9 +38,15 @@ Lifecycle (steps, one transaction at most per cycle, waiting on the gripper acro
   request; the fingers stop where they are. The manual does not say the grip force is kept with
   rGTO 0: a held object is not promised held once DISABLED (the 2F's fingers are not back-driven
   easily, so in practice it usually stays), and the next ENABLE holds the fingers where they are
-  then, without re-activating.
+  then, without re-activating. During an activation (gSTA 1, or an activation started and not
+  seen complete: an ENABLE abandoned by a disable, a pause, its time limit or a composite's
+  rollback) rGTO 0 stops nothing: DISABLE is then rACT 0 (reset), confirmed by gACT 0 and the
+  position unchanged across reads (the fingers stopped); the next ENABLE activates anew.
 * FAULT_RESET (leaving FAULT) = rACT 0 (a reset clears the gripper's faults), then ENABLE
-  activates again (rACT 0 -> 1, manual 4.4.3: major faults need it).
+  activates again (rACT 0 -> 1, manual 4.4.3: major faults need it) -- only for the gripper's
+  own reason: a major gFLT, or its activation lost (gSTA dropped) or abandoned. After a FAULT of
+  the robot's (a UR's tracking error, an invalid command, the link dropped and back) an activated
+  gripper without a major fault is not reset: ENABLE is only the go (a held object stays held).
 
 Device status: ``gFLT`` (tables.FAULTS, from the manual): a major fault is a FAULT naming its
 code and meaning (``gripper_fault``); minor ones (overheating, a 1 s gap in communication) are
@@ -48,7 +54,8 @@ warnings (``device_warning``) and priority ones (an action refused before activa
 ENABLED gripper that leaves its activated state by itself (gSTA drops) is a FAULT. The link gone
 (an OS error on the port, the TCP connection closed) is a non-transient ``port_lost`` FAULT naming
 the port, and a background thread reopens it every 0.5 s; the next read after it did reports the
-fault cleared, and ``enable`` activates as after any fault.
+fault cleared, and ``enable`` decides from the status read then (activated, no major fault: only
+the go; else reset and activation).
 
 Commands: position (``servo_jp``, ``interpolate_jp``, ``move_jp``, ``hold``): each cycle's
 position setpoint from core's trajectory goes out as the position request with the joint's
@@ -145,6 +152,8 @@ CALIBRATION_MIN_SPAN = 100
 #: acknowledged lifecycle writes: attempts (one per cycle) before the transition fails
 WRITE_ATTEMPTS = 4
 REOPEN_INTERVAL_S = 0.5
+#: a stopped activation: the fingers' position the same in this many reads in a row after gACT 0
+STEADY_READS = 3
 _READ_REPLY = 5 + 2 * T.WORDS  # id, fc, byte count, 6 data bytes, crc 2
 _WRITE_REPLY = 8  # id, fc, address 2, count 2, crc 2
 _EXCEPTION_REPLY = 5
@@ -302,6 +311,7 @@ class RobotiqBackend(Actuator):
         self._seen = [255, 0]
         self._go = False  # rGTO is on (ENABLED): the gripper must stay activated
         self._must_reset = False
+        self._activation_pending = False  # rACT 1 written for an activation not yet seen complete
         # the link lost: the Fault, and the link the reopen worker found
         self._lost: Fault | None = None
         self._reopened: _Link | None = None
@@ -543,9 +553,19 @@ class RobotiqBackend(Actuator):
             raise BackendError(f"{self.robot}: {what}: {self._lost.message}")
 
     def _fault_reset_steps(self) -> Steps:
-        """rACT 0: the reset clears the gripper's faults; ENABLE then activates (rACT 0 -> 1)."""
+        """rACT 0 only for the gripper's own reason (a major gFLT in the last read, its
+        activation lost or abandoned: ``_must_reset``): the reset clears its faults and ENABLE
+        then activates (rACT 0 -> 1). A FAULT of the robot's own (a UR's tracking error, an
+        invalid command, the link dropped and back) leaves an activated gripper as it is: ENABLE
+        is then only the go, the fingers stay where they are (activation runs the whole stroke)."""
         self._check_link("fault reset")
-        yield from self._reset()
+        if self._must_reset or self._major_fault():
+            yield from self._reset()
+
+    def _major_fault(self) -> bool:
+        """The last read's gFLT is a major fault (or a code the manual does not list)."""
+        code = self._fault & T.GFLT_MASK
+        return code != T.GFLT_NONE and (code not in T.FAULTS or T.FAULTS[code].major)
 
     def _reset(self) -> Steps:
         self._go = False
@@ -563,13 +583,15 @@ class RobotiqBackend(Actuator):
         yield  # decide on this cycle's read (the request may have arrived after it)
         self._check_link("enable")
         active = T.gsta(self._status) == T.GSTA_ACTIVE and self._status & T.GACT
-        code = self._fault & T.GFLT_MASK
-        if self._must_reset or not active or code not in T.FAULTS and code != T.GFLT_NONE or (
-                code in T.FAULTS and T.FAULTS[code].major):  # a minor fault (0x09 after a quiet second) is no reason
+        if self._must_reset or not active or self._major_fault():  # a minor fault (0x09 after a quiet second) is no reason
             if self._status & T.GACT:
                 yield from self._reset()
             self._seen = [255, 0]
             self._activating = True
+            # from the rACT 1 on, until gSTA 3: an activation abandoned now (a disable, a pause, the
+            # time limit, a composite's rollback) is stopped by the DISABLE that follows
+            # (_disable_steps), and the next ENABLE activates from the start
+            self._activation_pending = self._must_reset = True
             try:
                 yield from self._acknowledged(T.RACT, 0, "activation (rACT 1)")
                 while True:
@@ -582,6 +604,7 @@ class RobotiqBackend(Actuator):
                         break
             finally:
                 self._activating = False
+            self._activation_pending = self._must_reset = False
             lo, hi = self._seen
             if self.keys.calibration is None and hi - lo >= CALIBRATION_MIN_SPAN:
                 self._open_count, self._closed_count = lo, hi  # the gripper's own stroke ends
@@ -590,10 +613,16 @@ class RobotiqBackend(Actuator):
         self._obj_reported = T.GOBJ_MOVING
 
     def _disable_steps(self) -> Steps:
-        """rGTO 0 (the gripper stays activated), confirmed by gGTO 0 in a later read."""
+        """rGTO 0 (the gripper stays activated), confirmed by gGTO 0 in a later read. A gripper
+        activating (gSTA 1 in the cycle's read, or an activation this backend started and did
+        not see complete) is reset instead: rGTO 0 does not stop an activation, rACT 0 does."""
         self._go = False
         if self._lost is not None:
             raise BackendError(f"{self.robot}: disable: {self._lost.message}")
+        gsta = T.gsta(self._status)
+        if gsta == T.GSTA_ACTIVATING or self._activation_pending and gsta != T.GSTA_ACTIVE:
+            yield from self._stop_activation()
+            return
         if not self._status & (T.GGTO | T.GACT) and self._written is None:
             return  # never activated nor told to go: nothing to stop
         position = self._written[1] if self._written is not None else self._gpo
@@ -604,6 +633,25 @@ class RobotiqBackend(Actuator):
                 return
         raise BackendError(f"{self.robot}: disable: {self._label} on {self._where} still reports gGTO 1")
 
+    def _stop_activation(self) -> Steps:
+        """rACT 0, confirmed by gACT 0 and the fingers' position the same in STEADY_READS reads
+        in a row (they stopped); the next ENABLE activates from the start (``_must_reset``)."""
+        self._must_reset = True
+        yield from self._acknowledged(0, 0, "disable: stop the activation (rACT 0)")
+        last, steady = -1, 0
+        for _ in range(100):
+            yield  # the cycle's read comes first
+            if self._status & T.GACT:
+                last, steady = -1, 0
+                continue
+            steady = steady + 1 if self._gpo == last else 0
+            last = self._gpo
+            if steady >= STEADY_READS:
+                self._activation_pending = False
+                return
+        raise BackendError(f"{self.robot}: disable: {self._label} on {self._where}: the activation did not stop "
+                           f"(gACT {self._status & T.GACT}, gPO {self._gpo})")
+
     # ------------------------------------------------------------------ the link lost
     def _lose_link(self, reason: str) -> Fault:
         fault = Fault("port_lost", f"{self.robot}: {self._label}: port {self._where} is gone ({reason}); "
@@ -612,8 +660,7 @@ class RobotiqBackend(Actuator):
             self._link.close()
             self._link = None
         self._lost = fault
-        self._go = False
-        self._must_reset = True
+        self._go = False  # no _must_reset: enable decides from the status read once the link is back
         self.report_status(DeviceStatus.FAULT, fault)
         self._reopen_stop.clear()
         self._reopen_thread = background_thread(self._reopen_loop, f"reopen-{self.robot}")
@@ -638,7 +685,8 @@ class RobotiqBackend(Actuator):
         self._lost = None
         self._written = None
         self.report_status(DeviceStatus.FAULT_CLEARED, Fault(
-            "fault_cleared", f"{self.robot}: {self._label}: port {self._where} is back; enable re-activates the gripper"))
+            "fault_cleared", f"{self.robot}: {self._label}: port {self._where} is back; enable re-activates the "
+            f"gripper only if it lost its activation or reports a major fault"))
         return False
 
 

@@ -334,10 +334,10 @@ class UrBackend(Actuator):
         self._flags = 0  # the control interface in the worker: CTL_UP | CTL_CONNECTED | CTL_RUNNING
         #: the controller's speed slider (0..1), NaN before the first packet; core reports it
         self.speed_fraction = math.nan
-        self._q = np.zeros(N_JOINTS)
-        self._qd = np.zeros(N_JOINTS)
-        self._pose = np.zeros(6)
-        self._wrench = np.zeros(6)
+        # the package's joints, joint speeds, TCP pose and TCP wrench: views of one array, filled
+        # in one copy per package
+        self._measured = np.zeros(4 * N_JOINTS)
+        self._q, self._qd, self._pose, self._wrench = np.split(self._measured, 4)
         self._tcp_p = np.zeros(3)
         self._tcp_r = np.eye(3)
         self._tcp_rotvec = np.zeros(3)
@@ -450,10 +450,14 @@ class UrBackend(Actuator):
             time.sleep(self.dt)
             return False
         deadline = max(deadline, clock()) + self.dt
+        # a package already there (a late cycle) is taken at once; otherwise poll() wakes on its
+        # wake-up (or on a reply, or the worker's end), and only then are the messages taken
+        woke = w.fresh()
         while True:
-            if self._take(w):
+            if woke and self._take(w):
                 self._taken = True  # the cycle's read takes no second look (_refresh)
                 return True
+            woke = True
             if w.dead:
                 return False
             left = deadline - clock()
@@ -493,10 +497,7 @@ class UrBackend(Actuator):
         self.packets += 1
         self._ts = ts
         self._arrived = time.perf_counter()
-        self._q[:] = st[1:7]
-        self._qd[:] = st[7:13]
-        self._pose[:] = st[13:19]
-        self._wrench[:] = st[19:25]
+        self._measured[:] = st[1:25]  # q, qd, TCP pose, TCP wrench
         self.robot_mode, self.safety_mode, self.runtime_state = st[25], st[26], st[27]
         self.speed_fraction = st[28]
         self._flags = st[29]

@@ -256,6 +256,11 @@ class WorkerHandle:
         if self.sock is not None and timeout_s > 0:
             self.poller.poll(math.ceil(timeout_s * 1000))
 
+    def fresh(self) -> bool:
+        """The shared state changed since :meth:`read_state` last read it (no system call)."""
+        mem = self.mem
+        return mem is not None and SEQ.unpack_from(mem, 0)[0] != self._seq_last
+
     def read_state(self) -> tuple | None:
         """The newest package (STATE's fields), None before the first. Never blocks: retries a
         torn read (the worker writing meanwhile) a few times."""

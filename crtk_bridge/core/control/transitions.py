@@ -220,7 +220,7 @@ class TransitionsMixin:
             if retry:  # FAULT -> DISABLED (retry) failed: stay in FAULT
                 if replaces_torque_off and not self._torque_unconfirmed:
                     self._torque_unconfirmed = True  # on_read retries it once the bus answers
-                    self.event("error", "torque_off_unconfirmed", f"{self.robot}; torque off not confirmed "
+                    self.event("error", "torque_off_unconfirmed", f"{self.robot}: torque off not confirmed "
                                f"({exc}); retrying when the bus answers")
                 return Refused("fault", f"{self.robot}: disable failed, still FAULT: {exc}")
             self.enter_fault(Fault("disable_failed", str(exc), transient=False))
