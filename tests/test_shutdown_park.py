@@ -12,7 +12,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from crtk_bridge.core.actuator import CommandMode
+from crtk_bridge.core.actuator import CommandMode, DeviceStatus, Fault
 from crtk_bridge.core.loop import ControlLoop
 from crtk_bridge.core.snapshot import Layout, SnapshotBuffer
 from crtk_bridge.core.state import OperatingState
@@ -309,6 +309,30 @@ def test_a_torque_off_that_fails_at_shutdown_is_said_never_published_as_disabled
     states = [m["data"]["state"] for m in r.msgs if m.get("event") == "operating_state"]
     assert states[-1] == "FAULT" and r.loop.controller.state is OperatingState.FAULT
     assert r.loop.controller.torque_unconfirmed
+
+
+def test_a_torque_off_that_close_could_not_confirm_is_said_never_published_as_disabled(loop_rig):
+    """The loop's torque off succeeded, but the backend's close() could not confirm it on a bus (a
+    composite's own-rate bus whose worker was stuck in a call on it keeps the bus: no second thread
+    runs its torque off) and reported a FAULT ``torque_off_unconfirmed``: clients hear it as an
+    error naming the bus, and the robot's last state is FAULT, not DISABLED."""
+    r = loop_rig(with_shutdown(action="torque_off"))
+    enable_and_move(r)
+    act, close = r.act, r.act._close_hook
+
+    def stuck_bus_close():
+        close()
+        act.report_status(DeviceStatus.FAULT, Fault(
+            "torque_off_unconfirmed", "so101: close: torque off not confirmed on bus 'gripper': its worker was "
+            "still inside a call on the bus after 1 s", transient=False))
+
+    act._close_hook = stuck_bus_close
+    r.front.send(_enc({"cmd": "_shutdown"}))
+    r.end()
+    (failed,) = r.events("torque_off_unconfirmed")
+    assert "shutdown" in failed["message"] and "bus 'gripper'" in failed["message"], failed
+    states = [m["data"]["state"] for m in r.msgs if m.get("event") == "operating_state"]
+    assert states[-1] == "FAULT" and r.loop.controller.state is OperatingState.FAULT
 
 
 def test_no_park_while_a_lifecycle_transition_is_under_way():

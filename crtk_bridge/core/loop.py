@@ -363,6 +363,11 @@ class ControlLoop:
         else:
             self.controller.torque_switched_off()
         self.actuator.close()
+        # close() could not switch a bus's torque off (a composite's bus whose worker was stuck in
+        # a call on it keeps the bus: no second thread on it): said, never DISABLED
+        said = self.actuator.take_status()
+        if said is not None and said[1] is not None and said[1].code == "torque_off_unconfirmed":
+            self.controller.torque_off_failed(CrtkBridgeError(said[1].message))
         self._publish()
         self._flush()
 
