@@ -427,3 +427,20 @@ def test_a_blocked_activation_stroke_fails_the_enable_naming_it_and_a_changed_sc
     rig.enable()
     (changed,) = [e for e in rig.events("warning") if "calibration changed" in e["message"]]
     assert f"closed 225 -> {CLOSED_COUNT}" in changed["message"] and changed["joint"] == "finger"
+
+
+def test_enable_on_a_held_object_keeps_squeezing_it(rig):
+    """Disabled with the fingers on an object, the enable sends the request that held it (the
+    closing one), not the fingers' position (request == position: the grip force drops, gOBJ
+    3); core's hold there writes nothing over it."""
+    rig.enable()
+    rig.sim.set_object(0.04)
+    rig.move(0.0)
+    rig.until("the grasp", lambda: rig.sim.gripper.dump()["gOBJ"] == T.GOBJ_CONTACT_CLOSING)
+    assert rig.reply(rig.request("disable"))["ok"]
+    rig.enable()
+    rig.cycle(10)
+    dump = rig.sim.gripper.dump()
+    assert dump["gOBJ"] == T.GOBJ_CONTACT_CLOSING and dump["rPR"] == CLOSED_COUNT and dump["gGTO"] == 1, dump
+    rig.move(0.06)  # a command elsewhere goes out
+    assert rig.measured == pytest.approx(0.06, abs=COUNT_M)

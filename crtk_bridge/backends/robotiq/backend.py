@@ -46,7 +46,9 @@ Lifecycle (steps, one transaction at most per cycle, waiting on the gripper acro
   request; the fingers stop where they are. The manual does not say the grip force is kept with
   rGTO 0: a held object is not promised held once DISABLED (the 2F's fingers are not back-driven
   easily, so in practice it usually stays), and the next ENABLE holds the fingers where they are
-  then, without re-activating. During an activation (gSTA 1, or an activation started and not
+  then, without re-activating; on an object (gOBJ contact at the disable, the fingers still
+  there) it sends the position request that held it, not their position (that would drop the
+  grip force), and core's hold there writes nothing over it until a command goes elsewhere. During an activation (gSTA 1, or an activation started and not
   seen complete: an ENABLE abandoned by a disable, a pause, its time limit or a composite's
   rollback) rGTO 0 stops nothing: DISABLE is then rACT 0 (reset), confirmed by gACT 0 and the
   position unchanged across reads (the fingers stopped); the next ENABLE activates anew.
@@ -319,6 +321,8 @@ class RobotiqBackend(Actuator):
         self._seen = [255, 0]
         self._go = False  # rGTO is on (ENABLED): the gripper must stay activated
         self._must_reset = False
+        self._grip: tuple[int, int] | None = None  # (request echo, gPO) at a disable with an object held
+        self._grip_hold: int | None = None  # gPO at an enable that kept the grip request
         self._cal_warned = False  # the nominal ends said (or an activation measured them)
         self._activation_pending = False  # rACT 1 written for an activation not yet seen complete
         # the link lost: the Fault, and the link the reopen worker found
@@ -570,6 +574,10 @@ class RobotiqBackend(Actuator):
         if not self._active(self._status):  # rACT|rGTO to a gripper in reset would be an activation
             return None
         request = (T.RACT | T.RGTO, self.count(float(command.position[0])), self._speed, self._force)
+        if self._grip_hold is not None:  # enabled on an object, its grip request kept (_enable_steps)
+            if abs(request[1] - self._grip_hold) <= 2:
+                return None  # core holds where the fingers rest: the grip request stays
+            self._grip_hold = None  # a command elsewhere: it goes out
         if request == self._written:
             return None
         try:
@@ -657,9 +665,21 @@ class RobotiqBackend(Actuator):
             self._activation_pending = False
             self._calibrate()  # raises for a blocked stroke: _must_reset stays (the next enable activates anew)
             self._must_reset = False
+            self._grip = None
         else:
             self._nominal_calibration()
-        yield from self._acknowledged(T.RACT | T.RGTO, self._gpo, "go (rGTO 1)")
+        # the fingers resting on an object where a disable left them (or still squeezing it, gGTO
+        # 1, after a daemon restart): the request that held it, not where they are (request ==
+        # position drops the grip force); core's hold there is not written over it (_write)
+        position, grip = self._gpo, self._grip
+        status = self._status
+        if status & T.GGTO and T.gobj(status) in (T.GOBJ_CONTACT_CLOSING, T.GOBJ_CONTACT_OPENING):
+            position = self._echo
+        elif grip is not None and abs(grip[1] - self._gpo) <= 2:
+            position = grip[0]
+        self._grip = None
+        yield from self._acknowledged(T.RACT | T.RGTO, position, "go (rGTO 1)")
+        self._grip_hold = self._gpo if position != self._gpo else None
         self._go = True
         self._obj_reported = T.GOBJ_MOVING
 
@@ -668,6 +688,7 @@ class RobotiqBackend(Actuator):
         activating (gSTA 1 in the cycle's read, or an activation this backend started and did
         not see complete) is reset instead: rGTO 0 does not stop an activation, rACT 0 does."""
         self._go = False
+        self._grip_hold = None
         if self._lost is not None:
             raise BackendError(f"{self.robot}: disable: {self._lost.message}")
         gsta = T.gsta(self._status)
@@ -677,6 +698,9 @@ class RobotiqBackend(Actuator):
         if not self._status & (T.GGTO | T.GACT) and self._written is None:
             return  # never activated nor told to go: nothing to stop
         position = self._written[1] if self._written is not None else self._gpo
+        status = self._status
+        grasp = status & T.GGTO and T.gobj(status) in (T.GOBJ_CONTACT_CLOSING, T.GOBJ_CONTACT_OPENING)
+        self._grip = (self._echo, self._gpo) if grasp else None  # the request that holds an object, where
         yield from self._acknowledged(T.RACT if self._status & T.GACT else 0, position, "disable (rGTO 0)")
         for _ in range(50):
             yield
