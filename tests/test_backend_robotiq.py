@@ -365,3 +365,65 @@ def test_enable_after_a_fault_not_of_the_gripper_does_not_reactivate_it(cause):
         assert dump["gPO"] == 120 and dump["rPR"] == 120 and dump["gSTA"] == T.GSTA_ACTIVE and dump["gGTO"] == 1, dump
     finally:
         r.close()
+
+
+def test_a_gripper_fallen_into_reset_beside_a_minor_fault_faults_and_is_not_reactivated(rig):
+    """While ENABLED with a minor gFLT showing (0x08, overheating), a gripper that left its
+    activated state (gACT 0, gSTA 0) is a FAULT naming gSTA; the next position request is not
+    written (rACT|rGTO to a gripper in reset is an activation: the whole stroke)."""
+    rig.enable()
+    rig.move(0.05)
+    with rig.sim.gripper.lock:
+        rig.sim.gripper.fault = 0x08
+        rig.sim.gripper.gact, rig.sim.gripper.gsta = False, T.GSTA_RESET
+    rig.cycle(3)
+    rig.request("move_jp", ns="gripper", data={"position": [0.02]})
+    for _ in range(10):
+        rig.cycle()
+        dump = rig.sim.gripper.dump()
+        assert dump["gACT"] == 0 and dump["gSTA"] == T.GSTA_RESET, dump  # no activation started
+    assert rig.c.state is OperatingState.FAULT
+    err = [e for e in rig.events("error") if e["code"] == "gripper_fault"]
+    assert len(err) == 1 and err[0]["register"] == "gSTA" and err[0]["value"] == T.GSTA_RESET, err
+    assert "no longer activated (gSTA 0" in err[0]["message"], err
+
+
+def test_a_gripper_found_activated_uses_the_nominal_ends_and_says_so():
+    """Found activated (a daemon restart): no activation to calibrate from, none in the profile:
+    the opening uses the nominal stroke ends (the simulator's), said in a warning naming the
+    joint and the profile key; closed reads 0 m (on the 0-255 scale it read 0.0083 m)."""
+    r = Rig(activated=True)
+    try:
+        r.sim.gripper.write("Present_Position", CLOSED_COUNT)  # the fingers closed
+        r.cycle(2)
+        r.enable()
+        r.cycle(2)
+        assert r.measured == pytest.approx(0.0, abs=1e-9)
+        assert r.backend.count(0.0) == CLOSED_COUNT and r.backend.count(0.085) == OPEN_COUNT
+        (warning,) = [e for e in r.events("warning") if "found activated" in e["message"]]
+        assert warning["joint"] == "finger" and "joints[0].calibration {open: N, closed: M}" in warning["message"]
+    finally:
+        r.close()
+
+
+def test_a_blocked_activation_stroke_fails_the_enable_naming_it_and_a_changed_scale_is_reported(rig):
+    """An activation whose fingers ran far less than a 2F's stroke (something blocked them)
+    fails the enable naming the span instead of calibrating a wrong scale; the next enable
+    activates anew, and a re-activation whose ends moved says so."""
+    with rig.sim.gripper.lock:
+        rig.sim.gripper.closed_count = 100  # the fingers stop at 100: a span of 87 counts
+    reply = rig.reply(rig.request("enable"))
+    assert not reply["ok"] and rig.c.state is OperatingState.FAULT
+    assert "the fingers ran only 87 counts (gPO 13..100)" in reply["error"]["message"], reply
+    assert "joints[0].calibration" in reply["error"]["message"]
+    with rig.sim.gripper.lock:
+        rig.sim.gripper.closed_count = 225  # cleared: another gripper's end
+    rig.enable()  # activates anew (the blocked one is not trusted)
+    assert rig.backend.info().details["calibration"] == {"open": OPEN_COUNT, "closed": 225}
+    rig.sim.set_fault(None, "overcurrent")  # a major fault: the enable re-activates
+    rig.until("FAULT", lambda: rig.c.state is OperatingState.FAULT)
+    with rig.sim.gripper.lock:
+        rig.sim.gripper.closed_count = CLOSED_COUNT
+    rig.enable()
+    (changed,) = [e for e in rig.events("warning") if "calibration changed" in e["message"]]
+    assert f"closed 225 -> {CLOSED_COUNT}" in changed["message"] and changed["joint"] == "finger"

@@ -179,6 +179,8 @@ def test_control_socket_dump_write_fault(tmp_path):
     with DynamixelSimulator(SERVOS, control=ctl) as s:
         dump = control_request(ctl, {"cmd": "dump"})
         assert dump["servos"]["2"]["model"] == "xl330-m288" and dump["servos"]["1"]["present_load"] == 0
+        for sid, servo in dump["servos"].items():  # the horn's position, before the rounding to ticks
+            assert round(servo["present_position_exact"]) == servo["present_position"], sid
         assert control_request(ctl, {"cmd": "write", "id": 3, "register": "goal_position", "value": 77})["ok"]
         assert s.servo(3).read("Goal_Position") == 77
         assert control_request(ctl, {"cmd": "fault", "id": 1, "kind": "error_bits", "bits": 4})["ok"]

@@ -379,9 +379,12 @@ def test_control_dump_read_write(sim, bus):
     s1 = dump["servos"]["1"]
     assert s1["torque_enable"] == 0 and s1["goal_position"] == s1["present_position"] == 1100
     assert s1["present_velocity"] == 0 and s1["status"] == 0 and s1["model_number"] == 777
+    assert s1["present_position_exact"] == 1100.0  # the horn's position, before the rounding to ticks
+    assert 0 < dump["clock"] <= time.monotonic()  # as of then
     assert control_request(ctl, {"cmd": "read", "id": 1, "register": "Torque_Enable"}) == {"ok": True, "value": 0}
     assert control_request(ctl, {"cmd": "write", "id": 1, "register": "Present_Position", "value": -12})["ok"]
     assert present(port, ph, 1) == -12  # moved "by hand", seen on the bus
+    assert control_request(ctl, {"cmd": "dump"})["servos"]["1"]["present_position_exact"] == -12.0
     assert control_request(ctl, {"cmd": "write", "id": 1, "register": "goal_position", "value": 1500})["ok"]
     assert ph.read2ByteTxRx(port, 1, 42)[0] == 1500
     err = control_request(ctl, {"cmd": "read", "id": 9, "register": "Torque_Enable"})

@@ -11,7 +11,7 @@ Levels and what they produce each cycle (crtk-spec 4.1.1, setpoint fields per 4.
 | SERVO_P  | latest servo_jp / servo_jr (+ optional velocity feed-forward), followed at <= velocity_max | p (+v) | position |
 | SERVO_V  | latest servo_jv; integrated into p on position-only hardware | v (+p) | velocity or position |
 | SERVO_F  | latest servo_jf | f | effort |
-| INTERP_P | linear interpolation from the setpoint to each interpolate_jp goal over one estimated command period | p, v | position |
+| INTERP_P | linear interpolation to each interpolate_jp goal over one estimated command period (``loop.interpolation: smooth``: averaged over that period) | p, v | position |
 | INTERP_V | setpoint velocity ramps to each interpolate_jv goal at the acceleration limit | v (+p) | velocity or position |
 | INTERP_F | linear ramp to each interpolate_jf goal over one estimated command period | f | effort |
 | MOVE     | ruckig jerk-limited trajectory to the move goal, ending at rest | p, v | position |
@@ -44,9 +44,19 @@ streams (servo_jp / interpolate_jp) hold the setpoint where it is: it never pass
 own positions. The stopping distance from ``velocity_max`` is ``v^2 / (2 d)`` plus one cycle
 (docs/protocol.md, Safety).
 
-Interpolation latency: an interpolate_jp goal is reached one estimated command period after it
-arrives (an exponential average of the inter-arrival times, clamped to [loop period,
-servo_timeout_s]); that period is the latency interpolation adds.
+Interpolation of a position stream (interpolate_jp): a reference moves linearly from where it
+is to each goal over one estimated command period (an exponential average of the
+inter-arrival times, clamped to [loop period, servo_timeout_s]), at most ``velocity_max``;
+with ``loop.interpolation: linear`` (the default) the setpoint is that reference: it passes
+through every goal, its velocity stepping at each one, one period of latency. With ``smooth``
+the setpoint is the reference averaged over the last command period (a moving average: the
+quadratic B-spline of the stream), so its velocity is continuous: it changes linearly over a
+period instead of stepping at each goal, where a 30 Hz stream makes the bare linear
+interpolation move in kinks (issue 21); half a period more latency, and a sharp corner of the
+stream is rounded by up to ``|change of velocity| * period / 8``. Being an average of
+positions the reference held, the setpoint never passes a goal, never leaves the position
+limits nor exceeds ``velocity_max``, and reaches the last goal exactly (then holds it). A
+stream's watchdog waits until the setpoint reached its last goal.
 """
 
 from __future__ import annotations
@@ -82,6 +92,8 @@ class Mode(enum.Enum):
 STREAMS = (Mode.SERVO_P, Mode.SERVO_V, Mode.SERVO_F, Mode.INTERP_P, Mode.INTERP_V, Mode.INTERP_F)
 VELOCITY_MODES = (Mode.SERVO_V, Mode.INTERP_V)
 EFFORT_MODES = (Mode.SERVO_F, Mode.INTERP_F)
+#: per cycle, how far interpolate_jp's averaging window moves toward the period estimate
+_WIDTH_GAIN = 0.05
 _PERIOD_GAIN = 0.3  # weight of the newest inter-arrival time in the command-period estimate
 # An integrated velocity advances over the time really elapsed since the last cycle (a loop that
 # skipped cycles after an overrun must not shorten the path: on a loaded host, with the bus I/O
@@ -138,8 +150,17 @@ class NamespaceMotion:
         self.last_cmd_time = 0.0
         self.last_clip_warning = -np.inf
         self.cmd_period = 0.02  # estimated interpolate command period, s
-        self.interp_start = np.zeros(n)
+        self.interp_start = np.zeros(n)  # where the interpolation (interpolate_jp's reference, interpolate_jf) starts
         self.interp_t0 = 0.0
+        # interpolate_jp: the reference (linear to each goal) and its positions over the last
+        # servo_timeout_s, written twice (rows i and i + rows) so the averaging window (the last
+        # command period) is always one slice
+        self._ref = np.zeros(n)
+        self._ref_rows = int(np.ceil(self.timeout / dt)) + 1
+        self._ref_hist = np.zeros((2 * self._ref_rows, n))
+        self._ref_i = 0
+        self._width = 1.0  # rows the average spans now (cmd_period / dt, followed slowly)
+        self._smooth = profile.loop.interpolation == "smooth"  # else the average spans one row: linear
         self.otg = Ruckig(n, dt)
         self.inp = InputParameter(n)
         self.out = OutputParameter(n)
@@ -260,8 +281,13 @@ class NamespaceMotion:
         self.goal_stamp = 0.0
 
     def interpolate_p(self, goal: np.ndarray, now: float) -> None:
+        if self.mode is not Mode.INTERP_P:
+            # a new stream: the reference and its history start at the setpoint (no jump)
+            self._ref[:] = self.setpoint_p
+            self._ref_hist[:] = self.setpoint_p
+            self._width = max(0.02, self.dt) / self.dt if self._smooth else 1.0  # the first period estimate (below)
         self._enter(Mode.INTERP_P, now)
-        self.interp_start[:] = self.setpoint_p
+        self.interp_start[:] = self._ref
         self.interp_t0 = now
         self.goal_p[:] = goal
         self.goal_level = Mode.INTERP_P
@@ -380,7 +406,9 @@ class NamespaceMotion:
             # native velocity / effort control: the position setpoint follows the joint, so a
             # later position-level command (hold, stop, move, servo_jr) starts where it is
             self.setpoint_p[:] = measured_p
-        if mode in STREAMS and now - self.last_cmd_time > self.timeout:
+        # the watchdog lets an interpolate_jp setpoint reach its goal first (a bounded motion,
+        # the last goal of a stream; interpolation takes up to 2 command periods)
+        if mode in STREAMS and now - self.last_cmd_time > self.timeout and not self.interpolating:
             msg = f"{self.name}: no {mode.value} command for {self.timeout} s; "
             if mode in EFFORT_MODES and self.caps.position:
                 self.setpoint_p[:] = measured_p
@@ -463,16 +491,50 @@ class NamespaceMotion:
         self.setpoint_stamp = now
 
     def _step_interpolate_p(self, now: float) -> None:
-        a = min(1.0, (now - self.interp_t0) / self.cmd_period)
+        """One cycle of interpolate_jp: the reference moves linearly toward the goal (reached one
+        estimated command period after the goal came, at most ``velocity_max``); the setpoint is
+        the mean of the reference over the last command period (module docstring)."""
+        a = (now - self.interp_t0) / self.cmd_period
         target = self._tmp
-        np.subtract(self.goal_p, self.interp_start, out=target)
-        target *= a
-        target += self.interp_start
+        if a >= 1.0:
+            target[:] = self.goal_p  # exactly
+        else:
+            np.subtract(self.goal_p, self.interp_start, out=target)
+            target *= a
+            target += self.interp_start
         # never faster than the joint can go: a goal arriving early or far is followed at v_max
-        step = np.clip(target - self.setpoint_p, -self.vel_max * self.dt, self.vel_max * self.dt)
-        self.setpoint_p += step
-        self.setpoint_v[:] = step / self.dt
+        ref = self._ref
+        d = target - ref
+        ref[:] = np.where(np.abs(d) <= self._step_max, target, ref + np.clip(d, -self._step_max, self._step_max))
+        rows, hist = self._ref_rows, self._ref_hist
+        i = self._ref_i = (self._ref_i + 1) % rows
+        hist[i] = ref
+        hist[i + rows] = ref
+        # the window: the last cmd_period / dt rows, the oldest weighted by the fraction, its
+        # width following the period estimate slowly (a window that changed with the estimate at
+        # each goal would shift the average by a fraction of a step each time); the mean as the
+        # reference minus the mean of its lead over each row: exactly the goal once all rows hold it
+        if self._smooth:
+            self._width += _WIDTH_GAIN * (min(max(1.0, self.cmd_period / self.dt), rows - 1.0) - self._width)
+        width = self._width
+        k = int(width)
+        lead = (ref - hist[i + rows - k + 1:i + rows + 1]).sum(axis=0)
+        lead += (width - k) * (ref - hist[i + rows - k])
+        lead /= width
+        # within velocity_max again: a window shortened at once (the period estimate dropping)
+        # would otherwise move the average faster
+        new = ref - lead
+        step = np.clip(new - self.setpoint_p, -self._step_max, self._step_max, out=lead)
+        np.copyto(new, self.setpoint_p + step, where=step != new - self.setpoint_p)  # exact when not clipped
+        np.subtract(new, self.setpoint_p, out=self.setpoint_v)
+        self.setpoint_v /= self.dt
+        self.setpoint_p[:] = new
         self.setpoint_stamp = now
+
+    @property
+    def interpolating(self) -> bool:
+        """An interpolate_jp setpoint still on its way to the goal."""
+        return self.mode is Mode.INTERP_P and not np.array_equal(self.setpoint_p, self.goal_p)
 
     def _step_trajectory(self, now: float) -> bool:
         result = ruckig_update(self.otg, self.inp, self.out)

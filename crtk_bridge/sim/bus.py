@@ -193,6 +193,11 @@ class BusServo:
         """Actual (encoder) ticks at which the servo reports Present_Position ``present``."""
         raise NotImplementedError
 
+    def _present_exact(self) -> float | None:
+        """Present_Position before its rounding to whole ticks: where the simulated horn is
+        (None: the model has no such position)."""
+        return None
+
     # --- vendor hooks (caller holds the simulator lock) ---
     def _get(self, name: str) -> int:
         raise NotImplementedError
@@ -723,12 +728,15 @@ class BusSimulator:
                 s = self._servos[sid]
                 s._update(now)
                 servos[str(sid)] = {**self._snapshot(s), "serial": self._serial_of(s)}
+                exact = s._present_exact()
+                if exact is not None:
+                    servos[str(sid)]["present_position_exact"] = exact
                 f = self._faults(s)
                 if f:
                     faults[str(sid)] = f
             detached = {str(serial): {**self._snapshot(s), "serial": serial}
                         for serial, s in sorted(self._detached.items())}
-            return {"servos": servos, "faults": faults, "unplugged": self.unplugged,
+            return {"clock": now, "servos": servos, "faults": faults, "unplugged": self.unplugged,
                     "baudrate": self.baudrate, "wire_baud": self._wire_baud,
                     "torque_delay_s": self.torque_delay_s, "detached": detached,
                     "usb_plugged": self.plugged, "pty": self.pty_path,

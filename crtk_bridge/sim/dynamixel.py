@@ -287,6 +287,9 @@ class SimServo(BusServo):
         unit = T.CURRENT_UNIT_A[self.model]
         return self._get("Goal_Current") * unit * 1000.0 if unit else 0.0
 
+    def _present_exact(self) -> float:
+        return self._pos + self._get("Homing_Offset")
+
     def _refresh(self, dt: float) -> None:
         r = self.registers
         self._put("Present_Position", max(-(1 << 31), min((1 << 31) - 1,

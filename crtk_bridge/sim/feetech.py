@@ -238,6 +238,9 @@ class SimServo(BusServo):
     def _actual(self, present: int) -> float:
         return float(present + self._offset())  # Present = Actual - Homing_Offset
 
+    def _present_exact(self) -> float:
+        return self._pos - self._offset()
+
     def _offset(self) -> int:
         r = self.registers
         return _from_sm(r[_HOMING] | r[_HOMING + 1] << 8, 11)

@@ -71,9 +71,10 @@ log = logging.getLogger(__name__)
 TOOL_PORT = 54321
 #: seconds an activation takes here unless told (a real 2F takes a few; tests ask for less)
 DEFAULT_ACTIVATION_S = 1.0
-#: the simulated gripper's readings at its stroke ends (a choice of this simulator: the manual's
-#: example reads 13/255 at full opening, "the fingers have reached their software limit")
-OPEN_COUNT, CLOSED_COUNT = 13, 230
+#: the simulated gripper's readings at its stroke ends: the backend's nominal ends (tables.py; a
+#: choice, not the manual's: its example reads 13/255 at full opening, "the fingers have reached
+#: their software limit")
+OPEN_COUNT, CLOSED_COUNT = T.NOMINAL_OPEN, T.NOMINAL_CLOSED
 #: finger current while moving (the manual's example reads 0x0A, about 100 mA, during motion)
 MOVING_CURRENT = 10
 #: N of grip force per A of finger current when the profile gives none (not from the manual)

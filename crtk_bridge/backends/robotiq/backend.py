@@ -17,7 +17,15 @@ model's stroke (0.085 m on a 2F-85, 0.140 m on a 2F-140) = open; velocity is not
 gripper's position is 0-255 (0 = open); ``opening = stroke * (closed - gPO) / (closed - open)``
 with ``open`` and ``closed`` the gripper's OWN readings at its stroke ends, taken at activation
 (the fingers run their whole stroke while activating: the smallest and largest gPO read during it)
-unless the joint's ``calibration: {open: N, closed: M}`` gives them. A position request is the
+unless the joint's ``calibration: {open: N, closed: M}`` gives them. A measured span below
+``tables.CALIBRATION_MIN_SHARE`` of the nominal one fails the enable naming it (something blocked
+the fingers; a scale from it would be wrong by far); a re-activation whose ends differ by more
+than 2 counts from those in use is a ``device_warning`` saying both. A gripper found already
+activated (the daemon restarted beside a powered gripper) is not activated again (below), so
+nothing is measured: without a profile ``calibration`` the opening uses the nominal ends
+``tables.NOMINAL_OPEN`` / ``NOMINAL_CLOSED`` (13 / 230, the simulator's; not the manual's), off
+by a few tenths of a mm per count on another gripper, said once at enable in a
+``device_warning`` naming the joint and ``joints[0].calibration``. A position request is the
 same map inverted, rounded and clamped to 0-255 only (the profile's limits are core's).
 
 One cycle is at most two transactions: ``read`` = ONE function 4 read of the three input words
@@ -147,7 +155,7 @@ class GripperJoint(msgspec.Struct, forbid_unknown_fields=True, frozen=True, kw_o
 
 
 DEFAULT_TIMEOUT_MS = 15.0
-#: an activation must see the fingers travel at least this many counts to calibrate from it
+#: a profile's calibration: closed must exceed open by at least this many counts
 CALIBRATION_MIN_SPAN = 100
 #: acknowledged lifecycle writes: attempts (one per cycle) before the transition fails
 WRITE_ATTEMPTS = 4
@@ -311,6 +319,7 @@ class RobotiqBackend(Actuator):
         self._seen = [255, 0]
         self._go = False  # rGTO is on (ENABLED): the gripper must stay activated
         self._must_reset = False
+        self._cal_warned = False  # the nominal ends said (or an activation measured them)
         self._activation_pending = False  # rACT 1 written for an activation not yet seen complete
         # the link lost: the Fault, and the link the reopen worker found
         self._lost: Fault | None = None
@@ -426,8 +435,40 @@ class RobotiqBackend(Actuator):
     # ------------------------------------------------------------------ units
     def _calibrated(self) -> tuple[int, int]:
         if self._open_count is None:
-            return T.POSITION_OPEN, T.POSITION_CLOSED  # before the first activation: the request scale
+            return T.NOMINAL_OPEN, T.NOMINAL_CLOSED  # nothing measured nor given: the nominal ends
         return self._open_count, self._closed_count
+
+    def _calibrate(self) -> None:
+        """The ends from the activation just completed (the smallest and largest gPO read
+        during it), unless the profile gives them; a span far below the nominal one is refused
+        (something blocked the fingers); a change of the ends in use is reported."""
+        if self.keys.calibration is not None:
+            return
+        lo, hi = self._seen
+        nominal = T.NOMINAL_CLOSED - T.NOMINAL_OPEN
+        if hi - lo < T.CALIBRATION_MIN_SHARE * nominal:
+            raise BackendError(
+                f"{self.robot}: activation: {self._label} on {self._where}: the fingers ran only {max(hi - lo, 0)} "
+                f"counts (gPO {lo}..{hi}), a 2F's stroke is about {nominal}: something blocked them; clear the "
+                f"fingers and enable again (it activates anew), or give joints[0].calibration {{open: N, closed: M}}")
+        before = self._open_count, self._closed_count
+        self._open_count, self._closed_count = lo, hi
+        if before[0] is not None and (abs(before[0] - lo) > 2 or abs(before[1] - hi) > 2):
+            self._warn(f"calibration changed at this activation: open {before[0]} -> {lo}, closed {before[1]} -> "
+                       f"{hi} (gPO at the stroke ends): the opening's scale moved", "gPO", hi - lo)
+        self._cal_warned = True
+
+    def _nominal_calibration(self) -> None:
+        """Found activated (nothing to calibrate from) with no profile ``calibration``: the nominal
+        ends, said once in a warning naming the joint and the profile key."""
+        if self._cal_warned or self.keys.calibration is not None or self._open_count is not None:
+            return
+        self._cal_warned = True
+        self._open_count, self._closed_count = T.NOMINAL_OPEN, T.NOMINAL_CLOSED
+        self._warn(f"found activated: no activation to calibrate the opening from; it uses a 2F's nominal "
+                   f"stroke ends (gPO {T.NOMINAL_OPEN} open, {T.NOMINAL_CLOSED} closed; a few tenths of a mm per "
+                   f"count off on another gripper): give joints[0].calibration {{open: N, closed: M}} (its gPO "
+                   f"fully open and fully closed) in the profile", "gPO", self._gpo)
 
     def opening(self, count: float) -> float:
         """m of finger opening at gripper position ``count``."""
@@ -491,7 +532,9 @@ class RobotiqBackend(Actuator):
             else:
                 self._warn(f"gFLT 0x{code:02X} ({fault.severity} fault): {fault.meaning}", "gFLT", code)
         status = self._status
-        if self._go and T.gsta(status) != T.GSTA_ACTIVE and self._lost is None and code == T.GFLT_NONE:
+        # whatever a priority or minor code says (a major one is its own FAULT above): a gripper
+        # that left its activated state while ENABLED is a FAULT (its next go would re-activate it)
+        if self._go and not self._active(status) and self._lost is None and not self._major_fault():
             self._go = False
             self._must_reset = True
             self.report_status(DeviceStatus.FAULT, Fault(
@@ -507,6 +550,11 @@ class RobotiqBackend(Actuator):
             elif obj == T.GOBJ_AT_REQUEST:
                 self._notice(f"gOBJ {obj}: {T.GOBJ_TEXT[obj]}", "gOBJ", obj)
 
+    @staticmethod
+    def _active(status: int) -> bool:
+        """gACT 1 and gSTA 3 (activation completed) in GRIPPER STATUS ``status``."""
+        return bool(status & T.GACT) and T.gsta(status) == T.GSTA_ACTIVE
+
     def _warn(self, text: str, register: str, value: int) -> None:
         self.report_status(DeviceStatus.WARNING, Fault("device_warning", f"{self.robot}: {self._label}: {text}",
                                                        joint=self.joint_names[0], register=register, value=value))
@@ -518,6 +566,8 @@ class RobotiqBackend(Actuator):
     def _write(self, command: JointCommand) -> Fault | None:
         """ONE function 16 write of the position request, only when it changed."""
         if not self._go or self._lost is not None or command.mode[0] != 1:  # 1: CommandMode.POSITION
+            return None
+        if not self._active(self._status):  # rACT|rGTO to a gripper in reset would be an activation
             return None
         request = (T.RACT | T.RGTO, self.count(float(command.position[0])), self._speed, self._force)
         if request == self._written:
@@ -604,10 +654,11 @@ class RobotiqBackend(Actuator):
                         break
             finally:
                 self._activating = False
-            self._activation_pending = self._must_reset = False
-            lo, hi = self._seen
-            if self.keys.calibration is None and hi - lo >= CALIBRATION_MIN_SPAN:
-                self._open_count, self._closed_count = lo, hi  # the gripper's own stroke ends
+            self._activation_pending = False
+            self._calibrate()  # raises for a blocked stroke: _must_reset stays (the next enable activates anew)
+            self._must_reset = False
+        else:
+            self._nominal_calibration()
         yield from self._acknowledged(T.RACT | T.RGTO, self._gpo, "go (rGTO 1)")
         self._go = True
         self._obj_reported = T.GOBJ_MOVING

@@ -117,6 +117,15 @@ def fault_text(code: int) -> str:
 # ---------------------------------------------------------------- position, speed, force, current (4.3-4.4)
 #: position request / position: 0x00 full opening, 0xFF full closing
 POSITION_OPEN, POSITION_CLOSED = 0x00, 0xFF
+#: NOT from the manual (which gives only 0x00 = full opening, 0xFF = full closing): the position
+#: readings of a 2F at its stroke ends used when none was measured (a gripper found activated)
+#: and the profile gives no ``calibration``: a real 2F reads about 3-13 fully open and about 230
+#: fully closed (each gripper its own, a few counts apart: a few tenths of a mm each); the
+#: simulator's ends are these
+NOMINAL_OPEN, NOMINAL_CLOSED = 13, 230
+#: an activation's measured span must be at least this share of the nominal one (a shorter one:
+#: something blocked the fingers, and a scale from it would be wrong by far)
+CALIBRATION_MIN_SHARE = 0.8
 #: speed 0x00 = the model's minimum speed, 0xFF its maximum; force 0x00 minimum, 0xFF maximum
 BYTE_MAX = 0xFF
 #: finger current: the motor current read instantaneously, about 10 mA per unit (4.4.6)
