@@ -970,3 +970,58 @@ def test_close_leaves_a_slow_bus_stuck_in_a_call_to_its_worker_and_says_torque_o
     closer.join(5)
     wait_until(lambda: right.closed_by, 5, what="the worker closing its bus once its read returned")
     assert right.closed_by == [worker] and right.entered == {worker} and not right.torque
+
+
+def test_no_setpoint_reaches_a_slow_bus_once_the_robot_asked_for_its_disable():
+    """The loop hands a DISABLE over while the slow bus's worker is about to write (past the
+    point where it asked for a transition): that write carries no setpoint (every joint NONE),
+    not the newest one posted: a stop is at once, not one bus cycle later."""
+
+    class AtWrite(SlowBus):
+        armed = False
+
+        @property
+        def is_enabled(self):  # asked by the worker just before its write: held there when armed
+            if self.armed and threading.current_thread().name.startswith("crtk-bus-"):
+                self.armed = False
+                self.at_write.set()
+                self.go.wait(10)
+            return self._enabled
+
+        def _write(self, cmd):
+            self.modes.append(cmd.mode.copy())
+            return super()._write(cmd)
+
+    left = FakeBus(PROFILE.bus_profile("left"), 0.0, 100.0)
+    right = AtWrite(PROFILE.bus_profile("right"), 10.0, 50.0)
+    right.at_write, right.go, right.modes = threading.Event(), threading.Event(), []
+    c = CompositeActuator(PROFILE, {"left": left, "right": right})
+    c.open()
+    try:
+        c.enable(c.new_feedback())
+        cmd = c.new_command()
+        cmd.mode[:] = CommandMode.POSITION
+        cmd.position[:] = 1.0
+        assert c.write(cmd) is None
+        wait_until(lambda: any(np.all(p == 1.0) for p in right.writes), 5, what="the setpoint written")
+        right.armed = True
+        wait_until(right.at_write.is_set, 5, what="the worker about to write")
+        cmd.position[:] = 2.0
+        assert c.write(cmd) is None  # the newest setpoint ...
+        disable = c.begin(Lifecycle.DISABLE)
+        assert disable.step() is False  # ... then the robot's DISABLE, handed over
+        before = len(right.modes)
+        right.go.set()
+        wait_until(lambda: len(right.modes) > before, 5, what="the worker's write")
+        assert (right.modes[before] == CommandMode.NONE).all()  # no setpoint once the stop was asked
+        assert not any(np.all(p == 2.0) for p in right.writes)
+        fb = c.new_feedback()
+        deadline = time.monotonic() + 10
+        while not disable.step():
+            assert time.monotonic() < deadline, "DISABLE did not end"
+            c.read(fb)
+            time.sleep(0.001)
+        assert not right.is_enabled and not right.torque
+    finally:
+        right.go.set()
+        c.close()

@@ -164,3 +164,20 @@ def test_crtk_sim_robotiq_serves_the_profile(short_tmp):
     finally:
         proc.terminate()
         assert proc.wait(10) == 0
+
+
+def test_plugging_in_a_plugged_link_changes_nothing(sim_pty):
+    """``set_unplugged(False)`` on a link that is in (a test's recovery does it every time) is a
+    no-op: it registered the pty a second time ('FD is already registered') and failed."""
+    sim, tmp = sim_pty
+    sim.set_unplugged(False)
+    sim.set_unplugged(True)
+    sim.set_unplugged(False)
+    sim.set_unplugged(False)
+    client = ModbusSerialClient(str(tmp / "tty"), framer=FramerType.RTU, baudrate=115200, bytesize=8,
+                                parity="N", stopbits=1, timeout=1, retries=0)
+    assert client.connect()
+    try:
+        assert _status(client)["gFLT"] == 0  # the gripper answers on the link
+    finally:
+        client.close()

@@ -295,10 +295,18 @@ class _OwnRateWorker:
         return h.transition
 
     def _newest(self) -> JointCommand:
-        """The newest setpoint the loop posted, taken just before the bus's write."""
+        """The newest setpoint the loop posted, taken just before the bus's write; none (every
+        joint NONE) once a DISABLE is handed, even before it began here (a stop is at once)."""
+        mine = self._mine
         with self._lock:
-            _copy_command(self._mine, self._cmd)
-        return self._mine
+            h = self._handed
+            if h is not None and h.quiet:
+                mine.mode[:] = CommandMode.NONE
+                if mine.cartesian is not None:
+                    mine.cartesian.mode[:] = 0
+            else:
+                _copy_command(mine, self._cmd)
+        return mine
 
     def _count(self, what: str, fault: Fault | None) -> Fault | None:
         """The bus's failed reads (writes) in a row: a transient failure is the loop's only from
@@ -385,10 +393,11 @@ class _Handed:
     state are that thread's alone, so an ENABLE the loop abandoned is closed there before the
     DISABLE that replaced it begins, never stepped after it."""
 
-    __slots__ = ("worker", "make", "transition", "done")
+    __slots__ = ("worker", "make", "quiet", "transition", "done")
 
-    def __init__(self, worker: _OwnRateWorker, make: Callable[[], Transition]):
-        self.worker, self.make, self.done = worker, make, False
+    def __init__(self, worker: _OwnRateWorker, make: Callable[[], Transition], quiet: bool = False):
+        """``quiet``: no setpoint is written from now on (a DISABLE)."""
+        self.worker, self.make, self.quiet, self.done = worker, make, quiet, False
         self.transition: Transition | None = None  # the worker's own, once begun
         worker.hand(self)
 
@@ -766,7 +775,8 @@ class CompositeActuator(Actuator):
                 if kind is Lifecycle.ENABLE:
                     self._bw[b].clear_command()
                 # begun on the bus's own thread (its begin() never races the worker's steps)
-                transitions.append((b, _Handed(self._bw[b], functools.partial(self.parts[b].begin, kind, fb))))
+                transitions.append((b, _Handed(self._bw[b], functools.partial(self.parts[b].begin, kind, fb),
+                                               quiet=kind is Lifecycle.DISABLE)))
             else:
                 transitions.append((b, self.parts[b].begin(kind, fb)))
         failed: list[str] = []

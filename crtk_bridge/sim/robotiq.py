@@ -639,7 +639,7 @@ class RobotiqSimulator:
                 self._pty.unplug()
             for conn in list(self._conns):
                 self._drop(conn)
-        elif self._pty is not None:
+        elif self._pty is not None and self._pty.master_fd is None:  # plugged back (a no-op if in)
             self._plug_pty()
 
     def _call_in_thread(self, fn) -> None:
