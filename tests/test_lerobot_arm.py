@@ -140,6 +140,26 @@ def test_an_action_is_clipped_and_the_return_is_what_the_daemon_got(sim_daemon):
 
 
 @only_on("so101-feetech")
+def test_disconnect_holds_at_the_last_action_not_short_of_it(sim_daemon):
+    """LeRobot disconnects right after its last ``send_action``: the arm ends at that action, not
+    where its interpolation was when the hold came (a replay ended off its recorded path)."""
+    sock = str(sim_daemon.socket_path)
+    arm = DaemonArm(socket=sock)
+    arm.open()
+    try:
+        arm.enable()
+        now = arm.read()
+        sent = arm.send({k: v + (4.0 if v < 0 else -4.0) for k, v in now.items() if k != "gripper.pos"})
+        assert max(abs(sent[k] - now[k]) for k in sent) > 2.0  # a step the interpolation takes a while over
+        arm.release("hold")
+        wait_until(lambda: robot_settled(sock), 5, what="the hold at the last action (setpoint == its goal)")
+        wait_until(lambda: all(abs(arm.read()[k] - sent[k]) < 0.5 for k in sent), 5,
+                   what=f"the arm at the last action {sent}, read {arm.read()}")
+    finally:
+        arm.close()
+
+
+@only_on("so101-feetech")
 def test_a_fault_mid_episode_raises_its_reason_and_connect_refuses_a_faulted_robot(sim_daemon):
     sock = str(sim_daemon.socket_path)
     arm = DaemonArm(socket=sock)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass
 from typing import Any, Mapping
 
@@ -30,6 +31,10 @@ from crtk_client import connect
 from crtk_client.errors import CommandError, CrtkBridgeError
 
 log = logging.getLogger(__name__)
+
+#: release("hold") waits at most this long for the last action's interpolation to end
+SETTLE_S = 1.0
+SETTLE_POLL_S = 0.005
 
 UNITS = ("lerobot", "si")
 COMMANDS = ("interpolate", "servo")
@@ -317,6 +322,19 @@ class DaemonArm:
         self.goal = target
         return {j.key: j.to_units(float(self.goal[j.ns][j.index])) for j in joints if j.key in wanted}
 
+    def _settle(self, devices: list) -> None:
+        """Until each device's interpolation reached its goal (the last action sent), at most
+        SETTLE_S: ``hold`` stops where the setpoint is, and LeRobot disconnects right after its
+        last ``send_action``, so a hold at once left the arm short of the last action by up to
+        one interpolation (a replay ended off its recorded path)."""
+        deadline = time.monotonic() + SETTLE_S
+        for dev in devices:
+            while time.monotonic() < deadline:
+                goal, setpoint = dev.goal_jp()[0], dev.setpoint_jp()[0]
+                if len(goal) == 0 or len(goal) != len(setpoint) or np.array_equal(goal, setpoint):
+                    break
+                time.sleep(SETTLE_POLL_S)
+
     def release(self, on_disconnect: str = "hold") -> None:
         """End of the session: ``hold`` (every namespace holds its position, the robot stays
         ENABLED, control is released for the next client) or ``disable`` (torque off: an arm
@@ -327,9 +345,10 @@ class DaemonArm:
             if on_disconnect == "disable":
                 next(iter(self.devices.values())).disable(self.timeout_s)
             else:
-                for dev in self.devices.values():
-                    if dev.is_enabled():
-                        dev.hold()
+                enabled = [dev for dev in self.devices.values() if dev.is_enabled()]
+                self._settle(enabled)
+                for dev in enabled:
+                    dev.hold()
                 self.client.release()
         except (CrtkBridgeError, ConnectionError, TimeoutError) as exc:  # CommandError, the daemon gone
             log.warning("%s: %s: on disconnect: %s", self.who, self.robot_name, exc)
