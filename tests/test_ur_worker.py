@@ -47,3 +47,23 @@ def test_a_stopped_script_is_uploaded_again_only_after_its_command_register_is_c
     w.ctl = _Recorder(log, running=True)
     w.start_script()
     assert log == []
+
+
+def test_the_reader_exits_quietly_when_the_backend_resets_the_link(tmp_path):
+    """The backend closing its end with the worker's replies unread resets the socket
+    (ECONNRESET, not an end of file): the worker's reader ends the worker as for an end of file,
+    with no traceback (it printed one when a daemon stopped)."""
+    import subprocess
+    import textwrap
+
+    script = textwrap.dedent("""
+        import socket, types
+        from crtk_bridge.backends.ur.worker import Worker
+        worker_end, backend_end = socket.socketpair()
+        worker_end.sendall(b"a reply the backend never reads")
+        backend_end.close()  # unread data: the worker's next recv is reset
+        Worker.read_loop(types.SimpleNamespace(sock=worker_end))
+        raise SystemExit(3)  # read_loop returned: it must end the process itself
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr

@@ -173,7 +173,10 @@ class Worker:
         view = memoryview(buf)
         sock = self.sock
         while True:
-            n = sock.recv_into(buf)
+            try:
+                n = sock.recv_into(buf)
+            except OSError:  # ECONNRESET: the backend closed its end with replies unread
+                n = 0
             latest = None
             while True:
                 if n == 0:
@@ -194,6 +197,8 @@ class Worker:
                     n = sock.recv_into(buf, 0, socket.MSG_DONTWAIT)
                 except (BlockingIOError, InterruptedError):
                     break
+                except OSError:  # reset by the backend: as its end closed
+                    n = 0
             if latest is not None:
                 self.realtime(latest)
 
