@@ -57,6 +57,7 @@ gear_ratio)`` for ``unit: rad`` (``1 / (...)`` for ``unit: m``):
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import math
@@ -904,16 +905,23 @@ class Canopen402Backend(Actuator):
             if d.rpdo2 is not None:
                 d.rpdo2.data = bytearray(d.layout[d.rpdo2].pack(d.target_vel, d.target_torque))
         try:
-            for d in self.drives:
-                d.rpdo1.transmit()
-                if d.rpdo2 is not None:
-                    d.rpdo2.transmit()
+            # the cycle's RPDOs in one write to an slcan adapter (slcan.py: SlcanBus.batch)
+            with self._batch():
+                for d in self.drives:
+                    d.rpdo1.transmit()
+                    if d.rpdo2 is not None:
+                        d.rpdo2.transmit()
+                        self.stats["rpdos"] += 1
                     self.stats["rpdos"] += 1
-                self.stats["rpdos"] += 1
         except (can.CanError, OSError) as exc:
             self._bus_down = f"send failed: {exc}"
             return self._bus_fault()
         return fault
+
+    def _batch(self) -> contextlib.AbstractContextManager:
+        """Sends held and written together at the end (an slcan bus), or as they come."""
+        bus = self._network.bus
+        return bus.batch() if isinstance(bus, SlcanBus) else contextlib.nullcontext()
 
     def _sync_out(self) -> None:
         """Transmit one SYNC: the drives apply the RPDOs received since the previous one and
