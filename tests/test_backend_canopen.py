@@ -510,6 +510,19 @@ def test_example_profile_documents_every_canopen_key():
     load_profile(ROOT / "profiles" / "example.yaml")  # still a valid profile
 
 
+def test_a_prismatic_joint_scales_counts_per_metre():
+    """The joint's generic ``unit``: with m, gear_ratio is motor turns per metre and positions are
+    m (no 2*pi); with rad, per joint turn and rad."""
+    data = profile_data(PROFILE)
+    data["joints"][1]["unit"] = "m"
+    b = Canopen402Backend(parse_profile(data))
+    rad, m = b.drives
+    keys = m.keys
+    assert m.k_pos == pytest.approx(keys.direction / (keys.counts_per_revolution * keys.gear_ratio))
+    assert rad.k_pos == pytest.approx(rad.keys.direction * 2 * np.pi / (rad.keys.counts_per_revolution
+                                                                        * rad.keys.gear_ratio))
+
+
 def test_a_drive_described_by_an_eds_file(iface, tmp_path):
     import canopen
 
