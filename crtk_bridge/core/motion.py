@@ -160,7 +160,11 @@ class NamespaceMotion:
         self._ref_hist = np.zeros((2 * self._ref_rows, n))
         self._ref_i = 0
         self._width = 1.0  # rows the average spans now (cmd_period / dt, followed slowly)
-        self._smooth = profile.loop.interpolation == "smooth"  # else the average spans one row: linear
+        # smooth and predict average the reference over the period; linear: the average spans one row
+        self._smooth = profile.loop.interpolation in ("smooth", "predict")
+        self._predict = profile.loop.interpolation == "predict"
+        # interpolate_jp: where the reference heads (the goal; predict: the extrapolated goal)
+        self._aim = np.zeros(n)
         self.otg = Ruckig(n, dt)
         self.inp = InputParameter(n)
         self.out = OutputParameter(n)
@@ -281,14 +285,28 @@ class NamespaceMotion:
         self.goal_stamp = 0.0
 
     def interpolate_p(self, goal: np.ndarray, now: float) -> None:
-        if self.mode is not Mode.INTERP_P:
+        streaming = self.mode is Mode.INTERP_P
+        if not streaming:
             # a new stream: the reference and its history start at the setpoint (no jump)
             self._ref[:] = self.setpoint_p
             self._ref_hist[:] = self.setpoint_p
             self._width = max(0.02, self.dt) / self.dt if self._smooth else 1.0  # the first period estimate (below)
+        period, since = self.cmd_period, now - self.last_cmd_time  # before this arrival updates them
         self._enter(Mode.INTERP_P, now)
         self.interp_start[:] = self._ref
         self.interp_t0 = now
+        aim = self._aim
+        if self._predict and streaming and since > 0.0:
+            # the stream's last step carried one more estimated period: the goal's velocity, the
+            # step over the time it took, times the period; never more than that one step (a goal
+            # after a gap extrapolates less), and within the position limits
+            np.subtract(goal, self.goal_p, out=aim)
+            aim *= min(1.0, period / since)
+            aim += goal
+            lo, hi = self._bounds(goal)
+            _clip(aim, lo, hi, aim)
+        else:
+            aim[:] = goal  # the first goal of a stream, linear, smooth: the goal itself
         self.goal_p[:] = goal
         self.goal_level = Mode.INTERP_P
         self.goal_stamp = now
@@ -491,15 +509,25 @@ class NamespaceMotion:
         self.setpoint_stamp = now
 
     def _step_interpolate_p(self, now: float) -> None:
-        """One cycle of interpolate_jp: the reference moves linearly toward the goal (reached one
-        estimated command period after the goal came, at most ``velocity_max``); the setpoint is
-        the mean of the reference over the last command period (module docstring)."""
+        """One cycle of interpolate_jp: the reference moves linearly toward the goal (predict: the
+        extrapolated goal, then back to the goal over one more period if no goal came), reached
+        one estimated command period after the goal came, at most ``velocity_max``; the setpoint
+        is the mean of the reference over the last command period (module docstring)."""
         a = (now - self.interp_t0) / self.cmd_period
         target = self._tmp
-        if a >= 1.0:
+        if a >= 2.0 or (a >= 1.0 and not self._predict):
             target[:] = self.goal_p  # exactly
+        elif a >= 1.5:
+            # predict, no goal for half a period more (a late goal finds the reference where it
+            # was: no kink): back from the extrapolated goal to the goal over the next half period,
+            # so that an ended stream ends exactly on its last goal
+            np.subtract(self.goal_p, self._aim, out=target)
+            target *= 2.0 * (a - 1.5)
+            target += self._aim
+        elif a >= 1.0:
+            target[:] = self._aim
         else:
-            np.subtract(self.goal_p, self.interp_start, out=target)
+            np.subtract(self._aim, self.interp_start, out=target)
             target *= a
             target += self.interp_start
         # never faster than the joint can go: a goal arriving early or far is followed at v_max
