@@ -11,7 +11,7 @@ Levels and what they produce each cycle (crtk-spec 4.1.1, setpoint fields per 4.
 | SERVO_P  | latest servo_jp / servo_jr (+ optional velocity feed-forward), followed at <= velocity_max | p (+v) | position |
 | SERVO_V  | latest servo_jv; integrated into p on position-only hardware | v (+p) | velocity or position |
 | SERVO_F  | latest servo_jf | f | effort |
-| INTERP_P | linear interpolation to each interpolate_jp goal over one estimated command period (``loop.interpolation: smooth``: averaged over that period) | p, v | position |
+| INTERP_P | linear interpolation to each interpolate_jp goal over one estimated command period (``loop.interpolation: smooth``: averaged over that period; ``predict``: to the goal extrapolated one step, averaged) | p, v | position |
 | INTERP_V | setpoint velocity ramps to each interpolate_jv goal at the acceleration limit | v (+p) | velocity or position |
 | INTERP_F | linear ramp to each interpolate_jf goal over one estimated command period | f | effort |
 | MOVE     | ruckig jerk-limited trajectory to the move goal, ending at rest | p, v | position |
@@ -55,8 +55,21 @@ period instead of stepping at each goal, where a 30 Hz stream makes the bare lin
 interpolation move in kinks (issue 21); half a period more latency, and a sharp corner of the
 stream is rounded by up to ``|change of velocity| * period / 8``. Being an average of
 positions the reference held, the setpoint never passes a goal, never leaves the position
-limits nor exceeds ``velocity_max``, and reaches the last goal exactly (then holds it). A
-stream's watchdog waits until the setpoint reached its last goal.
+limits nor exceeds ``velocity_max``, and reaches the last goal exactly (then holds it).
+
+``predict`` (opt-in: it extrapolates) removes that latency: the reference heads for each goal
+carried one more step, ``a_k + (a_k - a_{k-1})`` (the stream's velocity over one estimated
+period: never more than its last step, less for a goal that came after a gap, nothing for a
+stream's first goal, clipped to the position limits), reaching it one estimated period after
+goal k came, and the setpoint averages it as ``smooth`` does. The reference then samples the
+stream about where the client's goals will be, and its average over a period lags them by half
+a period: as much as a staircase of the goals written at once (LeRobot's direct writes), no
+more. With no new goal for half a period more (a late goal, an ended stream) the reference
+returns to the last goal over the next half period, so the stream ends exactly on its last goal
+and holds it; the price is an overshoot past the client's goals on a stop or a reversal of at
+most one step of the stream. A stop (hold) of a predict stream holds where the setpoint is, at
+most one step past the last goal. A stream's watchdog waits until the setpoint reached its last
+goal (up to 2 periods; predict 3).
 """
 
 from __future__ import annotations
@@ -425,7 +438,7 @@ class NamespaceMotion:
             # later position-level command (hold, stop, move, servo_jr) starts where it is
             self.setpoint_p[:] = measured_p
         # the watchdog lets an interpolate_jp setpoint reach its goal first (a bounded motion,
-        # the last goal of a stream; interpolation takes up to 2 command periods)
+        # the last goal of a stream; interpolation takes up to 2 command periods, predict 3)
         if mode in STREAMS and now - self.last_cmd_time > self.timeout and not self.interpolating:
             msg = f"{self.name}: no {mode.value} command for {self.timeout} s; "
             if mode in EFFORT_MODES and self.caps.position:
