@@ -231,3 +231,29 @@ def test_python_can_slcan_client_in_process():
         finally:
             net.disconnect()
     assert not sim.running
+
+
+def test_frames_within_a_usb_frame_go_to_the_master_in_one_write(adapter, monkeypatch):
+    """The adapter sends what the bus brought within one USB frame of the first frame in one
+    write, as a USB adapter's transfer carries it (a SYNC's TPDOs wake the master's reader once,
+    not once per frame). The window is widened here so a loaded host cannot split the burst."""
+    import crtk_bridge.sim.slcan as slcan_mod
+
+    a, peer, fd = adapter
+    assert _ask(fd, b"S8") == b"\r" and _ask(fd, b"O") == b"\r"
+    writes = []
+    real = a._write
+    monkeypatch.setattr(slcan_mod, "USB_FRAME_S", 0.5)
+    monkeypatch.setattr(a, "_write", lambda data: (writes.append(data), real(data)))
+    frames = [(0x181, b"\x37\x02"), (0x281, b"\x01"), (0x182, b"\x37\x02"), (0x282, b"")]
+    for cob, data in frames:
+        peer.send(can.Message(arbitration_id=cob, is_extended_id=False, data=data))
+    expected = b"".join(format_frame(can.Message(arbitration_id=c, is_extended_id=False, data=d)) + b"\r"
+                        for c, d in frames)
+    out = b""
+    deadline = time.monotonic() + 5
+    while len(out) < len(expected) and time.monotonic() < deadline:
+        if select.select([fd], [], [], 0.1)[0]:
+            out += os.read(fd, 256)
+    assert out == expected
+    assert writes == [expected]  # one write, the frames in the order they came

@@ -49,6 +49,9 @@ OK, ERROR = b"\r", b"\a"
 FLAG_BUS_ERROR = 0x80 | 0x20 | 0x04
 _MAX_LINE = 64  # longest valid command is 27 characters; a longer line is noise
 _HEX = frozenset(b"0123456789abcdefABCDEF")
+#: a USB full-speed frame: what arrives from the bus within it goes to the host in one transfer
+USB_FRAME_S = 0.001
+USB_BATCH_FRAMES = 32  # lines per write at most (a busy bus still flows)
 
 
 def parse_frame(line: bytes) -> can.Message | None:
@@ -254,17 +257,32 @@ class SlcanAdapter:
 
     # ------------------------------------------------------------------ bus side
     def _serve_bus(self) -> None:
+        """Bus frames to the pty, as a USB adapter sends them: the frames that arrive within one
+        USB frame (:data:`USB_FRAME_S`) of the first go up together, in one write (one wake-up of
+        the master's reader for a SYNC's answers, not one per TPDO), at most
+        :data:`USB_BATCH_FRAMES` at a time."""
         bus = self._bus
         try:
             while not self._stopping.is_set():
                 msg = bus.recv(0.05)
-                if msg is None or not self.passing or msg.is_error_frame or msg.is_fd:
+                if msg is None:
                     continue
-                line = format_frame(msg)
-                if self.timestamps:
-                    line += f"{int(time.monotonic() * 1000) % 60000:04X}".encode()
-                self.tx_frames += 1
-                self._write(line + b"\r")
+                lines = []
+                until = time.monotonic() + USB_FRAME_S
+                while True:
+                    if self.passing and not msg.is_error_frame and not msg.is_fd:
+                        line = format_frame(msg)
+                        if self.timestamps:
+                            line += f"{int(time.monotonic() * 1000) % 60000:04X}".encode()
+                        lines.append(line + b"\r")
+                    if len(lines) >= USB_BATCH_FRAMES:
+                        break
+                    msg = bus.recv(max(0.0, until - time.monotonic()))
+                    if msg is None:
+                        break
+                if lines:
+                    self.tx_frames += len(lines)
+                    self._write(b"".join(lines))
         except Exception:
             log.exception("SLCAN adapter: bus thread died")
             raise
