@@ -257,3 +257,33 @@ def test_frames_within_a_usb_frame_go_to_the_master_in_one_write(adapter, monkey
             out += os.read(fd, 256)
     assert out == expected
     assert writes == [expected]  # one write, the frames in the order they came
+
+
+def test_a_frames_acknowledgement_goes_up_with_the_frames_that_answer_it(adapter, monkeypatch):
+    """A transmitted frame is acknowledged (``z``) once it is on the bus, in the adapter's stream
+    to the master in bus order: a SYNC's acknowledgement and the TPDOs answering it within one
+    USB frame go up in ONE write (one wake-up of the master's reader per SYNC, not two). The
+    window is widened here so a loaded host cannot split the burst."""
+    import crtk_bridge.sim.slcan as slcan_mod
+
+    a, peer, fd = adapter
+    assert _ask(fd, b"S8") == b"\r" and _ask(fd, b"O") == b"\r"
+    monkeypatch.setattr(slcan_mod, "USB_FRAME_S", 0.5)
+    writes = []
+    real = a._write
+    monkeypatch.setattr(a, "_write", lambda data: (writes.append(data), real(data)))
+    os.write(fd, b"t0800\r")  # SYNC
+    sync = peer.recv(5)
+    assert sync is not None and sync.arbitration_id == 0x80
+    answers = [(0x181, b"\x37\x02"), (0x182, b"\x37\x02")]
+    for cob, data in answers:
+        peer.send(can.Message(arbitration_id=cob, is_extended_id=False, data=data))
+    expected = b"z\r" + b"".join(format_frame(can.Message(arbitration_id=c, is_extended_id=False, data=d)) + b"\r"
+                                 for c, d in answers)
+    out = b""
+    deadline = time.monotonic() + 5
+    while len(out) < len(expected) and time.monotonic() < deadline:
+        if select.select([fd], [], [], 0.1)[0]:
+            out += os.read(fd, 256)
+    assert out == expected and writes == [expected]
+    assert a.tx_frames == 2 and a.rx_frames == 1

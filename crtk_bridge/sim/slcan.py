@@ -28,6 +28,7 @@ a real adapter at the wrong bitrate sees only errors.
 
 from __future__ import annotations
 
+import collections
 import logging
 import os
 import select
@@ -102,6 +103,8 @@ class SlcanAdapter:
         self._stopping = threading.Event()
         self._wake_r = self._wake_w = -1
         self._write_lock = threading.Lock()
+        #: the acknowledgement of each frame sent to the bus, in order, until its echo comes back
+        self._acks: collections.deque[bytes] = collections.deque()
         self.is_open = False
         self.listen_only = False
         self.selected_bitrate: int | None = None  # what the master chose with S / s
@@ -130,7 +133,8 @@ class SlcanAdapter:
         if self._threads:
             return
         try:
-            self._bus = can.Bus(interface=self.bus_interface, channel=self.bus_channel, receive_own_messages=False)
+            # its own frames come back (is_rx False): each is acknowledged when it is on the bus
+            self._bus = can.Bus(interface=self.bus_interface, channel=self.bus_channel, receive_own_messages=True)
         except Exception as exc:
             raise SimulatorError(f"SLCAN adapter: cannot open {self.bus_interface} channel "
                                  f"{self.bus_channel!r}: {exc}") from exc
@@ -141,6 +145,7 @@ class SlcanAdapter:
             self._bus = None
             raise
         self._wake_r, self._wake_w = os.pipe()
+        self._acks.clear()
         self._stopping.clear()
         self._threads = [threading.Thread(target=self._serve_pty, name="sim-slcan-pty", daemon=True),
                          threading.Thread(target=self._serve_bus, name="sim-slcan-bus", daemon=True)]
@@ -202,8 +207,9 @@ class SlcanAdapter:
                     line = bytes(buf[:cr]).replace(b"\n", b"")
                     del buf[: cr + 1]
                     replies.append(self._command(line))
-                if replies:
-                    self._write(b"".join(replies))
+                out = b"".join(replies)  # a frame's acknowledgement comes later (_serve_bus)
+                if out:
+                    self._write(out)
         except Exception:
             log.exception("SLCAN adapter: pty thread died")
             raise
@@ -218,8 +224,9 @@ class SlcanAdapter:
             if msg is None or not self.is_open or self.listen_only or not self.passing:
                 return ERROR
             self.rx_frames += 1
+            self._acks.append(b"Z\r" if c in (b"T", b"R") else b"z\r")
             self._bus.send(msg)
-            return b"Z\r" if c in (b"T", b"R") else b"z\r"
+            return b""  # acknowledged when it is on the bus (_serve_bus), with what the bus brings
         if c == b"S" and len(line) == 2 and chr(line[1]) in BITRATE_CODES and not self.is_open:
             self.selected_bitrate = BITRATE_CODES[chr(line[1])]
             return OK
@@ -260,7 +267,9 @@ class SlcanAdapter:
         """Bus frames to the pty, as a USB adapter sends them: the frames that arrive within one
         USB frame (:data:`USB_FRAME_S`) of the first go up together, in one write (one wake-up of
         the master's reader for a SYNC's answers, not one per TPDO), at most
-        :data:`USB_BATCH_FRAMES` at a time."""
+        :data:`USB_BATCH_FRAMES` at a time. The master's own frames come back here once on the
+        bus: their acknowledgements (``z`` / ``Z``) go up in the same stream, in bus order (the
+        SYNC's with the TPDOs that answer it)."""
         bus = self._bus
         try:
             while not self._stopping.is_set():
@@ -270,7 +279,10 @@ class SlcanAdapter:
                 lines = []
                 until = time.monotonic() + USB_FRAME_S
                 while True:
-                    if self.passing and not msg.is_error_frame and not msg.is_fd:
+                    if not msg.is_rx:  # one of ours, on the bus: its acknowledgement
+                        if self._acks:
+                            lines.append(self._acks.popleft())
+                    elif self.passing and not msg.is_error_frame and not msg.is_fd:
                         line = format_frame(msg)
                         if self.timestamps:
                             line += f"{int(time.monotonic() * 1000) % 60000:04X}".encode()
@@ -281,7 +293,7 @@ class SlcanAdapter:
                     if msg is None:
                         break
                 if lines:
-                    self.tx_frames += len(lines)
+                    self.tx_frames += sum(len(line) > 2 for line in lines)  # not the acknowledgements
                     self._write(b"".join(lines))
         except Exception:
             log.exception("SLCAN adapter: bus thread died")
