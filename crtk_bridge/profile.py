@@ -118,8 +118,9 @@ class Loop(_Strict, kw_only=True):
     realtime_priority: int = 80  # SCHED_FIFO priority asked for (1-99)
     cpu: int | None = None  # pin the control process to this CPU
     # interpolate_jp: "linear" to each goal over the command period, or "smooth": that averaged
-    # over the command period (velocity-continuous, half a period more latency; core/motion.py)
-    interpolation: Literal["linear", "smooth"] = "linear"
+    # over the command period (velocity-continuous, half a period more latency), or "predict":
+    # smooth toward each goal extrapolated by one step (no added latency; core/motion.py)
+    interpolation: Literal["linear", "smooth", "predict"] = "linear"
 
 
 class Safety(_Strict, kw_only=True):
