@@ -7,10 +7,12 @@ arm records it: smooth hand motion read in whole ticks, LeRobot's units) is repl
 
   (a) by LeRobot's own ``so101_follower`` writing the goals to the bus itself, then
   (b) by ``--robot.type=crtk`` through the daemon on the same bus (calibration imported from the
-      same file, so the same numbers are the same ticks; ``command=interpolate``).
+      same file, so the same numbers are the same ticks; ``command=interpolate``), once per
+      ``loop.interpolation`` mode asked for (``--interpolation``, default all: linear, smooth,
+      predict), each on a daemon of its own.
 
 Meanwhile the simulator's registers are sampled (``dump`` on its control socket, every
-``--sample-ms``) and reported per mode: RMS jerk of the follower's motion (deg/s^3, on a 10 ms
+``--sample-ms``) and reported per mode, all modes side by side: RMS jerk of the follower's motion (deg/s^3, on a 10 ms
 grid of the positions averaged over 10 ms), both of the horn's simulated position
 (``present_position_exact``: the motion itself) and of the Present_Position register (what an
 encoder reads: its whole ticks alone read as about 80,000 deg/s^3 of jerk on that grid, whatever
@@ -18,12 +20,13 @@ the motion, so that figure cannot show a ratio above about 2), the largest step 
 register between two samples (one daemon bus cycle at the default 5 ms), the tracking lag (the
 time shift that best aligns the measured trajectory with the actions as sent), and the time from
 ``send_action`` to the servo's Goal_Position register changing (a separate probe: single steps,
-the register read in a tight loop). Then the ratios (b)/(a). Medians over ``--runs`` runs.
+the register read in a tight loop). Then, per daemon mode, the smoothness gain (a)/(b) and the
+extra lag (b)-(a). Medians over ``--runs`` runs; the load average is printed beside them.
 
 Needs the LeRobot venv (tests/lerobot/venv.py builds it: ``python -m tests.lerobot.venv``) and
 this checkout's plugin (installed into a temporary folder here). Run from the repository:
 
-    python bench/bench_lerobot.py [--seconds 10] [--runs 3] [--interpolation smooth]
+    python bench/bench_lerobot.py [--seconds 10] [--runs 3] [--interpolation linear smooth predict]
 """
 
 from __future__ import annotations
@@ -46,11 +49,13 @@ import yaml
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from tests.conftest import DaemonProcess  # noqa: E402
 from tests.lerobot import venv as lrvenv  # noqa: E402
 from tests.lerobot.conftest import LeRobotDriver  # noqa: E402
 from tests.lerobot.rig import CALIBRATION, MOTORS, SO101, CalibratedArm, lerobot_reading  # noqa: E402
 
 FPS = 30
+MODES = ("linear", "smooth", "predict")  # loop.interpolation
 JERK_S = 0.01  # s: the grid (and smoothing window) of the jerk figure
 IDS = {m: c["id"] for m, c in CALIBRATION.items()}
 
@@ -217,14 +222,15 @@ def replay(driver: LeRobotDriver, control_path: str, stream: list[dict], sample_
     return sampler.stop(), sends, failed
 
 
-def run_mode(mode: str, arm: CalibratedArm, venv: Path, plugin: Path | None, stream, args, log: Path) -> dict:
+def run_mode(mode: str, arm: CalibratedArm, venv: Path, plugin: Path | None, stream, args, log: Path,
+             sock: Path | None = None) -> dict:
     driver = LeRobotDriver(venv, log, plugin)
     try:
         if mode == "direct":
             driver("connect", type="so101_follower", config={"port": arm.port, "id": arm.name,
                                                              "calibration_dir": str(arm.calibration_dir)})
         else:
-            driver("connect", type="crtk", config={"socket": str(arm.socket), "units": "lerobot"})
+            driver("connect", type="crtk", config={"socket": str(sock), "units": "lerobot"})
         rows, sends, failed = replay(driver, arm.sim, stream, args.sample_ms / 1000)
         figures = analyse(rows, sends, args.sample_ms / 1000)
         figures["failed_ticks"] = failed
@@ -244,8 +250,9 @@ def main() -> int:
     ap.add_argument("--sample-ms", type=float, default=5.0, help="register sampling period (ms)")
     ap.add_argument("--probes", type=int, default=20, help="send_action -> goal register probes per run")
     ap.add_argument("--direct-only", action="store_true", help="only (a): LeRobot's own follower")
-    ap.add_argument("--interpolation", choices=("linear", "smooth"),
-                    help="the daemon profile's loop.interpolation (default: the profile's own)")
+    ap.add_argument("--interpolation", nargs="+", choices=MODES, default=list(MODES),
+                    help="the daemon profile's loop.interpolation modes to run, each on its own daemon "
+                         "(default: all)")
     args = ap.parse_args()
 
     venv = lrvenv.ensure_venv()
@@ -253,44 +260,53 @@ def main() -> int:
     try:
         plugin = None if args.direct_only else lrvenv.install_plugin(venv, tmp / "plugin")
         stream = episode(args.seconds)
-        results: dict[str, list[dict]] = {"direct": [], "crtk": []}
+        modes = [] if args.direct_only else list(dict.fromkeys(args.interpolation))
+        results: dict[str, list[dict]] = {"direct": [], **{m: [] for m in modes}}
+        loads = []
         for run in range(args.runs):
             arm = CalibratedArm(SO101, tmp, f"run{run}")
             try:
+                loads.append(Path("/proc/loadavg").read_text().split()[0])
                 results["direct"].append(run_mode("direct", arm, venv, None, stream, args, tmp / f"direct{run}.log"))
-                if args.direct_only:
-                    continue
-                if args.interpolation:
-                    profile = arm.imported_profile()
-                    data = yaml.safe_load(profile.read_text())
-                    data.setdefault("loop", {})["interpolation"] = args.interpolation
+                for mode in modes:
+                    data = yaml.safe_load(arm.imported_profile().read_text())
+                    data.setdefault("loop", {})["interpolation"] = mode
+                    profile = arm.tmp / f"imported-{mode}.yaml"
                     profile.write_text(yaml.safe_dump(data))
-                    arm.imported_profile = lambda profile=profile: profile
-                arm.start_daemon()
-                results["crtk"].append(run_mode("crtk", arm, venv, plugin, stream, args, tmp / f"crtk{run}.log"))
+                    sock = arm.tmp / f"{mode}.sock"
+                    arm.daemon = DaemonProcess(["--profile", str(profile)], sock, arm.tmp / f"daemon-{mode}.log")
+                    try:
+                        results[mode].append(run_mode("crtk", arm, venv, plugin, stream, args,
+                                                      tmp / f"{mode}{run}.log", sock))
+                    finally:
+                        arm.daemon.stop()
+                        arm.daemon = None
             finally:
                 arm.close()
+        loads.append(Path("/proc/loadavg").read_text().split()[0])
         keys = [("rms_jerk", "RMS jerk of the motion (horn, deg/s^3)"),
-                ("rms_jerk_register", "RMS jerk of Present_Position (whole ticks, deg/s^3)"), ("max_step", "largest step of measured position per sample (deg)"),
-                ("max_goal_step", "largest step of the goal register per sample (deg)"),
+                ("rms_jerk_register", "RMS jerk of Present_Position (ticks, deg/s^3)"),
+                ("max_step", "largest measured step per sample (deg)"),
+                ("max_goal_step", "largest goal register step per sample (deg)"),
                 ("lag_ms", "tracking lag (ms)"), ("rms_error_at_lag", "RMS error at that lag (deg)"),
                 ("goal_ms", "send_action -> goal register, median (ms)"),
                 ("goal_ms_p90", "send_action -> goal register, p90 (ms)"),
                 ("failed_ticks", "ticks whose bus read failed (LeRobot would stop)")]
-        if args.direct_only:
-            results["crtk"] = results["direct"]
         med = {mode: {k: statistics.median(r[k] for r in rs) for k, _ in keys} for mode, rs in results.items()}
         print(f"bench_lerobot: {args.runs} run(s) x {args.seconds:g} s at {FPS} Hz, samples every {args.sample_ms:g} ms "
-              f"(medians)")
-        print(f"{'':52s} {'(a) LeRobot direct':>20s} {'(b) plugin+daemon':>20s} {'(b)/(a)':>9s}")
+              f"(medians); load average (1 min) at each run's start and at the end: {' '.join(loads)}")
+        cols = ["direct", *modes]
+        print(f"{'':48s}" + "".join(f"{('(a) direct' if m == 'direct' else '(b) ' + m):>14s}" for m in cols))
         for k, label in keys:
-            a, b = med["direct"][k], med["crtk"][k]
-            ratio = b / a if a else math.nan
-            print(f"{label:52s} {a:20.3f} {b:20.3f} {ratio:9.3f}")
-        print(f"smoothness (RMS jerk of the motion) gain (a)/(b): {med['direct']['rms_jerk'] / med['crtk']['rms_jerk']:.1f}x "
-              f"(of Present_Position: {med['direct']['rms_jerk_register'] / med['crtk']['rms_jerk_register']:.1f}x); "
-              f"extra lag (b)-(a): {med['crtk']['lag_ms'] - med['direct']['lag_ms']:.0f} ms "
-              f"(LeRobot's loop period: {1000 / FPS:.0f} ms)")
+            print(f"{label:48s}" + "".join(f"{med[m][k]:14.3f}" for m in cols))
+        a = med["direct"]
+        for m in modes:
+            b = med[m]
+            print(f"{m:8s}: smoothness (RMS jerk of the motion) gain (a)/(b) {a['rms_jerk'] / b['rms_jerk']:.1f}x "
+                  f"(of Present_Position: {a['rms_jerk_register'] / b['rms_jerk_register']:.1f}x); "
+                  f"extra lag (b)-(a): {b['lag_ms'] - a['lag_ms']:+.0f} ms; "
+                  f"largest measured step {b['max_step']:.2f} deg (direct {a['max_step']:.2f})")
+        print(f"(LeRobot's loop period: {1000 / FPS:.0f} ms; the daemon's loop period: 5 ms)")
         return 0
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

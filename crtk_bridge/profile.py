@@ -71,8 +71,12 @@ class Joint(_Strict, kw_only=True):
     joint's ``backend:`` key; the backend validates them (``joint_keys``)."""
 
     name: str
+    #: what the joint's numbers are in: ``rad`` (revolute: positions rad, velocities rad/s, efforts
+    #: N*m) or ``m`` (prismatic: m, m/s, N). Reported per joint by ``list`` (``units``) so clients
+    #: label them; a backend whose joint is one kind refuses the other (a gripper's opening is m)
+    unit: Literal["rad", "m"] = "rad"
     limits: JointLimits
-    #: rad: the position `home` moves to. No default: a joint's zero is not always a safe pose (a
+    #: rad (m): the position `home` moves to. No default: a joint's zero is not always a safe pose (a
     #: UR's zero is the arm stretched out), so `home` is refused while a joint has none
     home: float | None = None
     backend: dict[str, Any] = {}
@@ -114,8 +118,9 @@ class Loop(_Strict, kw_only=True):
     realtime_priority: int = 80  # SCHED_FIFO priority asked for (1-99)
     cpu: int | None = None  # pin the control process to this CPU
     # interpolate_jp: "linear" to each goal over the command period, or "smooth": that averaged
-    # over the command period (velocity-continuous, half a period more latency; core/motion.py)
-    interpolation: Literal["linear", "smooth"] = "linear"
+    # over the command period (velocity-continuous, half a period more latency), or "predict":
+    # smooth toward each goal extrapolated by one step (no added latency; core/motion.py)
+    interpolation: Literal["linear", "smooth", "predict"] = "linear"
 
 
 class Safety(_Strict, kw_only=True):

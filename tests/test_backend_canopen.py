@@ -97,7 +97,8 @@ class CanRig:
         self.sim = CanopenSimulator(ids, options or {}, interface=interface, channel=channel)
         self.sim.start()
         self.profile = msgspec.structs.replace(profile, backend={
-            **profile.backend, "interface": interface, "channel": self.sim.port, "options": {}})
+            **profile.backend, "interface": interface, "channel": self.sim.port,
+            "options": {"sleep_after_open": 0} if interface == "slcan" else {}})
         self.backend = Canopen402Backend(self.profile, source=str(PROFILE))
         self.c: Controller | None = None
 
@@ -213,6 +214,37 @@ def test_enable_walks_the_402_states_one_per_cycle_while_the_loop_cycles(rig):
     wait_until(lambda: rig.drive(0).sync_count == b.stats["syncs"], 1, what="the drive took every SYNC")
     for i in range(b.n):  # enabled holding where it was
         assert abs(rig.drive(i).target_position - rig.drive(i).position) <= 2
+
+
+def test_a_cycles_rpdos_go_to_an_slcan_adapter_in_one_write(monkeypatch):
+    """Over slcan (a USB-CAN adapter), the RPDOs of every drive that a cycle's write sends go
+    out in ONE write of the port, in drive order (each write is a system call here and a wake-up
+    and an acknowledgement burst at the adapter: issue 23); the SYNC goes alone, at the tick."""
+    r = CanRig("slcan")
+    try:
+        r.start()
+        r.enable()
+        fd = r.backend._network.bus.serialPortOrig.fd
+        writes = []
+        real_write = os.write
+
+        def os_write(f, data):
+            if f == fd:
+                writes.append(bytes(data))
+            return real_write(f, data)
+
+        monkeypatch.setattr(os, "write", os_write)
+        r.cycle(5)
+        monkeypatch.undo()
+        rpdo_writes = [w for w in writes if b"t2" in w or b"t3" in w]
+        ids = [d.id for d in r.backend.drives]
+        cobs = [f"t{base + i:03X}".encode() for i in ids for base in (0x200, 0x300)]
+        assert len(rpdo_writes) == 5, writes
+        for w in rpdo_writes:  # every drive's RPDO1 and RPDO2, in one write, in order
+            assert [line[:4] for line in w.split(b"\r") if line] == cobs, w
+        assert sum(w == b"t0800\r" for w in writes) == 5  # one SYNC per cycle, alone
+    finally:
+        r.close()
 
 
 def test_move_jp_is_tracked_in_csp(rig):
@@ -476,6 +508,19 @@ def test_example_profile_documents_every_canopen_key():
         for key in struct.__struct_fields__:
             assert re.search(rf"^\s*#\s+{key}:", text, re.M), f"{struct.__name__}.{key} is not in example.yaml"
     load_profile(ROOT / "profiles" / "example.yaml")  # still a valid profile
+
+
+def test_a_prismatic_joint_scales_counts_per_metre():
+    """The joint's generic ``unit``: with m, gear_ratio is motor turns per metre and positions are
+    m (no 2*pi); with rad, per joint turn and rad."""
+    data = profile_data(PROFILE)
+    data["joints"][1]["unit"] = "m"
+    b = Canopen402Backend(parse_profile(data))
+    rad, m = b.drives
+    keys = m.keys
+    assert m.k_pos == pytest.approx(keys.direction / (keys.counts_per_revolution * keys.gear_ratio))
+    assert rad.k_pos == pytest.approx(rad.keys.direction * 2 * np.pi / (rad.keys.counts_per_revolution
+                                                                        * rad.keys.gear_ratio))
 
 
 def test_a_drive_described_by_an_eds_file(iface, tmp_path):

@@ -294,6 +294,11 @@ def test_profile_errors_name_the_key():
         with_joint(model="2f99")
     with pytest.raises(ProfileError, match=r"joints\[0\] \(finger\)\.force: 500 N is outside the 2f85's 20..235 N"):
         with_joint(force=500.0)
+    with pytest.raises(ProfileError, match=r"joints\[0\] \(finger\)\.unit: 'rad', but a Robotiq 2F's joint is its "
+                                           r"finger opening in metres: set unit: m"):
+        data = msgspec.to_builtins(base)
+        data["joints"][0]["unit"] = "rad"
+        RobotiqBackend(parse_profile(data), source="p.yaml")
     with pytest.raises(ProfileError, match=r"backend\.port: required"):
         data = msgspec.to_builtins(base)
         del data["backend"]["port"]

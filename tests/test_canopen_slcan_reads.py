@@ -144,3 +144,57 @@ def test_a_pyserial_url_without_a_descriptor_is_read_with_its_own_read():
         assert msg is not None and bytes(msg.data) == b"\x01\x02"
     finally:
         bus.shutdown()
+
+
+def test_the_adapters_acknowledgements_are_dropped_not_parsed_one_recv_round_each(bus_and_adapter, monkeypatch):
+    """``z`` / ``Z`` (a transmit acknowledged) is no message: the frame after three of them comes
+    out of the first parse, not after three empty rounds of python-can's ``_recv_internal``."""
+    bus, master, _ = bus_and_adapter
+    rounds = []
+    real = bus._recv_internal
+
+    def counted(timeout):
+        got = real(timeout)
+        rounds.append(got[0])
+        return got
+
+    monkeypatch.setattr(bus, "_recv_internal", counted)
+    os.write(master, b"z\rZ\rz\rt1812ABCD\r")
+    msg = bus.recv(1.0)
+    assert msg is not None and msg.arbitration_id == 0x181 and bytes(msg.data) == b"\xab\xcd"
+    assert rounds == [msg]
+    os.write(master, b"V1013\rz\r")  # other lines still come out whole (python-can's own commands)
+    assert bus._read(1.0) == "V1013\r"
+
+
+def test_sends_inside_a_batch_are_one_write_and_another_threads_go_out_at_once(bus_and_adapter, monkeypatch):
+    """``batch()``: the calling thread's lines are held and written together, in order, when it
+    ends (the backend's RPDOs of a cycle); a line another thread sends meanwhile is not held."""
+    import threading
+
+    bus, master, _ = bus_and_adapter
+    port = bus.serialPortOrig
+    writes = []
+    real_write = os.write
+
+    def os_write(fd, data):
+        if fd == port.fd:
+            writes.append(bytes(data))
+        return real_write(fd, data)
+
+    monkeypatch.setattr(os, "write", os_write)
+    with bus.batch():
+        for cob in (0x201, 0x301, 0x202):
+            bus.send(can.Message(arbitration_id=cob, data=b"\x0f\x00", is_extended_id=False))
+        other = threading.Thread(target=bus.send, args=(can.Message(arbitration_id=0x601, data=b"\x40",
+                                                                    is_extended_id=False),))
+        other.start()
+        other.join()
+        assert writes == [b"t601140\r"]  # the other thread's, at once; ours held
+    assert writes == [b"t601140\r", b"t20120F00\rt30120F00\rt20220F00\r"]
+    bus.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))  # after it: at once
+    assert writes[-1] == b"t0800\r"
+    out = b""
+    while out.count(b"\r") < 5:
+        out += os.read(master, 256)
+    assert out == b"t601140\rt20120F00\rt30120F00\rt20220F00\rt0800\r"

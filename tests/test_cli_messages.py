@@ -263,6 +263,22 @@ def test_check_names_a_joint_missing_from_the_urdf(tmp_path, capsys):
     assert "(its joints: shoulder_pan, shoulder_lift" in err
 
 
+def test_check_names_a_joint_unit_the_urdf_contradicts(tmp_path, capsys):
+    """A profile's ``unit`` is its URDF's joint kind: rad for a revolute joint, m for a prismatic one."""
+    code, err = _check_with(tmp_path, capsys, lambda d: d["joints"][2].update(unit="m"))
+    assert code == 1 and len(err.splitlines()) == 1
+    assert "joints[2] (elbow_flex).unit: 'm', but " in err and "makes elbow_flex a revolute joint: set unit: rad" in err
+    urdf = (ROOT / "profiles" / "urdf" / "so101.urdf").read_text()
+    assert urdf.count('<joint name="elbow_flex" type="revolute">') == 1
+    (tmp_path / "slide.urdf").write_text(urdf.replace('<joint name="elbow_flex" type="revolute">',
+                                                      '<joint name="elbow_flex" type="prismatic">'))
+    code, err = _check_with(tmp_path, capsys, lambda d: d["namespaces"][0]["kinematics"].update(urdf="slide.urdf"))
+    assert code == 1 and "makes elbow_flex a prismatic joint: set unit: m" in err
+    code, err = _check_with(tmp_path, capsys, lambda d: (d["namespaces"][0]["kinematics"].update(urdf="slide.urdf"),
+                                                         d["joints"][2].update(unit="m")))
+    assert code == 0, err
+
+
 def test_check_names_a_base_frame_moved_by_a_joint(tmp_path, capsys):
     code, err = _check_with(tmp_path, capsys,
                             lambda d: d["namespaces"][0]["kinematics"].update(base_frame="upper_arm_link"))

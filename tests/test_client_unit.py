@@ -508,6 +508,41 @@ def test_cli_get_json_and_human(fake, capsys):
     assert "shoulder_pan" in out and "+0.1000 rad" in out and "-0.2000 rad" in out
 
 
+def test_cli_get_labels_each_joint_in_its_unit(fake, capsys):
+    """A prismatic joint (``unit: m``, ``list``'s ``units``) prints in m, m/s and N, a revolute one
+    in rad, rad/s and N·m; a daemon without ``units`` is read as all rad."""
+    listed = fake.handlers["list"]
+
+    class Capture:
+        def send(self, msg):
+            self.msg = msg
+
+    def with_units(req, s):
+        cap = Capture()
+        listed(req, cap)
+        info = cap.msg["data"]
+        info["namespaces"][0]["units"] = ["rad", "rad"]
+        info["namespaces"][1]["units"] = ["m"]
+        s.send(cap.msg)
+
+    fake.handlers["list"] = with_units
+    fake.handlers["measured_js"] = lambda r, s: s.send(ok(r, {
+        "stamp": 123.25, "frame_id": "", "name": ["gripper"], "position": [0.03], "velocity": [0.01],
+        "effort": [20.0]}) if r.get("ns") == "so101/gripper" else ok(r, {
+        "stamp": 123.25, "frame_id": "", "name": JOINTS, "position": [0.1, -0.2], "velocity": [0.0, 0.5],
+        "effort": [1.5, 0.0]}))
+    assert main(["list", "--socket", fake.path]) == 0
+    out = capsys.readouterr().out
+    assert "joints:   gripper (m)\n" in out and "joints:   shoulder_pan, elbow\n" in out, out
+    fake.handlers["list"] = with_units
+    assert main(["get", "measured_js", "--ns", "so101/gripper", "--socket", fake.path]) == 0
+    out = capsys.readouterr().out
+    assert "+0.0300 m " in out and "+0.0100 m/s" in out and "+20.0000 N" in out and "rad" not in out, out
+    assert main(["get", "measured_js", "--socket", fake.path]) == 0
+    out = capsys.readouterr().out
+    assert "+0.1000 rad " in out and "+0.5000 rad/s" in out and "+1.5000 N·m" in out, out
+
+
 def test_cli_move_wait_and_echo_count(fake, capsys):
     def move(req, s):
         s.send(os_event(state("ENABLED", busy=True, seq=1)))

@@ -43,6 +43,7 @@ def test_a_ur_arm_with_a_robotiq_gripper_on_its_tool_flange(short_tmp):
             info = robot.list()
             assert info["backend"] == "ur+robotiq"
             assert [ns["name"] for ns in info["namespaces"]] == ["ur5e", "ur5e/gripper"]
+            assert [ns["units"] for ns in info["namespaces"]] == [["rad"] * 6, ["m"]]  # the finger opening: m
             arm, hand = robot.device("ur5e"), robot.device("ur5e/gripper")
             assert arm.enable(20.0) and hand.operating_state() == "ENABLED"  # one state: the gripper activated too
             assert gripper()["gGTO"] == 1 and ur()["robot_mode"] == "RUNNING"

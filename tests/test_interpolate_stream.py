@@ -79,3 +79,176 @@ def test_linear_interpolate_jp_passes_through_every_goal():
         cycle(10)
         if k > 3:  # the period estimate (first assumed 50 Hz) has converged to 10 cycles
             assert m.setpoint_p[0] == pytest.approx(goal, abs=1e-12)
+
+
+# ---------------------------------------------------------------- predict (issue 21, the lag target)
+PREDICT = msgspec.structs.replace(PROFILE, loop=msgspec.structs.replace(PROFILE.loop, interpolation="predict"))
+
+
+def _lag_cycles(p: np.ndarray, goals: list, dt: float, window: slice) -> int:
+    """The shift (in cycles) of the goals as a staircase (each held from its arrival until the
+    next: LeRobot's direct writes) that best matches the setpoint over ``window``."""
+    t = np.arange(len(p)) * dt
+    arrived = np.arange(len(goals)) / STREAM_HZ
+    errs = []
+    for lag in range(0, 12):
+        idx = np.searchsorted(arrived, t[window] - lag * dt + 1e-9, side="right") - 1
+        errs.append(np.sqrt(np.mean((p[window] - np.asarray(goals)[idx]) ** 2)))
+    return int(np.argmin(errs))
+
+
+@pytest.mark.parametrize("mode", ["smooth", "predict"])
+def test_predict_follows_a_30hz_stream_smoothly_with_no_more_lag_than_the_staircase(mode):
+    """``predict`` heads for each goal extrapolated by the stream's last step: the setpoint lags
+    the goals no more than LeRobot's staircase of direct writes does (``smooth``, a causal
+    average, lags it by a whole command period), is as smooth as ``smooth``, ends exactly on the
+    last goal and holds it, having passed it by less than one step of the stream."""
+    prof = PREDICT if mode == "predict" else SMOOTH
+    c, act, clock, cycle, req = make_rig(FakeActuator(prof), prof)
+    assert req("enable")["ok"]
+    dt = c.dt
+    goals: list = []
+    p, last = _stream(c, clock, cycle, req, seconds=1.6, goals=goals)
+    moving = slice(int(0.3 / dt), int(1.5 / dt))
+    lag = _lag_cycles(p, goals, dt, moving)
+    if mode == "smooth":
+        assert lag * dt >= 0.8 / STREAM_HZ, lag  # the reason for predict: a period behind the staircase
+        return
+    assert lag <= 1, lag  # at most one loop period behind the staircase
+    v = np.diff(p) / dt
+    acc = np.diff(v) / dt
+    assert np.all(np.abs(v) <= PROFILE.joints[0].limits.velocity_max + 1e-9)
+    assert np.abs(acc[moving]).max() < 8.0 * A_STREAM, np.abs(acc[moving]).max() / A_STREAM
+    assert np.abs(np.diff(acc[moving])).max() < 10.0 * A_STREAM, np.abs(np.diff(acc[moving])).max() / A_STREAM
+    # the end: past the last goal by less than the stream's last step, then exactly on it, held
+    step = abs(goals[-1] - goals[-2])
+    end = int(1.6 / dt) - 10
+    side = np.sign(goals[-1] - goals[-2])
+    assert np.all(side * (p[end:] - last) <= step), (side * (p[end:] - last)).max() / step
+    assert np.all(p[-20:] == last)
+    assert not c.namespaces["so101"].interpolating
+
+
+def _run(c, cycle, req, goals_by_cycle: dict[int, float], cycles: int, hold_at: int | None = None):
+    """Cycle ``cycles`` times, sending interpolate_jp goal ``goals_by_cycle[i]`` (joint 0) before
+    cycle i, ``hold`` before cycle ``hold_at``; the setpoint after each cycle."""
+    out = []
+    for i in range(cycles):
+        if i in goals_by_cycle:
+            assert req("interpolate_jp", "so101", position=[goals_by_cycle[i], 0, 0, 0, 0])["ok"]
+        if i == hold_at:
+            assert req("hold", "so101")["ok"]
+        cycle()
+        out.append(c.namespaces["so101"].setpoint_p[0])
+    return np.array(out)
+
+
+def _predict_rig():
+    c, act, clock, cycle, req = make_rig(FakeActuator(PREDICT), PREDICT)
+    assert req("enable")["ok"]
+    return c, cycle, req
+
+
+def test_predict_ends_a_ramp_at_most_one_step_past_its_last_goal_then_exactly_on_it():
+    """A ramp of 0.02 rad every 6 cycles, then nothing: the extrapolation carries the setpoint
+    past the last goal by less than one step, and back onto it exactly (the stream watchdog and
+    the plugin's disconnect wait for that), held there."""
+    c, cycle, req = _predict_rig()
+    goals = {6 * k: 0.02 * (k + 1) for k in range(15)}
+    p = _run(c, cycle, req, goals, 200)
+    last = goals[6 * 14]
+    assert p.max() > last + 0.002  # predict does pass the goal (linear / smooth never do)
+    assert p.max() <= last + 0.02 + 1e-12
+    assert np.all(p[-30:] == last)
+    assert not c.namespaces["so101"].interpolating
+
+
+def test_predict_passes_the_extreme_goal_by_at_most_one_step_on_a_reversal():
+    c, cycle, req = _predict_rig()
+    goals = {6 * k: 0.03 * min(k + 1, 20 - k) for k in range(20)}  # up to 0.3 rad, then back down
+    p = _run(c, cycle, req, goals, 220)
+    peak = max(goals.values())
+    assert p.max() > peak  # it overshoots the crest ...
+    assert p.max() <= peak + 0.03 + 1e-12  # ... by at most one step of the stream
+    assert np.all(p[-30:] == goals[6 * 19])
+
+
+def test_predict_extrapolates_nothing_from_the_first_goal_of_a_stream_nor_an_equal_goal():
+    """The first goal of a new stream has no previous goal (the last stream's, or a move's goal,
+    is not one): the setpoint never passes it; a goal equal to the previous one adds no step."""
+    c, cycle, req = _predict_rig()
+    _run(c, cycle, req, {6 * k: 0.05 * (k + 1) for k in range(6)}, 32)  # a stream up to 0.3 rad
+    # held just after its last goal, then a new stream, its first goal below: with the old
+    # stream's goal as the previous one it would head for 0.28 - 0.02 = 0.26 first
+    assert req("hold", "so101")["ok"]
+    assert c.namespaces["so101"].setpoint_p[0] > 0.29
+    p = _run(c, cycle, req, {0: 0.28, 6: 0.28, 12: 0.28}, 80)
+    assert p.min() >= 0.28 and p[-1] == 0.28
+    # equal goals after a step: the step is carried once, the equal goal carries nothing
+    p = _run(c, cycle, req, {0: 0.25, 6: 0.25, 12: 0.25, 18: 0.25}, 80)
+    assert p.max() <= 0.25 + 0.05 + 1e-12 and p[-1] == 0.25
+
+
+def test_predict_extrapolates_a_goal_after_a_gap_by_less_than_its_step():
+    """A goal late by three periods (the client paused): its step came over four periods, so one
+    period of it is a quarter of the step; the setpoint passes it by no more than that."""
+    c, cycle, req = _predict_rig()
+    goals = {6 * k: 0.01 * (k + 1) for k in range(10)}  # 0.1 rad at 6 cycles per goal
+    goals[6 * 9 + 24] = 0.1 + 0.2  # 0.2 rad, 4 periods after the last goal
+    p = _run(c, cycle, req, goals, 200)
+    assert p.max() <= 0.3 + 0.2 / 4 + 1e-9, p.max()
+    assert p.max() > 0.3
+    assert p[-1] == goals[6 * 9 + 24]
+
+
+def test_predict_keeps_to_the_position_limits_and_velocity_max():
+    """The extrapolated goal is clipped to the position limits: a fast stream into the upper
+    limit slows onto it (a reference beyond it would arrive at speed and be cut there by the
+    limits stage: a stop within one cycle); and the setpoint never exceeds velocity_max."""
+    c, cycle, req = _predict_rig()
+    limit = PROFILE.joints[0].limits.position_max
+    v_max = PROFILE.joints[0].limits.velocity_max
+    # 0.06 rad per 6 cycles (2 rad/s) up to the limit itself, then 0.1 rad per 6 cycles (3.3
+    # rad/s, above velocity_max) back down and up to it again
+    goals = {6 * k: limit - 0.06 * (31 - k) for k in range(32)}
+    p = _run(c, cycle, req, goals, 250)
+    v = np.diff(np.concatenate([[0.0], p])) / c.dt
+    assert p.max() <= limit and p[-1] == limit
+    acc = np.diff(v) / c.dt
+    arrival = int(np.argmax(p >= limit))  # it reaches the limit at a bounded deceleration
+    assert np.abs(acc[arrival - 10:arrival + 1]).max() < 0.5 * v_max / c.dt, acc[arrival - 10:arrival + 1]
+    goals = {6 * k: limit - 0.1 * min(k + 1, 6 - k) for k in range(7)}
+    p = _run(c, cycle, req, goals, 120)
+    v = np.diff(np.concatenate([[limit], p])) / c.dt
+    assert np.all(np.abs(v) <= v_max + 1e-9)
+    assert np.abs(v).max() > 0.9 * v_max  # the stream's own speed was above it
+    assert p.max() <= limit and p[-1] == limit
+    acc = np.diff(v) / c.dt
+    arrival = int(np.argmax(p >= limit))  # it reaches the limit at a bounded deceleration
+    assert np.abs(acc[arrival - 10:arrival + 1]).max() < 0.5 * v_max / c.dt, acc[arrival - 10:arrival + 1]
+
+
+def test_a_hold_during_predict_stops_no_further_than_one_step_past_the_last_goal():
+    """hold (and stop, the watchdog) of a predict stream holds where the setpoint is: at most one
+    step of the stream past the last goal, held there."""
+    c, cycle, req = _predict_rig()
+    goals = {6 * k: 0.02 * (k + 1) for k in range(15)}
+    free = _run(c, cycle, req, goals, 120)
+    overshoot = int(np.argmax(free))  # the cycle it is farthest past the last goal
+    c, cycle, req = _predict_rig()
+    p = _run(c, cycle, req, goals, 160, hold_at=overshoot)
+    last = goals[6 * 14]
+    held = p[overshoot]
+    assert last < held <= last + 0.02 + 1e-12
+    assert np.all(p[overshoot:] == held)  # held, not carried on
+    assert c.namespaces["so101"].mode.value == "hold"
+
+
+def test_predict_watchdog_waits_for_the_last_goal():
+    """An ended predict stream: the watchdog's hold comes once the setpoint is back on the last
+    goal, never while it is past it."""
+    c, cycle, req = _predict_rig()
+    goals = {6 * k: 0.02 * (k + 1) for k in range(15)}
+    _run(c, cycle, req, goals, 6 * 14 + int(PROFILE.safety.servo_timeout_s / c.dt) + 10)
+    assert [m["data"]["code"] for m in c.outbox if m.get("event") == "warning"] == ["servo_timeout"]
+    assert c.namespaces["so101"].setpoint_p[0] == goals[6 * 14]

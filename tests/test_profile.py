@@ -368,7 +368,7 @@ def test_unknown_joint_key_is_the_backends_to_refuse(tmp_path, base):
     assert "joints[0] (shoulder_pan).bogus: unknown key for a feetech backend joint; valid keys, nearest " \
            "first: " in msg
     valid = msg.split("nearest first: ", 1)[1].split(", ")
-    assert sorted(valid) == sorted(["home", "limits", "name", "id", "model", "calibration", "effort_per_amp"])
+    assert sorted(valid) == sorted(["home", "limits", "name", "unit", "id", "model", "calibration", "effort_per_amp"])
 
 
 def test_unknown_joint_key_lists_the_intended_key_first(tmp_path, base):

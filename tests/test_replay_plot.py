@@ -236,6 +236,12 @@ def test_plot_png_one_line_per_joint(recorded, tmp_path, capsys):
     lines = [ln for ax in fig.axes for ln in ax.get_lines() if not ln.get_label().startswith("_")]
     assert lines and all(0.5 <= min(ln.get_xdata()) and max(ln.get_xdata()) <= 1.0 for ln in lines)
     assert {ax.get_ylabel().split("\n")[0] for ax in fig.axes} == {"elbow_flex"}
+    # each joint in its unit: the SO-101's are all revolute; one the metadata says is prismatic in m
+    assert rec.custom["prismatic_joints"] == "" and "position (rad)" in position[0].get_ylabel()
+    rec.custom["prismatic_joints"] = "elbow_flex"
+    labels = [ax.get_ylabel() for ax in plot.figure(rec, "so101").axes]
+    assert "elbow_flex\nposition (m)" in labels and "elbow_flex\nvelocity (m/s)" in labels
+    assert "wrist_flex\nposition (rad)" in labels and "wrist_flex\nvelocity (rad/s)" in labels
     assert ctl_main(["plot", str(recorded), "-o", str(tmp_path / "g.svg"), "--ns", "so101/gripper"]) == 0
     assert "<svg" in (tmp_path / "g.svg").read_text()[:2000]
     assert ctl_main(["plot", str(recorded), "-o", str(tmp_path / "x.png"), "--joints", "nope"]) == 1

@@ -67,3 +67,83 @@ def test_the_reader_exits_quietly_when_the_backend_resets_the_link(tmp_path):
     """)
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+
+
+def test_the_loops_wait_takes_one_message_per_wake_up_and_loses_none():
+    """The control loop's wait on the worker (UrBackend.wait_cycle) receives the one message
+    poll() woke on, then reads the package from shared memory: no second receive that finds the
+    socket empty (a system call per cycle, ~10 us of the 500 Hz loop). A message that came with
+    the wake-up (a request's reply) is not lost: it wakes the next wait at once, which takes it."""
+    import mmap
+    import os
+    import socket
+    from pathlib import Path
+
+    from crtk_bridge.backends.ur.backend import UrBackend
+    from crtk_bridge.backends.ur.channel import SEQ, STATE, STATE_BYTES, WorkerHandle, encode
+    from crtk_bridge.profile import load_profile
+
+    root = Path(__file__).resolve().parent.parent
+    backend = UrBackend(UrBackend.sim_profile(load_profile(root / "profiles" / "ur5e.yaml"), "127.0.0.9"))
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    fd = os.memfd_create("test-ur-state")
+    os.ftruncate(fd, STATE_BYTES)
+    mem = mmap.mmap(fd, STATE_BYTES)
+    os.close(fd)
+    w = WorkerHandle("127.0.0.9", 500.0)
+    ours.setblocking(False)
+    w.sock, w.mem = ours, mem
+    w.poller.register(ours.fileno(), 1)  # POLLIN
+    receives = []
+
+    class Counting:  # the socket, counting its receives
+        def __getattr__(self, name):
+            return getattr(ours, name)
+
+        def recv_into(self, *args):
+            receives.append(1)
+            return ours.recv_into(*args)
+
+    w.sock = Counting()
+    backend._w, backend._link, backend._rt_checked = w, True, True
+    seq = 0
+
+    def package(ts: float) -> None:  # as the worker: the package in shared memory, then a wake-up
+        nonlocal seq
+        STATE.pack_into(mem, SEQ.size, ts, *[0.1] * 24, 7, 1, 1, 1.0, 7, 1)
+        seq += 2
+        SEQ.pack_into(mem, 0, seq)
+        theirs.send(b"S")
+
+    try:
+        import threading
+        import time
+        package(1.0)
+        assert backend.wait_cycle(time.perf_counter())
+        assert backend._ts == 1.0
+        # the usual cycle: the loop waits in poll() before the package comes
+        waiting = threading.Event()
+        poll = w.wait
+        w.wait = lambda timeout_s: (waiting.set(), poll(timeout_s))
+
+        def worker() -> None:
+            waiting.wait(10)
+            package(1.002)
+            theirs.send(encode(b"R", [5, None, "done"]))  # a reply right behind the wake-up
+
+        t = threading.Thread(target=worker)
+        t.start()
+        receives.clear()
+        assert backend.wait_cycle(time.perf_counter() + 5.0)
+        t.join()
+        assert backend._ts == 1.002
+        assert len(receives) <= 1, f"{len(receives)} receives for one wake-up"
+        assert 5 not in w.replies  # still queued: the next wait takes it
+        package(1.004)
+        assert backend.wait_cycle(time.perf_counter())
+        assert backend._ts == 1.004 and w.replies[5] == (None, "done")
+    finally:
+        backend._w = None
+        ours.close()
+        theirs.close()
+        mem.close()

@@ -123,7 +123,9 @@ class Interrupted(CrtkBridgeError):
 #: help of every joint-vector argument: how many values, in which order
 JOINT_VECTOR_HELP = ("one value per joint of the namespace (--ns; default: the first), in the order "
                      "`crtk-ctl list` prints its joints, e.g. on the SO-101 arm: shoulder_pan "
-                     "shoulder_lift elbow_flex wrist_flex wrist_roll")
+                     "shoulder_lift elbow_flex wrist_flex wrist_roll; each in its joint's unit: rad "
+                     "(rad/s, N·m), or m (m/s, N) for a prismatic joint such as a gripper's opening "
+                     "(`unit: m` in the profile)")
 
 
 class Parser(ArgumentParser):
@@ -397,12 +399,15 @@ def _js_lines(dev: Device, topic: str, data: dict) -> list[str]:
     n = max(len(names), len(pos), len(vel), len(eff))
     width = max([len(x) for x in names] + [5])
     lines = [f"{dev.name} {topic}  {_fmt_stamp(data.get('stamp'))}"]
+    units = list(getattr(dev, "joint_units", None) or [])
     for i in range(n):
         name = names[i] if i < len(names) else f"joint{i}"
         cols = []
-        for vec, unit in ((pos, "rad"), (vel, "rad/s"), (eff, "N·m")):
+        # the daemon's joint order: a joint it reports is in its `list` units (a prismatic one in m)
+        unit = units[dev.joint_names.index(name)] if name in dev.joint_names and units else "rad"
+        for vec, label in zip((pos, vel, eff), vocabulary.JOINT_UNITS.get(unit, vocabulary.JOINT_UNITS["rad"])):
             if i < len(vec):
-                cols.append(f"{fmt_number(vec[i], sign=True)} {unit}")
+                cols.append(f"{fmt_number(vec[i], sign=True)} {label}")
         lines.append(f"  {name:<{width}}  " + "   ".join(cols))
     return lines
 
@@ -620,7 +625,9 @@ def _run(args, robot: Robot) -> int:
               f"daemon {info.get('daemon_version')}  socket {robot.connection.path}")
         for ns in info.get("namespaces", []):
             print(f"{ns.get('name')}:")
-            print(f"  joints:   {', '.join(ns.get('joints') or []) or '-'}")
+            units = ns.get("units") or []  # a prismatic joint (m, m/s, N) is marked; the others are rad
+            joints = [f"{j} (m)" if i < len(units) and units[i] == "m" else j for i, j in enumerate(ns.get("joints") or [])]
+            print(f"  joints:   {', '.join(joints) or '-'}")
             print(f"  commands: {', '.join(ns.get('commands') or []) or '-'}")
             if ns.get("queries"):
                 print(f"  queries:  {', '.join(ns['queries'])}")

@@ -21,9 +21,10 @@ import numpy as np
 
 from crtk_bridge.client.bagfile import BagError, Recording, read
 from crtk_bridge.errors import CrtkBridgeError
+from crtk_bridge.vocabulary import JOINT_UNITS
 
 FORMATS = (".png", ".svg", ".html")
-QUANTITIES = (("position", "rad"), ("velocity", "rad/s"), ("effort", "N·m"))
+QUANTITIES = ("position", "velocity", "effort")
 EVENT_COLOURS = {"error": "tab:red", "warning": "tab:orange", "status": "0.5"}
 
 
@@ -65,8 +66,9 @@ def figure(rec: Recording, ns: str | None = None, joints: list[str] | None = Non
     hi = np.inf if t_to is None else t_to
     if lo >= hi:
         raise PlotError(f"--from {t_from:g} is not before --to {t_to:g}")
-    quantities = [(q, unit) for q, unit in QUANTITIES
-                  if measured.has(q) or (setpoint is not None and setpoint.has(q))]
+    quantities = [q for q in QUANTITIES if measured.has(q) or (setpoint is not None and setpoint.has(q))]
+    # each joint in its unit: the recording's metadata names the prismatic ones (m, m/s, N)
+    prismatic = set(filter(None, str(rec.custom.get("prismatic_joints") or "").split(",")))
     fig = Figure(figsize=(4.2 * len(quantities), 1.9 * len(picked) + 0.8), layout="constrained")
     axes = fig.subplots(len(picked), len(quantities), sharex=True, squeeze=False)
     changes = [(t - t0, state) for t, state, _, _ in _state_changes(rec.states.get(ns, []))]
@@ -75,7 +77,8 @@ def figure(rec: Recording, ns: str | None = None, joints: list[str] | None = Non
     events = [e for e in events if lo <= e[0] <= hi]
     for row, j in enumerate(picked):
         colour = f"C{j % 10}"
-        for col, (q, unit) in enumerate(quantities):
+        units = dict(zip(QUANTITIES, JOINT_UNITS["m" if names[j] in prismatic else "rad"]))
+        for col, q in enumerate(quantities):
             ax = axes[row][col]
             for series, style, label in ((measured, "-", "measured"), (setpoint, "--", "setpoint")):
                 if series is None or not series.has(q):
@@ -91,7 +94,7 @@ def figure(rec: Recording, ns: str | None = None, joints: list[str] | None = Non
                                 rotation=90, va="top", ha="right", color="tab:blue")
             for t, kind, _ in events:
                 ax.axvline(t, color=EVENT_COLOURS.get(kind, "0.5"), linewidth=0.8, linestyle=":")
-            ax.set_ylabel(f"{names[j]}\n{q} ({unit})", fontsize=7)
+            ax.set_ylabel(f"{names[j]}\n{q} ({units[q]})", fontsize=7)
             ax.tick_params(labelsize=6)
             if row == 0 and col == 0:
                 ax.legend(fontsize=6, loc="upper right")

@@ -12,6 +12,11 @@ from ..errors import ProfileError
 from ..profile import Profile
 
 
+#: pinocchio's one-degree prismatic joint models (a URDF ``prismatic`` joint); every other joint
+#: a namespace's kinematics takes is revolute (``revolute`` / ``continuous``)
+_PRISMATIC = frozenset(("JointModelPX", "JointModelPY", "JointModelPZ", "JointModelPrismaticUnaligned"))
+
+
 def check_kinematics(profile: Profile, source: str = "<profile>") -> list[str]:
     """Build every namespace's kinematics as the daemon will. Blocks (reads the URDFs, tens of
     ms each). Returns one 'namespace: base -> tip' line per cartesian namespace. Raises
@@ -40,6 +45,14 @@ def check_kinematics(profile: Profile, source: str = "<profile>") -> list[str]:
                 f"{source}: {where}.joints: {', '.join(map(repr, missing))} not a joint of {k.urdf}, "
                 f"which {where}.kinematics.urdf names (its joints: {', '.join(list(model.names)[1:])}); "
                 f"rename the joint in the profile (joints[].name) or the URDF")
+        for name in ns.joints:  # the profile's unit is the URDF's joint kind (a prismatic joint in m)
+            kind = "prismatic" if model.joints[model.getJointId(name)].shortname() in _PRISMATIC else "revolute"
+            i_joint = profile.joint_index(name)
+            unit = profile.joints[i_joint].unit
+            if unit != {"prismatic": "m", "revolute": "rad"}[kind]:
+                raise ProfileError(
+                    f"{source}: joints[{i_joint}] ({name}).unit: {unit!r}, but {k.urdf} makes {name} a {kind} "
+                    f"joint: set unit: {'m' if kind == 'prismatic' else 'rad'}")
         try:
             Kinematics(k.urdf, k.base_frame, k.tip_frame, list(ns.joints))
         except ProfileError as exc:

@@ -11,7 +11,7 @@ Levels and what they produce each cycle (crtk-spec 4.1.1, setpoint fields per 4.
 | SERVO_P  | latest servo_jp / servo_jr (+ optional velocity feed-forward), followed at <= velocity_max | p (+v) | position |
 | SERVO_V  | latest servo_jv; integrated into p on position-only hardware | v (+p) | velocity or position |
 | SERVO_F  | latest servo_jf | f | effort |
-| INTERP_P | linear interpolation to each interpolate_jp goal over one estimated command period (``loop.interpolation: smooth``: averaged over that period) | p, v | position |
+| INTERP_P | linear interpolation to each interpolate_jp goal over one estimated command period (``loop.interpolation: smooth``: averaged over that period; ``predict``: to the goal extrapolated one step, averaged) | p, v | position |
 | INTERP_V | setpoint velocity ramps to each interpolate_jv goal at the acceleration limit | v (+p) | velocity or position |
 | INTERP_F | linear ramp to each interpolate_jf goal over one estimated command period | f | effort |
 | MOVE     | ruckig jerk-limited trajectory to the move goal, ending at rest | p, v | position |
@@ -55,8 +55,21 @@ period instead of stepping at each goal, where a 30 Hz stream makes the bare lin
 interpolation move in kinks (issue 21); half a period more latency, and a sharp corner of the
 stream is rounded by up to ``|change of velocity| * period / 8``. Being an average of
 positions the reference held, the setpoint never passes a goal, never leaves the position
-limits nor exceeds ``velocity_max``, and reaches the last goal exactly (then holds it). A
-stream's watchdog waits until the setpoint reached its last goal.
+limits nor exceeds ``velocity_max``, and reaches the last goal exactly (then holds it).
+
+``predict`` (opt-in: it extrapolates) removes that latency: the reference heads for each goal
+carried one more step, ``a_k + (a_k - a_{k-1})`` (the stream's velocity over one estimated
+period: never more than its last step, less for a goal that came after a gap, nothing for a
+stream's first goal, clipped to the position limits), reaching it one estimated period after
+goal k came, and the setpoint averages it as ``smooth`` does. The reference then samples the
+stream about where the client's goals will be, and its average over a period lags them by half
+a period: as much as a staircase of the goals written at once (LeRobot's direct writes), no
+more. With no new goal for half a period more (a late goal, an ended stream) the reference
+returns to the last goal over the next half period, so the stream ends exactly on its last goal
+and holds it; the price is an overshoot past the client's goals on a stop or a reversal of at
+most one step of the stream. A stop (hold) of a predict stream holds where the setpoint is, at
+most one step past the last goal. A stream's watchdog waits until the setpoint reached its last
+goal (up to 2 periods; predict 3).
 """
 
 from __future__ import annotations
@@ -160,7 +173,11 @@ class NamespaceMotion:
         self._ref_hist = np.zeros((2 * self._ref_rows, n))
         self._ref_i = 0
         self._width = 1.0  # rows the average spans now (cmd_period / dt, followed slowly)
-        self._smooth = profile.loop.interpolation == "smooth"  # else the average spans one row: linear
+        # smooth and predict average the reference over the period; linear: the average spans one row
+        self._smooth = profile.loop.interpolation in ("smooth", "predict")
+        self._predict = profile.loop.interpolation == "predict"
+        # interpolate_jp: where the reference heads (the goal; predict: the extrapolated goal)
+        self._aim = np.zeros(n)
         self.otg = Ruckig(n, dt)
         self.inp = InputParameter(n)
         self.out = OutputParameter(n)
@@ -281,14 +298,28 @@ class NamespaceMotion:
         self.goal_stamp = 0.0
 
     def interpolate_p(self, goal: np.ndarray, now: float) -> None:
-        if self.mode is not Mode.INTERP_P:
+        streaming = self.mode is Mode.INTERP_P
+        if not streaming:
             # a new stream: the reference and its history start at the setpoint (no jump)
             self._ref[:] = self.setpoint_p
             self._ref_hist[:] = self.setpoint_p
             self._width = max(0.02, self.dt) / self.dt if self._smooth else 1.0  # the first period estimate (below)
+        period, since = self.cmd_period, now - self.last_cmd_time  # before this arrival updates them
         self._enter(Mode.INTERP_P, now)
         self.interp_start[:] = self._ref
         self.interp_t0 = now
+        aim = self._aim
+        if self._predict and streaming and since > 0.0:
+            # the stream's last step carried one more estimated period: the goal's velocity, the
+            # step over the time it took, times the period; never more than that one step (a goal
+            # after a gap extrapolates less), and within the position limits
+            np.subtract(goal, self.goal_p, out=aim)
+            aim *= min(1.0, period / since)
+            aim += goal
+            lo, hi = self._bounds(goal)
+            _clip(aim, lo, hi, aim)
+        else:
+            aim[:] = goal  # the first goal of a stream, linear, smooth: the goal itself
         self.goal_p[:] = goal
         self.goal_level = Mode.INTERP_P
         self.goal_stamp = now
@@ -407,7 +438,7 @@ class NamespaceMotion:
             # later position-level command (hold, stop, move, servo_jr) starts where it is
             self.setpoint_p[:] = measured_p
         # the watchdog lets an interpolate_jp setpoint reach its goal first (a bounded motion,
-        # the last goal of a stream; interpolation takes up to 2 command periods)
+        # the last goal of a stream; interpolation takes up to 2 command periods, predict 3)
         if mode in STREAMS and now - self.last_cmd_time > self.timeout and not self.interpolating:
             msg = f"{self.name}: no {mode.value} command for {self.timeout} s; "
             if mode in EFFORT_MODES and self.caps.position:
@@ -491,15 +522,25 @@ class NamespaceMotion:
         self.setpoint_stamp = now
 
     def _step_interpolate_p(self, now: float) -> None:
-        """One cycle of interpolate_jp: the reference moves linearly toward the goal (reached one
-        estimated command period after the goal came, at most ``velocity_max``); the setpoint is
-        the mean of the reference over the last command period (module docstring)."""
+        """One cycle of interpolate_jp: the reference moves linearly toward the goal (predict: the
+        extrapolated goal, then back to the goal over one more period if no goal came), reached
+        one estimated command period after the goal came, at most ``velocity_max``; the setpoint
+        is the mean of the reference over the last command period (module docstring)."""
         a = (now - self.interp_t0) / self.cmd_period
         target = self._tmp
-        if a >= 1.0:
+        if a >= 2.0 or (a >= 1.0 and not self._predict):
             target[:] = self.goal_p  # exactly
+        elif a >= 1.5:
+            # predict, no goal for half a period more (a late goal finds the reference where it
+            # was: no kink): back from the extrapolated goal to the goal over the next half period,
+            # so that an ended stream ends exactly on its last goal
+            np.subtract(self.goal_p, self._aim, out=target)
+            target *= 2.0 * (a - 1.5)
+            target += self._aim
+        elif a >= 1.0:
+            target[:] = self._aim
         else:
-            np.subtract(self.goal_p, self.interp_start, out=target)
+            np.subtract(self._aim, self.interp_start, out=target)
             target *= a
             target += self.interp_start
         # never faster than the joint can go: a goal arriving early or far is followed at v_max

@@ -331,8 +331,10 @@ class Recorder:
         self.live = None  # the Foxglove live view (recording/live.py), fed as the recordings are
 
     def custom_data(self) -> dict[str, str]:
+        # prismatic_joints: the joints in m, m/s, N (profile ``unit: m``), so that a plot labels them
         return {"robot": self.robot, "daemon_version": __version__, "rate_hz": f"{1.0 / self.link.period_s:g}",
-                "backend": self.profile.backend_type}
+                "backend": self.profile.backend_type,
+                "prismatic_joints": ",".join(j.name for j in self.profile.joints if j.unit == "m")}
 
     # ---------------------------------------------------------------- life cycle (event loop)
     def start(self) -> None:

@@ -478,6 +478,8 @@ class Server:
                 "commands": list(STATE_COMMANDS) + self.link.ns_commands[ns.name] + (cs.commands if cs else []),
                 "queries": list(JOINT_QUERIES + ROBOT_QUERIES) + cart_q,
                 "topics": list(TOPICS) + [q for q in cart_q if not q.endswith("kinematics")],
+                # per joint: "rad" (revolute: rad, rad/s, N*m) or "m" (prismatic: m, m/s, N)
+                "units": [self.profile.joints[i].unit for i in self.link.ns_joints[ns.name]],
                 # per joint: the profile's [position_min, position_max] (rad or m): where the
                 # loop clips servo / interpolate positions (a client can say what it really sent)
                 "position_limits": [[self.profile.joints[i].limits.position_min, self.profile.joints[i].limits.position_max]

@@ -40,8 +40,13 @@ dictionary, but has no PDO behaviour and no device profile (canopen issue #558; 
 
 :class:`CanopenSimulator` is several drives on one bus in the shape of the serial simulators
 (``from_profile``, ``start``, ``stop``, ``port``, fault injection, a control socket). Each drive
-has its own :class:`canopen.Network` on the bus (python-can ``virtual`` channel in-process, or
-socketcan ``vcan0`` where the kernel has it), so a silenced node truly sends and hears nothing.
+has its own :class:`canopen.Network` (a silenced node truly sends and hears nothing), and the
+drives share one bus endpoint (python-can ``virtual`` channel in-process, or socketcan ``vcan0``
+where the kernel has it) whose one notifier thread hands every frame to each drive in turn, the
+drives' own frames too (they hear each other as on a real bus). One receive thread per drive
+woke for every frame on the bus, each a thread switch and GIL hand-off: most of the simulator's
+CPU at 250 Hz (issue 23: "the simulators count too"). :meth:`Drive402.connect` still gives a
+drive an endpoint and a notifier of its own.
 """
 
 from __future__ import annotations
@@ -56,6 +61,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import can
 import canopen
 from canopen import objectdictionary as odm
 from canopen.sdo import SdoAbortedError
@@ -382,6 +388,7 @@ class Drive402:
         self._lost: set[int] = set()  # monitored nodes whose heartbeat timed out, not heard since
         self._sync_cob = 0x80
         self.rx_frames = 0  # frames this drive received while not muted (bench / tests)
+        self._shared_bus = False  # attach()ed to an endpoint it does not own
         self.sync_count = 0
 
     # ------------------------------------------------------------------ lifecycle
@@ -390,10 +397,25 @@ class Drive402:
         self.network.connect(interface=interface, channel=channel, receive_own_messages=False, **kwargs)
         self.boot()
 
+    def attach(self, bus: can.BusABC) -> None:
+        """Join ``bus``, an endpoint shared with other drives whose owner hands this drive every
+        frame (:meth:`hear`), and boot as :meth:`connect` does."""
+        self._shared_bus = True
+        self.network.bus = bus
+        self.boot()
+
+    def hear(self, msg: can.Message) -> None:
+        """A frame from a shared endpoint (what canopen's listener does for its own network)."""
+        if not (msg.is_error_frame or msg.is_remote_frame):
+            self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+
     def disconnect(self) -> None:
         self.local.nmt.stop_heartbeat()
         if self.network.bus is not None:
-            self.network.disconnect()
+            if self._shared_bus:  # the owner shuts it down
+                self.network.bus = None
+            else:
+                self.network.disconnect()
 
     def boot(self) -> None:
         """Power-on / reset: INITIALISING -> boot-up message -> PRE-OPERATIONAL (CiA 301), and the
@@ -1086,6 +1108,8 @@ class CanopenSimulator:
             self._control = ControlServer(control, self.control)
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self._drive_bus: can.BusABC | None = None  # the drives' shared endpoint (start)
+        self._notifier: can.Notifier | None = None
 
     @classmethod
     def from_profile(cls, profile: Profile, link: str | os.PathLike | None = None,
@@ -1149,14 +1173,19 @@ class CanopenSimulator:
         try:
             if self.adapter is not None:
                 self.adapter.start()  # first: the drives' boot-up messages reach an open adapter
+            # one endpoint and one receive thread for every drive (see the module docstring);
+            # its own frames come back to it, so each drive hears the others
+            self._drive_bus = can.Bus(interface=self._bus[0], channel=self._bus[1], receive_own_messages=True)
+            self._notifier = can.Notifier(self._drive_bus, [self._hear], timeout=NOTIFIER_CYCLE_S)
             for drive in self.drives.values():
-                drive.connect(*self._bus)
+                drive.attach(self._drive_bus)
                 started.append(drive)
             if self._control is not None:
                 self._control.start()
         except Exception as exc:
             for drive in started:
                 drive.disconnect()
+            self._close_drive_bus()
             if self.adapter is not None:
                 self.adapter.stop()
             if isinstance(exc, SimulatorError):
@@ -1178,8 +1207,27 @@ class CanopenSimulator:
             self._control.stop()
         for drive in self.drives.values():
             drive.disconnect()
+        self._close_drive_bus()
         if self.adapter is not None:
             self.adapter.stop()
+
+    def _hear(self, msg: can.Message) -> None:
+        """Every frame on the drives' endpoint, to each drive (the receive thread). A drive that
+        raises is logged and the others still hear it, as canopen's own listener does: the
+        thread must not die."""
+        for drive in self.drives.values():
+            try:
+                drive.hear(msg)
+            except Exception:
+                log.exception("drive %d: frame 0x%03X dropped", drive.node_id, msg.arbitration_id)
+
+    def _close_drive_bus(self) -> None:
+        if self._notifier is not None:
+            self._notifier.stop(_DriveNetwork.NOTIFIER_SHUTDOWN_TIMEOUT)
+            self._notifier = None
+        if self._drive_bus is not None:
+            self._drive_bus.shutdown()
+            self._drive_bus = None
 
     def __enter__(self):
         self.start()

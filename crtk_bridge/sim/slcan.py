@@ -28,6 +28,7 @@ a real adapter at the wrong bitrate sees only errors.
 
 from __future__ import annotations
 
+import collections
 import logging
 import os
 import select
@@ -49,6 +50,9 @@ OK, ERROR = b"\r", b"\a"
 FLAG_BUS_ERROR = 0x80 | 0x20 | 0x04
 _MAX_LINE = 64  # longest valid command is 27 characters; a longer line is noise
 _HEX = frozenset(b"0123456789abcdefABCDEF")
+#: a USB full-speed frame: what arrives from the bus within it goes to the host in one transfer
+USB_FRAME_S = 0.001
+USB_BATCH_FRAMES = 32  # lines per write at most (a busy bus still flows)
 
 
 def parse_frame(line: bytes) -> can.Message | None:
@@ -99,6 +103,8 @@ class SlcanAdapter:
         self._stopping = threading.Event()
         self._wake_r = self._wake_w = -1
         self._write_lock = threading.Lock()
+        #: the acknowledgement of each frame sent to the bus, in order, until its echo comes back
+        self._acks: collections.deque[bytes] = collections.deque()
         self.is_open = False
         self.listen_only = False
         self.selected_bitrate: int | None = None  # what the master chose with S / s
@@ -127,7 +133,8 @@ class SlcanAdapter:
         if self._threads:
             return
         try:
-            self._bus = can.Bus(interface=self.bus_interface, channel=self.bus_channel, receive_own_messages=False)
+            # its own frames come back (is_rx False): each is acknowledged when it is on the bus
+            self._bus = can.Bus(interface=self.bus_interface, channel=self.bus_channel, receive_own_messages=True)
         except Exception as exc:
             raise SimulatorError(f"SLCAN adapter: cannot open {self.bus_interface} channel "
                                  f"{self.bus_channel!r}: {exc}") from exc
@@ -138,6 +145,7 @@ class SlcanAdapter:
             self._bus = None
             raise
         self._wake_r, self._wake_w = os.pipe()
+        self._acks.clear()
         self._stopping.clear()
         self._threads = [threading.Thread(target=self._serve_pty, name="sim-slcan-pty", daemon=True),
                          threading.Thread(target=self._serve_bus, name="sim-slcan-bus", daemon=True)]
@@ -199,8 +207,9 @@ class SlcanAdapter:
                     line = bytes(buf[:cr]).replace(b"\n", b"")
                     del buf[: cr + 1]
                     replies.append(self._command(line))
-                if replies:
-                    self._write(b"".join(replies))
+                out = b"".join(replies)  # a frame's acknowledgement comes later (_serve_bus)
+                if out:
+                    self._write(out)
         except Exception:
             log.exception("SLCAN adapter: pty thread died")
             raise
@@ -215,8 +224,9 @@ class SlcanAdapter:
             if msg is None or not self.is_open or self.listen_only or not self.passing:
                 return ERROR
             self.rx_frames += 1
+            self._acks.append(b"Z\r" if c in (b"T", b"R") else b"z\r")
             self._bus.send(msg)
-            return b"Z\r" if c in (b"T", b"R") else b"z\r"
+            return b""  # acknowledged when it is on the bus (_serve_bus), with what the bus brings
         if c == b"S" and len(line) == 2 and chr(line[1]) in BITRATE_CODES and not self.is_open:
             self.selected_bitrate = BITRATE_CODES[chr(line[1])]
             return OK
@@ -254,17 +264,39 @@ class SlcanAdapter:
 
     # ------------------------------------------------------------------ bus side
     def _serve_bus(self) -> None:
+        """Bus frames to the pty, as a USB adapter sends them, several in one transfer: what
+        arrives within one USB frame (:data:`USB_FRAME_S`) of the first goes up in one write, at
+        most :data:`USB_BATCH_FRAMES` at a time. The master's own frames come back here once on
+        the bus: their acknowledgements (``z`` / ``Z``) go up in the same stream, in bus order.
+        So a 250 Hz CANopen cycle wakes the master's reader about once: the SYNC's
+        acknowledgement, the TPDOs answering it and the acknowledgements of the RPDOs the master
+        sends right after go up together (a SYNC's answers reach the master up to a USB frame
+        later, as through a real USB adapter)."""
         bus = self._bus
         try:
             while not self._stopping.is_set():
                 msg = bus.recv(0.05)
-                if msg is None or not self.passing or msg.is_error_frame or msg.is_fd:
+                if msg is None:
                     continue
-                line = format_frame(msg)
-                if self.timestamps:
-                    line += f"{int(time.monotonic() * 1000) % 60000:04X}".encode()
-                self.tx_frames += 1
-                self._write(line + b"\r")
+                lines = []
+                until = time.monotonic() + USB_FRAME_S
+                while True:
+                    if not msg.is_rx:  # one of ours, on the bus: its acknowledgement
+                        if self._acks:
+                            lines.append(self._acks.popleft())
+                    elif self.passing and not msg.is_error_frame and not msg.is_fd:
+                        line = format_frame(msg)
+                        if self.timestamps:
+                            line += f"{int(time.monotonic() * 1000) % 60000:04X}".encode()
+                        lines.append(line + b"\r")
+                    if len(lines) >= USB_BATCH_FRAMES:
+                        break
+                    msg = bus.recv(max(0.0, until - time.monotonic()))
+                    if msg is None:
+                        break
+                if lines:
+                    self.tx_frames += sum(len(line) > 2 for line in lines)  # not the acknowledgements
+                    self._write(b"".join(lines))
         except Exception:
             log.exception("SLCAN adapter: bus thread died")
             raise

@@ -333,6 +333,9 @@ class Device:
         self.name = name
         self.info = info
         self.joint_names: list[str] = list(info.get("joints") or [])
+        #: per joint, "rad" (revolute: rad, rad/s, N*m) or "m" (prismatic: m, m/s, N); "rad" from
+        #: a daemon older than the ``units`` field of ``list``
+        self.joint_units: list[str] = list(info.get("units") or ["rad"] * len(self.joint_names))
 
     def __repr__(self) -> str:
         return f"Device({self.name!r}, joints={self.joint_names})"

@@ -54,13 +54,19 @@ def floats(values: Any, what: str, n: int | None = None, names: Sequence[str] | 
         which = f" ({', '.join(names)})" if names else ""
         raise InvalidVector(f"{what} needs {n} values{which}, got {len(flat)}")
     try:
-        vec = None if _has_text(flat) else np.array(flat, dtype=float)
+        vec = np.array(flat)  # numbers only (a request's list, nearly always): no per-entry look
+        if vec.dtype.kind not in "biuf":  # text, None, ...: each entry looked at (numpy reads "1.5")
+            vec = None if _has_text(flat) else np.array(flat, dtype=float)
+        elif vec.dtype.char != "d":  # ints, bools, float32: float64
+            vec = vec.astype(float)
     except (TypeError, ValueError):
         vec = None
     if vec is None or vec.ndim != 1:
         bad = next((i for i, v in enumerate(flat) if not _number(v)), 0)
         raise InvalidVector(f"{what}: entry {bad}{_name(names, bad)} is not a number: {_short(flat[bad])}")
-    if not np.isfinite(vec).all():
+    # a finite sum has finite terms only (inf, nan propagate); an overflowing one is looked at
+    # closely. Python floats: an overflow is inf, never a warning; a third of numpy's cost
+    if not math.isfinite(sum(vec.tolist())) and not np.isfinite(vec).all():
         i = int(np.flatnonzero(~np.isfinite(vec))[0])
         raise InvalidVector(f"{what}: entry {i}{_name(names, i)} is non-finite ({vec[i]})")
     return vec

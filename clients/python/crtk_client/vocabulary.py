@@ -208,3 +208,5 @@ STOP_COMMANDS = (StateCommand.DISABLE, StateCommand.PAUSE, JointCommand.HOLD)
 JOINT_TOPICS = (Topic.MEASURED_JS, Topic.SETPOINT_JS, Topic.GOAL_JS)
 #: robot-wide queries and topics (sent without ``ns``)
 ROBOT_TOPICS = (Topic.OPERATING_STATE, Topic.PERIOD_STATISTICS)
+#: a joint's ``unit`` (``list``'s ``units``) -> the units of its position, velocity and effort
+JOINT_UNITS = {"rad": ("rad", "rad/s", "N·m"), "m": ("m", "m/s", "N")}

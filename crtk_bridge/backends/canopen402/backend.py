@@ -57,6 +57,7 @@ gear_ratio)`` for ``unit: rad`` (``1 / (...)`` for ``unit: m``):
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import math
@@ -144,7 +145,6 @@ class DriveJoint(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     gear_ratio: Annotated[float, msgspec.Meta(gt=0)] = 1.0  # motor turns per joint turn (per metre: unit m)
     direction: Literal[1, -1] = 1
     offset: int = 0  # counts at joint zero
-    unit: Literal["rad", "m"] = "rad"
     velocity_factor: Annotated[float, msgspec.Meta(gt=0)] = 1.0  # drive velocity units per count/s
     rated_torque: Annotated[float, msgspec.Meta(gt=0)] | None = None  # motor N*m at 1000 per mille; None: 0x6076
     eds: str | None = None  # the drive's EDS file (relative to the profile); None: standard 402 objects
@@ -175,14 +175,15 @@ class Config(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
 class _Drive:
     """One node: its canopen objects, the last TPDO values (raw) and the next RPDO values."""
 
-    def __init__(self, i: int, name: str, keys: DriveJoint, limits: Any):
+    def __init__(self, i: int, name: str, keys: DriveJoint, limits: Any, unit: str):
         self.i = i
+        self.unit = unit  # the joint's generic ``unit``: rad (revolute) or m (prismatic)
         self.name = name
         self.keys = keys
         self.id = keys.node_id
         self.label = f"joint {name!r} (node {keys.node_id})"
         k = 1.0 / (keys.counts_per_revolution * keys.gear_ratio)
-        if keys.unit == "rad":
+        if unit == "rad":
             k *= 2.0 * math.pi
         self.k_pos = keys.direction * k  # SI per count (signed)
         self.k_vel = keys.direction * k / keys.velocity_factor  # SI/s per velocity unit
@@ -315,7 +316,7 @@ class Canopen402Backend(Actuator):
             if h is not None and h.acceleration > j.limits.acceleration_max:
                 raise ProfileError(f"{source}: joints[{i}] ({j.name}).homing.acceleration: {h.acceleration} is "
                                    f"above limits.acceleration_max ({j.limits.acceleration_max})")
-        self.drives = [_Drive(i, j.name, k, j.limits) for i, (j, k) in enumerate(zip(profile.joints, keys))]
+        self.drives = [_Drive(i, j.name, k, j.limits, j.unit) for i, (j, k) in enumerate(zip(profile.joints, keys))]
         self._period_s = 1.0 / profile.loop.rate_hz
         self._tpdo_timeout_s = (cfg.tpdo_timeout_ms / 1000.0 if cfg.tpdo_timeout_ms is not None
                                 else 3 * self._period_s)
@@ -553,7 +554,7 @@ class Canopen402Backend(Actuator):
             except (SdoError, can.CanError, KeyError):
                 rated = None  # no torque scale: effort neither measured nor commanded
         if rated is not None:
-            lever = d.keys.gear_ratio * (2.0 * math.pi if d.keys.unit == "m" else 1.0)
+            lever = d.keys.gear_ratio * (2.0 * math.pi if d.unit == "m" else 1.0)
             d.k_eff = d.keys.direction * rated / 1000.0 * lever
         caps = Capabilities(position=True, velocity=d.csv, effort=d.cst and d.k_eff is not None,
                             measures_velocity=True, measures_effort=d.k_eff is not None,
@@ -904,16 +905,23 @@ class Canopen402Backend(Actuator):
             if d.rpdo2 is not None:
                 d.rpdo2.data = bytearray(d.layout[d.rpdo2].pack(d.target_vel, d.target_torque))
         try:
-            for d in self.drives:
-                d.rpdo1.transmit()
-                if d.rpdo2 is not None:
-                    d.rpdo2.transmit()
+            # the cycle's RPDOs in one write to an slcan adapter (slcan.py: SlcanBus.batch)
+            with self._batch():
+                for d in self.drives:
+                    d.rpdo1.transmit()
+                    if d.rpdo2 is not None:
+                        d.rpdo2.transmit()
+                        self.stats["rpdos"] += 1
                     self.stats["rpdos"] += 1
-                self.stats["rpdos"] += 1
         except (can.CanError, OSError) as exc:
             self._bus_down = f"send failed: {exc}"
             return self._bus_fault()
         return fault
+
+    def _batch(self) -> contextlib.AbstractContextManager:
+        """Sends held and written together at the end (an slcan bus), or as they come."""
+        bus = self._network.bus
+        return bus.batch() if isinstance(bus, SlcanBus) else contextlib.nullcontext()
 
     def _sync_out(self) -> None:
         """Transmit one SYNC: the drives apply the RPDOs received since the previous one and

@@ -21,6 +21,18 @@ waiting for it), about a third of the control process's CPU per cycle on a 2-dri
 (bench/bench_cpu.py); only a line the buffer did not take whole goes through it (it waits for
 room, as before).
 
+The cycle's RPDOs in one write: inside :meth:`SlcanBus.batch` the lines the calling thread sends
+are collected and written together when it ends (another thread's still go out at once). Each
+write to the adapter is a system call here and, on the adapter's side, a wake-up and an
+acknowledgement burst back to the notifier; a 2-drive cycle sends four RPDOs, one write instead
+of four (issue 23). A real adapter receives them in one USB transfer and puts them on the bus in
+order, as it would four.
+
+Acknowledgements: the adapter answers each transmitted frame with ``z`` / ``Z`` (CR), which
+python-can's ``_recv_internal`` parses to no message, one ``recv`` round (and its logging and
+filter checks) per transmitted frame. They are dropped where the lines are split, so the
+notifier's ``recv`` returns the next frame.
+
 Everything else (opening, bitrate, frame formatting and parsing) is python-can's.
 """
 
@@ -28,7 +40,9 @@ from __future__ import annotations
 
 import os
 import select
-from typing import Optional
+import threading
+from contextlib import contextmanager
+from typing import Iterator, Optional
 
 import serial
 from can.exceptions import error_check
@@ -38,16 +52,38 @@ from can.interfaces.slcan import slcanBus
 #: while the bus is silent (the notifier's recv timeout is the same 50 ms; a byte that arrives
 #: ends the wait at once)
 SERIAL_TIMEOUT_S = 0.05
+#: the adapter's acknowledgements of a transmitted standard / extended frame (no message)
+_ACKS = (b"z\r", b"Z\r")
 
 
 class SlcanBus(slcanBus):
     """``slcanBus`` whose receive reads what is waiting in one go (see the module docstring)."""
 
     def __init__(self, channel, *args, timeout: float = SERIAL_TIMEOUT_S, **kwargs):
+        self._batch: list[bytes] | None = None  # lines held by batch()
+        self._batch_owner = 0  # the thread inside batch()
         super().__init__(channel, *args, timeout=timeout, **kwargs)
+
+    @contextmanager
+    def batch(self) -> Iterator[None]:
+        """Within it, the calling thread's sends are held and written in one go when it ends
+        (also when it ends with an exception: what was sent is sent). Not re-entrant."""
+        self._batch, self._batch_owner = [], threading.get_ident()
+        try:
+            yield
+        finally:
+            lines, self._batch, self._batch_owner = self._batch, None, 0
+            if lines:
+                self._send_bytes(b"".join(lines))
 
     def _write(self, string: str) -> None:
         data = string.encode() + self.LINE_TERMINATOR
+        if self._batch is not None and self._batch_owner == threading.get_ident():
+            self._batch.append(data)
+            return
+        self._send_bytes(data)
+
+    def _send_bytes(self, data: bytes) -> None:
         port = self.serialPortOrig
         fd = port.fd if isinstance(port, serial.Serial) and port.fd is not None else None
         with error_check("Could not write to serial device"):
@@ -62,15 +98,22 @@ class SlcanBus(slcanBus):
             port.write(data)  # a URL port, or the rest of a line the full output buffer did not take
 
     def _line(self) -> Optional[str]:
-        """The first complete line in the buffer (with its CR or BEL), taken out of it; or None."""
+        """The first complete line in the buffer (with its CR or BEL) that is not a transmit
+        acknowledgement, taken out of it (with the acknowledgements before it); or None."""
         buf = self._buffer
-        ends = [i for i in (buf.find(self._OK), buf.find(self._ERROR)) if i >= 0]
-        if not ends:
-            return None
-        n = min(ends) + 1
-        line = buf[:n].decode()
-        del buf[:n]
-        return line
+        while True:
+            n = buf.find(self._OK) + 1
+            bel = buf.find(self._ERROR) + 1
+            if bel and (bel < n or not n):
+                n = bel
+            if not n:
+                return None
+            if n == 2 and buf[:2] in _ACKS:
+                del buf[:2]
+                continue
+            line = buf[:n].decode()
+            del buf[:n]
+            return line
 
     def _read(self, timeout: Optional[float]) -> Optional[str]:
         line = self._line()

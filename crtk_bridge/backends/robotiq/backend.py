@@ -279,6 +279,9 @@ class RobotiqBackend(Actuator):
             raise ProfileError(f"{source}: joints: a robotiq gripper is one joint (the finger opening), "
                                f"the profile has {self.n}; one gripper per bus")
         (keys,) = joint_keys(profile, GripperJoint, "robotiq", source)
+        if profile.joints[0].unit != "m":
+            raise ProfileError(f"{source}: joints[0] ({self.joint_names[0]}).unit: {profile.joints[0].unit!r}, but a "
+                               f"Robotiq 2F's joint is its finger opening in metres: set unit: m")
         model = T.MODELS.get(keys.model)
         if model is None:
             raise ProfileError(f"{source}: joints[0] ({self.joint_names[0]}).model: {keys.model!r} is not a "

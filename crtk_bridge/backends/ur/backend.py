@@ -188,14 +188,15 @@ def _pose6(position: np.ndarray, quat_xyzw: np.ndarray) -> list[float]:
             float(rot[0]), float(rot[1]), float(rot[2])]
 
 
-def _quat_xyzw(rotvec: np.ndarray, out: np.ndarray) -> None:
-    """UR axis-angle -> unit quaternion [x, y, z, w], into ``out``."""
-    angle = math.sqrt(rotvec[0] ** 2 + rotvec[1] ** 2 + rotvec[2] ** 2)
+def _quat_xyzw(rx: float, ry: float, rz: float, out: np.ndarray) -> None:
+    """UR axis-angle (Python floats: numpy scalars cost several times as much per operation, in
+    every cycle) -> unit quaternion [x, y, z, w], into ``out``."""
+    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
     if angle < 1e-12:
         out[:] = (0.0, 0.0, 0.0, 1.0)
         return
     s = math.sin(angle / 2.0) / angle
-    out[0], out[1], out[2], out[3] = rotvec[0] * s, rotvec[1] * s, rotvec[2] * s, math.cos(angle / 2.0)
+    out[:] = (rx * s, ry * s, rz * s, math.cos(angle / 2.0))
 
 
 class _CartesianMove:
@@ -338,9 +339,11 @@ class UrBackend(Actuator):
         # in one copy per package
         self._measured = np.zeros(4 * N_JOINTS)
         self._q, self._qd, self._pose, self._wrench = np.split(self._measured, 4)
+        self._rotvec = (0.0, 0.0, 0.0)  # the package's TCP rotation vector (floats)
         self._tcp_p = np.zeros(3)
-        self._tcp_r = np.eye(3)
         self._tcp_rotvec = np.zeros(3)
+        self._tcp_rm: np.ndarray | None = np.eye(3)  # its rotation matrix, made when asked (_tcp_r)
+        self._device: tuple = ()  # device_state's inputs last cycle, and its answer
         self._state_code: str | None = None
         # blocking calls, run by the worker (one at a time on the control interface)
         self._ctl_job: int | None = None  # id of the request in flight on the control interface
@@ -450,20 +453,25 @@ class UrBackend(Actuator):
             time.sleep(self.dt)
             return False
         deadline = max(deadline, clock()) + self.dt
-        # a package already there (a late cycle) is taken at once; otherwise poll() wakes on its
-        # wake-up (or on a reply, or the worker's end), and only then are the messages taken
-        woke = w.fresh()
+        # a package already there (a late cycle) is taken at once, with every message waiting;
+        # otherwise poll() wakes on its wake-up (or on a reply, or the worker's end), and the one
+        # message it woke on is taken (pump_one: no receive that finds the socket empty, a
+        # system call per cycle), then the newest package. A message left queued (a reply that
+        # came with the wake-up) wakes the next cycle's poll() at once.
+        if w.fresh() and self._take(w):
+            self._taken = True  # the cycle's read takes no second look (_refresh)
+            return True
         while True:
-            if woke and self._take(w):
-                self._taken = True  # the cycle's read takes no second look (_refresh)
-                return True
-            woke = True
             if w.dead:
                 return False
             left = deadline - clock()
             if left <= 0:
                 return False
             w.wait(left)
+            w.pump_one()
+            if w.fresh() and self._take(w, pump=False):
+                self._taken = True
+                return True
 
     def _note_realtime(self) -> None:
         """Once, on the loop's thread: when it runs SCHED_FIFO, the worker's package thread and
@@ -479,10 +487,11 @@ class UrBackend(Actuator):
         if self._rt_priority and w is not None:
             w.send(encode(b"P", self._rt_priority))
 
-    def _take(self, w: WorkerHandle) -> bool:
-        """Take the worker's messages and its newest package; True when that package is newer
-        than the last one seen (counts skipped ones). Never blocks."""
-        w.pump()
+    def _take(self, w: WorkerHandle, pump: bool = True) -> bool:
+        """Take the worker's messages (``pump``: every one waiting) and its newest package; True
+        when that package is newer than the last one seen (counts skipped ones). Never blocks."""
+        if pump:
+            w.pump()
         st = w.read_state()
         if st is None:
             return False
@@ -498,6 +507,7 @@ class UrBackend(Actuator):
         self._ts = ts
         self._arrived = time.perf_counter()
         self._measured[:] = st[1:25]  # q, qd, TCP pose, TCP wrench
+        self._rotvec = st[16:19]
         self.robot_mode, self.safety_mode, self.runtime_state = st[25], st[26], st[27]
         self.speed_fraction = st[28]
         self._flags = st[29]
@@ -546,7 +556,13 @@ class UrBackend(Actuator):
         if not self._opened:
             return Fault("link_lost", f"{self.robot}: the RTDE link is closed", transient=False)
         link = self._refresh()
-        state = device_state(link, self.robot_mode, self.safety_mode, self.runtime_state, self._enabled)
+        key = (link, self.robot_mode, self.safety_mode, self.runtime_state, self._enabled)
+        last = self._device
+        if last[:5] == key:  # as last cycle (nearly always): its answer, without the table's enum compares
+            state = last[5]
+        else:
+            state = device_state(*key)
+            self._device = (*key, state)
         code, text = state.code, state.text
         if not link and self._down is not None:
             code, text = self._down
@@ -575,14 +591,22 @@ class UrBackend(Actuator):
         cart = feedback.cartesian
         if cart is not None:
             cart.position[0] = pose[:3]
-            self._tcp_rotvec[:] = pose[3:]
-            _quat_xyzw(self._tcp_rotvec, cart.orientation[0])
+            _quat_xyzw(*self._rotvec, cart.orientation[0])
             cart.wrench[0] = self._wrench
             cart.done_seq[0] = self._done_seq
             cart.stamp = feedback.stamp
         self._tcp_p[:] = pose[:3]
-        self._tcp_r = pin.exp3(self._tcp_rotvec)
+        self._tcp_rm = None  # pin.exp3 costs ~10 us: made only for a cartesian command (_tcp_r)
         return None
+
+    @property
+    def _tcp_r(self) -> np.ndarray:
+        """The TCP's rotation matrix in the base frame, of the package the last read took."""
+        rm = self._tcp_rm
+        if rm is None:
+            self._tcp_rotvec[:] = self._pose[3:]
+            rm = self._tcp_rm = pin.exp3(self._tcp_rotvec)
+        return rm
 
     def _feed_watchdog(self) -> None:
         """The script's watchdog wants an RTDE input at least every 1 / watchdog_hz s: the cycle's
