@@ -94,6 +94,7 @@ def test_joints_known_before_connecting_and_readings_in_lerobot_units(sim_daemon
 
 
 @only_on("so101-feetech")
+@pytest.mark.reuse_daemon  # ends ENABLED, no fault: the module's daemon, restored
 def test_an_action_is_clipped_and_the_return_is_what_the_daemon_got(sim_daemon):
     sock = str(sim_daemon.socket_path)
     arm = DaemonArm(socket=sock)
@@ -140,6 +141,7 @@ def test_an_action_is_clipped_and_the_return_is_what_the_daemon_got(sim_daemon):
 
 
 @only_on("so101-feetech")
+@pytest.mark.reuse_daemon  # ends ENABLED, no fault: the module's daemon, restored
 def test_disconnect_holds_at_the_last_action_not_short_of_it(sim_daemon):
     """LeRobot disconnects right after its last ``send_action``: the arm ends at that action, not
     where its interpolation was when the hold came (a replay ended off its recorded path)."""
