@@ -172,6 +172,7 @@ def test_event_without_a_stamp_prints_when_it_was_received():
 # ---------------------------------------------------------------- against a daemon
 
 @only_on("so101-feetech")
+@pytest.mark.reuse_daemon  # ends DISABLED: one so101 daemon for both
 def test_ctl_refusals_are_short_and_json_under_json(sim_daemon, capsys):
     sock = str(sim_daemon.socket_path)
     assert ctl(capsys, "--socket", sock, "enable")[0] == 0
@@ -192,6 +193,7 @@ def test_ctl_refusals_are_short_and_json_under_json(sim_daemon, capsys):
 
 
 @only_on("so101-feetech")
+@pytest.mark.reuse_daemon  # ends DISABLED: one so101 daemon for both
 def test_second_daemon_on_a_served_socket_fails_at_once_in_one_line(sim_daemon):
     t0 = time.monotonic()
     proc = run("crtk_bridge.cli", "--profile", str(SO101), "--sim", "--socket", str(sim_daemon.socket_path))
