@@ -27,13 +27,14 @@ the profile's rate by sleeping to an absolute tick:
 daemon alternating with this one's profile by profile, for a before/after from one run.
 Figures only; nothing is asserted. Usage:
 
-    python bench/bench_cpu.py [--profiles so101 canopen_2axis ur5e] [--window 4] [--old /tmp/old]
+    python bench/bench_cpu.py [--profiles so101 canopen_2axis ur5e] [--window 4] [--old /tmp/old] [--repeat 3]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -349,6 +350,8 @@ def main() -> int:
     ap.add_argument("--settle", type=float, default=1.0)
     ap.add_argument("--servo-rate", type=float, default=100.0)
     ap.add_argument("--old", type=Path, help="another checkout, measured the same way in the same run")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="daemon runs per profile and tree, alternating; each figure is their median (default 1)")
     ap.add_argument("--no-bare", action="store_true")
     ap.add_argument("--bare", help=argparse.SUPPRESS)
     ap.add_argument("--where", help=argparse.SUPPRESS)
@@ -366,18 +369,23 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="bench-cpu-") as tmp:
         for profile in args.profiles:
             kind, rate = backend_kind(ROOT / "profiles" / f"{profile}.yaml")
-            for name, tree in trees if len(rows) % 2 == 0 else list(reversed(trees)):
-                res = measure_daemon(tree, profile, rate, args, Path(tmp))
-                load.append(os.getloadavg()[0])
+            runs: dict[str, list] = {name: [] for name, _ in trees}
+            for k in range(args.repeat):
+                for name, tree in trees if (len(rows) + k) % 2 == 0 else list(reversed(trees)):
+                    runs[name].append(measure_daemon(tree, profile, rate, args, Path(tmp)))
+                    load.append(os.getloadavg()[0])
+            for name, _ in trees:
                 for phase in PHASES:
-                    rows.append((profile, rate, name, phase, res[phase], os.getloadavg()[0]))
+                    med = {g: statistics.median(r[phase][g] for r in runs[name]) for g in ROLES}
+                    rows.append((profile, rate, name, phase, med, os.getloadavg()[0]))
             bare = BARE_KINDS.get(kind)
             if bare and not args.no_bare:
                 res = measure_bare(bare, ROOT / "profiles" / f"{profile}.yaml", rate, args, Path(tmp))
                 for state, r in res.items():
                     rows.append((profile, rate, "bare", f"{state} (vendor library alone)",
                                  {"control": r["bare"], "simulator": r["simulator"]}, os.getloadavg()[0]))
-    print(f"CPU per cycle, share of one core (us per cycle at the loop rate); window {args.window:g} s")
+    print(f"CPU per cycle, share of one core (us per cycle at the loop rate); window {args.window:g} s"
+          + (f", median of {args.repeat} daemon runs" if args.repeat > 1 else ""))
     head = f"{'profile':<14} {'tree':<5} {'phase':<36}" + "".join(f"{r:>22}" for r in ROLES) + "  load"
     print(head)
     for profile, rate, name, phase, r, ld in rows:

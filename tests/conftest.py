@@ -341,6 +341,12 @@ def sim_robot_params(metafunc) -> list:
 
 
 def pytest_configure(config):
+    # a suite started in the background of a non-interactive shell (`cmd &`, a CI runner without job
+    # control) inherits SIGINT ignored, and so would every crtk-ctl and daemon it starts: the tests
+    # of what Ctrl-C does would see nothing. A handled signal is reset to its default by exec, so
+    # handling it here gives each child the SIGINT a terminal would
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     # every daemon a test faults writes its black box (docs/recording.md) under $XDG_STATE_HOME:
     # a folder of the test run's, never the user's ~/.local/state
     config._crtk_state_home = os.environ["XDG_STATE_HOME"] = tempfile.mkdtemp(prefix="crtk-test-state-")

@@ -22,7 +22,12 @@ from crtk_bridge.client import CommandError, connect
 
 from .conftest import ROOT, wait_until
 
-pytestmark = pytest.mark.requires()  # every simulated robot, unless a test says what it needs
+# every simulated robot, unless a test says what it needs. One daemon per robot serves the module
+# (reuse_daemon): each test ends recovered (ENABLED, no fault: recover() or its own enable, which
+# the test asserts) and SharedDaemons puts it back DISABLED at its start pose (a test that fails
+# in FAULT: a fresh daemon for the next). Every fault is still injected into an ENABLED robot and
+# seen on a connection of the test's own.
+pytestmark = [pytest.mark.requires(), pytest.mark.reuse_daemon]
 
 # What legitimately differs between the serial servo buses (keyed by the profile's backend type;
 # the tests using it need fault:error_bits):
@@ -216,6 +221,7 @@ def test_unplugged_bus_torque_off_confirmed_or_reported(rig, sim_robot):
     wait_until(lambda: all_torque(sim_robot, sim, 0), 2, what="torque off after replugging")
     wait_until(lambda: any(e.data.get("code") == "torque_off_confirmed" for e in robot.connection.events_since(mark)),
                2, what="torque_off_confirmed status event")
+    recover(arm, sim, sim_robot)  # and enable recovers from it (the module's next test reuses the daemon)
 
 
 def test_fault_row_of_the_transition_table(rig, sim_robot):

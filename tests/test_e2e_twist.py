@@ -18,7 +18,9 @@ from crtk_bridge.client.cli import main as ctl_main
 from .cartesian_targets import targets, wait_still
 from .conftest import wait_until
 
-pytestmark = pytest.mark.requires("kinematics")
+# one daemon per robot for both commands (reuse_daemon): each test enables and moves to its start
+# pose itself, and leaves the arm ENABLED (asserted), which SharedDaemons puts back DISABLED
+pytestmark = [pytest.mark.requires("kinematics"), pytest.mark.reuse_daemon]
 
 SETTLED = 0.0005  # m: the simulated servos' tracking lag has died out
 

@@ -233,37 +233,49 @@ def test_python_can_slcan_client_in_process():
     assert not sim.running
 
 
-def test_frames_within_a_usb_frame_go_to_the_master_in_one_write(adapter, monkeypatch):
-    """The adapter sends what the bus brought within one USB frame of the first frame in one
-    write, as a USB adapter's transfer carries it (a SYNC's TPDOs wake the master's reader once,
-    not once per frame). The window is widened here so a loaded host cannot split the burst."""
-    import crtk_bridge.sim.slcan as slcan_mod
+def test_the_frames_waiting_for_the_adapter_go_to_the_master_in_one_write(adapter, monkeypatch):
+    """What the bus brought while the adapter was busy goes up in ONE write, in order, as a USB
+    adapter's transfer carries several frames (a SYNC's TPDOs wake the master's reader once, not
+    once per frame). The adapter is held inside its first write while four frames arrive."""
+    import threading
 
     a, peer, fd = adapter
     assert _ask(fd, b"S8") == b"\r" and _ask(fd, b"O") == b"\r"
-    writes = []
+    writes, gate = [], threading.Event()
     real = a._write
-    monkeypatch.setattr(slcan_mod, "USB_FRAME_S", 0.5)
-    monkeypatch.setattr(a, "_write", lambda data: (writes.append(data), real(data)))
+
+    def held(data):
+        writes.append(data)
+        if len(writes) == 1:
+            gate.wait(5)
+        real(data)
+
+    monkeypatch.setattr(a, "_write", held)
+    first = can.Message(arbitration_id=0x701, is_extended_id=False, data=b"\x05")
+    peer.send(first)
+    wait_until(lambda: writes, 5, what="the adapter writing the first frame")
     frames = [(0x181, b"\x37\x02"), (0x281, b"\x01"), (0x182, b"\x37\x02"), (0x282, b"")]
     for cob, data in frames:
         peer.send(can.Message(arbitration_id=cob, is_extended_id=False, data=data))
-    expected = b"".join(format_frame(can.Message(arbitration_id=c, is_extended_id=False, data=d)) + b"\r"
-                        for c, d in frames)
+    gate.set()
+    burst = b"".join(format_frame(can.Message(arbitration_id=c, is_extended_id=False, data=d)) + b"\r"
+                     for c, d in frames)
+    expected = format_frame(first) + b"\r" + burst
     out = b""
     deadline = time.monotonic() + 5
     while len(out) < len(expected) and time.monotonic() < deadline:
         if select.select([fd], [], [], 0.1)[0]:
             out += os.read(fd, 256)
     assert out == expected
-    assert writes == [expected]  # one write, the frames in the order they came
+    assert writes == [format_frame(first) + b"\r", burst]  # the four in one write, in the order they came
+    assert a.tx_frames == 5
 
 
 def test_a_frames_acknowledgement_goes_up_with_the_frames_that_answer_it(adapter, monkeypatch):
     """A transmitted frame is acknowledged (``z``) once it is on the bus, in the adapter's stream
     to the master in bus order: a SYNC's acknowledgement and the TPDOs answering it within one
     USB frame go up in ONE write (one wake-up of the master's reader per SYNC, not two). The
-    window is widened here so a loaded host cannot split the burst."""
+    window is widened here so a loaded host cannot split them."""
     import crtk_bridge.sim.slcan as slcan_mod
 
     a, peer, fd = adapter
@@ -275,7 +287,7 @@ def test_a_frames_acknowledgement_goes_up_with_the_frames_that_answer_it(adapter
     os.write(fd, b"t0800\r")  # SYNC
     sync = peer.recv(5)
     assert sync is not None and sync.arbitration_id == 0x80
-    answers = [(0x181, b"\x37\x02"), (0x182, b"\x37\x02")]
+    answers = [(0x181, b"\x37\x02")]
     for cob, data in answers:
         peer.send(can.Message(arbitration_id=cob, is_extended_id=False, data=data))
     expected = b"z\r" + b"".join(format_frame(can.Message(arbitration_id=c, is_extended_id=False, data=d)) + b"\r"
@@ -286,4 +298,4 @@ def test_a_frames_acknowledgement_goes_up_with_the_frames_that_answer_it(adapter
         if select.select([fd], [], [], 0.1)[0]:
             out += os.read(fd, 256)
     assert out == expected and writes == [expected]
-    assert a.tx_frames == 2 and a.rx_frames == 1
+    assert a.tx_frames == 1 and a.rx_frames == 1

@@ -45,3 +45,29 @@ def test_the_drives_share_one_receive_thread_and_hear_the_master_and_each_other(
         master.shutdown()
         sim.stop()
     assert not [t for t in threading.enumerate() if t.ident not in before and t.name.startswith("Notifier")]
+
+
+def test_a_drive_that_raises_on_a_frame_does_not_deafen_the_others(monkeypatch, caplog):
+    """The shared receive thread survives a drive's error (logged, naming the drive), and the
+    other drives keep hearing the bus, as each did on its own canopen listener."""
+    channel = f"shared-bus-raise-{os.getpid()}-{time.monotonic_ns()}"
+    sim = CanopenSimulator([1, 2], interface="virtual", channel=channel)
+    master = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    try:
+        sim.start()
+        master.send(can.Message(arbitration_id=0, data=b"\x01\x00", is_extended_id=False))
+        wait_until(lambda: all(sim.drive(n).local.nmt.state == "OPERATIONAL" for n in (1, 2)), 5,
+                   what="both drives OPERATIONAL")
+
+        def broken(msg):
+            raise RuntimeError("broken drive")
+
+        monkeypatch.setattr(sim.drive(1), "hear", broken)
+        for _ in range(2):
+            master.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+        wait_until(lambda: sim.drive(2).sync_count == 2, 5, what="drive 2 taking both SYNCs")
+        assert sim.drive(1).sync_count == 0
+        assert "drive 1: frame 0x080 dropped" in caplog.text
+    finally:
+        master.shutdown()
+        sim.stop()

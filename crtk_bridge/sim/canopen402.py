@@ -1176,10 +1176,8 @@ class CanopenSimulator:
             # one endpoint and one receive thread for every drive (see the module docstring);
             # its own frames come back to it, so each drive hears the others
             self._drive_bus = can.Bus(interface=self._bus[0], channel=self._bus[1], receive_own_messages=True)
-            drives = list(self.drives.values())
-            self._notifier = can.Notifier(self._drive_bus, [lambda msg: [d.hear(msg) for d in drives]],
-                                          timeout=NOTIFIER_CYCLE_S)
-            for drive in drives:
+            self._notifier = can.Notifier(self._drive_bus, [self._hear], timeout=NOTIFIER_CYCLE_S)
+            for drive in self.drives.values():
                 drive.attach(self._drive_bus)
                 started.append(drive)
             if self._control is not None:
@@ -1212,6 +1210,16 @@ class CanopenSimulator:
         self._close_drive_bus()
         if self.adapter is not None:
             self.adapter.stop()
+
+    def _hear(self, msg: can.Message) -> None:
+        """Every frame on the drives' endpoint, to each drive (the receive thread). A drive that
+        raises is logged and the others still hear it, as canopen's own listener does: the
+        thread must not die."""
+        for drive in self.drives.values():
+            try:
+                drive.hear(msg)
+            except Exception:
+                log.exception("drive %d: frame 0x%03X dropped", drive.node_id, msg.arbitration_id)
 
     def _close_drive_bus(self) -> None:
         if self._notifier is not None:

@@ -264,12 +264,14 @@ class SlcanAdapter:
 
     # ------------------------------------------------------------------ bus side
     def _serve_bus(self) -> None:
-        """Bus frames to the pty, as a USB adapter sends them: the frames that arrive within one
-        USB frame (:data:`USB_FRAME_S`) of the first go up together, in one write (one wake-up of
-        the master's reader for a SYNC's answers, not one per TPDO), at most
-        :data:`USB_BATCH_FRAMES` at a time. The master's own frames come back here once on the
-        bus: their acknowledgements (``z`` / ``Z``) go up in the same stream, in bus order (the
-        SYNC's with the TPDOs that answer it)."""
+        """Bus frames to the pty, as a USB adapter sends them, several in one transfer: what
+        arrives within one USB frame (:data:`USB_FRAME_S`) of the first goes up in one write, at
+        most :data:`USB_BATCH_FRAMES` at a time. The master's own frames come back here once on
+        the bus: their acknowledgements (``z`` / ``Z``) go up in the same stream, in bus order.
+        So a 250 Hz CANopen cycle wakes the master's reader about once: the SYNC's
+        acknowledgement, the TPDOs answering it and the acknowledgements of the RPDOs the master
+        sends right after go up together (a SYNC's answers reach the master up to a USB frame
+        later, as through a real USB adapter)."""
         bus = self._bus
         try:
             while not self._stopping.is_set():
