@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import copy
 import math
+import shutil
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -55,15 +58,26 @@ class Buses:
         return np.array([s[str(i)]["present_position"] for i in range(1, 6)], dtype=float)
 
 
-@pytest.fixture
-def bimanual(short_tmp):
-    d = DaemonProcess(["--profile", str(BIMANUAL), "--sim"], short_tmp / "bimanual.sock", short_tmp / "daemon.log")
-    robot = connect(socket=str(d.socket_path))
+@pytest.fixture(scope="module")
+def bimanual_daemon():
+    """One bimanual daemon for the module's two tests, in file order: the first starts from it
+    fresh (DISABLED) and leaves it DISABLED; the second enables it and faults it."""
+    tmp = Path(tempfile.mkdtemp(prefix="crtk-"))
+    d = DaemonProcess(["--profile", str(BIMANUAL), "--sim"], tmp / "bimanual.sock", tmp / "daemon.log")
     try:
-        yield Buses(d, {"left", "right"}), robot
+        yield d
+    finally:
+        d.stop()
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+@pytest.fixture
+def bimanual(bimanual_daemon):
+    robot = connect(socket=str(bimanual_daemon.socket_path))
+    try:
+        yield Buses(bimanual_daemon, {"left", "right"}), robot
     finally:
         robot.close()
-        d.stop()
 
 
 def test_both_arms_enable_together_move_independently_share_one_state(bimanual):

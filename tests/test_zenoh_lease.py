@@ -211,6 +211,10 @@ def test_a_frozen_daemon_is_lost_by_its_remote_clients_within_the_daemons_lease(
             with pytest.raises(ConnectionError):
                 robot.measured_js()
             print(f"frozen daemon lost after {lost_after:.2f} s (daemon lease 1000 ms)")
+            # thawed before the client's session closes: a Zenoh session closing towards a peer
+            # that is still frozen waits ~10 s on it (test time only; the loss is proven above)
+            os.kill(d.proc.pid, signal.SIGCONT)
+            frozen = False
     finally:
         if frozen:
             os.kill(d.proc.pid, signal.SIGCONT)
