@@ -59,12 +59,15 @@ limits nor exceeds ``velocity_max``, and reaches the last goal exactly (then hol
 
 ``predict`` (opt-in: it extrapolates) removes that latency: the reference heads for each goal
 carried one more step, ``a_k + (a_k - a_{k-1})`` (the stream's velocity over one estimated
-period: never more than its last step, less for a goal that came after a gap, nothing for a
-stream's first goal, clipped to the position limits), reaching it one estimated period after
-goal k came, and the setpoint averages it as ``smooth`` does. The reference then samples the
-stream about where the client's goals will be, and its average over a period lags them by half
-a period: as much as a staircase of the goals written at once (LeRobot's direct writes), no
-more. With no new goal for half a period more (a late goal, an ended stream) the reference
+period: never more than its last step, less for a goal that came after a gap longer than the
+period and a cycle, nothing for a stream's first goal, clipped to the position limits), reaching
+it one estimated period after goal k came, and the setpoint averages it as ``smooth`` does, over
+the period less two loop periods. The reference then follows the stream about where the
+client's goals will be, and its average lags them by half a period less one loop period: a
+staircase of the goals written at once (LeRobot's direct writes) lags them by half a period,
+and the loop period is the daemon's own delay (a goal waits for the next cycle, the bus holds
+each setpoint for a period), so the servo lags the goals about as much as with direct writes.
+The velocity stays continuous, changing over the shorter window. With no new goal for half a period more (a late goal, an ended stream) the reference
 returns to the last goal over the next half period, so the stream ends exactly on its last goal
 and holds it; the price is an overshoot past the client's goals on a stop or a reversal of at
 most one step of the stream. A stop (hold) of a predict stream holds where the setpoint is, at
@@ -176,6 +179,9 @@ class NamespaceMotion:
         # smooth and predict average the reference over the period; linear: the average spans one row
         self._smooth = profile.loop.interpolation in ("smooth", "predict")
         self._predict = profile.loop.interpolation == "predict"
+        # rows predict's average spans less than the period: 2, one loop period less lag (the
+        # daemon's own delay: a goal waits for the next cycle, the bus holds each setpoint a period)
+        self._shorten = 2.0 if self._predict else 0.0
         # interpolate_jp: where the reference heads (the goal; predict: the extrapolated goal)
         self._aim = np.zeros(n)
         self.otg = Ruckig(n, dt)
@@ -303,7 +309,8 @@ class NamespaceMotion:
             # a new stream: the reference and its history start at the setpoint (no jump)
             self._ref[:] = self.setpoint_p
             self._ref_hist[:] = self.setpoint_p
-            self._width = max(0.02, self.dt) / self.dt if self._smooth else 1.0  # the first period estimate (below)
+            # the first period estimate (below)
+            self._width = max(1.0, max(0.02, self.dt) / self.dt - self._shorten) if self._smooth else 1.0
         period, since = self.cmd_period, now - self.last_cmd_time  # before this arrival updates them
         self._enter(Mode.INTERP_P, now)
         self.interp_start[:] = self._ref
@@ -314,7 +321,7 @@ class NamespaceMotion:
             # step over the time it took, times the period; never more than that one step (a goal
             # after a gap extrapolates less), and within the position limits
             np.subtract(goal, self.goal_p, out=aim)
-            aim *= min(1.0, period / since)
+            aim *= min(1.0, (period + self.dt) / since)
             aim += goal
             lo, hi = self._bounds(goal)
             _clip(aim, lo, hi, aim)
@@ -556,7 +563,8 @@ class NamespaceMotion:
         # each goal would shift the average by a fraction of a step each time); the mean as the
         # reference minus the mean of its lead over each row: exactly the goal once all rows hold it
         if self._smooth:
-            self._width += _WIDTH_GAIN * (min(max(1.0, self.cmd_period / self.dt), rows - 1.0) - self._width)
+            self._width += _WIDTH_GAIN * (min(max(1.0, self.cmd_period / self.dt - self._shorten), rows - 1.0)
+                                          - self._width)
         width = self._width
         k = int(width)
         lead = (ref - hist[i + rows - k + 1:i + rows + 1]).sum(axis=0)
