@@ -255,3 +255,40 @@ def test_predict_watchdog_waits_for_the_last_goal():
     _run(c, cycle, req, goals, 6 * 14 + int(PROFILE.safety.servo_timeout_s / c.dt) + 10)
     assert [m["data"]["code"] for m in c.outbox if m.get("event") == "warning"] == ["servo_timeout"]
     assert c.namespaces["so101"].setpoint_p[0] == goals[6 * 14]
+
+
+def _goals_at(gaps: list[int], step: float) -> dict[int, float]:
+    """A ramp of ``step`` per goal, goal k sent ``gaps[k-1]`` cycles after goal k-1."""
+    at, goals = 0, {}
+    for k, gap in enumerate([0] + gaps):
+        at += gap
+        goals[at] = step * (k + 1)
+    return goals
+
+
+@pytest.mark.parametrize("late", [4, 6])
+def test_predict_never_moves_a_forward_ramp_back_when_one_goal_is_late(late):
+    """A 30 Hz ramp (0.01 rad per goal, 7 / 6 cycles apart at 200 Hz), one goal ``late`` cycles
+    late (up to about a period), then on time again: the reference still holds the extrapolated
+    goal when the late goal comes, so the setpoint never decreases (it used to go back towards
+    the last goal, then forward again: a jolt the client never asked for)."""
+    c, cycle, req = _predict_rig()
+    gaps = [7, 6] * 10 + [7 + late, 6 - min(late, 5)] + [7, 6] * 5
+    goals = _goals_at(gaps, 0.01)
+    p = _run(c, cycle, req, goals, max(goals) + 1)
+    assert np.diff(p).min() >= 0.0, np.diff(p).min() / c.dt
+    assert p[-1] > goals[max(goals) - 13]  # it did follow the ramp
+
+
+@pytest.mark.parametrize("step", [0.01, -0.01])
+@pytest.mark.parametrize("pattern", [[1, 12], [2, 11], [13, 1]])
+def test_predict_never_moves_against_a_monotonic_stream_of_bursty_goals(pattern, step):
+    """Goals of a 30 Hz ramp (either direction) arriving in pairs one or two cycles apart, or a
+    late goal followed by a catch-up goal (a fixed-rate client after a hiccup): the setpoint
+    never moves against the stream's direction."""
+    c, cycle, req = _predict_rig()
+    goals = _goals_at([7, 6] * 5 + pattern * 20, step)
+    p = _run(c, cycle, req, goals, max(goals) + 1)
+    moves = np.diff(p) * np.sign(step)
+    assert moves.min() >= 0.0, moves.min() / c.dt
+    assert abs(p[-1]) > abs(goals[max(goals)]) - 0.03  # it did follow the stream

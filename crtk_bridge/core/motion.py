@@ -60,19 +60,26 @@ limits nor exceeds ``velocity_max``, and reaches the last goal exactly (then hol
 ``predict`` (opt-in: it extrapolates) removes that latency: the reference heads for each goal
 carried one more step, ``a_k + (a_k - a_{k-1})`` (the stream's velocity over one estimated
 period: never more than its last step, less for a goal that came after a gap longer than the
-period and a cycle, nothing for a stream's first goal, clipped to the position limits), reaching
+period and a cycle, but never short of the last aim where that is within the step: a stream
+never heads back; nothing for a stream's first goal, clipped to the position limits), reaching
 it one estimated period after goal k came, and the setpoint averages it as ``smooth`` does, over
 the period less two loop periods. The reference then follows the stream about where the
 client's goals will be, and its average lags them by half a period less one loop period: a
 staircase of the goals written at once (LeRobot's direct writes) lags them by half a period,
 and the loop period is the daemon's own delay (a goal waits for the next cycle, the bus holds
 each setpoint for a period), so the servo lags the goals about as much as with direct writes.
-The velocity stays continuous, changing over the shorter window. With no new goal for half a period more (a late goal, an ended stream) the reference
-returns to the last goal over the next half period, so the stream ends exactly on its last goal
-and holds it; the price is an overshoot past the client's goals on a stop or a reversal of at
-most one step of the stream. A stop (hold) of a predict stream holds where the setpoint is, at
-most one step past the last goal. A stream's watchdog waits until the setpoint reached its last
-goal (up to 2 periods; predict 3).
+The velocity stays continuous, changing over the shorter window. The reference holds the
+extrapolated goal until two estimated periods (the estimate before or after the goal, whichever
+is longer, or the longest of the last four inter-arrival times, and two loop periods) after the
+last goal came, so a goal late by up to
+a period (a hiccup, goals arriving in bursts) finds it still there and the setpoint never moves
+back against a monotonic stream; with no new goal by then (a clearly late goal, an ended
+stream) the reference returns to the last goal over the next period, so the stream ends
+exactly on its last goal and holds it; the price is an overshoot past the client's goals on a
+stop or a reversal of at most one step of the stream. A stop (hold) of a predict stream holds
+where the setpoint is, at most one step past the last goal. A stream's watchdog waits until the
+setpoint reached its last goal (up to 2 periods; predict 4 and two loop periods, longer for
+goals in bursts).
 """
 
 from __future__ import annotations
@@ -111,6 +118,11 @@ EFFORT_MODES = (Mode.SERVO_F, Mode.INTERP_F)
 #: per cycle, how far interpolate_jp's averaging window moves toward the period estimate
 _WIDTH_GAIN = 0.05
 _PERIOD_GAIN = 0.3  # weight of the newest inter-arrival time in the command-period estimate
+# predict: loop periods, past two command periods, a stream's reference holds the extrapolated goal
+# before returning to the last goal (a goal arrives on a cycle: a goal a period late may be seen
+# up to a cycle after two periods)
+_RETURN_MARGIN = 2.0
+_GAPS = 4  # predict: inter-arrival times a stream's hold before the return lasts at least (bursts)
 # An integrated velocity advances over the time really elapsed since the last cycle (a loop that
 # skipped cycles after an overrun must not shorten the path: on a loaded host, with the bus I/O
 # of a cycle taking 20 ms, that lost a tenth of every velocity path), but over no more than
@@ -183,6 +195,9 @@ class NamespaceMotion:
         # daemon's own delay: a goal waits for the next cycle, the bus holds each setpoint a period)
         self._shorten = 2.0 if self._predict else 0.0
         # interpolate_jp: where the reference heads (the goal; predict: the extrapolated goal)
+        # predict: the stream's last few inter-arrival times (s, at most servo_timeout_s)
+        self._gaps = np.zeros(_GAPS)
+        self._hold_s = 0.0  # predict: s after the last goal the reference holds the aim (then returns)
         self._aim = np.zeros(n)
         self.otg = Ruckig(n, dt)
         self.inp = InputParameter(n)
@@ -316,17 +331,30 @@ class NamespaceMotion:
         self.interp_start[:] = self._ref
         self.interp_t0 = now
         aim = self._aim
+        if not streaming:
+            self._gaps[:] = 0.0
+        elif 0.0 < since <= self.timeout:
+            self._gaps[1:] = self._gaps[:-1]
+            self._gaps[0] = since
         if self._predict and streaming and since > 0.0:
             # the stream's last step carried one more estimated period: the goal's velocity, the
             # step over the time it took, times the period; never more than that one step (a goal
             # after a gap extrapolates less), and within the position limits
-            np.subtract(goal, self.goal_p, out=aim)
-            aim *= min(1.0, (period + self.dt) / since)
+            step = goal - self.goal_p
+            # where the last aim is within this step past the goal, it is kept (the reference
+            # never heads back against the stream: a goal after a short gap, bursts, extrapolates
+            # less than the one before it did)
+            kept = np.clip(aim, np.minimum(goal, goal + step), np.maximum(goal, goal + step))
+            np.multiply(step, min(1.0, (period + self.dt) / since), out=aim)
             aim += goal
+            aim[:] = np.where(step > 0.0, np.maximum(aim, kept), np.minimum(aim, kept))
             lo, hi = self._bounds(goal)
             _clip(aim, lo, hi, aim)
         else:
             aim[:] = goal  # the first goal of a stream, linear, smooth: the goal itself
+        if self._predict:
+            longest = max(period if streaming else 0.0, self.cmd_period)
+            self._hold_s = max(2.0 * longest, self._gaps.max()) + _RETURN_MARGIN * self.dt
         self.goal_p[:] = goal
         self.goal_level = Mode.INTERP_P
         self.goal_stamp = now
@@ -445,7 +473,7 @@ class NamespaceMotion:
             # later position-level command (hold, stop, move, servo_jr) starts where it is
             self.setpoint_p[:] = measured_p
         # the watchdog lets an interpolate_jp setpoint reach its goal first (a bounded motion,
-        # the last goal of a stream; interpolation takes up to 2 command periods, predict 3)
+        # the last goal of a stream; interpolation takes up to 2 command periods, predict 4 and 2 cycles or more)
         if mode in STREAMS and now - self.last_cmd_time > self.timeout and not self.interpolating:
             msg = f"{self.name}: no {mode.value} command for {self.timeout} s; "
             if mode in EFFORT_MODES and self.caps.position:
@@ -530,22 +558,30 @@ class NamespaceMotion:
 
     def _step_interpolate_p(self, now: float) -> None:
         """One cycle of interpolate_jp: the reference moves linearly toward the goal (predict: the
-        extrapolated goal, then back to the goal over one more period if no goal came), reached
+        extrapolated goal, held for one more period and two cycles, then back to the goal over one
+        more period if no goal came), reached
         one estimated command period after the goal came, at most ``velocity_max``; the setpoint
         is the mean of the reference over the last command period (module docstring)."""
         a = (now - self.interp_t0) / self.cmd_period
         target = self._tmp
-        if a >= 2.0 or (a >= 1.0 and not self._predict):
+        if a >= 1.0 and not self._predict:
             target[:] = self.goal_p  # exactly
-        elif a >= 1.5:
-            # predict, no goal for half a period more (a late goal finds the reference where it
-            # was: no kink): back from the extrapolated goal to the goal over the next half period,
-            # so that an ended stream ends exactly on its last goal
-            np.subtract(self.goal_p, self._aim, out=target)
-            target *= 2.0 * (a - 1.5)
-            target += self._aim
         elif a >= 1.0:
-            target[:] = self._aim
+            # predict: the reference holds the aim until the stream is clearly late, two periods
+            # (the estimate before or after the goal, whichever is longer: a goal of a burst
+            # shortens it; or the longest of the last few inter-arrival times) and two loop
+            # periods after the goal came (a goal late by up to a period, or the next burst, finds
+            # it still there: it never moves back against the stream); then back
+            # to the goal over one period, so that an ended stream ends exactly on its last goal
+            r = (now - self.interp_t0 - self._hold_s) / self.cmd_period
+            if r >= 1.0:
+                target[:] = self.goal_p  # exactly
+            elif r > 0.0:
+                np.subtract(self.goal_p, self._aim, out=target)
+                target *= r
+                target += self._aim
+            else:
+                target[:] = self._aim
         else:
             np.subtract(self._aim, self.interp_start, out=target)
             target *= a
