@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import os
 import pty
+import select
+import time
 import tty
 
 import can
@@ -24,7 +26,12 @@ def bus_and_adapter(monkeypatch):
     tty.setraw(master)
     name = os.ttyname(slave)
     bus = SlcanBus(channel=name, bitrate=1_000_000, sleep_after_open=0)
-    os.read(master, 1024)  # the bitrate and open commands python-can sent
+    sent = b""
+    deadline = time.monotonic() + 10
+    while b"O\r" not in sent and time.monotonic() < deadline:  # the bitrate and open commands python-can sent
+        if select.select([master], [], [], 0.1)[0]:
+            sent += os.read(master, 1024)
+    assert b"O\r" in sent, sent
     reads = []
     port = bus.serialPortOrig
     real_read, real_os_read = port.read, os.read
@@ -198,3 +205,45 @@ def test_sends_inside_a_batch_are_one_write_and_another_threads_go_out_at_once(b
     while out.count(b"\r") < 5:
         out += os.read(master, 256)
     assert out == b"t601140\rt20120F00\rt30120F00\rt20220F00\rt0800\r"
+
+
+def test_a_batch_split_by_a_full_output_buffer_lets_no_other_line_in(bus_and_adapter, monkeypatch):
+    """A batch is written outside canopen's send lock; when the tty takes only part of it (a full
+    output buffer) and the rest goes through port.write, another thread's line waits for the
+    whole batch: spliced into it, the adapter would send a frame nobody asked for."""
+    import threading
+
+    bus, master, _ = bus_and_adapter
+    port = bus.serialPortOrig
+    real_write, real_port_write = os.write, port.write
+    in_rest, release = threading.Event(), threading.Event()
+
+    def os_write(fd, data):
+        if fd == port.fd and len(data) > 20:  # the batch: the tty takes half of it
+            return real_write(fd, bytes(data[:len(data) // 2]))
+        return real_write(fd, data)
+
+    def port_write(data):  # the rest of the batch: slow, while another thread sends
+        in_rest.set()
+        release.wait(5)
+        return real_port_write(data)
+
+    monkeypatch.setattr(os, "write", os_write)
+    port.write = port_write
+    other = threading.Thread(target=lambda: (in_rest.wait(5), bus.send(can.Message(
+        arbitration_id=0x601, data=b"\x40", is_extended_id=False)), None))
+    other.start()
+    releaser = threading.Timer(0.3, release.set)  # the other thread is inside send by then, or blocked
+    releaser.start()
+    with bus.batch():
+        for cob in (0x201, 0x301, 0x202):
+            bus.send(can.Message(arbitration_id=cob, data=b"\x0f\x00", is_extended_id=False))
+    other.join(10)
+    releaser.join()
+    out = b""
+    deadline = time.monotonic() + 10
+    while out.count(b"\r") < 4 and time.monotonic() < deadline:
+        if select.select([master], [], [], 0.1)[0]:
+            out += os.read(master, 256)
+    assert out == b"t20120F00\rt30120F00\rt20220F00\rt601140\r", out
+

@@ -39,6 +39,14 @@ class InvalidVector(CommandError, ValueError):
         super().__init__("bad_request", message)
 
 
+def _fits_float(v: int) -> bool:
+    try:
+        float(v)
+    except OverflowError:
+        return False
+    return True
+
+
 def floats(values: Any, what: str, n: int | None = None, names: Sequence[str] | None = None) -> np.ndarray:
     """``values`` (a list, tuple or numpy array of numbers) as a new float64 array of ``n`` finite
     entries (any length when ``n`` is None). ``what`` says whose vector it is
@@ -59,6 +67,9 @@ def floats(values: Any, what: str, n: int | None = None, names: Sequence[str] | 
             vec = None if _has_text(flat) else np.array(flat, dtype=float)
         elif vec.dtype.char != "d":  # ints, bools, float32: float64
             vec = vec.astype(float)
+    except OverflowError:  # an int beyond a float's range (10**400): no motor position
+        bad = next(i for i, v in enumerate(flat) if isinstance(v, int) and not _fits_float(v))
+        raise InvalidVector(f"{what}: entry {bad}{_name(names, bad)} is out of range: {_short(flat[bad])}") from None
     except (TypeError, ValueError):
         vec = None
     if vec is None or vec.ndim != 1:
@@ -246,5 +257,8 @@ def _name(names: Sequence[str] | None, i: int) -> str:
 
 
 def _short(value: Any, limit: int = 60) -> str:
-    text = repr(value)
+    try:
+        text = repr(value)
+    except ValueError:  # an int past Python's digit limit for str()
+        return f"an integer of {value.bit_length()} bits"
     return text if len(text) <= limit else text[:limit - 3] + "..."

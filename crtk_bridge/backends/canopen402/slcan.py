@@ -62,6 +62,10 @@ class SlcanBus(slcanBus):
     def __init__(self, channel, *args, timeout: float = SERIAL_TIMEOUT_S, **kwargs):
         self._batch: list[bytes] | None = None  # lines held by batch()
         self._batch_owner = 0  # the thread inside batch()
+        # one writer at a time: a batch is written outside canopen's send lock, and a write the
+        # tty's full output buffer splits (os.write, then port.write for the rest) must not let
+        # another thread's line in between: the adapter would send the spliced line as a frame
+        self._write_lock = threading.Lock()
         super().__init__(channel, *args, timeout=timeout, **kwargs)
 
     @contextmanager
@@ -86,7 +90,7 @@ class SlcanBus(slcanBus):
     def _send_bytes(self, data: bytes) -> None:
         port = self.serialPortOrig
         fd = port.fd if isinstance(port, serial.Serial) and port.fd is not None else None
-        with error_check("Could not write to serial device"):
+        with self._write_lock, error_check("Could not write to serial device"):
             if fd is not None:  # a tty: one write, no select after it (see the module docstring)
                 try:
                     n = os.write(fd, data)
