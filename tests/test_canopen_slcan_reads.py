@@ -18,6 +18,20 @@ import pytest
 from crtk_bridge.backends.canopen402.slcan import SERIAL_TIMEOUT_S, SlcanBus
 
 
+def record_writes(monkeypatch, port) -> list[bytes]:
+    """The list of what each os.write on the bus's port writes (the write still happens)."""
+    writes = []
+    real_write = os.write
+
+    def os_write(fd, data):
+        if fd == port.fd:
+            writes.append(bytes(data))
+        return real_write(fd, data)
+
+    monkeypatch.setattr(os, "write", os_write)
+    return writes
+
+
 @pytest.fixture
 def bus_and_adapter(monkeypatch):
     """A SlcanBus on one end of a pty; the test writes the adapter's bytes on the other. The
@@ -100,15 +114,7 @@ def test_a_line_is_one_write_of_the_tty_without_pyserials_select_for_room(bus_an
     line on a tty is one os.write of the whole line, pyserial's write not called."""
     bus, master, _ = bus_and_adapter
     port = bus.serialPortOrig
-    writes, pyserial = [], []
-    real_write = os.write
-
-    def os_write(fd, data):
-        if fd == port.fd:
-            writes.append(bytes(data))
-        return real_write(fd, data)
-
-    monkeypatch.setattr(os, "write", os_write)
+    writes, pyserial = record_writes(monkeypatch, port), []
     port.write = lambda data: pyserial.append(bytes(data))
     bus.send(can.Message(arbitration_id=0x201, data=b"\x0f\x00", is_extended_id=False))
     assert writes == [b"t20120F00\r"] and pyserial == []
@@ -181,15 +187,7 @@ def test_sends_inside_a_batch_are_one_write_and_another_threads_go_out_at_once(b
 
     bus, master, _ = bus_and_adapter
     port = bus.serialPortOrig
-    writes = []
-    real_write = os.write
-
-    def os_write(fd, data):
-        if fd == port.fd:
-            writes.append(bytes(data))
-        return real_write(fd, data)
-
-    monkeypatch.setattr(os, "write", os_write)
+    writes = record_writes(monkeypatch, port)
     with bus.batch():
         for cob in (0x201, 0x301, 0x202):
             bus.send(can.Message(arbitration_id=cob, data=b"\x0f\x00", is_extended_id=False))

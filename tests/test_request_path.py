@@ -29,7 +29,7 @@ def test_finite_numbers_whose_sum_overflows_pass_and_non_finite_ones_are_named()
 
 @pytest.mark.parametrize("values, bad", [([1.0, "1.5", 2.0], 1), ([None, 1.0, 2.0], 0), ([1.0, 2.0, b"3"], 2),
                                          ([1.0, [2.0], 3.0], 1), ([1.0, 2.0, 1j], 2), ([1.0, 2.0, 10**400], 2),
-                                         ([1.0, 10**5000, 2.0], 1)])
+                                         ([1.0, 10**5000, 2.0], 1), ([1.0, 10**400, [2.0]], 2)])
 def test_text_none_and_other_non_numbers_are_refused_naming_the_entry(values, bad):
     # (an int too large for a float, even one past Python's digits limit for str(), is named too)
     with pytest.raises(vectors.InvalidVector, match=f"entry {bad}"):

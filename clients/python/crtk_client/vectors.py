@@ -249,6 +249,8 @@ def _number(v: Any) -> bool:
         float(v)
     except (TypeError, ValueError):
         return False
+    except OverflowError:  # a number, beyond a float's range (floats names it so)
+        return True
     return True
 
 
