@@ -257,6 +257,33 @@ def test_a_cycles_rpdos_go_to_an_slcan_adapter_in_one_write(monkeypatch):
         r.close()
 
 
+def test_the_notifier_wakes_the_cycle_only_while_a_read_waits_and_never_loses_that_wake_up(rig):
+    """The cycle's read takes TPDOs that are in already: the notifier does not signal it for
+    every frame (an Event.set each, a tenth of the notifier's CPU: issue 23). A read that does
+    wait (a drive late) is woken by the frame it waits for, not by its deadline."""
+    import threading
+
+    b = rig.backend
+    rig.cycle(3)
+    sets = []
+    real_set = b._rx_event.set
+    b._rx_event.set = lambda: (sets.append(1), real_set())
+    rig.cycle(20)
+    seq = b._sync_seq
+    wait_until(lambda: all(b._answered(d) >= seq for d in b.drives), 5, what="the last SYNC's TPDOs")
+    assert sets == []  # 20 cycles of TPDOs, no signal: nobody waited
+    drive = rig.sim.drive(b.drives[0].id)
+    result = []
+    with drive.lock:  # the drive cannot answer the next SYNC until this lets go
+        b._sync_out()
+        waiter = threading.Thread(target=lambda: result.append(b._wait_tpdos(time.monotonic() + 120)))
+        waiter.start()
+        wait_until(lambda: b._waiting, 5, what="the read waiting for the TPDOs")
+    waiter.join(60)  # woken by the TPDOs, long before its deadline
+    assert not waiter.is_alive() and result == [None] and sets
+    assert not b._waiting
+
+
 def test_move_jp_is_tracked_in_csp(rig):
     c = rig.c
     rig.enable()

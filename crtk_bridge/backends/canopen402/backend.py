@@ -340,6 +340,7 @@ class Canopen402Backend(Actuator):
         self._joint_caps: list[Capabilities | None] = [None] * self.n
         self._network: canopen.Network | None = None
         self._rx_event = threading.Event()
+        self._waiting = False  # a read waits for TPDOs: the notifier sets _rx_event (_wait_tpdos)
         self._sync_seq = 0  # SYNCs sent
         self._sync_t = 0.0  # monotonic time of the last SYNC
         self._sync_mono = [0.0] * _RING  # monotonic time of SYNC n at [n % _RING]
@@ -480,7 +481,8 @@ class Canopen402Backend(Actuator):
             d.nmt = state
             if state == t.NMT_BOOTUP:
                 d.rebooted = True
-            self._rx_event.set()
+            if self._waiting:
+                self._rx_event.set()
 
         def emcy(err: Any, d: _Drive = d) -> None:  # notifier thread
             if err.code & 0xFF00 == 0:
@@ -495,7 +497,8 @@ class Canopen402Backend(Actuator):
         for m, pdo in enumerate(d.tpdos):
             def got(_map: Any, d: _Drive = d, m: int = m) -> None:  # notifier thread
                 d.arrived[m] += 1
-                self._rx_event.set()
+                if self._waiting:  # after the count (see _wait_tpdos)
+                    self._rx_event.set()
 
             pdo.add_callback(got)
         d.rpdo1, d.rpdo2 = node.rpdo[1], node.rpdo[2]
@@ -715,13 +718,24 @@ class Canopen402Backend(Actuator):
         seq = self._sync_seq if seq is None else seq
         ev = self._rx_event
         drives = self.drives if drives is None else drives
-        while True:
-            ev.clear()
-            missing = next((d for d in drives if self._answered(d) < seq), None)
-            remaining = deadline - time.monotonic()
-            if missing is None or remaining <= 0:
-                return missing
-            ev.wait(remaining)
+        # The notifier signals only while a read waits: a TPDO's Event.set (a Condition and a
+        # notify_all) for each of the cycle's frames was a tenth of the notifier's CPU, and the
+        # cycle's read rarely waits (its TPDOs answered the previous SYNC). No wake-up is lost:
+        # the notifier counts a frame before it looks at _waiting, and this looks at the counts
+        # after setting it.
+        if all(self._answered(d) >= seq for d in drives):
+            return None  # the usual case: in already, the event untouched
+        try:
+            while True:
+                ev.clear()
+                self._waiting = True
+                missing = next((d for d in drives if self._answered(d) < seq), None)
+                remaining = deadline - time.monotonic()
+                if missing is None or remaining <= 0:
+                    return missing
+                ev.wait(remaining)
+        finally:
+            self._waiting = False
 
     def _overdue(self, now: float) -> _Drive | None:
         """The first drive that has not answered a SYNC sent more than ``tpdo_timeout_ms`` ago

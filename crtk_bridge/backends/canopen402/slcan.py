@@ -46,7 +46,7 @@ from contextlib import contextmanager
 from typing import Iterator, Optional
 
 import serial
-from can.exceptions import error_check
+from can.exceptions import CanOperationError, error_check
 from can.interfaces.slcan import slcanBus
 
 #: the serial timeout when the profile's ``backend.options`` name none: how long one read blocks
@@ -107,16 +107,21 @@ class SlcanBus(slcanBus):
     def _send_bytes(self, data: bytes) -> None:
         port = self.serialPortOrig
         fd = port.fd if isinstance(port, serial.Serial) and port.fd is not None else None
-        with self._write_lock, error_check("Could not write to serial device"):
-            if fd is not None:  # a tty: one write, no select after it (see the module docstring)
-                try:
-                    n = os.write(fd, data)
-                except BlockingIOError:
-                    n = 0
-                if n == len(data):
-                    return
-                data = data[n:]
-            port.write(data)  # a URL port, or the rest of a line the full output buffer did not take
+        # what error_check("Could not write to serial device") does, without a generator-based
+        # context manager per write (twice a cycle)
+        try:
+            with self._write_lock:
+                if fd is not None:  # a tty: one write, no select after it (see the module docstring)
+                    try:
+                        n = os.write(fd, data)
+                    except BlockingIOError:
+                        n = 0
+                    if n == len(data):
+                        return
+                    data = data[n:]
+                port.write(data)  # a URL port, or the rest of a line the full output buffer did not take
+        except Exception as exc:
+            raise CanOperationError("Could not write to serial device") from exc
 
     def _line(self) -> Optional[str]:
         """The first complete line in the buffer (with its CR or BEL) that is not a transmit
