@@ -45,6 +45,9 @@ _decode = msgspec.msgpack.Decoder().decode
 MAX_REQUESTS_PER_CYCLE = 64
 _STOPS = ("disable", "pause", "hold")  # accepted during a shutdown park: a stop is never refused
 MAX_MESSAGE = 1 << 17  # bytes; the front refuses request lines above server.MAX_LINE (64 KiB)
+#: the longest (s) the loop goes without a receive on the pair while the front's count of what it
+#: sent stands still (the snapshot's ``posted``): a front that died (EOF) is seen within it
+RECEIVE_AT_LEAST_S = 0.02
 
 
 def _threads() -> list[int]:
@@ -131,6 +134,12 @@ class ControlLoop:
                              for k, m in enumerate(ns) if m.name in self.controller.native_cartesian]
         v = snapshot.views
         self._v = v
+        # the front's count of the messages it sent on the pair (-1: not counted, receive every
+        # cycle), and the count the last receive that emptied the pair had seen before it began
+        self._posted = snapshot.posted
+        self._drained = -1
+        self._quiet = 0  # cycles since the last receive
+        self._quiet_max = max(0, int(RECEIVE_AT_LEAST_S / self.period) - 1)
 
     # ---------------------------------------------------------------- messaging
     def _send(self, msg: dict) -> None:
@@ -161,10 +170,20 @@ class ControlLoop:
                 self.front_alive = False
 
     def _receive(self) -> None:
+        # nothing sent since the pair was last emptied: no receive (a system call and an exception
+        # in every cycle), but one at least every RECEIVE_AT_LEAST_S, so the front's loss is seen
+        posted = int(self._posted[0])
+        if posted == self._drained and posted >= 0 and self._quiet < self._quiet_max:
+            self._quiet += 1
+            return
+        self._quiet = 0
         for _ in range(MAX_REQUESTS_PER_CYCLE):
             try:
                 data = self.chan.recv(MAX_MESSAGE, socket.MSG_DONTWAIT)
             except BlockingIOError:
+                # empty: every message counted before the receive began was taken (the front
+                # counts after its send); one counted meanwhile is taken next cycle
+                self._drained = posted
                 return
             except OSError:
                 self.front_alive = False
