@@ -45,8 +45,12 @@ drives share one bus endpoint (python-can ``virtual`` channel in-process, or soc
 where the kernel has it) whose one notifier thread hands every frame to each drive in turn, the
 drives' own frames too (they hear each other as on a real bus). One receive thread per drive
 woke for every frame on the bus, each a thread switch and GIL hand-off: most of the simulator's
-CPU at 250 Hz (issue 23: "the simulators count too"). :meth:`Drive402.connect` still gives a
-drive an endpoint and a notifier of its own.
+CPU at 250 Hz (issue 23: "the simulators count too"). Behind the simulated USB-CAN adapter
+(``interface="slcan"``, what ``--sim`` runs) the drives and the adapter share the in-process bus
+of :mod:`crtk_bridge.sim.canbus` instead of a ``virtual`` channel: the drives handle a frame in
+the adapter's thread that parsed it, with no receive thread at all (a deepcopy and a thread
+hand-off per frame and endpoint were ~half of the simulator's CPU per cycle).
+:meth:`Drive402.connect` still gives a drive an endpoint and a notifier of its own.
 """
 
 from __future__ import annotations
@@ -67,7 +71,7 @@ from canopen import objectdictionary as odm
 from canopen.sdo import SdoAbortedError
 
 from ..profile import Profile
-from . import SimulatorError
+from . import SimulatorError, canbus
 
 log = logging.getLogger(__name__)
 
@@ -1092,7 +1096,9 @@ class CanopenSimulator:
         if interface == "slcan":
             from .slcan import SlcanAdapter
 
-            self._bus = ("virtual", _private_channel())
+            # the adapter and the drives on one in-process bus: frames handed over in the
+            # sending thread, no receive thread of the drives' own (canbus.py)
+            self._bus = (canbus.INTERFACE, _private_channel())
             self.adapter = SlcanAdapter(*self._bus, self.bitrate, link=link)
         else:
             self._bus = (interface, channel or _private_channel())
@@ -1173,10 +1179,15 @@ class CanopenSimulator:
         try:
             if self.adapter is not None:
                 self.adapter.start()  # first: the drives' boot-up messages reach an open adapter
-            # one endpoint and one receive thread for every drive (see the module docstring);
-            # its own frames come back to it, so each drive hears the others
-            self._drive_bus = can.Bus(interface=self._bus[0], channel=self._bus[1], receive_own_messages=True)
-            self._notifier = can.Notifier(self._drive_bus, [self._hear], timeout=NOTIFIER_CYCLE_S)
+            # one endpoint for every drive (see the module docstring); its own frames come back
+            # to it, so each drive hears the others. Behind the adapter, the in-process bus
+            # hands each frame to the drives in the thread that sent it; on a python-can bus,
+            # one receive thread does
+            if self._bus[0] == canbus.INTERFACE:
+                self._drive_bus = canbus.LocalBus(self._bus[1], receive_own_messages=True, on_message=self._hear)
+            else:
+                self._drive_bus = can.Bus(interface=self._bus[0], channel=self._bus[1], receive_own_messages=True)
+                self._notifier = can.Notifier(self._drive_bus, [self._hear], timeout=NOTIFIER_CYCLE_S)
             for drive in self.drives.values():
                 drive.attach(self._drive_bus)
                 started.append(drive)

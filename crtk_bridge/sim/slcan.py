@@ -37,7 +37,7 @@ import time
 
 import can
 
-from . import SimulatorError
+from . import SimulatorError, canbus
 from .pty import PtyPort
 
 log = logging.getLogger(__name__)
@@ -134,7 +134,10 @@ class SlcanAdapter:
             return
         try:
             # its own frames come back (is_rx False): each is acknowledged when it is on the bus
-            self._bus = can.Bus(interface=self.bus_interface, channel=self.bus_channel, receive_own_messages=True)
+            if self.bus_interface == canbus.INTERFACE:  # the simulator's in-process bus
+                self._bus = canbus.LocalBus(self.bus_channel, receive_own_messages=True)
+            else:
+                self._bus = can.Bus(interface=self.bus_interface, channel=self.bus_channel, receive_own_messages=True)
         except Exception as exc:
             raise SimulatorError(f"SLCAN adapter: cannot open {self.bus_interface} channel "
                                  f"{self.bus_channel!r}: {exc}") from exc
