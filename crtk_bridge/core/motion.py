@@ -215,6 +215,10 @@ class NamespaceMotion:
         self._integrated_at = 0.0  # clock of the last velocity integration (0: none yet)
         self._integrate_max_s = max(_INTEGRATE_MAX_GAP_S, _INTEGRATE_MAX_PERIODS * dt)
         self._step_max = self.vel_max * dt  # rad: the farthest a position setpoint moves in one cycle
+        # the negated bounds, made once (a negation per clip was an array made in every cycle)
+        self._vel_min = -self.vel_max
+        self._eff_min = -self.eff_max
+        self._step_min = -self._step_max
 
     # ------------------------------------------------------------------ fields (spec 4.2.5)
     def setpoint_fields(self) -> tuple[bool, bool, bool]:
@@ -300,7 +304,7 @@ class NamespaceMotion:
         self.servo_target[:] = p
         self.has_v_ff = v is not None
         if v is not None:
-            _clip(v, -self.vel_max, self.vel_max, self.setpoint_v)
+            _clip(v, self._vel_min, self.vel_max, self.setpoint_v)
         else:
             self.setpoint_v[:] = 0.0
         self.goal_level = None
@@ -308,13 +312,13 @@ class NamespaceMotion:
 
     def servo_v(self, v: np.ndarray, now: float) -> None:
         self._enter(Mode.SERVO_V, now)
-        _clip(v, -self.vel_max, self.vel_max, self.setpoint_v)
+        _clip(v, self._vel_min, self.vel_max, self.setpoint_v)
         self.goal_level = None
         self.goal_stamp = 0.0
 
     def servo_f(self, f: np.ndarray, now: float) -> None:
         self._enter(Mode.SERVO_F, now)
-        _clip(f, -self.eff_max, self.eff_max, self.setpoint_f)
+        _clip(f, self._eff_min, self.eff_max, self.setpoint_f)
         self.goal_level = None
         self.goal_stamp = 0.0
 
@@ -519,7 +523,7 @@ class NamespaceMotion:
 
     def _integrate(self, now: float) -> None:
         # whatever the velocity came from (a command, a ramp, a mode switch): within velocity_max
-        _clip(self.setpoint_v, -self.vel_max, self.vel_max, self.setpoint_v)
+        _clip(self.setpoint_v, self._vel_min, self.vel_max, self.setpoint_v)
         if self.caps.velocity:
             # native velocity control: nothing to integrate, but the position limits still hold:
             # brake so that the joint can stop at its limit (v <= sqrt(2 a d)), zero beyond it
@@ -551,7 +555,7 @@ class NamespaceMotion:
         """Move the position setpoint toward the servo target, at most ``velocity_max * dt``."""
         step = self._tmp
         np.subtract(self.servo_target, self.setpoint_p, out=step)
-        _clip(step, -self._step_max, self._step_max, step)
+        _clip(step, self._step_min, self._step_max, step)
         self.setpoint_p += step
         np.divide(step, self.dt, out=self.servo_rate)
         self.setpoint_stamp = now
@@ -692,8 +696,8 @@ class NamespaceMotion:
                 _clip(self.setpoint_p, lo, hi, self.setpoint_p)
         # the velocity and effort stage: every path bounds them already (above); this is the
         # output's own guarantee, so no backend clamps to a profile limit
-        _clip(self.setpoint_v, -self.vel_max, self.vel_max, self.setpoint_v)
-        _clip(self.setpoint_f, -self.eff_max, self.eff_max, self.setpoint_f)
+        _clip(self.setpoint_v, self._vel_min, self.vel_max, self.setpoint_v)
+        _clip(self.setpoint_f, self._eff_min, self.eff_max, self.setpoint_f)
         self._filled[:] = self.setpoint_p
         cmd.position[idx] = self.setpoint_p
         cmd.velocity[idx] = self.setpoint_v

@@ -40,6 +40,10 @@ class ControlLink:
         self._ids = itertools.count(1)
         self._pending: dict[int, asyncio.Future] = {}
         self._outq: deque[bytes] = deque()  # messages waiting for room on the pair, in order
+        # the messages sent on the pair, counted in shared memory after each send: the loop skips
+        # its receive (a system call) in a cycle where the count did not move (core/loop.py)
+        self._posted = snapshot.posted
+        self._posted[0] = 0
         self.lost = False
         self._buf = np.empty_like(snapshot.data)
         self._slices = snapshot.layout.slices
@@ -183,6 +187,7 @@ class ControlLink:
         if not self._outq:
             try:
                 self.chan.send(data)
+                self._posted[0] += 1  # after the send: a loop that sees the count finds the message
                 return
             except BlockingIOError:
                 pass
@@ -201,6 +206,7 @@ class ControlLink:
             except OSError:  # the pair is gone: _readable sees the EOF and says so
                 self._outq.clear()
                 break
+            self._posted[0] += 1
             self._outq.popleft()
         asyncio.get_running_loop().remove_writer(self.chan.fileno())
 

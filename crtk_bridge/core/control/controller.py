@@ -55,6 +55,14 @@ _DEFERRED = DEFERRED
 _NONE = int(CommandMode.NONE)
 
 
+def _joint_rows(idx: np.ndarray) -> slice | np.ndarray:
+    """``idx`` as a slice when its joints are consecutive (indexing by it is then a view, not a
+    copy made in every cycle), else ``idx`` itself."""
+    if len(idx) and np.array_equal(idx, np.arange(idx[0], idx[0] + len(idx))):
+        return slice(int(idx[0]), int(idx[0]) + len(idx))
+    return idx
+
+
 class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, ValidationMixin):
     """Operating-state machine + motion layer. Not thread-safe; one call at a time.
 
@@ -98,6 +106,10 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
         # namespaces the backend controls in cartesian space itself (core/native_cartesian.py)
         self.native_cartesian = build_native_cartesian(self.namespaces, actuator.cartesian_namespaces(),
                                                        profile.safety)
+        #: per namespace, what the cycle steps (its motion, twist mapping, native cartesian or
+        #: None), and its joints' measured positions (a view when they are consecutive, as usual)
+        self._steps = [(m, self.twist_motions.get(name), self.native_cartesian.get(name), _joint_rows(m.idx))
+                       for name, m in self.namespaces.items()]
         self.command = actuator.new_command()
         self.feedback = actuator.new_feedback()  # latest sample, copied in by on_read()
         self.fault_cause: Fault | None = None
@@ -416,18 +428,17 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
         now = self.clock()
         cmd = self.command
         measured = self.feedback.position
-        for m in self.namespaces.values():
+        for m, tm, nc, rows in self._steps:
+            here = measured[rows]  # this namespace's joints (a view, or a copy: read only below)
             if m.mode is Mode.FREE:
-                m.setpoint_p[:] = measured[m.idx]  # follow the hand: leaving free is bumpless
-            tm = self.twist_motions.get(m.name)
+                m.setpoint_p[:] = here  # follow the hand: leaving free is bumpless
             if tm is not None:
                 tm.update()  # a twist stream: joint velocities mapped at this cycle's setpoint
-            nc = self.native_cartesian.get(m.name)
             if nc is not None:
-                msg = nc.update(now, measured[m.idx], self.feedback.cartesian)
+                msg = nc.update(now, here, self.feedback.cartesian)
                 if msg:
                     self.event("warning", "servo_timeout", msg, m.name)
-            msg = m.step(now, measured[m.idx])
+            msg = m.step(now, here)
             if msg:
                 self.event("warning", "servo_timeout", msg, m.name)
             if m.error is not None:
