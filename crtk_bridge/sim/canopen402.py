@@ -303,6 +303,7 @@ class _Pdo:
     inhibit_s: float = 0.0
     event_s: float = 0.0
     entries: list[tuple[int, int, int]] = field(default_factory=list)  # (index, sub, bytes)
+    objects: list[odm.ODVariable | None] = field(default_factory=list)  # each entry's variable
     size: int = 0
     syncs: int = 0  # SYNCs seen since the last transmission (TPDO)
     pending: bytes | None = None  # SYNC-type RPDO data awaiting the next SYNC
@@ -550,7 +551,14 @@ class Drive402:
             offset += size
 
     def _sample(self, pdo: _Pdo) -> bytes:
-        return b"".join(self.local.get_data(index, sub)[:size] for index, sub, size in pdo.entries)
+        # what LocalNode.get_data does for each mapped object -- our read callback (the node's
+        # only one) first, else its store -- with the objects looked up once per mapping
+        # (_load_pdos): get_data's lookup per object per SYNC was a tenth of the simulator's CPU
+        out = []
+        for (index, sub, size), od in zip(pdo.entries, pdo.objects):
+            value = self._on_read(index, sub, od) if od is not None else None
+            out.append(od.encode_raw(value)[:size] if value is not None else self.local.get_data(index, sub)[:size])
+        return b"".join(out)
 
     def _send_pdo(self, pdo: _Pdo, data: bytes, now: float) -> None:
         pdo.last, pdo.sent_at = data, now
@@ -574,7 +582,15 @@ class Drive402:
                     entry = raw(mapping, sub)
                     pdo.entries.append((entry >> 16, (entry >> 8) & 0xFF, (entry & 0xFF) // 8))
                 pdo.size = sum(e[2] for e in pdo.entries)
+                pdo.objects = [self._object(index, sub) for index, sub, _ in pdo.entries]
                 pdo.syncs, pdo.pending, pdo.last = 0, None, None
+
+    def _object(self, index: int, sub: int) -> odm.ODVariable | None:
+        """The object dictionary's variable ``index:sub``, or None (get_data then aborts)."""
+        try:
+            return self.local._find_object(index, sub)
+        except SdoAbortedError:
+            return None
 
     # ------------------------------------------------------------------ object access
     def _param(self, index: int, sub: int = 0) -> int:
