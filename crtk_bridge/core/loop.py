@@ -134,10 +134,20 @@ class ControlLoop:
                              for k, m in enumerate(ns) if m.name in self.controller.native_cartesian]
         v = snapshot.views
         self._v = v
+        # the namespaces' setpoint p, v, f and goal p, v, f: one (6, joints) view of the snapshot,
+        # written from each namespace's block (core/motion.py) in one copy
+        sl = snapshot.layout.slices
+        n = len(profile.joints)
+        assert [sl[f].start for f in ("setpoint_p", "setpoint_v", "setpoint_f", "goal_p", "goal_v", "goal_f")] \
+            == [sl["setpoint_p"].start + i * n for i in range(6)], "snapshot layout: setpoints and goals in a row"
+        self._motion_block = snapshot.data[sl["setpoint_p"].start:sl["goal_f"].stop].reshape(6, n)
+        self._ns_blocks = [(k, m, m.cols) for k, m in enumerate(ns)]
+        assert [sl[f].start for f in ("measured_p", "measured_v", "measured_f")] \
+            == [sl["measured_p"].start + i * n for i in range(3)], "snapshot layout: measured p, v, f in a row"
+        self._measured = snapshot.data[sl["measured_p"].start:sl["measured_f"].stop].reshape(3, n)
         # the snapshot's fields _publish writes in every cycle, looked up once
         self._pub = tuple(v[name] for name in (
-            "measured_stamp", "measured_p", "measured_v", "measured_f", "setpoint_p", "setpoint_v", "setpoint_f",
-            "goal_p", "goal_v", "goal_f", "ns_setpoint_stamp", "ns_has_p", "ns_has_v", "ns_has_f",
+            "measured_stamp", "ns_setpoint_stamp", "ns_has_p", "ns_has_v", "ns_has_f",
             "ns_goal_stamp", "ns_goal_has_p", "ns_goal_has_v", "ns_goal_has_f"))
         self._native_pub = tuple(v[name] for name in (
             "ns_cart_stamp", "ns_cart_p", "ns_cart_q", "ns_cart_f", "ns_cart_sp_stamp", "ns_cart_sp_p",
@@ -222,21 +232,14 @@ class ControlLoop:
     # ---------------------------------------------------------------- snapshot
     def _publish(self) -> None:
         c, fb = self.controller, self.controller.feedback
-        mst, mp, mv, mf, sp_p, sp_v, sp_f, g_p, g_v, g_f, st, hp, hv, hf, gst, ghp, ghv, ghf = self._pub
+        mst, st, hp, hv, hf, gst, ghp, ghv, ghf = self._pub
         self.snap.begin()
         # a missed read leaves the last sample, honestly stamped; it turns invalid only with a bus fault
         mst[0] = fb.stamp if c.measured_valid else 0.0
-        mp[:] = fb.position
-        mv[:] = fb.velocity
-        mf[:] = fb.effort
-        for k, m in enumerate(self._ns):
-            idx = m.idx
-            sp_p[idx] = m.setpoint_p
-            sp_v[idx] = m.setpoint_v
-            sp_f[idx] = m.setpoint_f
-            g_p[idx] = m.goal_p
-            g_v[idx] = m.goal_v
-            g_f[idx] = m.goal_f
+        self._measured[:] = c.measured_block  # measured p, v, f
+        block = self._motion_block
+        for k, m, cols in self._ns_blocks:
+            block[:, cols] = m.block  # setpoint p, v, f and goal p, v, f of its joints
             has_p, has_v, has_f = m.setpoint_fields()
             st[k] = m.setpoint_stamp if (has_p or has_v or has_f) else 0.0
             hp[k] = has_p

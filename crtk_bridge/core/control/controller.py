@@ -55,14 +55,6 @@ _DEFERRED = DEFERRED
 _NONE = int(CommandMode.NONE)
 
 
-def _joint_rows(idx: np.ndarray) -> slice | np.ndarray:
-    """``idx`` as a slice when its joints are consecutive (indexing by it is then a view, not a
-    copy made in every cycle), else ``idx`` itself."""
-    if len(idx) and np.array_equal(idx, np.arange(idx[0], idx[0] + len(idx))):
-        return slice(int(idx[0]), int(idx[0]) + len(idx))
-    return idx
-
-
 class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, ValidationMixin):
     """Operating-state machine + motion layer. Not thread-safe; one call at a time.
 
@@ -108,10 +100,16 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
                                                        profile.safety)
         #: per namespace, what the cycle steps (its motion, twist mapping, native cartesian or
         #: None), and its joints' measured positions (a view when they are consecutive, as usual)
-        self._steps = [(m, self.twist_motions.get(name), self.native_cartesian.get(name), _joint_rows(m.idx))
+        self._steps = [(m, self.twist_motions.get(name), self.native_cartesian.get(name), m.cols)
                        for name, m in self.namespaces.items()]
         self.command = actuator.new_command()
+        # its position, velocity and effort: the rows of one block, filled per namespace in one copy
+        self._command_block = np.zeros((3, len(profile.joints)))
+        self.command.position, self.command.velocity, self.command.effort = self._command_block
         self.feedback = actuator.new_feedback()  # latest sample, copied in by on_read()
+        #: its position, velocity and effort: the rows of one block (published in one copy)
+        self.measured_block = np.zeros((3, len(profile.joints)))
+        self.feedback.position, self.feedback.velocity, self.feedback.effort = self.measured_block
         self.fault_cause: Fault | None = None
         self._consecutive_bus_errors = 0
         self._tracking_cycles = 0
@@ -444,7 +442,7 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
             if m.error is not None:
                 self.event("error", "trajectory_failed", m.error, m.name)
                 m.error = None
-            m.fill(cmd)
+            m.fill(cmd, self._command_block)
             if nc is not None:
                 nc.fill(cmd.mode, cmd.cartesian)  # the backend's cartesian row; its joints left to it
         if self._running is None and cmd.mode.tobytes() != self._modes_ok:
