@@ -9,7 +9,9 @@ with a ``realtime_unavailable`` warning, when it cannot), freezes the GC after s
 logging, allocation-heavy work and blocking I/O out of the cycle.
 
 It talks to the front process over one SOCK_SEQPACKET socketpair (msgpack messages, never the
-network) and publishes state through :class:`~crtk_bridge.core.snapshot.SnapshotBuffer`.
+network) and publishes state through :class:`~crtk_bridge.core.snapshot.SnapshotBuffer`, whose
+header carries the front's count of the messages it sent: a cycle where it did not move makes no
+receive (one at least every RECEIVE_AT_LEAST_S, so the front's loss is seen).
 If the front process goes away (EOF on the pair), the loop stops safely, as on SIGTERM / SIGINT
 or the front's ``_shutdown``: with ``shutdown.action: park`` an ENABLED (or PAUSED) robot first
 moves to its rest pose, the cycle running on (see :meth:`ControlLoop._parking`); then torque off,
