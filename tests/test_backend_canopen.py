@@ -284,6 +284,36 @@ def test_the_notifier_wakes_the_cycle_only_while_a_read_waits_and_never_loses_th
     assert not b._waiting
 
 
+def test_each_tpdo_frame_goes_to_the_backends_own_handler_once_also_after_a_remap(rig):
+    """A TPDO's frames reach the backend's own handler directly (not canopen's PdoMap.on_message
+    with its Condition and callback loop per frame: issue 23), exactly once each -- also after
+    the PDOs are mapped again (a node reconfigured after a reboot), when canopen's save()
+    subscribes its map anew."""
+    b = rig.backend
+    network = b._network
+
+    def frames_per_sync(cycles: int) -> tuple[list[tuple[int, int]], int]:
+        rig.cycle(2)
+        seq = b._sync_seq
+        wait_until(lambda: all(b._answered(d) >= seq for d in b.drives), 5, what="the TPDOs of the last SYNC")
+        before = [tuple(d.arrived) for d in b.drives]
+        rig.cycle(cycles)
+        seq2 = b._sync_seq
+        wait_until(lambda: all(b._answered(d) >= seq2 for d in b.drives), 5, what="the TPDOs of the last SYNC")
+        return [(d.arrived[0] - a[0], d.arrived[1] - a[1]) for d, a in zip(b.drives, before)], seq2 - seq
+
+    for remapped in (False, True):
+        if remapped:
+            for d in b.drives:
+                b._map_pdos(d)
+        for d in b.drives:
+            for pdo, got in zip(d.tpdos, d.on_tpdo):
+                assert network.subscribers[pdo.cob_id] == [got], (remapped, network.subscribers[pdo.cob_id])
+        counts, syncs = frames_per_sync(10)
+        assert counts == [(syncs, syncs)] * b.n, (remapped, counts, syncs)
+    assert np.all(np.isfinite(rig.fb.position))
+
+
 def test_move_jp_is_tracked_in_csp(rig):
     c = rig.c
     rig.enable()
