@@ -28,6 +28,7 @@ import canopen
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run from a clone without installing, as the other benches
 
+from crtk_bridge.sim.canbus import LocalBus  # noqa: E402
 from crtk_bridge.sim.canopen402 import CanopenSimulator, make_object_dictionary
 
 
@@ -153,7 +154,7 @@ def main() -> None:
         if name == "slcan":
             sim = CanopenSimulator([1], interface="slcan")
             sim.start()
-            peer = can.Bus(interface="virtual", channel=sim._bus[1], receive_own_messages=False)
+            peer = LocalBus(sim._bus[1], receive_own_messages=False)  # the adapter's in-process bus
             make = lambda: can.Bus(interface="slcan", channel=sim.port, bitrate=1_000_000,  # noqa: E731
                                    sleep_after_open=0)
             server = None

@@ -5,7 +5,7 @@ doing the same bus transactions with the vendor library alone, same run (issue 2
 For each profile, ``crtk-bridge --profile <profile> --sim`` runs through four windows of
 ``--window`` s: DISABLED idle, DISABLED streaming (one client subscribed to ``measured_js`` at the
 loop rate), ENABLED idle (holding), ENABLED streaming (the subscription, and ``servo_jp`` of the
-position held at ``--servo-rate`` Hz). Each process's CPU (utime + stime from /proc/<pid>/stat over
+position held at ``--servo-rate`` Hz). Each process's CPU (its threads' run time from /proc/<pid>/task/*/schedstat, in ns, over
 the window: robust to a loaded host, unlike wall time) is printed apart: the control process, the
 front (socket server), the UR backend's ur_rtde worker, the simulator; as a share of one core and
 as microseconds per cycle of the profile's loop rate.
@@ -54,7 +54,20 @@ BARE_KINDS = {"canopen402": "canopen", "feetech": "feetech", "ur": "ur"}
 # -- /proc --------------------------------------------------------------------------------------
 
 def cpu_s(pid: int) -> float:
-    """utime + stime of ``pid`` (s), 0 when it is gone."""
+    """CPU time of ``pid``'s threads (s), 0 when it is gone: the scheduler's run time in ns
+    (/proc/<pid>/task/*/schedstat; utime + stime count whole clock ticks, 10 ms, too coarse for a
+    few seconds' window of a process using a few per cent), else utime + stime."""
+    try:
+        total = 0
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            try:
+                total += int(Path(f"/proc/{pid}/task/{tid}/schedstat").read_text().split()[0])
+            except (OSError, IndexError, ValueError):
+                continue  # a thread that ended meanwhile
+        if total:
+            return total / 1e9
+    except OSError:
+        pass
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     except OSError:

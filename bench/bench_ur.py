@@ -20,9 +20,13 @@ One simulated UR5e controller (``crtk-sim ur``, e-Series: a data package every 2
   daemon adds (socket, front process, control process, one cycle, and the hop from the control
   process to the backend's ur_rtde worker process, which makes the servoJ call).
 
+``--old DIR`` runs another checkout's daemon (``git worktree add --detach /tmp/old <commit>``) the
+same way on a third simulated controller, its latency rounds alternating with this one's and the
+direct path's, for a before/after from one run (the simulators and the client are this tree's).
+
 Figures only; nothing is asserted. Usage:
 
-    python bench/bench_ur.py [--seconds 5] [--rounds 3] [--steps 30]
+    python bench/bench_ur.py [--seconds 5] [--rounds 3] [--steps 30] [--old /tmp/old]
 """
 
 from __future__ import annotations
@@ -145,19 +149,9 @@ def power_on(sim) -> None:
     dash.disconnect()
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seconds", type=float, default=5.0, help="cycle-rate window (default 5)")
-    ap.add_argument("--rounds", type=int, default=3, help="latency rounds, daemon and direct alternating")
-    ap.add_argument("--steps", type=int, default=30, help="servo steps per round and path")
-    args = ap.parse_args()
-
-    sim = simulator_class("ur").from_profile(load_profile(PROFILE), power_on_s=0.1, brake_release_s=0.1)
-    sim.start()
-    sim2 = simulator_class("ur").from_profile(load_profile(PROFILE), power_on_s=0.1, brake_release_s=0.1)
-    sim2.start()
-    power_on(sim2)
-    workdir = tempfile.mkdtemp(prefix="crtk-bench-ur-")
+def start_daemon(tree: Path, sim, workdir: str, name: str):
+    """``crtk-bridge`` of checkout ``tree`` on profiles/ur5e.yaml against ``sim``, ENABLED at
+    READY. Returns (process, connection, arm)."""
     data = yaml.safe_load(PROFILE.read_text())
     data["backend"]["host"] = sim.port
     # the simulator shares this PC with the daemon, unscheduled: its --sim link timeout and
@@ -165,18 +159,51 @@ def main() -> int:
     for key, value in {"link_timeout_s": 0.5, "watchdog_hz": 2.0}.items():
         data["backend"].setdefault(key, value)
     data["namespaces"][0]["kinematics"]["urdf"] = str(PROFILE.parent / data["namespaces"][0]["kinematics"]["urdf"])
-    profile_path = os.path.join(workdir, "ur5e.yaml")
+    profile_path = os.path.join(workdir, f"{name}.yaml")
     with open(profile_path, "w") as f:
         yaml.safe_dump(data, f)
-    sock = os.path.join(workdir, "ur.sock")
+    sock = os.path.join(workdir, f"{name}.sock")
+    env = dict(os.environ, PYTHONPATH=str(tree))
     daemon = subprocess.Popen([sys.executable, "-m", "crtk_bridge.cli", "--profile", profile_path,
-                               "--socket", sock], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                               "--socket", sock], cwd=tree, env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
     try:
-        wait(lambda: os.path.exists(sock), 30, "the daemon's socket")
+        wait(lambda: os.path.exists(sock), 30, f"the {name} daemon's socket")
         robot = connect(socket=sock)
         arm = robot.device("ur5e")
         assert arm.enable(10.0), "enable failed"
         arm.move_jp(READY).wait(timeout=15)
+    except BaseException:
+        daemon.terminate()
+        daemon.wait(15)
+        raise
+    return daemon, robot, arm
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=5.0, help="cycle-rate window (default 5)")
+    ap.add_argument("--rounds", type=int, default=3, help="latency rounds, daemon and direct alternating")
+    ap.add_argument("--steps", type=int, default=30, help="servo steps per round and path")
+    ap.add_argument("--old", type=Path, help="another checkout whose daemon is measured the same way, same run")
+    args = ap.parse_args()
+
+    sims = [simulator_class("ur").from_profile(load_profile(PROFILE), power_on_s=0.1, brake_release_s=0.1)
+            for _ in range(3 if args.old else 2)]
+    for s in sims:
+        s.start()
+    sim, sim2 = sims[0], sims[1]
+    power_on(sim2)
+    workdir = tempfile.mkdtemp(prefix="crtk-bench-ur-")
+    daemons = []
+    try:
+        daemon, robot, arm = start_daemon(ROOT, sim, workdir, "new")
+        daemons.append(daemon)
+        old = None
+        if args.old:
+            old_daemon, old_robot, old_arm = start_daemon(args.old.resolve(), sims[2], workdir, "old")
+            daemons.append(old_daemon)
+            old = (old_robot, old_arm, sims[2])
 
         # -- cycle rate and missed packets, ENABLED and holding --
         c0, t0 = robot.connection.request("period_statistics")["cycles"], sim.state()["ticks"]
@@ -194,27 +221,39 @@ def main() -> int:
               f"({100.0 * bare_missed / max(bare_seen + bare_missed, 1):.2f} %)")
         print(f"  period_statistics: {({k: v for k, v in stats.items() if k != 'cycles'})}")
 
-        # -- servo latency, daemon and direct alternating --
-        through, direct = [], []
+        # -- servo latency, daemon(s) and direct alternating --
+        through, direct, before = [], [], []
         for r in range(args.rounds):
             through += daemon_latency(sim, arm, args.steps)
+            if old is not None:
+                before += daemon_latency(old[2], old[1], args.steps)
             direct += direct_latency(sim2, sim2.port, args.steps)
             print(f"round {r + 1}: servo latency median through the daemon "
-                  f"{1e3 * statistics.median(s for s, _ in through[-args.steps:]):.2f} ms, "
-                  f"direct servoJ {1e3 * statistics.median(s for s, _ in direct[-args.steps:]):.2f} ms")
-        md, mx = statistics.median(s for s, _ in through), statistics.median(s for s, _ in direct)
-        print(f"servo latency (request -> simulated joint moving), median of {len(through)}: through the daemon "
-              f"{1e3 * md:.2f} ms, ur_rtde servoJ direct {1e3 * mx:.2f} ms; ratio {md / mx:.2f}, the daemon adds "
-              f"{1e3 * (md - mx):.2f} ms (target: one controller cycle, 2 ms)")
-        kd, kx = statistics.median(k for _, k in through), statistics.median(k for _, k in direct)
-        print(f"  in controller ticks (the simulator's own clock: robust to a loaded host), median: through the "
-              f"daemon {kd:g}, direct {kx:g}; the daemon adds {kd - kx:g} tick(s) (target <= 1)")
+                  f"{1e3 * statistics.median(s for s, _ in through[-args.steps:]):.2f} ms"
+                  + (f", old daemon {1e3 * statistics.median(s for s, _ in before[-args.steps:]):.2f} ms"
+                     if before else "")
+                  + f", direct servoJ {1e3 * statistics.median(s for s, _ in direct[-args.steps:]):.2f} ms")
+        mx = statistics.median(s for s, _ in direct)
+        kx = statistics.median(k for _, k in direct)
+        for label, runs in (("the daemon", through), ("the OLD daemon", before)):
+            if not runs:
+                continue
+            md = statistics.median(s for s, _ in runs)
+            print(f"servo latency (request -> simulated joint moving), median of {len(runs)}: through {label} "
+                  f"{1e3 * md:.2f} ms, ur_rtde servoJ direct {1e3 * mx:.2f} ms; ratio {md / mx:.2f}, {label} adds "
+                  f"{1e3 * (md - mx):.2f} ms (target: one controller cycle, 2 ms)")
+            kd = statistics.median(k for _, k in runs)
+            print(f"  in controller ticks (the simulator's own clock: robust to a loaded host), median: through "
+                  f"{label} {kd:g}, direct {kx:g}; it adds {kd - kx:g} tick(s) (target <= 1)")
         robot.close()
+        if old is not None:
+            old[0].close()
     finally:
-        daemon.terminate()
-        daemon.wait(15)
-        sim.stop()
-        sim2.stop()
+        for d in daemons:
+            d.terminate()
+            d.wait(15)
+        for s in sims:
+            s.stop()
     return 0
 
 

@@ -219,7 +219,8 @@ def test_enable_walks_the_402_states_one_per_cycle_while_the_loop_cycles(rig):
 def test_a_cycles_rpdos_go_to_an_slcan_adapter_in_one_write(monkeypatch):
     """Over slcan (a USB-CAN adapter), the RPDOs of every drive that a cycle's write sends go
     out in ONE write of the port, in drive order (each write is a system call here and a wake-up
-    and an acknowledgement burst at the adapter: issue 23); the SYNC goes alone, at the tick."""
+    and an acknowledgement burst at the adapter: issue 23); the SYNC goes at the tick, without
+    the RPDOs, the master's heartbeat in the same write when it is due (not a write of its own)."""
     r = CanRig("slcan")
     try:
         r.start()
@@ -234,17 +235,53 @@ def test_a_cycles_rpdos_go_to_an_slcan_adapter_in_one_write(monkeypatch):
             return real_write(f, data)
 
         monkeypatch.setattr(os, "write", os_write)
-        r.cycle(5)
+        heartbeats = r.backend.stats["heartbeats"]
+        n = 0
+        while r.backend.stats["heartbeats"] == heartbeats or n < 5:  # a master heartbeat among them
+            assert n < 200, "no master heartbeat in 200 cycles"
+            r.cycle()
+            n += 1
         monkeypatch.undo()
         rpdo_writes = [w for w in writes if b"t2" in w or b"t3" in w]
         ids = [d.id for d in r.backend.drives]
         cobs = [f"t{base + i:03X}".encode() for i in ids for base in (0x200, 0x300)]
-        assert len(rpdo_writes) == 5, writes
+        assert len(rpdo_writes) == n, writes
         for w in rpdo_writes:  # every drive's RPDO1 and RPDO2, in one write, in order
             assert [line[:4] for line in w.split(b"\r") if line] == cobs, w
-        assert sum(w == b"t0800\r" for w in writes) == 5  # one SYNC per cycle, alone
+        sync_writes = [w for w in writes if w.startswith(b"t0800\r")]
+        assert len(sync_writes) == n  # one SYNC per cycle, without the RPDOs
+        heartbeat = b"t77F105\r"  # master node 127, OPERATIONAL: with its SYNC, never alone
+        assert set(sync_writes) == {b"t0800\r", b"t0800\r" + heartbeat}, sync_writes
+        assert not [w for w in writes if w.startswith(heartbeat)]
     finally:
         r.close()
+
+
+def test_the_notifier_wakes_the_cycle_only_while_a_read_waits_and_never_loses_that_wake_up(rig):
+    """The cycle's read takes TPDOs that are in already: the notifier does not signal it for
+    every frame (an Event.set each, a tenth of the notifier's CPU: issue 23). A read that does
+    wait (a drive late) is woken by the frame it waits for, not by its deadline."""
+    import threading
+
+    b = rig.backend
+    rig.cycle(3)
+    sets = []
+    real_set = b._rx_event.set
+    b._rx_event.set = lambda: (sets.append(1), real_set())
+    rig.cycle(20)
+    seq = b._sync_seq
+    wait_until(lambda: all(b._answered(d) >= seq for d in b.drives), 5, what="the last SYNC's TPDOs")
+    assert sets == []  # 20 cycles of TPDOs, no signal: nobody waited
+    drive = rig.sim.drive(b.drives[0].id)
+    result = []
+    with drive.lock:  # the drive cannot answer the next SYNC until this lets go
+        b._sync_out()
+        waiter = threading.Thread(target=lambda: result.append(b._wait_tpdos(time.monotonic() + 120)))
+        waiter.start()
+        wait_until(lambda: b._waiting, 5, what="the read waiting for the TPDOs")
+    waiter.join(60)  # woken by the TPDOs, long before its deadline
+    assert not waiter.is_alive() and result == [None] and sets
+    assert not b._waiting
 
 
 def test_move_jp_is_tracked_in_csp(rig):

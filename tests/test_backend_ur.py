@@ -525,10 +525,11 @@ def test_a_full_channel_drops_the_command_and_faults_never_blocks():
     try:
         b._w = h
         sent = 0
-        while b._out(SERVOJ, [0.0] * 6) is None:  # each returns at once; a blocking send would hang here
+        # a moving target (an unchanged one goes out only every keep-alive period)
+        while b._out(SERVOJ, [sent * 1e-6] * 6) is None:  # each returns at once; a blocking send would hang here
             sent += 1
             assert sent < 100000
-        fault = b._out(SERVOJ, [0.0] * 6)
+        fault = b._out(SERVOJ, [sent * 1e-6] * 6)
         assert fault is not None and fault.code == "worker_stalled" and not fault.transient, fault
         assert fault.message.startswith("ur5e: the ur_rtde worker takes no commands") and "servoJ dropped" in fault.message
         assert b._w is None and h in b._dispose  # that worker is ended (reaped on the restart's thread)

@@ -245,3 +245,22 @@ def test_a_batch_split_by_a_full_output_buffer_lets_no_other_line_in(bus_and_ada
             out += os.read(master, 256)
     assert out == b"t20120F00\rt30120F00\rt20220F00\rt601140\r", out
 
+
+
+def test_the_backends_preformatted_lines_are_python_cans_bytes(bus_and_adapter, monkeypatch):
+    """``SlcanBus.line`` / ``send_lines`` (the backend's cycle frames, formatted once without a
+    Message each): the same bytes python-can's ``send`` writes for the same frame, held in a
+    batch like a ``send``."""
+    bus, master, _ = bus_and_adapter
+    writes = record_writes(monkeypatch, bus.serialPortOrig)
+    frames = [(0x080, b""), (0x201, b"\x0f\x00\x10\x27\x00\x00\x08"), (0x77F, b"\x05"), (0x7FF, bytes(range(250, 256)) + b"\xab\xcd")]
+    for cob, data in frames:
+        bus.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+        bus.send_lines(SlcanBus.line(cob, data))
+    assert len(writes) == 2 * len(frames)
+    assert writes[0::2] == writes[1::2], writes
+    with bus.batch():
+        bus.send_lines(SlcanBus.line(0x201, b"\x06\x00"))
+        bus.send(can.Message(arbitration_id=0x301, data=b"\x00", is_extended_id=False))
+        assert len(writes) == 2 * len(frames)  # held
+    assert writes[-1] == b"t20120600\rt301100\r"

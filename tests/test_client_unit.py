@@ -1318,3 +1318,20 @@ def test_a_stream_refused_from_its_first_sample_stops_nothing_it_did_not_start(f
     fake.handlers["servo_jv"] = refuse_second
     assert main(["--socket", fake.path, "servo_jv", "0.1", "0", "--duration", "1"]) == 1
     assert fake.requests[-1]["cmd"] == "hold"
+
+
+@pytest.mark.parametrize("bad", [0, -1, -0.5, float("inf"), float("nan"), True, "5", None, [5]])
+def test_a_timeout_that_is_not_a_finite_positive_number_is_refused_naming_it(bad):
+    """connect / list_robots: a negative timeout hung a Zenoh connect for ever, inf and NaN
+    escaped as OverflowError / ValueError from inside the socket or Zenoh set-up."""
+    from crtk_bridge.client import list_robots
+    from crtk_bridge.errors import CrtkBridgeError
+
+    for where in (dict(socket="/nonexistent/crtk.sock"), dict(zenoh_connect="tcp/127.0.0.1:1")):
+        with pytest.raises(CrtkBridgeError, match=r"^crtk-bridge client: timeout: must be a finite number of "
+                                                  r"seconds > 0, got "):
+            connect(timeout=bad, **where)
+    with pytest.raises(CrtkBridgeError, match=r"^crtk-bridge client: timeout: "):
+        list_robots(zenoh_connect="tcp/127.0.0.1:1", timeout=bad)
+    with pytest.raises(CrtkBridgeError, match=r"^crtk-bridge client: timeout: "):
+        list_robots(timeout=bad)

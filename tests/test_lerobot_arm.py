@@ -15,15 +15,17 @@ from __future__ import annotations
 import importlib.util
 import math
 import sys
+import time
 
 import numpy as np
 import pytest
+import yaml
 
 from crtk_bridge.backends.calibration import lerobot_maps
 from crtk_bridge.client import connect
 from crtk_bridge.profile import load_profile
 
-from .conftest import ROOT, only_on, wait_until
+from .conftest import ROOT, DaemonProcess, only_on, so101_data, wait_until
 
 _spec = importlib.util.spec_from_file_location("crtk_lerobot_arm", ROOT / "lerobot_robot_crtk" / "lerobot_robot_crtk"
                                                / "arm.py")
@@ -159,6 +161,38 @@ def test_disconnect_holds_at_the_last_action_not_short_of_it(sim_daemon):
                    what=f"the arm at the last action {sent}, read {arm.read()}")
     finally:
         arm.close()
+
+
+def test_disconnect_of_a_slow_predicted_stream_holds_exactly_at_the_last_action(tmp_path):
+    """``loop.interpolation: predict`` passes the last action by up to a step, then returns to it
+    over about 4 action periods: at 2.5 Hz that is longer than the plugin's 1 s floor, and a
+    disconnect held the arm off its last action. The wait scales with the action interval."""
+    data = so101_data()
+    data["loop"]["interpolation"] = "predict"
+    (tmp_path / "predict.yaml").write_text(yaml.safe_dump(data))
+    d = DaemonProcess(["--profile", str(tmp_path / "predict.yaml"), "--sim"], tmp_path / "d.sock", tmp_path / "d.log")
+    try:
+        arm = DaemonArm(socket=str(d.socket_path), units="si")
+        arm.open()
+        try:
+            arm.enable()
+            start = arm.read()["shoulder_pan.pos"]
+            direction = 1.0 if start < 0 else -1.0
+            period = 0.5  # 2 Hz: predict settles ~1.7 s after the last action
+            due = time.monotonic()
+            for k in range(1, 7):
+                time.sleep(max(0.0, due - time.monotonic()))
+                last = arm.send({"shoulder_pan.pos": start + direction * 0.04 * k})["shoulder_pan.pos"]
+                due += period
+            assert arm.settle_s() >= 4 * period
+            arm.release("hold")  # LeRobot disconnects right after its last action
+            with connect(socket=str(d.socket_path)) as robot:
+                held = float(robot.device("so101").setpoint_jp()[0][0])
+            assert held == pytest.approx(last, abs=1e-6), f"held at {held}, last action {last}"
+        finally:
+            arm.close()
+    finally:
+        d.stop()
 
 
 @only_on("so101-feetech")

@@ -299,3 +299,40 @@ def test_a_frames_acknowledgement_goes_up_with_the_frames_that_answer_it(adapter
             out += os.read(fd, 256)
     assert out == expected and writes == [expected]
     assert a.tx_frames == 1 and a.rx_frames == 1
+
+
+def test_a_frame_from_while_the_adapter_was_closed_is_not_forwarded_after_it_reopens(adapter, monkeypatch):
+    """Whether a frame passes is decided by when it was on the bus, not by when the adapter's
+    bus thread gets to it: a frame sent while the channel was closed (or at the wrong bitrate,
+    or bus-off) never reaches the master, even when the thread was busy until after the master
+    opened the channel again (a race a loaded host hit in test_bus_off_and_a_wrong_bitrate_pass_nothing)."""
+    import threading
+
+    a, peer, fd = adapter
+    assert _ask(fd, b"S8") == b"\r" and _ask(fd, b"O") == b"\r"
+    writes, gate = [], threading.Event()
+    real = a._write
+
+    def held(data):
+        writes.append(data)
+        if len(writes) == 1:
+            gate.wait(5)  # the bus thread, busy with frame A
+        real(data)
+
+    monkeypatch.setattr(a, "_write", held)
+    peer.send(can.Message(arbitration_id=0x701, is_extended_id=False, data=b"\x05"))  # A
+    wait_until(lambda: writes, 5, what="the adapter writing frame A")
+    os.write(fd, b"C\r")
+    wait_until(lambda: not a.is_open, 5, what="the channel closed")
+    peer.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\x01"))  # B, while closed
+    os.write(fd, b"O\r")
+    wait_until(lambda: a.is_open, 5, what="the channel open again")
+    gate.set()
+    peer.send(can.Message(arbitration_id=0x182, is_extended_id=False, data=b"\x02"))  # C, open
+    out = b""
+    deadline = time.monotonic() + 5
+    while b"t1821" not in out and time.monotonic() < deadline:
+        if select.select([fd], [], [], 0.1)[0]:
+            out += os.read(fd, 256)
+    assert b"t1821" in out and b"t7011" in out, out
+    assert b"t181" not in out, out

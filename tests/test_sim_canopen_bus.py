@@ -71,3 +71,92 @@ def test_a_drive_that_raises_on_a_frame_does_not_deafen_the_others(monkeypatch, 
     finally:
         master.shutdown()
         sim.stop()
+
+
+def test_behind_the_adapter_a_frame_is_handled_in_the_adapters_thread_with_no_receive_thread(tmp_path):
+    """With the simulated USB-CAN adapter (what ``--sim`` runs), the drives sit on the in-process
+    bus (sim/canbus.py): a SYNC the master writes to the pty is handled by the drives in the
+    adapter's own thread -- no receive thread of theirs, no hand-off per frame (issue 23: the
+    simulator's CPU per cycle) -- and the drives still hear each other."""
+    before = {t.ident for t in threading.enumerate()}
+    sim = CanopenSimulator([1, 2], {n: DriveOptions(heartbeat_ms=20) for n in (1, 2)}, interface="slcan")
+    seen = []
+    sim.start()
+    fd = os.open(sim.port, os.O_RDWR | os.O_NOCTTY)
+    try:
+        started = [t.name for t in threading.enumerate() if t.ident not in before]
+        assert not [n for n in started if n.startswith("Notifier")], started
+        wait_until(lambda: {2} <= set(sim.drive(1)._heartbeats) and {1} <= set(sim.drive(2)._heartbeats), 5,
+                   what="each drive hearing the other's heartbeat")
+        real = sim.drive(2).hear
+        sim.drive(2).hear = lambda msg: (seen.append((msg.arbitration_id, threading.current_thread().name)),
+                                         real(msg))
+        os.write(fd, b"S8\rO\rt00020100\r")  # open, NMT start all; a SYNC once they are OPERATIONAL
+        wait_until(lambda: all(sim.drive(n).local.nmt.state == "OPERATIONAL" for n in (1, 2)), 5,
+                   what="both drives OPERATIONAL")
+        os.write(fd, b"t0800\r")
+        wait_until(lambda: sim.drive(1).sync_count == sim.drive(2).sync_count == 1, 5, what="both drives taking the SYNC")
+        assert (0x80, "sim-slcan-pty") in seen, seen
+    finally:
+        os.close(fd)
+        sim.stop()
+
+
+def test_the_in_process_bus_delivers_in_bus_order_without_recursion_or_deadlock(caplog):
+    """sim/canbus.py: a frame sent from inside a handler is delivered after the handler returns
+    (bus order, no re-entry); a sender holding a lock the delivering handler waits for is not
+    blocked (it queues, the delivering thread delivers it: no deadlock, as a drive's tick thread
+    sends under its drive's lock); a handler that raises is logged and the others still get the
+    frame; each endpoint gets its own copy, the sender's own echo with is_rx False."""
+    from crtk_bridge.sim.canbus import LocalBus
+
+    channel = f"local-bus-test-{os.getpid()}-{time.monotonic_ns()}"
+    drive_lock = threading.Lock()
+    depth, heard = [0], []
+
+    def drive(msg):  # answers 0x80 with 0x181, under its lock, as a simulated drive does
+        depth[0] += 1
+        try:
+            with drive_lock:
+                heard.append((msg.arbitration_id, msg.is_rx, depth[0]))
+                if msg.arbitration_id == 0x80:
+                    drives.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
+        finally:
+            depth[0] -= 1
+
+    def broken(msg):
+        raise RuntimeError("broken endpoint")
+
+    master = LocalBus(channel)
+    drives = LocalBus(channel, receive_own_messages=True, on_message=drive)
+    other = LocalBus(channel, on_message=broken)
+    try:
+        sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
+        master.send(sync)
+        assert heard == [(0x80, True, 1), (0x181, False, 1)]  # its answer after it, not inside it
+        got = master.recv(1)
+        assert got.arbitration_id == 0x181 and got.is_rx and got.data == b"\x01"
+        assert master.recv(0) is None  # no echo of its own without receive_own_messages
+        assert "broken endpoint" in caplog.text and "0x080" in caplog.text
+
+        # a thread holding the drive's lock sends while this thread delivers to that drive
+        heard.clear()
+        holding, sent = threading.Event(), threading.Event()
+
+        def tick():
+            with drive_lock:
+                holding.set()
+                time.sleep(0.05)  # the delivering thread is now waiting for the lock
+                drives.send(can.Message(arbitration_id=0x701, data=b"\x05", is_extended_id=False))
+                sent.set()
+
+        t = threading.Thread(target=tick)
+        t.start()
+        holding.wait(5)
+        master.send(can.Message(arbitration_id=0x700, data=b"\x05", is_extended_id=False))
+        t.join(5)
+        assert sent.is_set() and not t.is_alive()
+        assert [h[0] for h in heard] == [0x700, 0x701]
+    finally:
+        for bus in (master, drives, other):
+            bus.shutdown()

@@ -571,3 +571,39 @@ def test_the_tool_port_relays_raw_bytes_to_the_serial_line_behind_the_flange(tmp
     finally:
         ctl.stop()
         line.close()
+
+
+def test_the_arms_tcp_pose_and_speed_are_recomputed_only_when_their_inputs_change():
+    """Every tick publishes the TCP pose and twist; an arm at rest (powered off, or holding) does
+    not redo the kinematics each tick (the simulator's largest share of a tick, and every test on
+    the UR pays it): they are made again only when the joints, their speeds or the TCP offset
+    changed, and are then exactly what the kinematics give."""
+    from crtk_bridge.sim.ur_robot import Limits, Timings, URRobot, se3_to_pose
+
+    q0 = np.array([0.1, -1.4, 1.5, -1.6, -1.5, 0.3])
+    r = URRobot(q0, Limits(), Timings(), clock=time.monotonic)
+    calls = {"fk": 0, "jacobian": 0}
+    fk, jacobian = r.kin.fk, r.kin.jacobian
+
+    def counting(name, f):
+        def call(*args):
+            calls[name] += 1
+            return f(*args)
+        return call
+
+    r.kin.fk, r.kin.jacobian = counting("fk", fk), counting("jacobian", jacobian)
+    first = r.tcp_pose()
+    for _ in range(10):  # at rest: ten ticks, one forward kinematics, no Jacobian
+        r.step(0.002)
+        assert r.tcp_pose() == first and r.tcp_speed() == [0.0] * 6
+    assert calls == {"fk": 1, "jacobian": 0}, calls
+    r.set_joints(q0 + 0.01, np.full(6, 0.5))  # moved, moving
+    pose, speed = r.tcp_pose(), r.tcp_speed()
+    assert pose == se3_to_pose(fk(q0 + 0.01)) and pose != first
+    assert np.allclose(speed, jacobian(q0 + 0.01) @ np.full(6, 0.5))
+    assert r.tcp_speed() == speed and calls == {"fk": 2, "jacobian": 1}, calls
+    r.kin.tcp = pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.1]))  # set_tcp: the same joints, another TCP
+    assert r.tcp_pose() == se3_to_pose(fk(q0 + 0.01)) != pose
+    assert calls["fk"] == 3
+    r.tcp_pose().append(1.0)  # a caller's list is its own
+    assert len(r.tcp_pose()) == 6

@@ -147,3 +147,72 @@ def test_the_loops_wait_takes_one_message_per_wake_up_and_loses_none():
         ours.close()
         theirs.close()
         mem.close()
+
+
+def test_an_unchanged_realtime_command_is_sent_again_only_every_keep_alive_period():
+    """ur_rtde's control script repeats its realtime command by itself (its servo thread servoes
+    to the last target every tick), so a hold (the same servoJ every cycle) is not sent to the
+    worker every cycle (a send, the worker's wake-up, an RTDE package and the controller's
+    receive, 500 times a second): the same command goes out again only every keep-alive period
+    (the script's RTDE watchdog stays fed); a changed one, another op, or the first after any
+    other message (a request may run a command on the script) goes out at once."""
+    import socket
+
+    from crtk_bridge.backends.ur.channel import COMMAND, KICK, SERVOJ, SPEEDJ, WorkerHandle
+
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    theirs.setblocking(False)
+    w = WorkerHandle("127.0.0.9", 500.0)
+    ours.setblocking(False)
+    w.sock = ours
+    now = [100.0]
+    w.clock = lambda: now[0]
+
+    def received() -> list:
+        out = []
+        while True:
+            try:
+                data = theirs.recv(4096)
+            except BlockingIOError:
+                return out
+            out.append(COMMAND.unpack(data)[1:8] if data[:1] == b"C" else data[:1])
+
+    try:
+        q = [0.1, -1.5, 1.5, -1.5, -1.5, 0.2]
+        for _ in range(5):  # a hold: five cycles, 2 ms apart
+            assert w.command(SERVOJ, q, 0.0, 0.002, 0.05, 600.0, repeat_s=0.02)
+            now[0] += 0.002
+        assert received() == [(SERVOJ, *q)]
+        now[0] += 0.011  # 21 ms after the first: sent again (the script's watchdog is fed)
+        assert w.command(SERVOJ, q, 0.0, 0.002, 0.05, 600.0, repeat_s=0.02)
+        assert received() == [(SERVOJ, *q)]
+        moved = [*q[:5], 0.2001]  # a changed target: at once
+        assert w.command(SERVOJ, moved, 0.0, 0.002, 0.05, 600.0, repeat_s=0.02)
+        assert w.command(SPEEDJ, [0.0] * 6, 1.0, 0.0, repeat_s=0.02)  # another op: at once
+        assert w.command(SERVOJ, moved, 0.0, 0.002, 0.05, 600.0, repeat_s=0.02)  # and back
+        assert received() == [(SERVOJ, *moved), (SPEEDJ, *[0.0] * 6), (SERVOJ, *moved)]
+        assert w.request("isJointsWithinSafetyLimits", moved) is not None  # a request on the script
+        assert w.command(SERVOJ, moved, 0.0, 0.002, 0.05, 600.0, repeat_s=0.02)
+        assert [m if m == b"Q" else m[0] for m in received()] == [b"Q", SERVOJ]
+        assert w.command(KICK, [0.0] * 6) and w.command(KICK, [0.0] * 6)  # repeat_s 0: every time
+        assert [m[0] for m in received()] == [KICK, KICK]
+    finally:
+        ours.close()
+        theirs.close()
+
+
+def test_the_keep_alive_period_stays_under_the_scripts_watchdog_period():
+    """The keep-alive (an unchanged command repeated, or a kick when none went out) is a fifth of
+    the watchdog's period, at most 20 ms: a fast watchdog is fed often enough."""
+    from pathlib import Path
+
+    import msgspec
+
+    from crtk_bridge.backends.ur.backend import UrBackend
+    from crtk_bridge.profile import load_profile
+
+    profile = load_profile(Path(__file__).resolve().parent.parent / "profiles" / "ur5e.yaml")
+    for hz, keepalive in ((10.0, 0.02), (2.0, 0.02), (50.0, 0.004), (500.0, 0.0004)):
+        backend = dict(profile.backend, host="127.0.0.9", watchdog_hz=hz)
+        b = UrBackend(msgspec.structs.replace(profile, backend=backend))
+        assert abs(b._keepalive_s - keepalive) < 1e-12, (hz, b._keepalive_s)

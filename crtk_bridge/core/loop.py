@@ -45,6 +45,9 @@ _decode = msgspec.msgpack.Decoder().decode
 MAX_REQUESTS_PER_CYCLE = 64
 _STOPS = ("disable", "pause", "hold")  # accepted during a shutdown park: a stop is never refused
 MAX_MESSAGE = 1 << 17  # bytes; the front refuses request lines above server.MAX_LINE (64 KiB)
+#: the longest (s) the loop goes without a receive on the pair while the front's count of what it
+#: sent stands still (the snapshot's ``posted``): a front that died (EOF) is seen within it
+RECEIVE_AT_LEAST_S = 0.02
 
 
 def _threads() -> list[int]:
@@ -131,6 +134,31 @@ class ControlLoop:
                              for k, m in enumerate(ns) if m.name in self.controller.native_cartesian]
         v = snapshot.views
         self._v = v
+        # the namespaces' setpoint p, v, f and goal p, v, f: one (6, joints) view of the snapshot,
+        # written from each namespace's block (core/motion.py) in one copy
+        sl = snapshot.layout.slices
+        n = len(profile.joints)
+        assert [sl[f].start for f in ("setpoint_p", "setpoint_v", "setpoint_f", "goal_p", "goal_v", "goal_f")] \
+            == [sl["setpoint_p"].start + i * n for i in range(6)], "snapshot layout: setpoints and goals in a row"
+        self._motion_block = snapshot.data[sl["setpoint_p"].start:sl["goal_f"].stop].reshape(6, n)
+        self._ns_blocks = [(k, m, m.cols) for k, m in enumerate(ns)]
+        assert [sl[f].start for f in ("measured_p", "measured_v", "measured_f")] \
+            == [sl["measured_p"].start + i * n for i in range(3)], "snapshot layout: measured p, v, f in a row"
+        self._measured = snapshot.data[sl["measured_p"].start:sl["measured_f"].stop].reshape(3, n)
+        # the snapshot's fields _publish writes in every cycle, looked up once
+        self._pub = tuple(v[name] for name in (
+            "measured_stamp", "ns_setpoint_stamp", "ns_has_p", "ns_has_v", "ns_has_f",
+            "ns_goal_stamp", "ns_goal_has_p", "ns_goal_has_v", "ns_goal_has_f"))
+        self._native_pub = tuple(v[name] for name in (
+            "ns_cart_stamp", "ns_cart_p", "ns_cart_q", "ns_cart_f", "ns_cart_sp_stamp", "ns_cart_sp_p",
+            "ns_cart_sp_q", "ns_cart_tw_stamp", "ns_cart_tw", "ns_cart_tw_frame", "ns_cart_goal_stamp",
+            "ns_cart_goal_p", "ns_cart_goal_q"))
+        # the front's count of the messages it sent on the pair (-1: not counted, receive every
+        # cycle), and the count the last receive that emptied the pair had seen before it began
+        self._posted = snapshot.posted
+        self._drained = -1
+        self._quiet = 0  # cycles since the last receive
+        self._quiet_max = max(0, int(RECEIVE_AT_LEAST_S / self.period) - 1)
 
     # ---------------------------------------------------------------- messaging
     def _send(self, msg: dict) -> None:
@@ -161,10 +189,20 @@ class ControlLoop:
                 self.front_alive = False
 
     def _receive(self) -> None:
+        # nothing sent since the pair was last emptied: no receive (a system call and an exception
+        # in every cycle), but one at least every RECEIVE_AT_LEAST_S, so the front's loss is seen
+        posted = int(self._posted[0])
+        if posted == self._drained and posted >= 0 and self._quiet < self._quiet_max:
+            self._quiet += 1
+            return
+        self._quiet = 0
         for _ in range(MAX_REQUESTS_PER_CYCLE):
             try:
                 data = self.chan.recv(MAX_MESSAGE, socket.MSG_DONTWAIT)
             except BlockingIOError:
+                # empty: every message counted before the receive began was taken (the front
+                # counts after its send); one counted meanwhile is taken next cycle
+                self._drained = posted
                 return
             except OSError:
                 self.front_alive = False
@@ -193,47 +231,48 @@ class ControlLoop:
 
     # ---------------------------------------------------------------- snapshot
     def _publish(self) -> None:
-        c, v, fb = self.controller, self._v, self.controller.feedback
+        c, fb = self.controller, self.controller.feedback
+        mst, st, hp, hv, hf, gst, ghp, ghv, ghf = self._pub
         self.snap.begin()
         # a missed read leaves the last sample, honestly stamped; it turns invalid only with a bus fault
-        v["measured_stamp"][0] = fb.stamp if c.measured_valid else 0.0
-        v["measured_p"][:] = fb.position
-        v["measured_v"][:] = fb.velocity
-        v["measured_f"][:] = fb.effort
-        for k, m in enumerate(self._ns):
-            v["setpoint_p"][m.idx] = m.setpoint_p
-            v["setpoint_v"][m.idx] = m.setpoint_v
-            v["setpoint_f"][m.idx] = m.setpoint_f
-            v["goal_p"][m.idx] = m.goal_p
-            v["goal_v"][m.idx] = m.goal_v
-            v["goal_f"][m.idx] = m.goal_f
+        mst[0] = fb.stamp if c.measured_valid else 0.0
+        self._measured[:] = c.measured_block  # measured p, v, f
+        block = self._motion_block
+        for k, m, cols in self._ns_blocks:
+            block[:, cols] = m.block  # setpoint p, v, f and goal p, v, f of its joints
             has_p, has_v, has_f = m.setpoint_fields()
-            v["ns_setpoint_stamp"][k] = m.setpoint_stamp if (has_p or has_v or has_f) else 0.0
-            v["ns_has_p"][k] = has_p
-            v["ns_has_v"][k] = has_v
-            v["ns_has_f"][k] = has_f
-            g_p, g_v, g_f = m.goal_fields()
-            v["ns_goal_stamp"][k] = m.goal_stamp if (g_p or g_v or g_f) else 0.0
-            v["ns_goal_has_p"][k] = g_p
-            v["ns_goal_has_v"][k] = g_v
-            v["ns_goal_has_f"][k] = g_f
+            st[k] = m.setpoint_stamp if (has_p or has_v or has_f) else 0.0
+            hp[k] = has_p
+            hv[k] = has_v
+            hf[k] = has_f
+            has_p, has_v, has_f = m.goal_fields()
+            gst[k] = m.goal_stamp if (has_p or has_v or has_f) else 0.0
+            ghp[k] = has_p
+            ghv[k] = has_v
+            ghf[k] = has_f
+        if self._native_rows:
+            self._publish_native()
+        self.snap.end()
+
+    def _publish_native(self) -> None:
+        c, fb = self.controller, self.controller.feedback
+        cst, cp, cq, cf, sst, sp, sq, tst, tw, tfr, gst, gp, gq = self._native_pub
         fc = fb.cartesian
         for k, row, nc in self._native_rows:  # measured_cp straight from a native cartesian backend
-            v["ns_cart_stamp"][k] = fc.stamp if c.measured_valid else 0.0
-            v["ns_cart_p"][3 * k:3 * k + 3] = fc.position[row]
-            v["ns_cart_q"][4 * k:4 * k + 4] = fc.orientation[row]
+            cst[k] = fc.stamp if c.measured_valid else 0.0
+            cp[3 * k:3 * k + 3] = fc.position[row]
+            cq[4 * k:4 * k + 4] = fc.orientation[row]
             if fc.wrench is not None:
-                v["ns_cart_f"][6 * k:6 * k + 6] = fc.wrench[row]
-            v["ns_cart_sp_stamp"][k] = nc.setpoint_stamp  # what it was commanded
-            v["ns_cart_sp_p"][3 * k:3 * k + 3] = nc.position
-            v["ns_cart_sp_q"][4 * k:4 * k + 4] = nc.orientation
-            v["ns_cart_tw_stamp"][k] = nc.twist_stamp
-            v["ns_cart_tw"][6 * k:6 * k + 6] = nc.twist
-            v["ns_cart_tw_frame"][k] = nc.frame
-            v["ns_cart_goal_stamp"][k] = nc.goal_stamp
-            v["ns_cart_goal_p"][3 * k:3 * k + 3] = nc.goal_position
-            v["ns_cart_goal_q"][4 * k:4 * k + 4] = nc.goal_orientation
-        self.snap.end()
+                cf[6 * k:6 * k + 6] = fc.wrench[row]
+            sst[k] = nc.setpoint_stamp  # what it was commanded
+            sp[3 * k:3 * k + 3] = nc.position
+            sq[4 * k:4 * k + 4] = nc.orientation
+            tst[k] = nc.twist_stamp
+            tw[6 * k:6 * k + 6] = nc.twist
+            tfr[k] = nc.frame
+            gst[k] = nc.goal_stamp
+            gp[3 * k:3 * k + 3] = nc.goal_position
+            gq[4 * k:4 * k + 4] = nc.goal_orientation
 
     # ---------------------------------------------------------------- the loop
     def run(self, ready: dict | None = None) -> int:

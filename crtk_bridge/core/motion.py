@@ -140,6 +140,10 @@ class NamespaceMotion:
         #: an error the controller reports (and clears) after the cycle's step: a failed plan
         self.error: str | None = None
         self.idx = np.asarray(indices, dtype=np.intp)
+        # the joints as a slice when they are consecutive (as usual: indexing is then a view)
+        self.cols = (slice(indices[0], indices[0] + len(indices))
+                     if len(indices) and list(indices) == list(range(indices[0], indices[0] + len(indices)))
+                     else self.idx)
         joints = [profile.joints[i] for i in indices]
         self.joint_names = [j.name for j in joints]
         self.n = n = len(indices)
@@ -163,16 +167,17 @@ class NamespaceMotion:
         self.no_home = [j.name for j in joints if j.home is None]
         self.mode = Mode.HOLD
         self.level: Mode | None = None  # command level that produced the setpoint (None: invalid)
-        self.setpoint_p = np.zeros(n)
-        self.setpoint_v = np.zeros(n)
-        self.setpoint_f = np.zeros(n)
+        #: setpoint p, v, f and goal p, v, f: the rows of one block, in the snapshot's order, so
+        #: the loop publishes the six in one copy and :meth:`fill` bounds v and f in one clip
+        #: (core/loop.py; each numpy call on a few joints costs microseconds in a cold cycle)
+        self.block = np.zeros((6, n))
+        self.setpoint_p, self.setpoint_v, self.setpoint_f, self.goal_p, self.goal_v, self.goal_f = self.block
+        self._vf = self.block[1:3]  # setpoint v and f
+        self._pvf = self.block[:3]  # setpoint p, v and f
         self.has_v_ff = False  # servo_jp carried a velocity feed-forward
         self.servo_target = np.zeros(n)  # latest servo_jp / servo_jr position; setpoint_p follows it
         self.servo_rate = np.zeros(n)  # rad/s the position setpoint really moved at last cycle (SERVO_P)
         self.setpoint_stamp = 0.0
-        self.goal_p = np.zeros(n)
-        self.goal_v = np.zeros(n)
-        self.goal_f = np.zeros(n)
         self.goal_level: Mode | None = None  # interpolate_* or move that set the goal
         self.goal_stamp = 0.0
         self.last_cmd_time = 0.0
@@ -215,6 +220,12 @@ class NamespaceMotion:
         self._integrated_at = 0.0  # clock of the last velocity integration (0: none yet)
         self._integrate_max_s = max(_INTEGRATE_MAX_GAP_S, _INTEGRATE_MAX_PERIODS * dt)
         self._step_max = self.vel_max * dt  # rad: the farthest a position setpoint moves in one cycle
+        # the negated bounds, made once (a negation per clip was an array made in every cycle)
+        self._vel_min = -self.vel_max
+        self._eff_min = -self.eff_max
+        self._step_min = -self._step_max
+        self._vf_max = np.array([self.vel_max, self.eff_max])  # the bounds of setpoint v and f
+        self._vf_min = -self._vf_max
 
     # ------------------------------------------------------------------ fields (spec 4.2.5)
     def setpoint_fields(self) -> tuple[bool, bool, bool]:
@@ -300,7 +311,7 @@ class NamespaceMotion:
         self.servo_target[:] = p
         self.has_v_ff = v is not None
         if v is not None:
-            _clip(v, -self.vel_max, self.vel_max, self.setpoint_v)
+            _clip(v, self._vel_min, self.vel_max, self.setpoint_v)
         else:
             self.setpoint_v[:] = 0.0
         self.goal_level = None
@@ -308,13 +319,13 @@ class NamespaceMotion:
 
     def servo_v(self, v: np.ndarray, now: float) -> None:
         self._enter(Mode.SERVO_V, now)
-        _clip(v, -self.vel_max, self.vel_max, self.setpoint_v)
+        _clip(v, self._vel_min, self.vel_max, self.setpoint_v)
         self.goal_level = None
         self.goal_stamp = 0.0
 
     def servo_f(self, f: np.ndarray, now: float) -> None:
         self._enter(Mode.SERVO_F, now)
-        _clip(f, -self.eff_max, self.eff_max, self.setpoint_f)
+        _clip(f, self._eff_min, self.eff_max, self.setpoint_f)
         self.goal_level = None
         self.goal_stamp = 0.0
 
@@ -519,7 +530,7 @@ class NamespaceMotion:
 
     def _integrate(self, now: float) -> None:
         # whatever the velocity came from (a command, a ramp, a mode switch): within velocity_max
-        _clip(self.setpoint_v, -self.vel_max, self.vel_max, self.setpoint_v)
+        _clip(self.setpoint_v, self._vel_min, self.vel_max, self.setpoint_v)
         if self.caps.velocity:
             # native velocity control: nothing to integrate, but the position limits still hold:
             # brake so that the joint can stop at its limit (v <= sqrt(2 a d)), zero beyond it
@@ -551,7 +562,7 @@ class NamespaceMotion:
         """Move the position setpoint toward the servo target, at most ``velocity_max * dt``."""
         step = self._tmp
         np.subtract(self.servo_target, self.setpoint_p, out=step)
-        _clip(step, -self._step_max, self._step_max, step)
+        _clip(step, self._step_min, self._step_max, step)
         self.setpoint_p += step
         np.divide(step, self.dt, out=self.servo_rate)
         self.setpoint_stamp = now
@@ -673,8 +684,10 @@ class NamespaceMotion:
             return CommandMode.VELOCITY
         return CommandMode.POSITION
 
-    def fill(self, cmd: JointCommand) -> None:
-        """Write this namespace's setpoints into the native command, in the hardware's terms."""
+    def fill(self, cmd: JointCommand, block: np.ndarray | None = None) -> None:
+        """Write this namespace's setpoints into the native command, in the hardware's terms.
+        ``block``: the command's position, velocity and effort as the rows of one (3, joints)
+        array (the controller's), written in one copy."""
         idx = self.idx
         mode = self.mode
         if mode is Mode.FREE:
@@ -692,9 +705,11 @@ class NamespaceMotion:
                 _clip(self.setpoint_p, lo, hi, self.setpoint_p)
         # the velocity and effort stage: every path bounds them already (above); this is the
         # output's own guarantee, so no backend clamps to a profile limit
-        _clip(self.setpoint_v, -self.vel_max, self.vel_max, self.setpoint_v)
-        _clip(self.setpoint_f, -self.eff_max, self.eff_max, self.setpoint_f)
+        _clip(self._vf, self._vf_min, self._vf_max, self._vf)
         self._filled[:] = self.setpoint_p
-        cmd.position[idx] = self.setpoint_p
-        cmd.velocity[idx] = self.setpoint_v
-        cmd.effort[idx] = self.setpoint_f
+        if block is not None:
+            block[:, self.cols] = self._pvf
+        else:
+            cmd.position[idx] = self.setpoint_p
+            cmd.velocity[idx] = self.setpoint_v
+            cmd.effort[idx] = self.setpoint_f

@@ -4,7 +4,10 @@ One writer (the control loop), any number of readers (the front process). The wr
 sequence number to odd, writes, bumps it to even; a reader copies the block and retries if the
 sequence was odd or changed meanwhile. Nothing is allocated on the writer's side per cycle.
 
-Layout (float64 unless said): ``seq`` (int64) | measured stamp, p[n], v[n], f[n] |
+Header (int64): ``seq`` | ``posted``: the requests the front sent on the pair so far, which the
+front alone writes (after each send; -1 until its link counts them), so the loop skips the
+receive system call in a cycle where nothing was sent (core/loop.py :meth:`ControlLoop._receive`).
+Layout (float64 unless said), after the header: measured stamp, p[n], v[n], f[n] |
 setpoint p[n], v[n], f[n] | goal p[n], v[n], f[n] | per namespace: setpoint stamp, has_p,
 has_v, has_f, goal stamp, goal has_p, has_v, has_f | per namespace: native cartesian stamp, p[3], q[4], wrench[6] | per namespace: native
 cartesian setpoint stamp, p[3], q[4], twist stamp, twist[6], twist frame, goal stamp, p[3], q[4] | cycle count, overrun count, lateness ring [RING], compute ring [RING].
@@ -19,6 +22,7 @@ from multiprocessing import shared_memory
 import numpy as np
 
 RING = 1024  # samples of loop lateness / compute time kept for period_statistics
+HEADER_BYTES = 16  # seq, posted (int64 each)
 
 
 @dataclass
@@ -50,7 +54,7 @@ class Layout:
 
     @property
     def nbytes(self) -> int:
-        return 8 + 8 * self.size
+        return HEADER_BYTES + 8 * self.size
 
 
 class SnapshotBuffer:
@@ -60,10 +64,13 @@ class SnapshotBuffer:
         self.layout = layout
         self.shm = shared_memory.SharedMemory(name=name, create=create, size=layout.nbytes)
         self.seq = np.ndarray((1,), dtype=np.int64, buffer=self.shm.buf, offset=0)
-        self.data = np.ndarray((layout.size,), dtype=np.float64, buffer=self.shm.buf, offset=8)
+        #: requests the front posted on the pair (its link bumps it after each send; -1: not counted)
+        self.posted = np.ndarray((1,), dtype=np.int64, buffer=self.shm.buf, offset=8)
+        self.data = np.ndarray((layout.size,), dtype=np.float64, buffer=self.shm.buf, offset=HEADER_BYTES)
         self.views = {name: self.data[s] for name, s in layout.slices.items()}
         if create:
             self.seq[0] = 0
+            self.posted[0] = -1  # until a link counts its sends, the loop receives every cycle
             self.data[:] = 0.0
 
     @property
@@ -98,7 +105,7 @@ class SnapshotBuffer:
 
     def close(self, unlink: bool = False) -> None:
         self.views.clear()
-        del self.seq, self.data
+        del self.seq, self.posted, self.data
         self.shm.close()
         if unlink:
             try:

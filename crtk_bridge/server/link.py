@@ -40,9 +40,14 @@ class ControlLink:
         self._ids = itertools.count(1)
         self._pending: dict[int, asyncio.Future] = {}
         self._outq: deque[bytes] = deque()  # messages waiting for room on the pair, in order
+        # the messages sent on the pair, counted in shared memory after each send: the loop skips
+        # its receive (a system call) in a cycle where the count did not move (core/loop.py)
+        self._posted = snapshot.posted
+        self._posted[0] = 0
         self.lost = False
         self._buf = np.empty_like(snapshot.data)
         self._slices = snapshot.layout.slices
+        self._state_size = self._slices["lateness"].start  # the state and counters, not the rings
         self.ns_index = {ns.name: k for k, ns in enumerate(profile.namespaces)}
         self.ns_joints = {ns.name: np.array([profile.joint_index(j) for j in ns.joints]) for ns in profile.namespaces}
         self.ns_names = {ns.name: list(ns.joints) for ns in profile.namespaces}
@@ -183,6 +188,7 @@ class ControlLink:
         if not self._outq:
             try:
                 self.chan.send(data)
+                self._posted[0] += 1  # after the send: a loop that sees the count finds the message
                 return
             except BlockingIOError:
                 pass
@@ -201,12 +207,17 @@ class ControlLink:
             except OSError:  # the pair is gone: _readable sees the EOF and says so
                 self._outq.clear()
                 break
+            self._posted[0] += 1
             self._outq.popleft()
         asyncio.get_running_loop().remove_writer(self.chan.fileno())
 
     # ---------------------------------------------------------------- snapshot views
-    def read(self) -> np.ndarray:
-        buf, _ = self.snap.read(self._buf)
+    def read(self, statistics: bool = False) -> np.ndarray:
+        """A consistent copy of the snapshot: its state and counters (the joint state, what a
+        stream tick or a query needs), or with ``statistics`` the whole block, its lateness and
+        compute rings too (16 KiB: eight times the state of a 6-joint arm, copied in every tick
+        of every stream before)."""
+        buf, _ = self.snap.read(self._buf, upto=None if statistics else self._state_size)
         return buf
 
     def cycles(self) -> int:
@@ -283,7 +294,7 @@ class ControlLink:
         }
 
     def period_statistics(self) -> dict:
-        buf = self.read()
+        buf = self.read(statistics=True)
         s = self._slices
         cycles = int(buf[s["cycles"]][0])
         n = min(cycles, RING)

@@ -45,8 +45,12 @@ drives share one bus endpoint (python-can ``virtual`` channel in-process, or soc
 where the kernel has it) whose one notifier thread hands every frame to each drive in turn, the
 drives' own frames too (they hear each other as on a real bus). One receive thread per drive
 woke for every frame on the bus, each a thread switch and GIL hand-off: most of the simulator's
-CPU at 250 Hz (issue 23: "the simulators count too"). :meth:`Drive402.connect` still gives a
-drive an endpoint and a notifier of its own.
+CPU at 250 Hz (issue 23: "the simulators count too"). Behind the simulated USB-CAN adapter
+(``interface="slcan"``, what ``--sim`` runs) the drives and the adapter share the in-process bus
+of :mod:`crtk_bridge.sim.canbus` instead of a ``virtual`` channel: the drives handle a frame in
+the adapter's thread that parsed it, with no receive thread at all (a deepcopy and a thread
+hand-off per frame and endpoint were ~half of the simulator's CPU per cycle).
+:meth:`Drive402.connect` still gives a drive an endpoint and a notifier of its own.
 """
 
 from __future__ import annotations
@@ -67,7 +71,7 @@ from canopen import objectdictionary as odm
 from canopen.sdo import SdoAbortedError
 
 from ..profile import Profile
-from . import SimulatorError
+from . import SimulatorError, canbus
 
 log = logging.getLogger(__name__)
 
@@ -299,6 +303,7 @@ class _Pdo:
     inhibit_s: float = 0.0
     event_s: float = 0.0
     entries: list[tuple[int, int, int]] = field(default_factory=list)  # (index, sub, bytes)
+    objects: list[odm.ODVariable | None] = field(default_factory=list)  # each entry's variable
     size: int = 0
     syncs: int = 0  # SYNCs seen since the last transmission (TPDO)
     pending: bytes | None = None  # SYNC-type RPDO data awaiting the next SYNC
@@ -546,7 +551,14 @@ class Drive402:
             offset += size
 
     def _sample(self, pdo: _Pdo) -> bytes:
-        return b"".join(self.local.get_data(index, sub)[:size] for index, sub, size in pdo.entries)
+        # what LocalNode.get_data does for each mapped object -- our read callback (the node's
+        # only one) first, else its store -- with the objects looked up once per mapping
+        # (_load_pdos): get_data's lookup per object per SYNC was a tenth of the simulator's CPU
+        out = []
+        for (index, sub, size), od in zip(pdo.entries, pdo.objects):
+            value = self._on_read(index, sub, od) if od is not None else None
+            out.append(od.encode_raw(value)[:size] if value is not None else self.local.get_data(index, sub)[:size])
+        return b"".join(out)
 
     def _send_pdo(self, pdo: _Pdo, data: bytes, now: float) -> None:
         pdo.last, pdo.sent_at = data, now
@@ -570,7 +582,15 @@ class Drive402:
                     entry = raw(mapping, sub)
                     pdo.entries.append((entry >> 16, (entry >> 8) & 0xFF, (entry & 0xFF) // 8))
                 pdo.size = sum(e[2] for e in pdo.entries)
+                pdo.objects = [self._object(index, sub) for index, sub, _ in pdo.entries]
                 pdo.syncs, pdo.pending, pdo.last = 0, None, None
+
+    def _object(self, index: int, sub: int) -> odm.ODVariable | None:
+        """The object dictionary's variable ``index:sub``, or None (get_data then aborts)."""
+        try:
+            return self.local._find_object(index, sub)
+        except SdoAbortedError:
+            return None
 
     # ------------------------------------------------------------------ object access
     def _param(self, index: int, sub: int = 0) -> int:
@@ -1092,7 +1112,9 @@ class CanopenSimulator:
         if interface == "slcan":
             from .slcan import SlcanAdapter
 
-            self._bus = ("virtual", _private_channel())
+            # the adapter and the drives on one in-process bus: frames handed over in the
+            # sending thread, no receive thread of the drives' own (canbus.py)
+            self._bus = (canbus.INTERFACE, _private_channel())
             self.adapter = SlcanAdapter(*self._bus, self.bitrate, link=link)
         else:
             self._bus = (interface, channel or _private_channel())
@@ -1173,10 +1195,15 @@ class CanopenSimulator:
         try:
             if self.adapter is not None:
                 self.adapter.start()  # first: the drives' boot-up messages reach an open adapter
-            # one endpoint and one receive thread for every drive (see the module docstring);
-            # its own frames come back to it, so each drive hears the others
-            self._drive_bus = can.Bus(interface=self._bus[0], channel=self._bus[1], receive_own_messages=True)
-            self._notifier = can.Notifier(self._drive_bus, [self._hear], timeout=NOTIFIER_CYCLE_S)
+            # one endpoint for every drive (see the module docstring); its own frames come back
+            # to it, so each drive hears the others. Behind the adapter, the in-process bus
+            # hands each frame to the drives in the thread that sent it; on a python-can bus,
+            # one receive thread does
+            if self._bus[0] == canbus.INTERFACE:
+                self._drive_bus = canbus.LocalBus(self._bus[1], receive_own_messages=True, on_message=self._hear)
+            else:
+                self._drive_bus = can.Bus(interface=self._bus[0], channel=self._bus[1], receive_own_messages=True)
+                self._notifier = can.Notifier(self._drive_bus, [self._hear], timeout=NOTIFIER_CYCLE_S)
             for drive in self.drives.values():
                 drive.attach(self._drive_bus)
                 started.append(drive)

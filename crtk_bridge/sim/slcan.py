@@ -37,7 +37,7 @@ import time
 
 import can
 
-from . import SimulatorError
+from . import SimulatorError, canbus
 from .pty import PtyPort
 
 log = logging.getLogger(__name__)
@@ -105,11 +105,12 @@ class SlcanAdapter:
         self._write_lock = threading.Lock()
         #: the acknowledgement of each frame sent to the bus, in order, until its echo comes back
         self._acks: collections.deque[bytes] = collections.deque()
+        self._pass_t = 0.0  # wall-clock time frames last started to pass (opened, bus-off over)
         self.is_open = False
         self.listen_only = False
         self.selected_bitrate: int | None = None  # what the master chose with S / s
         self.timestamps = False
-        self.bus_off = False
+        self._bus_off = False
         #: bytes from / to the master, frames from / to the master, lines dropped (client not reading)
         self.rx_bytes = self.tx_bytes = 0
         self.rx_frames = self.tx_frames = 0
@@ -134,7 +135,10 @@ class SlcanAdapter:
             return
         try:
             # its own frames come back (is_rx False): each is acknowledged when it is on the bus
-            self._bus = can.Bus(interface=self.bus_interface, channel=self.bus_channel, receive_own_messages=True)
+            if self.bus_interface == canbus.INTERFACE:  # the simulator's in-process bus
+                self._bus = canbus.LocalBus(self.bus_channel, receive_own_messages=True)
+            else:
+                self._bus = can.Bus(interface=self.bus_interface, channel=self.bus_channel, receive_own_messages=True)
         except Exception as exc:
             raise SimulatorError(f"SLCAN adapter: cannot open {self.bus_interface} channel "
                                  f"{self.bus_channel!r}: {exc}") from exc
@@ -170,6 +174,16 @@ class SlcanAdapter:
         if self._bus is not None:
             self._bus.shutdown()
             self._bus = None
+
+    @property
+    def bus_off(self) -> bool:
+        return self._bus_off
+
+    @bus_off.setter
+    def bus_off(self, on: bool) -> None:
+        if self._bus_off and not on:
+            self._pass_t = time.time()  # what was on the bus meanwhile never reached the adapter
+        self._bus_off = bool(on)
 
     @property
     def passing(self) -> bool:
@@ -235,6 +249,7 @@ class SlcanAdapter:
             return OK
         if c in (b"O", b"L") and len(line) == 1 and not self.is_open:
             self.is_open, self.listen_only = True, c == b"L"
+            self._pass_t = time.time()  # frames on the bus before the channel opened are not received
             return OK
         if c == b"C" and len(line) == 1:
             self.is_open = False
@@ -284,7 +299,10 @@ class SlcanAdapter:
                     if not msg.is_rx:  # one of ours, on the bus: its acknowledgement
                         if self._acks:
                             lines.append(self._acks.popleft())
-                    elif self.passing and not msg.is_error_frame and not msg.is_fd:
+                    # passing when the frame was on the bus (its stamp), not only when this
+                    # thread gets to it: a frame from while the adapter was closed, at the wrong
+                    # bitrate or bus-off is not forwarded after it reopened
+                    elif self.passing and msg.timestamp >= self._pass_t and not msg.is_error_frame and not msg.is_fd:
                         line = format_frame(msg)
                         if self.timestamps:
                             line += f"{int(time.monotonic() * 1000) % 60000:04X}".encode()

@@ -101,9 +101,20 @@ class Kinematics:
         self.model = pin.buildModelFromUrdf(str(urdf))
         self.data = self.model.createData()
         self.frame = self.model.getFrameId(TIP_FRAME)
+        self.tcp_version = 0  # counts changes of the TCP offset (URRobot's per-tick caches)
         self.tcp = pin.SE3.Identity()  # set_tcp
         self.lower = self.model.lowerPositionLimit.copy()
         self.upper = self.model.upperPositionLimit.copy()
+
+    @property
+    def tcp(self) -> pin.SE3:
+        """The TCP offset from the flange (the program's ``set_tcp``)."""
+        return self._tcp
+
+    @tcp.setter
+    def tcp(self, value: pin.SE3) -> None:
+        self._tcp = value
+        self.tcp_version += 1
 
     def fk(self, q) -> pin.SE3:
         pin.framesForwardKinematics(self.model, self.data, np.asarray(q, dtype=float))
@@ -328,6 +339,10 @@ class URRobot:
         self.step_s = 0.002  # the controller tick (set by the server: 2 ms e-Series, 8 ms CB3)
         self.teach_mode = False
         self.tcp_force = np.zeros(6)  # injected external wrench at the TCP (base frame)
+        self._pose_key: tuple | None = None  # tcp_pose's and tcp_speed's last inputs, and answers
+        self._pose: list[float] = []
+        self._speed_key: tuple | None = None
+        self._speed: list[float] = []
         self.motion: Motion | None = None
         self.stop_cause = ""  # why the last safety stop happened (control socket dump)
         self.program: str | None = None  # name of the running / paused program
@@ -359,10 +374,23 @@ class URRobot:
         return [m] * N
 
     def tcp_pose(self) -> list[float]:
-        return se3_to_pose(self.kin.fk(self.q))
+        """The TCP pose; kinematics only when the joints or the TCP offset changed since the last
+        call (every tick asks: an arm at rest, powered off or holding, is most ticks)."""
+        key = (self.q.tobytes(), self.kin.tcp_version)
+        if key != self._pose_key:
+            self._pose_key, self._pose = key, se3_to_pose(self.kin.fk(self.q))
+        return list(self._pose)
 
     def tcp_speed(self) -> list[float]:
-        return (self.kin.jacobian(self.q) @ self.qd).tolist()
+        """The TCP twist (base frame); zero at rest without the Jacobian, which is made only when
+        the joints, their speeds or the TCP offset changed since the last call."""
+        qd = self.qd
+        if not qd.any():
+            return [0.0] * N
+        key = (self.q.tobytes(), qd.tobytes(), self.kin.tcp_version)
+        if key != self._speed_key:
+            self._speed_key, self._speed = key, (self.kin.jacobian(self.q) @ qd).tolist()
+        return list(self._speed)
 
     # ---- motion primitives used by the generators ----
     def move_with_velocity(self, v: np.ndarray, dt: float) -> None:

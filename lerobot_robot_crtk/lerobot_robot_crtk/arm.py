@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Any, Mapping
 
@@ -32,9 +33,16 @@ from crtk_client.errors import CommandError, CrtkBridgeError
 
 log = logging.getLogger(__name__)
 
-#: release("hold") waits at most this long for the last action's interpolation to end
+#: release("hold") waits for the last action's interpolation to end: at least SETTLE_S, and
+#: SETTLE_PERIODS of the slowest of the last actions' intervals (a stream's interpolation ends
+#: within a few of its periods: ``predict`` returns to the last goal after about 4, more for bursty
+#: actions; a 2 Hz policy needs longer than 1 s), at most SETTLE_MAX_S
 SETTLE_S = 1.0
+SETTLE_PERIODS = 6
+SETTLE_MAX_S = 10.0
 SETTLE_POLL_S = 0.005
+#: the action intervals the settle time is measured on
+SETTLE_INTERVALS = 4
 
 UNITS = ("lerobot", "si")
 COMMANDS = ("interpolate", "servo")
@@ -121,6 +129,8 @@ class DaemonArm:
         self.client: Any = None
         self.devices: dict[str, Any] = {}
         self.goal: dict[str, np.ndarray] = {}  # per namespace: the last goal sent (SI)
+        self._sent_at: float | None = None  # monotonic time of the last action sent
+        self._intervals: deque[float] = deque(maxlen=SETTLE_INTERVALS)  # between the last actions (s)
 
     # ---------------------------------------------------------------- description
     def _connect(self) -> Any:
@@ -233,6 +243,8 @@ class DaemonArm:
                 reason = self.fault_reason() if state == "FAULT" else f"still {state} after {self.timeout_s:g} s"
                 raise CrtkFaultError(f"{self.who}: {self.robot_name}: enable failed: {reason}")
         self.goal = {}
+        self._sent_at = None
+        self._intervals.clear()
 
     # ---------------------------------------------------------------- reading
     def read_si(self) -> dict[str, np.ndarray]:
@@ -320,14 +332,24 @@ class DaemonArm:
                 self.check_fault("send_action")
             raise
         self.goal = target
+        now = time.monotonic()
+        if self._sent_at is not None:
+            self._intervals.append(now - self._sent_at)
+        self._sent_at = now
         return {j.key: j.to_units(float(self.goal[j.ns][j.index])) for j in joints if j.key in wanted}
+
+    def settle_s(self) -> float:
+        """How long :meth:`release` waits for the last action's interpolation to end (s)."""
+        slowest = max(self._intervals, default=0.0)
+        return min(SETTLE_MAX_S, max(SETTLE_S, SETTLE_PERIODS * slowest))
 
     def _settle(self, devices: list) -> None:
         """Until each device's interpolation reached its goal (the last action sent), at most
-        SETTLE_S: ``hold`` stops where the setpoint is, and LeRobot disconnects right after its
-        last ``send_action``, so a hold at once left the arm short of the last action by up to
-        one interpolation (a replay ended off its recorded path)."""
-        deadline = time.monotonic() + SETTLE_S
+        :meth:`settle_s`: ``hold`` stops where the setpoint is, and LeRobot disconnects right
+        after its last ``send_action``, so a hold at once left the arm short of the last action
+        by up to one interpolation (a replay ended off its recorded path), or with ``predict``
+        past it."""
+        deadline = time.monotonic() + self.settle_s()
         for dev in devices:
             while time.monotonic() < deadline:
                 goal, setpoint = dev.goal_jp()[0], dev.setpoint_jp()[0]

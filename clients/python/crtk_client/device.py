@@ -23,6 +23,7 @@ state`` and ``enable`` need none, and importing numpy alone costs more than thei
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import queue
 import threading
@@ -1136,12 +1137,24 @@ def _event_matches(ev: Event, kind: str | None, code: str | None, ns: str | None
     return True
 
 
+def _check_timeout(timeout: Any) -> float:
+    """``timeout`` of :func:`connect` / :func:`list_robots`: a finite number of seconds > 0, else
+    CrtkBridgeError naming it (a negative one hung a Zenoh connect for ever; inf and NaN escaped
+    as OverflowError / ValueError from deep inside)."""
+    if isinstance(timeout, bool) or not isinstance(timeout, numbers.Real) or not (
+            math.isfinite(timeout) and timeout > 0):
+        raise CrtkBridgeError(f"crtk-bridge client: timeout: must be a finite number of seconds > 0, "
+                              f"got {timeout!r}")
+    return float(timeout)
+
+
 def list_robots(zenoh_connect: str | list[str] | None = None, timeout: float = 5.0,
                 zenoh_config: str | None = None, zenoh_lease_ms: int | None = None) -> list[str]:
     """The robots a client can reach, sorted: those with a socket in the default directory (see
     :func:`~crtk_client.paths.find_sockets`), or with ``zenoh_connect``, those whose
     daemons serve on the Zenoh network there (raises :class:`DaemonConnectionError` when the
     endpoint does not answer; ``zenoh_config`` and ``zenoh_lease_ms`` as for :func:`connect`)."""
+    timeout = _check_timeout(timeout)
     if zenoh_connect:
         from crtk_client.zenoh_link import list_robots as on_zenoh
 
@@ -1186,8 +1199,10 @@ def connect(socket: str | None = None, robot: str | None = None,
     lease (default 2000 ms: the daemon notices a frozen client within it; docs/zenoh.md, "Lease").
     ``timeout`` (s): default reply timeout. Blocks for one ``list`` round trip. Raises
     :class:`DaemonConnectionError` (a ``ConnectionError`` naming the path or endpoint) if no daemon answers there,
-    :class:`CrtkBridgeError` on a protocol version mismatch.
+    :class:`CrtkBridgeError` on a protocol version mismatch or a ``timeout`` that is not a finite
+    number > 0.
     """
+    timeout = _check_timeout(timeout)
     if zenoh_connect:
         if socket:
             raise CrtkBridgeError("give a socket path or a Zenoh endpoint (zenoh_connect), not both")

@@ -63,6 +63,17 @@ def endpoint_host(endpoint: str) -> tuple[str, str]:
     return proto, address.rsplit(":", 1)[0]
 
 
+#: the longest a Zenoh session handshake may take (ms) on a link that opened: a few round trips,
+#: well under a second on a LAN or over TLS across the internet
+HANDSHAKE_MS_MAX = 2000
+
+
+def handshake_ms(connect_timeout_s: float) -> int:
+    """Zenoh's ``transport/unicast/open_timeout`` for a session whose start-up waits
+    ``connect_timeout_s`` for each endpoint: that, at most HANDSHAKE_MS_MAX, at least 100 ms."""
+    return max(100, int(min(HANDSHAKE_MS_MAX, connect_timeout_s * 1000)))
+
+
 def session_config(config: Any, extra: dict[str, Any] | None = None,
                    base: str | None = None) -> "zenoh.Config":
     """The ``zenoh.Config`` of ``config``: multicast scouting off, exactly the configured endpoints,
@@ -86,6 +97,12 @@ def session_config(config: Any, extra: dict[str, Any] | None = None,
         # that much silence; keep-alives go out on an idle link every lease/keep_alive
         "transport/link/tx/lease": config.lease_ms,
         "transport/link/tx/keep_alive": ZENOH_KEEP_ALIVE_PER_LEASE,
+        # how long opening a link's session (Zenoh's handshake) may take: a client that lost its
+        # daemon retries its endpoint, and a frozen daemon's kernel still accepts the TCP
+        # connection, so the handshake hangs; closing the session waits for it (Zenoh's 10 s
+        # default). A handshake is a few round trips: bounded by the start-up timeout and
+        # HANDSHAKE_MS_MAX, closing a client whose daemon froze takes at most that
+        "transport/unicast/open_timeout": handshake_ms(config.connect_timeout_s),
         # HLC timestamps on samples, as rmw_zenoh's default session has them: zenoh.ext's
         # AdvancedPublishers (the ROS graph's, transport/ros) need them for their sequencing
         "timestamping/enabled": True,

@@ -13,7 +13,10 @@ What the library does not do, or does in a way a real-time loop cannot use, is d
   (statusword, position, mode display; velocity, torque). ``read`` takes the TPDOs that answered
   the previous SYNC (in already: no waiting in the cycle); ``write`` sets each drive's RPDOs
   (controlword, target position, mode; target velocity and torque where the drive has CSV / CST)
-  and transmits them with ``PdoMap.transmit()``. Every cycle, in every operating state. No library
+  and transmits them with ``PdoMap.transmit()`` (on an slcan adapter the cycle's frames -- SYNC
+  and the master's heartbeat in one write, the RPDOs in another -- are formatted here into
+  python-can's slcan lines, slcan.py ``send_lines``: a ``Message``, a lock and a format per
+  frame were a fifth of the control process's CPU). Every cycle, in every operating state. No library
   thread sends anything periodic (its ``start()`` threads are not locked to the loop, and its
   setters do not send SYNC-type RPDOs at all). Start-up, shutdown and tests run the same cycle
   (core/cycle.py), so there is one way the bus is driven. TPDOs are counted, not tagged: a TPDO that has not
@@ -57,13 +60,13 @@ gear_ratio)`` for ``unit: rad`` (``1 / (...)`` for ``unit: m``):
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import logging
 import math
 import struct
 import threading
 import time
+from binascii import hexlify
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -198,6 +201,8 @@ class _Drive:
         self.v: dict[int, Any] = {}  # object index -> PdoVariable (RPDO and TPDO entries)
         #: PDO map -> the struct of its payload, from the mapped objects' types (_map_pdos)
         self.layout: dict[Any, struct.Struct] = {}
+        #: RPDO map -> the head of its slcan line (``t`` COB-ID DLC), for the cycle's frames
+        self.head: dict[Any, bytes] = {}
         # last TPDO values (raw) and the SYNC count they answered
         self.sw = 0
         self.state: State402 | None = None
@@ -324,6 +329,7 @@ class Canopen402Backend(Actuator):
         # the master's heartbeat: sent by _sync_out once the loop's wait_cycle has run
         self._master_hb_cob = t.HEARTBEAT_COB_BASE + cfg.master_node_id
         self._master_hb_data = bytes([t.NMT_OPERATIONAL])
+        self._master_hb_line = SlcanBus.line(self._master_hb_cob, self._master_hb_data)
         self._master_hb_period_s = cfg.master_heartbeat_ms / 1000.0
         self._master_hb_due: float | None = None  # monotonic time the next one is due; None: not yet
         # after an outage (TPDOs missing, bus down), a fault reset waits until the drives' consumer
@@ -334,6 +340,7 @@ class Canopen402Backend(Actuator):
         self._joint_caps: list[Capabilities | None] = [None] * self.n
         self._network: canopen.Network | None = None
         self._rx_event = threading.Event()
+        self._waiting = False  # a read waits for TPDOs: the notifier sets _rx_event (_wait_tpdos)
         self._sync_seq = 0  # SYNCs sent
         self._sync_t = 0.0  # monotonic time of the last SYNC
         self._sync_mono = [0.0] * _RING  # monotonic time of SYNC n at [n % _RING]
@@ -474,7 +481,8 @@ class Canopen402Backend(Actuator):
             d.nmt = state
             if state == t.NMT_BOOTUP:
                 d.rebooted = True
-            self._rx_event.set()
+            if self._waiting:
+                self._rx_event.set()
 
         def emcy(err: Any, d: _Drive = d) -> None:  # notifier thread
             if err.code & 0xFF00 == 0:
@@ -489,7 +497,8 @@ class Canopen402Backend(Actuator):
         for m, pdo in enumerate(d.tpdos):
             def got(_map: Any, d: _Drive = d, m: int = m) -> None:  # notifier thread
                 d.arrived[m] += 1
-                self._rx_event.set()
+                if self._waiting:  # after the count (see _wait_tpdos)
+                    self._rx_event.set()
 
             pdo.add_callback(got)
         d.rpdo1, d.rpdo2 = node.rpdo[1], node.rpdo[2]
@@ -659,6 +668,7 @@ class Canopen402Backend(Actuator):
                 for index in objects:
                     d.v[index] = pdo.add_variable(index)
                 d.layout[pdo] = _payload_struct(d, pdo)
+                d.head[pdo] = b"t%03X%d" % (pdo.cob_id, d.layout[pdo].size)
             pdo.save()
         d.rpdo2 = node.rpdo[2] if d.csv or d.cst else None
         for n in (2, 3):  # PDOs 3 and 4: off, so no event-driven frames share the cycle
@@ -708,13 +718,24 @@ class Canopen402Backend(Actuator):
         seq = self._sync_seq if seq is None else seq
         ev = self._rx_event
         drives = self.drives if drives is None else drives
-        while True:
-            ev.clear()
-            missing = next((d for d in drives if self._answered(d) < seq), None)
-            remaining = deadline - time.monotonic()
-            if missing is None or remaining <= 0:
-                return missing
-            ev.wait(remaining)
+        # The notifier signals only while a read waits: a TPDO's Event.set (a Condition and a
+        # notify_all) for each of the cycle's frames was a tenth of the notifier's CPU, and the
+        # cycle's read rarely waits (its TPDOs answered the previous SYNC). No wake-up is lost:
+        # the notifier counts a frame before it looks at _waiting, and this looks at the counts
+        # after setting it.
+        if all(self._answered(d) >= seq for d in drives):
+            return None  # the usual case: in already, the event untouched
+        try:
+            while True:
+                ev.clear()
+                self._waiting = True
+                missing = next((d for d in drives if self._answered(d) < seq), None)
+                remaining = deadline - time.monotonic()
+                if missing is None or remaining <= 0:
+                    return missing
+                ev.wait(remaining)
+        finally:
+            self._waiting = False
 
     def _overdue(self, now: float) -> _Drive | None:
         """The first drive that has not answered a SYNC sent more than ``tpdo_timeout_ms`` ago
@@ -905,8 +926,19 @@ class Canopen402Backend(Actuator):
             if d.rpdo2 is not None:
                 d.rpdo2.data = bytearray(d.layout[d.rpdo2].pack(d.target_vel, d.target_torque))
         try:
-            # the cycle's RPDOs in one write to an slcan adapter (slcan.py: SlcanBus.batch)
-            with self._batch():
+            bus = self._network.bus
+            if isinstance(bus, SlcanBus):
+                # the cycle's RPDOs as ONE write of lines formatted here (slcan.py: send_lines,
+                # python-can's bytes without a Message, a lock and a format per frame)
+                lines = []
+                for d in self.drives:
+                    lines.append(d.head[d.rpdo1] + hexlify(d.rpdo1.data).upper() + b"\r")
+                    if d.rpdo2 is not None:
+                        lines.append(d.head[d.rpdo2] + hexlify(d.rpdo2.data).upper() + b"\r")
+                bus.send_lines(b"".join(lines))
+                self._network.check()  # what canopen's send_message checks: the notifier's error
+                self.stats["rpdos"] += len(lines)
+            else:
                 for d in self.drives:
                     d.rpdo1.transmit()
                     if d.rpdo2 is not None:
@@ -918,11 +950,6 @@ class Canopen402Backend(Actuator):
             return self._bus_fault()
         return fault
 
-    def _batch(self) -> contextlib.AbstractContextManager:
-        """Sends held and written together at the end (an slcan bus), or as they come."""
-        bus = self._network.bus
-        return bus.batch() if isinstance(bus, SlcanBus) else contextlib.nullcontext()
-
     def _sync_out(self) -> None:
         """Transmit one SYNC: the drives apply the RPDOs received since the previous one and
         answer with their TPDOs. Never blocks (a failed send marks the bus down for read)."""
@@ -932,11 +959,20 @@ class Canopen402Backend(Actuator):
             self._sync_seq += 1  # first: the answers to this SYNC count against it
             self._sync_t = self._sync_mono[self._sync_seq % _RING] = time.monotonic()
             self._sync_wall[self._sync_seq % _RING] = time.time()
-            self._network.sync.transmit()
-            self.stats["syncs"] += 1
             due = self._master_hb_due
-            if due is not None and self._sync_t >= due:  # the master's heartbeat rides the SYNC
-                self._network.send_message(self._master_hb_cob, self._master_hb_data)
+            heartbeat = due is not None and self._sync_t >= due  # the master's heartbeat rides the SYNC
+            network = self._network
+            bus = network.bus
+            if isinstance(bus, SlcanBus):  # both in one write, formatted here (slcan.py: send_lines)
+                sync = network.sync
+                bus.send_lines(bus.line(sync.cob_id, b"") + (self._master_hb_line if heartbeat else b""))
+                network.check()
+            else:
+                network.sync.transmit()
+                if heartbeat:
+                    network.send_message(self._master_hb_cob, self._master_hb_data)
+            self.stats["syncs"] += 1
+            if heartbeat:
                 self.stats["heartbeats"] += 1
                 due += self._master_hb_period_s  # on its own grid, unless a stall put it behind
                 self._master_hb_due = due if due > self._sync_t else self._sync_t + self._master_hb_period_s

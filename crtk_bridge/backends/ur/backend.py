@@ -23,7 +23,10 @@ to the controller at ``backend.host`` (the ports are fixed by UR):
 Real-time path (every cycle, nothing blocks): ``read`` takes the newest packet the worker
 forwarded; ``write`` sends ONE realtime script command to the worker (never blocking: a worker
 whose channel is full gets it dropped and the robot FAULTs, ``worker_stalled``), which hands it
-to ur_rtde, which writes the RTDE input registers without waiting for an answer:
+to ur_rtde, which writes the RTDE input registers without waiting for an answer. A command the
+same as the last one (a hold) goes out again only every ``_keepalive_s`` (20 ms; a fifth of the
+script's watchdog period when that is shorter): the script's servo / speed thread repeats its
+last command every controller tick by itself, and a changed command goes out in its cycle:
 
 | CRTK | what the cycle sends |
 |---|---|
@@ -363,6 +366,10 @@ class UrBackend(Actuator):
         #: the device paused itself (safeguard stop): hold the pose it stopped at until resume
         self._paused_hold = False
         self._last_sent = 0.0  # perf_counter of the last RTDE input to the script (its watchdog)
+        #: the script's RTDE watchdog gets an input at least this often: an unchanged realtime
+        #: command is repeated (WorkerHandle.command), a cycle that sends none kicks it
+        #: (_feed_watchdog); a fifth of its period, at most 20 ms
+        self._keepalive_s = min(0.02, 0.2 / cfg.watchdog_hz)
 
     #: the defaults of ``link_timeout_s`` and ``watchdog_hz`` on the simulated controller
     #: (``sim_profile``; a profile that sets them keeps its own): the simulator is a Python
@@ -610,10 +617,11 @@ class UrBackend(Actuator):
 
     def _feed_watchdog(self) -> None:
         """The script's watchdog wants an RTDE input at least every 1 / watchdog_hz s: the cycle's
-        commands are that; when none went out for 20 ms (teach mode, a paused program, a
-        transition), a kick. So it stops the arm only when the control process stops cycling."""
+        commands are that (an unchanged one repeated every ``_keepalive_s``); when none went out
+        for that long (teach mode, a paused program, a transition), a kick. So it stops the arm
+        only when the control process stops cycling."""
         now = time.perf_counter()
-        if now - self._last_sent < 0.02 or not self._flags & CTL_CONNECTED or self._ctl_busy():
+        if now - self._last_sent < self._keepalive_s or not self._flags & CTL_CONNECTED or self._ctl_busy():
             return  # (a blocking call's own inputs feed it)
         w = self._w
         if w is not None and w.command(KICK, _ZERO6):
@@ -708,9 +716,11 @@ class UrBackend(Actuator):
     def _out(self, op: int, values: Any, a: float = 0.0, t: float = 0.0, lookahead: float = 0.0,
              gain: float = 0.0) -> Fault | None:
         """One realtime command to the worker. Never blocks: a worker whose channel is full (it
-        takes no commands) gets the command DROPPED and the robot faults."""
+        takes no commands) gets the command DROPPED and the robot faults. The same command as
+        the last one goes out again only every ``_keepalive_s`` (the script repeats it by itself
+        meanwhile: WorkerHandle.command); a changed one at once."""
         w = self._w
-        if w is None or not w.command(op, values, a, t, lookahead, gain):
+        if w is None or not w.command(op, values, a, t, lookahead, gain, self._keepalive_s):
             if w is not None and w.dead:
                 return None  # the next read reports it
             # ended like a lost link (a fresh worker starts by itself): a worker whose reader is

@@ -25,6 +25,10 @@ Two channels, chosen for latency and for "the newest wins":
   is DROPPED and the robot FAULTs (``worker_stalled``); the cycle never blocks. A worker that
   also stops forwarding packages faults first, at ``link_timeout_s``. The worker acts only on the newest realtime
   command of what it finds queued (a late servoJ target is never replayed after a newer one).
+  An unchanged realtime command (a hold) is sent again only every keep-alive period (20 ms;
+  :meth:`WorkerHandle.command`): the script repeats it by itself; its RTDE watchdog, fed by what
+  the worker forwards, stops the arm within its period when the worker stops forwarding
+  (a stalled worker then fills the buffer in ~5 s of a hold, not 0.55 s).
 
 Messages on the socket, first byte the kind:
 
@@ -85,6 +89,7 @@ REQUESTS = ("powerOn", "brakeRelease", "powerOff", "unlockProtectiveStop", "clos
 EXIT_OPEN_FAILED, EXIT_LINK_LOST, EXIT_CONTROL_LINK_LOST = 2, 3, 4
 HELLO_TIMEOUT_S = 10.0  # interpreter start, imports, RTDE and dashboard connections
 _RECV_BYTES = 65536
+_KIND_COMMAND = b"C"[0]
 
 
 def encode(kind: bytes, obj: Any) -> bytes:
@@ -132,6 +137,9 @@ class WorkerHandle:
         self._buf = bytearray(_RECV_BYTES)
         self._view = memoryview(self._buf)
         self._cmd = bytearray(COMMAND.size)
+        self._sent = bytearray(COMMAND.size)  # the last realtime command sent, and when (command)
+        self._sent_at = -math.inf
+        self.clock = time.perf_counter  # (a test's fake clock)
         self._seq_last = 0  # the seqlock's count at the last read, and what it read
         self._state: tuple | None = None
 
@@ -308,13 +316,32 @@ class WorkerHandle:
         return None
 
     def command(self, op: int, values, a: float = 0.0, t: float = 0.0, lookahead: float = 0.0,
-                gain: float = 0.0) -> bool:
+                gain: float = 0.0, repeat_s: float = 0.0) -> bool:
         """Send one realtime command. Never blocks: False when the socket is full (the worker is
-        not taking commands) or closed; the command was dropped."""
+        not taking commands) or closed; the command was dropped.
+
+        ``repeat_s`` > 0: a command the same as the last one sent (op, values and parameters, bit
+        for bit), sent less than ``repeat_s`` ago with nothing else sent since, is not sent
+        again (True: the worker has it). ur_rtde's control script repeats its realtime command
+        by itself (its servo thread servoes to the last ``servo_target`` every controller tick,
+        its speed thread holds the last speed) until another command comes, so an unchanged
+        command (a hold: the same servoJ target every cycle) does nothing new on the arm; sent
+        every cycle it cost a send here, a wake-up of the worker, ur_rtde's RTDE package and the
+        controller's receive, 500 times a second (bench_cpu.py, ENABLED idle). It still goes out
+        every ``repeat_s`` (the caller keeps that under the script's RTDE watchdog period), and
+        at once after any other message (a request may run a command on the script)."""
         if isinstance(values, np.ndarray):
             values = values.tolist()  # Python floats: unpacking an array yields numpy scalars, slowly
-        COMMAND.pack_into(self._cmd, 0, b"C", op, *values, a, t, lookahead, gain)
-        return self.send(self._cmd)
+        cmd = self._cmd
+        COMMAND.pack_into(cmd, 0, b"C", op, *values, a, t, lookahead, gain)
+        now = self.clock()
+        if repeat_s > 0.0 and now - self._sent_at < repeat_s and cmd == self._sent:
+            return True
+        if not self.send(cmd):
+            return False
+        self._sent[:] = cmd
+        self._sent_at = now
+        return True
 
     def request(self, name: str, *args: Any) -> int | None:
         """Send lifecycle request ``name`` (one of :data:`REQUESTS`); its reply lands in
@@ -330,6 +357,8 @@ class WorkerHandle:
         sock = self.sock
         if sock is None:
             return False
+        if data[0] != _KIND_COMMAND:
+            self._sent_at = -math.inf  # the next realtime command goes out, whatever it repeats
         try:
             sock.send(data, socket.MSG_DONTWAIT)
         except (BlockingIOError, InterruptedError):

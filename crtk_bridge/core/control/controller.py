@@ -98,8 +98,18 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
         # namespaces the backend controls in cartesian space itself (core/native_cartesian.py)
         self.native_cartesian = build_native_cartesian(self.namespaces, actuator.cartesian_namespaces(),
                                                        profile.safety)
+        #: per namespace, what the cycle steps (its motion, twist mapping, native cartesian or
+        #: None), and its joints' measured positions (a view when they are consecutive, as usual)
+        self._steps = [(m, self.twist_motions.get(name), self.native_cartesian.get(name), m.cols)
+                       for name, m in self.namespaces.items()]
         self.command = actuator.new_command()
+        # its position, velocity and effort: the rows of one block, filled per namespace in one copy
+        self._command_block = np.zeros((3, len(profile.joints)))
+        self.command.position, self.command.velocity, self.command.effort = self._command_block
         self.feedback = actuator.new_feedback()  # latest sample, copied in by on_read()
+        #: its position, velocity and effort: the rows of one block (published in one copy)
+        self.measured_block = np.zeros((3, len(profile.joints)))
+        self.feedback.position, self.feedback.velocity, self.feedback.effort = self.measured_block
         self.fault_cause: Fault | None = None
         self._consecutive_bus_errors = 0
         self._tracking_cycles = 0
@@ -416,24 +426,23 @@ class Controller(TransitionsMixin, SupervisorMixin, RelaysMixin, ParkMixin, Vali
         now = self.clock()
         cmd = self.command
         measured = self.feedback.position
-        for m in self.namespaces.values():
+        for m, tm, nc, rows in self._steps:
+            here = measured[rows]  # this namespace's joints (a view, or a copy: read only below)
             if m.mode is Mode.FREE:
-                m.setpoint_p[:] = measured[m.idx]  # follow the hand: leaving free is bumpless
-            tm = self.twist_motions.get(m.name)
+                m.setpoint_p[:] = here  # follow the hand: leaving free is bumpless
             if tm is not None:
                 tm.update()  # a twist stream: joint velocities mapped at this cycle's setpoint
-            nc = self.native_cartesian.get(m.name)
             if nc is not None:
-                msg = nc.update(now, measured[m.idx], self.feedback.cartesian)
+                msg = nc.update(now, here, self.feedback.cartesian)
                 if msg:
                     self.event("warning", "servo_timeout", msg, m.name)
-            msg = m.step(now, measured[m.idx])
+            msg = m.step(now, here)
             if msg:
                 self.event("warning", "servo_timeout", msg, m.name)
             if m.error is not None:
                 self.event("error", "trajectory_failed", m.error, m.name)
                 m.error = None
-            m.fill(cmd)
+            m.fill(cmd, self._command_block)
             if nc is not None:
                 nc.fill(cmd.mode, cmd.cartesian)  # the backend's cartesian row; its joints left to it
         if self._running is None and cmd.mode.tobytes() != self._modes_ok:
