@@ -368,7 +368,7 @@ def pytest_unconfigure(config):
         shutil.rmtree(config._crtk_state_home, ignore_errors=True)
 
 
-# pytest-xdist (README's ``python -m pytest -q -n 2``): its controller collects nothing, so the
+# pytest-xdist (``python -m pytest -q -n 2``): its controller collects nothing, so the
 # LeRobot conftest's build is started from here when the first worker has collected (the workers
 # collect the same tests), and stopped when the controller's session ends
 @pytest.hookimpl(optionalhook=True)
