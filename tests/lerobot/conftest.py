@@ -4,9 +4,10 @@ this checkout's plugin installed beside it, and a LeRobot robot driven line by l
 A build of that venv takes minutes of mostly one core, and most of the suite waits on sockets and
 simulators: when a session selects LeRobot tests and no complete venv exists, the build starts in
 the background as soon as collection ends (:class:`BackgroundBuild`, ``python -m
-tests.lerobot.venv``, niced), and the LeRobot tests run last, waiting for it. Under pytest-xdist (``-n 2``) the
-controller, which outlives every worker, starts and stops that build (:func:`xdist_collected`,
-called from tests/conftest.py), and the workers' LeRobot tests wait for it on venv.py's lock."""
+tests.lerobot.venv``, niced), and the LeRobot tests run last, waiting for it. Under
+pytest-xdist (``-n 2``) the controller, which outlives every worker, starts and stops that build
+(:func:`xdist_collected`, called from tests/conftest.py), and the workers' LeRobot tests wait for
+it on venv.py's lock."""
 
 from __future__ import annotations
 
