@@ -78,25 +78,40 @@ def test_a_counted_request_is_taken_in_the_next_cycle(rig):
     loop._receive()
     before = chan.receives
     link._post(_encode({"id": 7, "cmd": "hold", "ns": "arm", "data": None}))  # the front's send + count
-    assert int(snap.posted[0]) == 1
+    assert int(snap.posted[0]) == 2
     loop._receive()
     assert chan.receives > before
     assert [r["id"] for r in replies(loop)] == [7]  # (refused: DISABLED; what matters is it was taken)
 
 
-def test_a_message_counted_after_the_cycle_looked_is_taken_when_the_count_moves(rig):
+def test_a_send_under_way_is_received_in_the_first_cycle_after_it_lands(rig):
+    """The front counts before its send (odd: under way) and after it (even): a cycle that looks
+    while a send is under way receives, and so does every cycle after it until the count is even
+    again, so the message is taken in the first cycle after it is on the pair, whenever the front
+    (preempted between its count and its send on a loaded host) gets to send it."""
     loop, chan, front, snap = rig
     snap.posted[0] = 0
+    loop._receive()  # the pair emptied at count 0
+    snap.posted[0] = 1  # the front counted its send, and has not sent yet
     loop._receive()
-    # sent, but the front has not counted it yet (it counts right after its send): this cycle
-    # may skip it; the cycle after the count moved takes it, whatever the grace period
-    front.send(_encode({"id": 8, "cmd": "hold", "ns": "arm", "data": None}))
     loop._receive()
-    taken = replies(loop)
-    snap.posted[0] = 1
+    assert not replies(loop)
+    front.send(_encode({"id": 8, "cmd": "hold", "ns": "arm", "data": None}))  # on the pair now
     loop._receive()
-    taken += replies(loop)
-    assert [r["id"] for r in taken] == [8]
+    assert [r["id"] for r in replies(loop)] == [8]
+    snap.posted[0] = 2  # the send is done
+    loop._receive()  # (the count moved: one receive, which empties the pair at count 2)
+    before = chan.receives
+    loop._receive()
+    assert chan.receives == before  # nothing under way, nothing new: no receive
+
+
+def test_the_links_count_is_even_after_each_send(rig):
+    loop, chan, front, snap = rig
+    link = ControlLink(PROFILE, front, snap, lambda msg: None)
+    for k in range(3):
+        link._post(_encode({"id": k, "cmd": "hold", "ns": "arm", "data": None}))
+        assert int(snap.posted[0]) == 2 * (k + 1)
 
 
 def test_an_uncounted_sender_is_received_every_cycle(rig):

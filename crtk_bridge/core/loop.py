@@ -9,7 +9,9 @@ with a ``realtime_unavailable`` warning, when it cannot), freezes the GC after s
 logging, allocation-heavy work and blocking I/O out of the cycle.
 
 It talks to the front process over one SOCK_SEQPACKET socketpair (msgpack messages, never the
-network) and publishes state through :class:`~crtk_bridge.core.snapshot.SnapshotBuffer`.
+network) and publishes state through :class:`~crtk_bridge.core.snapshot.SnapshotBuffer`, whose
+header carries the front's count of the messages it sent: a cycle where it did not move makes no
+receive (one at least every RECEIVE_AT_LEAST_S, so the front's loss is seen).
 If the front process goes away (EOF on the pair), the loop stops safely, as on SIGTERM / SIGINT
 or the front's ``_shutdown``: with ``shutdown.action: park`` an ENABLED (or PAUSED) robot first
 moves to its rest pose, the cycle running on (see :meth:`ControlLoop._parking`); then torque off,
@@ -153,8 +155,9 @@ class ControlLoop:
             "ns_cart_stamp", "ns_cart_p", "ns_cart_q", "ns_cart_f", "ns_cart_sp_stamp", "ns_cart_sp_p",
             "ns_cart_sp_q", "ns_cart_tw_stamp", "ns_cart_tw", "ns_cart_tw_frame", "ns_cart_goal_stamp",
             "ns_cart_goal_p", "ns_cart_goal_q"))
-        # the front's count of the messages it sent on the pair (-1: not counted, receive every
-        # cycle), and the count the last receive that emptied the pair had seen before it began
+        # the front's count of its sends on the pair (two per message: odd while one is under way;
+        # -1: not counted, receive every cycle), and the even count the last receive that emptied
+        # the pair had seen before it began (server/link.py)
         self._posted = snapshot.posted
         self._drained = -1
         self._quiet = 0  # cycles since the last receive
@@ -200,9 +203,10 @@ class ControlLoop:
             try:
                 data = self.chan.recv(MAX_MESSAGE, socket.MSG_DONTWAIT)
             except BlockingIOError:
-                # empty: every message counted before the receive began was taken (the front
-                # counts after its send); one counted meanwhile is taken next cycle
-                self._drained = posted
+                # empty: every send the count said done before the receive began was taken (the
+                # front counts before its send and after it); an odd count is a send under way,
+                # perhaps not on the pair yet: the next cycle receives again
+                self._drained = posted - (posted & 1)
                 return
             except OSError:
                 self.front_alive = False

@@ -4,9 +4,10 @@ One writer (the control loop), any number of readers (the front process). The wr
 sequence number to odd, writes, bumps it to even; a reader copies the block and retries if the
 sequence was odd or changed meanwhile. Nothing is allocated on the writer's side per cycle.
 
-Header (int64): ``seq`` | ``posted``: the requests the front sent on the pair so far, which the
-front alone writes (after each send; -1 until its link counts them), so the loop skips the
-receive system call in a cycle where nothing was sent (core/loop.py :meth:`ControlLoop._receive`).
+Header (int64): ``seq`` | ``posted``: the front's count of its sends on the pair, which the front
+alone writes (two per message, before and after its send: odd while one is under way; -1 until
+its link counts them), so the loop skips the receive system call in a cycle where nothing was
+sent (core/loop.py :meth:`ControlLoop._receive`).
 Layout (float64 unless said), after the header: measured stamp, p[n], v[n], f[n] |
 setpoint p[n], v[n], f[n] | goal p[n], v[n], f[n] | per namespace: setpoint stamp, has_p,
 has_v, has_f, goal stamp, goal has_p, has_v, has_f | per namespace: native cartesian stamp, p[3], q[4], wrench[6] | per namespace: native
@@ -64,7 +65,7 @@ class SnapshotBuffer:
         self.layout = layout
         self.shm = shared_memory.SharedMemory(name=name, create=create, size=layout.nbytes)
         self.seq = np.ndarray((1,), dtype=np.int64, buffer=self.shm.buf, offset=0)
-        #: requests the front posted on the pair (its link bumps it after each send; -1: not counted)
+        #: the front's count of its sends on the pair (two per message: odd while one is under way; -1: not counted)
         self.posted = np.ndarray((1,), dtype=np.int64, buffer=self.shm.buf, offset=8)
         self.data = np.ndarray((layout.size,), dtype=np.float64, buffer=self.shm.buf, offset=HEADER_BYTES)
         self.views = {name: self.data[s] for name, s in layout.slices.items()}

@@ -40,8 +40,9 @@ class ControlLink:
         self._ids = itertools.count(1)
         self._pending: dict[int, asyncio.Future] = {}
         self._outq: deque[bytes] = deque()  # messages waiting for room on the pair, in order
-        # the messages sent on the pair, counted in shared memory after each send: the loop skips
-        # its receive (a system call) in a cycle where the count did not move (core/loop.py)
+        # the messages sent on the pair, counted twice each in shared memory, before the send (odd:
+        # a send under way) and after it (even): the loop skips its receive (a system call) in a
+        # cycle where the count did not move since the pair was emptied (core/loop.py)
         self._posted = snapshot.posted
         self._posted[0] = 0
         self.lost = False
@@ -187,8 +188,7 @@ class ControlLink:
         no torque off). Raises ControlLost when the pair is gone."""
         if not self._outq:
             try:
-                self.chan.send(data)
-                self._posted[0] += 1  # after the send: a loop that sees the count finds the message
+                self._send(data)
                 return
             except BlockingIOError:
                 pass
@@ -198,16 +198,25 @@ class ControlLink:
         if len(self._outq) == 1:
             asyncio.get_running_loop().add_writer(self.chan.fileno(), self._writable)
 
+    def _send(self, data: bytes) -> None:
+        """One message on the pair, counted for the loop: odd while the send is under way (the
+        loop then receives in every cycle until the count is even again), even once it is done."""
+        posted = self._posted
+        posted[0] += 1
+        try:
+            self.chan.send(data)
+        finally:
+            posted[0] += 1
+
     def _writable(self) -> None:
         while self._outq:
             try:
-                self.chan.send(self._outq[0])
+                self._send(self._outq[0])
             except BlockingIOError:
                 return
             except OSError:  # the pair is gone: _readable sees the EOF and says so
                 self._outq.clear()
                 break
-            self._posted[0] += 1
             self._outq.popleft()
         asyncio.get_running_loop().remove_writer(self.chan.fileno())
 
