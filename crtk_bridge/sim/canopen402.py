@@ -542,13 +542,25 @@ class Drive402:
             self._apply(pdo, data)
 
     def _apply(self, pdo: _Pdo, data: bytes) -> None:
+        # what LocalNode.set_data does for each mapped object -- its write callbacks (NMT's, then
+        # ours) and its store -- with the object looked up and its length checked once per
+        # mapping (_load_pdos; an object whose length does not match goes through set_data,
+        # which refuses it): set_data's lookup per object per RPDO was a fifth of the
+        # simulator's CPU
+        local = self.local
         offset = 0
-        for index, sub, size in pdo.entries:
+        for (index, sub, size), od in zip(pdo.entries, pdo.objects):
+            chunk = data[offset:offset + size]
+            offset += size
             try:
-                self.local.set_data(index, sub, data[offset:offset + size])
+                if od is None:
+                    local.set_data(index, sub, chunk)
+                    continue
+                for callback in local._write_callbacks:
+                    callback(index=index, subindex=sub, od=od, data=chunk)
+                local.data_store.setdefault(index, {})[sub] = bytes(chunk)
             except SdoAbortedError:
                 pass  # e.g. an unsupported mode: the drive keeps its previous one
-            offset += size
 
     def _sample(self, pdo: _Pdo) -> bytes:
         # what LocalNode.get_data does for each mapped object -- our read callback (the node's
@@ -582,15 +594,17 @@ class Drive402:
                     entry = raw(mapping, sub)
                     pdo.entries.append((entry >> 16, (entry >> 8) & 0xFF, (entry & 0xFF) // 8))
                 pdo.size = sum(e[2] for e in pdo.entries)
-                pdo.objects = [self._object(index, sub) for index, sub, _ in pdo.entries]
+                pdo.objects = [self._object(*entry) for entry in pdo.entries]
                 pdo.syncs, pdo.pending, pdo.last = 0, None, None
 
-    def _object(self, index: int, sub: int) -> odm.ODVariable | None:
-        """The object dictionary's variable ``index:sub``, or None (get_data then aborts)."""
+    def _object(self, index: int, sub: int, size: int) -> odm.ODVariable | None:
+        """The object dictionary's variable ``index:sub`` if a number of ``size`` bytes, or None
+        (get_data / set_data then answer as they do: an abort)."""
         try:
-            return self.local._find_object(index, sub)
+            od = self.local._find_object(index, sub)
         except SdoAbortedError:
             return None
+        return od if od.data_type in odm.NUMBER_TYPES and len(od) == 8 * size else None
 
     # ------------------------------------------------------------------ object access
     def _param(self, index: int, sub: int = 0) -> int:
