@@ -4,8 +4,8 @@ doing the same bus transactions with the vendor library alone, same run (issue 2
 
 For each profile, ``crtk-bridge --profile <profile> --sim`` runs through four windows of
 ``--window`` s: DISABLED idle, DISABLED streaming (one client subscribed to ``measured_js`` at the
-loop rate), ENABLED idle (holding), ENABLED streaming (the subscription, and ``servo_jp`` of the
-position held at ``--servo-rate`` Hz). Each process's CPU (its threads' run time from /proc/<pid>/task/*/schedstat, in ns, over
+loop rate), ENABLED idle (holding), ENABLED streaming (the subscription, and ``servo_jp`` at
+``--servo-rate`` Hz of a target moving about the held position: STREAM_AMPLITUDE at STREAM_HZ). Each process's CPU (its threads' run time from /proc/<pid>/task/*/schedstat, in ns, over
 the window: robust to a loaded host, unlike wall time) is printed apart: the control process, the
 front (socket server), the UR backend's ur_rtde worker, the simulator; as a share of one core and
 as microseconds per cycle of the profile's loop rate.
@@ -33,6 +33,7 @@ Figures only; nothing is asserted. Usage:
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import statistics
 import subprocess
@@ -194,12 +195,20 @@ def drain(sub, stop: threading.Event) -> None:
             pass
 
 
+#: the streamed motion: every joint STREAM_AMPLITUDE (rad, or m) about where it was held, at
+#: STREAM_HZ: a target that changes every command (a held one is cheaper on backends that send
+#: only a change, e.g. the UR's hold)
+STREAM_AMPLITUDE = 0.01
+STREAM_HZ = 0.5
+
+
 def servo(dev, rate: float, stop: threading.Event) -> None:
-    p = list(dev.measured_js()[0])
+    p0 = [float(x) for x in dev.measured_js()[0]]
     period = 1.0 / rate
-    tick = time.monotonic()
+    t0 = tick = time.monotonic()
     while not stop.is_set():
-        dev.servo_jp(p)
+        offset = STREAM_AMPLITUDE * math.sin(2.0 * math.pi * STREAM_HZ * (tick - t0))
+        dev.servo_jp([x + offset for x in p0])
         tick += period
         time.sleep(max(0.0, tick - time.monotonic()))
 

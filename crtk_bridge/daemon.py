@@ -37,13 +37,14 @@ from .profile import Profile, load_profile
 from .registry import simulator_device
 from .server.link import ControlLink
 from .server.server import Server
-from .sim.loopback import free_loopback_host
+from .sim.loopback import free_loopback_host, ports_free
 from .spawn import module_argv, module_env
 from .transport.zenoh_session import ZenohConfig, check_exposure, open_session, zenoh_config
 
 log = logging.getLogger("crtk_bridge.daemon")
 
 STARTUP_TIMEOUT_S = 20.0
+HOST_ATTEMPTS = 3  # --sim on a loopback address another process took meanwhile: tries in all
 SHUTDOWN_TIMEOUT_S = 3.0  # below the unit's TimeoutStopSec=5, so our own clean-up runs
 #: longest AF_UNIX socket path in bytes (Linux ``sun_path`` is 108 bytes with the final NUL)
 AF_UNIX_PATH_MAX = 107
@@ -96,23 +97,35 @@ class SimulatorProcess:
                  host_ports: tuple[int, ...] = (), raise_priority: bool = False, tool_link: str | None = None):
         tag = f"-{bus}" if bus else ""  # several buses: one simulator each
         self.control = os.path.join(workdir, f"sim{tag}.sock")
-        if host_ports:
-            self.link = free_loopback_host(host_ports)
-            where = ["--host", self.link]
-        else:
-            self.link = pty_link(workdir, bus)
-            where = ["--link", self.link]
-        self.proc = subprocess.Popen(
-            module_argv("crtk_bridge.sim.cli", device, "--profile", profile_path, *where, "--control", self.control,
-                        *(["--bus", bus] if bus else []), *(["--tool-link", tool_link] if tool_link else []),
-                        "--parent-pid", str(os.getpid()), "--workdir", workdir),
-            stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
-            env=module_env(),  # this package's simulator, whatever the current folder holds (spawn.py)
-            start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
-            # ...but a daemon killed outright must not leave it running; SIM_NICE with realtime
-            preexec_fn=lambda: _simulator_child(raise_priority),
-        )
+        # a free 127.0.0.N is free when probed, not yet bound: another process starting a simulator
+        # meanwhile (parallel test workers, two daemons) may take it first; the simulator then
+        # exits (cannot bind) and a freshly chosen address is tried
+        for attempt in range(HOST_ATTEMPTS if host_ports else 1):
+            if host_ports:
+                self.link = free_loopback_host(host_ports)
+                where = ["--host", self.link]
+            else:
+                self.link = pty_link(workdir, bus)
+                where = ["--link", self.link]
+            self.proc = subprocess.Popen(
+                module_argv("crtk_bridge.sim.cli", device, "--profile", profile_path, *where, "--control", self.control,
+                            *(["--bus", bus] if bus else []), *(["--tool-link", tool_link] if tool_link else []),
+                            "--parent-pid", str(os.getpid()), "--workdir", workdir),
+                stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
+                env=module_env(),  # this package's simulator, whatever the current folder holds (spawn.py)
+                start_new_session=True,  # a terminal Ctrl-C must not kill the bus under the control process
+                # ...but a daemon killed outright must not leave it running; SIM_NICE with realtime
+                preexec_fn=lambda: _simulator_child(raise_priority),
+            )
+            started = self._started(host_ports)
+            if started or attempt == HOST_ATTEMPTS - 1 or ports_free(self.link, host_ports):
+                break
+            log.info("--sim: %s was taken while the simulator started; trying another address", self.link)
+        if not started:
+            raise CrtkBridgeError(f"--sim: the simulator exited with status {self.proc.returncode}")
 
+    def _started(self, host_ports: tuple[int, ...]) -> bool:
+        """Wait for the simulator's endpoint: True once it serves, False if it exited first."""
         def started() -> bool:
             if not os.path.exists(self.control):
                 return False
@@ -121,11 +134,12 @@ class SimulatorProcess:
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while not started():
             if self.proc.poll() is not None:
-                raise CrtkBridgeError(f"--sim: the simulator exited with status {self.proc.returncode}")
+                return False
             if time.monotonic() > deadline:
                 self.stop()
                 raise CrtkBridgeError("--sim: the simulator did not start")
             time.sleep(0.02)
+        return True
 
     def stop(self) -> None:
         if self.proc.poll() is None:

@@ -351,6 +351,11 @@ def pytest_configure(config):
     # a folder of the test run's, never the user's ~/.local/state
     config._crtk_state_home = os.environ["XDG_STATE_HOME"] = tempfile.mkdtemp(prefix="crtk-test-state-")
     config.pluginmanager.register(in_child, "crtk-in-child")  # the in_child marker (tests/in_child.py)
+    # pytest-xdist's ``-n N`` alone distributes single tests (``--dist load``): here whole test
+    # files go to each worker (``loadfile``), so a module's fixtures stay one (its shared daemons,
+    # its in_child child pytest, a module-scoped simulator) and its tests keep their order
+    if getattr(config.option, "dist", "no") == "load":
+        config.option.dist = "loadfile"
     config.addinivalue_line("markers", "requires(*capabilities): the simulated robots a test using sim_robot "
                             "runs on (tests/conftest.py robot_capabilities); none given: servo_bus")
     config.addinivalue_line("markers", "reuse_daemon: the test leaves its robot as it found it, or in a state "
@@ -361,6 +366,21 @@ def pytest_configure(config):
 def pytest_unconfigure(config):
     if hasattr(config, "_crtk_state_home"):
         shutil.rmtree(config._crtk_state_home, ignore_errors=True)
+
+
+# pytest-xdist (``python -m pytest -q -n 2``): its controller collects nothing, so the
+# LeRobot conftest's build is started from here when the first worker has collected (the workers
+# collect the same tests), and stopped when the controller's session ends
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_node_collection_finished(node, ids):
+    from .lerobot import conftest as lerobot
+
+    lerobot.xdist_collected(node.config, ids)
+
+
+def pytest_sessionfinish(session):
+    if not hasattr(session.config, "workerinput") and "tests.lerobot.conftest" in sys.modules:
+        sys.modules["tests.lerobot.conftest"].stop_build()
 
 
 def pytest_generate_tests(metafunc):

@@ -39,6 +39,7 @@ from _pytest.reports import TestReport
 
 MARK = "in_child"
 ENV = "CRTK_TEST_CHILD"  # set in the child: the file its reports go to
+DIST = "crtk_in_child_dist"  # pytest-xdist: the controller's --dist, in each worker's workerinput
 CHILD_TIMEOUT_S = 900.0  # a hung child (a ur_rtde call that never returns) is ended after this
 _TAIL_LINES = 80
 
@@ -190,18 +191,33 @@ def _failed(item: pytest.Item, when: str, text: str) -> TestReport:
     return rep
 
 
-def _group(session) -> _Group:
-    group = getattr(session, "_crtk_child_group", None)
-    if group is None:
-        group = session._crtk_child_group = _Group([i for i in session.items if i.get_closest_marker(MARK)])
-    return group
+def _group(item: pytest.Item) -> _Group:
+    """The session's marked tests. A pytest-xdist worker collects the whole session but runs only
+    the tests it is given, so no marked test may run in two workers' children: with ``--dist
+    loadfile`` (what this suite's ``-n`` means: tests/conftest.py) a worker is given whole files
+    and its group is ``item``'s file's marked tests; with another ``--dist``, ``item`` alone."""
+    session = item.session
+    key = None
+    if hasattr(item.config, "workerinput"):  # (a worker's own option says nothing of the --dist)
+        key = item.path if item.config.workerinput.get(DIST) == "loadfile" else item.nodeid
+    groups = session.__dict__.setdefault("_crtk_child_groups", {})
+    if key not in groups:
+        groups[key] = _Group([i for i in session.items if i.get_closest_marker(MARK)
+                              and key in (None, i.path, i.nodeid)])
+    return groups[key]
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node):
+    """pytest-xdist's controller, for each worker: the ``--dist`` its tests come by (:func:`_group`)."""
+    node.workerinput[DIST] = node.config.option.dist
 
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_protocol(item, nextitem):
     if os.environ.get(ENV) or item.get_closest_marker(MARK) is None:
         return None  # the child itself, or an ordinary test: pytest runs it here
-    group = _group(item.session)
+    group = _group(item)
     if not group.ran:
         group.ran = True
         _run_child(item.config, group)

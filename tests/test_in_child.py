@@ -112,3 +112,45 @@ def test_tests_in_the_parent_around_child_tests_set_up_and_tear_down_as_usual(tm
                            str(tmp_path), str(tmp_path)], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0 and "3 passed" in out, out
+
+
+RECORDING = """
+import os
+
+import pytest
+
+pytestmark = pytest.mark.in_child
+
+
+@pytest.mark.parametrize("k", range(2))
+def test_records(k, request):
+    with open(os.path.join(os.environ["MARKS"], request.node.nodeid.replace("/", "_")), "a") as f:
+        f.write(f"{os.getpid()}\\n")
+"""
+
+
+def test_under_xdist_each_marked_test_runs_once_in_one_child(tmp_path):
+    """pytest-xdist: every worker collects the whole session, but runs only what it is given;
+    marked tests of two files on two workers (``--dist loadfile``: a file each, each file's tests
+    in one child, sharing its module fixtures) or spread test by test (``--dist load``: a child
+    each) each run once, in a child of the worker that was given them."""
+    shutil.copy(HERE / "in_child.py", tmp_path / "in_child.py")
+    (tmp_path / "conftest.py").write_text(CONFTEST)
+    for name in ("test_a.py", "test_b.py"):
+        (tmp_path / name).write_text(RECORDING)
+    for dist in ("loadfile", "load"):
+        marks = tmp_path / f"marks-{dist}"
+        marks.mkdir()
+        proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "2", "--dist",
+                               dist, "--rootdir", str(tmp_path), str(tmp_path)], cwd=tmp_path, capture_output=True,
+                              text=True, timeout=120, env={**os.environ, "MARKS": str(marks)})
+        out = proc.stdout + proc.stderr
+        assert proc.returncode == 0 and "4 passed" in out, out
+        runs = {p.name: p.read_text().split() for p in marks.iterdir()}
+        assert len(runs) == 4 and all(len(pids) == 1 for pids in runs.values()), (dist, runs)
+        children = {name: {pids[0] for test, pids in runs.items() if test.startswith(name)}
+                    for name in ("test_a.py", "test_b.py")}
+        if dist == "loadfile":
+            assert all(len(pids) == 1 for pids in children.values()), children
+        else:
+            assert len(set.union(*children.values())) == 4, children

@@ -84,3 +84,33 @@ def test_a_bus_behind_another_buss_tool_port_is_simulated_behind_it(monkeypatch,
         started = []
         wired = daemon._simulate_buses(other, "ur5e_gripper.yaml", str(tmp_path), started, False)
         assert started[0].tool_link is None and wired.backends["hand"]["port"] == f"{tmp_path}/tty-hand"
+
+
+def test_sim_on_a_loopback_address_taken_while_it_started_moves_to_another(monkeypatch, short_tmp):
+    """``--sim`` for a simulator on fixed TCP ports (a UR controller) picks a free 127.0.0.N, but
+    another process (a parallel test worker, a second daemon) may bind it before the simulator
+    does: the simulator exits, and a fresh address is tried instead of failing the start."""
+    import socket
+
+    from crtk_bridge.sim.loopback import free_loopback_host
+    from crtk_bridge.sim.ur import PORTS
+
+    ports = tuple(PORTS.values())
+    taken = free_loopback_host(ports)
+    held = []
+    for port in ports:  # what the other process bound meanwhile
+        s = socket.socket()
+        s.bind((taken, port))
+        s.listen()
+        held.append(s)
+    picks = iter([taken])
+    monkeypatch.setattr(daemon, "free_loopback_host", lambda p: next(picks, None) or free_loopback_host(p))
+    sim = daemon.SimulatorProcess(str(PROFILES / "ur5e.yaml"), "ur", str(short_tmp), host_ports=ports)
+    try:
+        assert sim.link != taken and sim.proc.poll() is None
+        with socket.create_connection((sim.link, ports[0]), timeout=5):
+            pass
+    finally:
+        sim.stop()
+        for s in held:
+            s.close()

@@ -4,12 +4,16 @@ this checkout's plugin installed beside it, and a LeRobot robot driven line by l
 A build of that venv takes minutes of mostly one core, and most of the suite waits on sockets and
 simulators: when a session selects LeRobot tests and no complete venv exists, the build starts in
 the background as soon as collection ends (:class:`BackgroundBuild`, ``python -m
-tests.lerobot.venv``, niced), and the LeRobot tests run last, waiting for it."""
+tests.lerobot.venv``, niced), and the LeRobot tests run last, waiting for it. Under
+pytest-xdist (``-n 2``) the controller, which outlives every worker, starts and stops that build
+(:func:`xdist_collected`, called from tests/conftest.py), and the workers' LeRobot tests wait for
+it on venv.py's lock."""
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -83,10 +87,14 @@ def pytest_collection_modifyitems(config, items):
     items[:] = [i for i in items if not _is_lerobot(i)] + [i for i in items if _is_lerobot(i)]
 
 
+def _xdist_worker(config) -> bool:
+    return hasattr(config, "workerinput")
+
+
 def pytest_collection_finish(session):
     global _build
-    if _build is not None or session.config.option.collectonly:
-        return
+    if _build is not None or session.config.option.collectonly or _xdist_worker(session.config):
+        return  # a worker of pytest-xdist: its controller builds (xdist_collected)
     if not any(_is_lerobot(i) and "lerobot_venv" in getattr(i, "fixturenames", ()) for i in session.items):
         return
     if (lrvenv.venv_path() / lrvenv.MARKER).exists():
@@ -98,8 +106,33 @@ def pytest_collection_finish(session):
 
 
 def pytest_sessionfinish(session):
+    stop_build()
+
+
+def stop_build() -> None:
     if _build is not None:
         _build.stop()  # no LeRobot test ran (-x, an interrupt): a later build starts over
+
+
+#: the fixtures that need the venv: a LeRobot test file naming one needs it built
+_VENV_FIXTURES = re.compile(r"\blerobot_(venv|plugin|launcher|reader|driver)\b")
+
+
+def xdist_collected(config, nodeids) -> None:
+    """pytest-xdist's controller, once a worker has collected: a worker may finish its share (and
+    its session) while another's LeRobot tests still wait for the venv, so the build is the
+    controller's, started when a collected LeRobot test file asks for the venv (it collects
+    nothing itself: the files tell), stopped at its session's end (:func:`stop_build`)."""
+    global _build
+    if _build is not None or config.option.collectonly or (lrvenv.venv_path() / lrvenv.MARKER).exists():
+        return
+    files = {lrvenv.ROOT / nodeid.split("::", 1)[0] for nodeid in nodeids}
+    if not any(HERE in f.parents and f.is_file() and _VENV_FIXTURES.search(f.read_text()) for f in files):
+        return
+    _build = BackgroundBuild()
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is not None:
+        reporter.write_line(f"building the LeRobot venv {lrvenv.venv_path()} in the background (log {_build.log})")
 
 
 @pytest.fixture(scope="session")

@@ -39,6 +39,21 @@ def test_a_failed_background_build_fails_the_lerobot_tests_in_ci_and_skips_them_
     assert "1 skipped" in out and "the background build failed" in out and "in CI this fails" in out, out
 
 
+def test_under_xdist_the_controller_starts_the_one_background_build(short_tmp):
+    # the workers collect the same tests; a worker's session may end while another's LeRobot tests
+    # still wait for the venv, so the controller (which outlives them) builds, once
+    not_a_dir = short_tmp / "cache"
+    not_a_dir.write_text("a file where the cache folder should be: the build fails at once\n")
+    tmp = short_tmp / "tmp"  # where the builds' logs go (tempfile), apart from other sessions'
+    tmp.mkdir()
+    ci = pytest_run(["-n", "2", UNITS, "tests/test_vocabulary.py"], short_tmp, CI="true",
+                    CRTK_LEROBOT_CACHE=str(not_a_dir), TMPDIR=str(tmp))
+    out = ci.stdout + ci.stderr
+    assert ci.returncode != 0 and "1 error" in out and "skipped" not in out, out  # CI: a failed build fails
+    logs = sorted(tmp.glob("crtk-lerobot-venv-*.log"))
+    assert len(logs) == 1 and out.count("in the background (log ") == 1 and str(logs[0]) in out, (logs, out)
+
+
 def test_the_lerobot_tests_run_after_the_rest_of_the_session(short_tmp):
     out = pytest_run(["--collect-only", UNITS, "tests/test_vocabulary.py"], short_tmp).stdout
     files = [ln.split("::")[0] for ln in out.splitlines() if "::" in ln]
