@@ -137,6 +137,12 @@ def test_the_in_process_bus_delivers_in_bus_order_without_recursion_or_deadlock(
         got = master.recv(1)
         assert got.arbitration_id == 0x181 and got.is_rx and got.data == b"\x01"
         assert master.recv(0) is None  # no echo of its own without receive_own_messages
+        master.set_filters([{"can_id": 0x181, "can_mask": 0x7FF}])  # a filter still filters
+        drives.send(can.Message(arbitration_id=0x182, data=b"", is_extended_id=False))
+        drives.send(can.Message(arbitration_id=0x181, data=b"\x02", is_extended_id=False))
+        assert master.recv(1).data == b"\x02" and master.recv(0) is None
+        master.set_filters(None)
+        heard.clear()
         assert "broken endpoint" in caplog.text and "0x080" in caplog.text
 
         # a thread holding the drive's lock sends while this thread delivers to that drive
