@@ -21,8 +21,10 @@ waiting for it), about a third of the control process's CPU per cycle on a 2-dri
 (bench/bench_cpu.py); only a line the buffer did not take whole goes through it (it waits for
 room, as before).
 
-The cycle's RPDOs in one write: inside :meth:`SlcanBus.batch` the lines the calling thread sends
-are collected and written together when it ends (another thread's still go out at once). Each
+The cycle's RPDOs in one write: the backend formats its cycle frames itself (:meth:`SlcanBus.line`,
+python-can's bytes) and writes them with :meth:`SlcanBus.send_lines`; inside
+:meth:`SlcanBus.batch` the lines the calling thread sends (``send`` or ``send_lines``) are
+collected and written together when it ends (another thread's still go out at once). Each
 write to the adapter is a system call here and, on the adapter's side, a wake-up and an
 acknowledgement burst back to the notifier; a 2-drive cycle sends four RPDOs, one write instead
 of four (issue 23). A real adapter receives them in one USB transfer and puts them on the bus in
