@@ -131,26 +131,42 @@ def test_records(k, request):
 
 def test_under_xdist_each_marked_test_runs_once_in_one_child(tmp_path):
     """pytest-xdist: every worker collects the whole session, but runs only what it is given;
-    marked tests of two files on two workers (``--dist loadfile``: a file each, each file's tests
-    in one child, sharing its module fixtures) or spread test by test (``--dist load``: a child
-    each) each run once, in a child of the worker that was given them."""
+    marked tests of two files on two workers (``--dist loadfile``, what this suite's ``-n`` means:
+    a file each) each run once, each file's tests in one child sharing its module fixtures."""
     shutil.copy(HERE / "in_child.py", tmp_path / "in_child.py")
     (tmp_path / "conftest.py").write_text(CONFTEST)
     for name in ("test_a.py", "test_b.py"):
         (tmp_path / name).write_text(RECORDING)
-    for dist in ("loadfile", "load"):
-        marks = tmp_path / f"marks-{dist}"
-        marks.mkdir()
-        proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "2", "--dist",
-                               dist, "--rootdir", str(tmp_path), str(tmp_path)], cwd=tmp_path, capture_output=True,
-                              text=True, timeout=120, env={**os.environ, "MARKS": str(marks)})
-        out = proc.stdout + proc.stderr
-        assert proc.returncode == 0 and "4 passed" in out, out
-        runs = {p.name: p.read_text().split() for p in marks.iterdir()}
-        assert len(runs) == 4 and all(len(pids) == 1 for pids in runs.values()), (dist, runs)
-        children = {name: {pids[0] for test, pids in runs.items() if test.startswith(name)}
-                    for name in ("test_a.py", "test_b.py")}
-        if dist == "loadfile":
-            assert all(len(pids) == 1 for pids in children.values()), children
-        else:
-            assert len(set.union(*children.values())) == 4, children
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "2", "--dist",
+                           "loadfile", "--rootdir", str(tmp_path), str(tmp_path)], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120, env={**os.environ, "MARKS": str(marks)})
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0 and "4 passed" in out, out
+    runs = {p.name: p.read_text().split() for p in marks.iterdir()}
+    assert len(runs) == 4 and all(len(pids) == 1 for pids in runs.values()), runs
+    children = {name: {pids[0] for test, pids in runs.items() if test.startswith(name)}
+                for name in ("test_a.py", "test_b.py")}
+    assert all(len(pids) == 1 for pids in children.values()) and len(set.union(*children.values())) == 2, children
+
+
+def test_under_another_xdist_dist_a_worker_runs_each_marked_test_in_a_child_of_its_own():
+    """``--dist load`` (or any but loadfile) gives a worker single tests: its child runs the test
+    it was given, never the file's others (another worker may have them)."""
+    from types import SimpleNamespace
+
+    from . import in_child
+
+    class Item:
+        def __init__(self, nodeid, session, dist):
+            self.nodeid, self.session, self.path = nodeid, session, Path(nodeid.split("::")[0])
+            self.config = SimpleNamespace(workerinput={in_child.DIST: dist})
+
+        def get_closest_marker(self, name):
+            return name == in_child.MARK
+
+    for dist, expect in (("load", [["a.py::t0"], ["a.py::t1"]]), ("loadfile", [["a.py::t0", "a.py::t1"]] * 2)):
+        session = SimpleNamespace(items=[])
+        session.items += [Item(f"a.py::t{k}", session, dist) for k in range(2)] + [Item("b.py::t0", session, dist)]
+        assert [[i.nodeid for i in in_child._group(item).items] for item in session.items[:2]] == expect, dist
