@@ -111,11 +111,13 @@ def test_the_in_process_bus_delivers_in_bus_order_without_recursion_or_deadlock(
     from crtk_bridge.sim.canbus import LocalBus
 
     channel = f"local-bus-test-{os.getpid()}-{time.monotonic_ns()}"
-    drive_lock = threading.Lock()
+    drive_lock = threading.RLock()  # as a simulated drive's
     depth, heard = [0], []
+    entered = threading.Event()  # a delivery reached the drive's handler
 
     def drive(msg):  # answers 0x80 with 0x181, under its lock, as a simulated drive does
         depth[0] += 1
+        entered.set()
         try:
             with drive_lock:
                 heard.append((msg.arbitration_id, msg.is_rx, depth[0]))
@@ -147,21 +149,26 @@ def test_the_in_process_bus_delivers_in_bus_order_without_recursion_or_deadlock(
 
         # a thread holding the drive's lock sends while this thread delivers to that drive
         heard.clear()
+        entered.clear()
         holding, sent = threading.Event(), threading.Event()
 
         def tick():
             with drive_lock:
                 holding.set()
-                time.sleep(0.05)  # the delivering thread is now waiting for the lock
+                entered.wait(10)  # the delivering thread is in the handler, waiting for the lock
                 drives.send(can.Message(arbitration_id=0x701, data=b"\x05", is_extended_id=False))
                 sent.set()
 
-        t = threading.Thread(target=tick)
+        t = threading.Thread(target=tick, daemon=True)
         t.start()
-        holding.wait(5)
-        master.send(can.Message(arbitration_id=0x700, data=b"\x05", is_extended_id=False))
-        t.join(5)
-        assert sent.is_set() and not t.is_alive()
+        assert holding.wait(10)
+        # (in a thread: a bus that made the sender wait would deadlock it; the test then fails)
+        delivering = threading.Thread(target=master.send, daemon=True,
+                                      args=(can.Message(arbitration_id=0x700, data=b"\x05", is_extended_id=False),))
+        delivering.start()
+        t.join(20)
+        delivering.join(20)
+        assert sent.is_set() and not t.is_alive() and not delivering.is_alive()
         assert [h[0] for h in heard] == [0x700, 0x701]
     finally:
         for bus in (master, drives, other):
