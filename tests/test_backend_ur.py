@@ -645,3 +645,24 @@ def test_a_cartesian_row_refused_by_the_finiteness_gate_sends_nothing_not_the_ol
     assert fault is not None and fault.code == "invalid_command" and "namespace 'ur5e'" in fault.message, fault
     assert sent == []  # nothing new: no servoJ to the stale joint target
     assert cmd.cartesian.mode[0] == CartesianMode.POSE  # the caller's buffer as it was
+
+
+def test_a_hold_keeps_the_scripts_watchdog_fed_and_a_stopped_cycle_lets_it_stop_the_program(ur):
+    """A hold sends its unchanged servoJ only every keep-alive period (the script repeats it by
+    itself): over three of the script's watchdog periods the program keeps running, ENABLED; once
+    the cycle stops (a control process stalled), the watchdog stops the program within its period."""
+    c = ur.enabled(READY)
+    b = ur.backend
+    sends = []
+    real = b._w.send
+    b._w.send = lambda data: (sends.append(bytes(data[:1])), real(data))[1]
+    period = 1.0 / b.config.watchdog_hz
+    end = time.monotonic() + 3 * period
+    cycles = 0
+    while time.monotonic() < end:
+        ur.cycle()
+        cycles += 1
+    assert ur.sim.state()["runtime_state"] == "PLAYING" and c.state is OperatingState.ENABLED
+    assert 0 < len(sends) < cycles / 2, (len(sends), cycles)  # the hold's repeats were not every cycle
+    wait_until(lambda: ur.sim.state()["runtime_state"] != "PLAYING", period + 2.0, interval=0.01,
+               what=f"the script's watchdog ({period:g} s) stopping the program once the cycle stopped")
