@@ -21,7 +21,7 @@ DOCS = [ROOT / "README.md", ROOT / "systemd" / "README.md", *sorted((ROOT / "doc
 LINK = re.compile(r"(?<!!)\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)|!\[[^\]]*\]\(([^)\s]+)\)")
 QUOTED_PARENT = re.compile(r"`(\.\./[^`\s]+)`")
 SETUP = ["pip install . && crtk-bridge --profile profiles/so101.yaml --sim",
-         "pip install '.[test]' && python -m pytest -q"]
+         "pip install '.[test]' && python -m pytest -q -n 2"]
 
 
 def _inside_repo(target: Path) -> bool:
@@ -181,7 +181,7 @@ SPEC: dict[tuple[str, str], How] = {
     ("README.md", "pip install . && crtk-bridge --profile profiles/so101.yaml --sim"): How(
         "daemon", "so101", ready=READY, run="crtk-bridge --profile profiles/so101.yaml --sim",
         why="`pip install .` is the install under test (DocEnv.bin_dir)"),
-    ("README.md", "pip install '.[test]' && python -m pytest -q"): How(
+    ("README.md", "pip install '.[test]' && python -m pytest -q -n 2"): How(
         "skip", why="the test suite itself: CI runs it verbatim (.ci/run; test_readme_opens_with_exactly_its_two_setup_commands)"),
     ("README.md", "crtk-ctl state"): How(scene="so101", out=(r"so101: DISABLED\s+homed: yes\s+busy: no",)),
     ("README.md", "crtk-ctl enable"): How(scene="so101", out=(r"so101: ENABLED",)),
