@@ -180,35 +180,11 @@ def test_the_adapters_acknowledgements_are_dropped_not_parsed_one_recv_round_eac
     assert bus._read(1.0) == "V1013\r"
 
 
-def test_sends_inside_a_batch_are_one_write_and_another_threads_go_out_at_once(bus_and_adapter, monkeypatch):
-    """``batch()``: the calling thread's lines are held and written together, in order, when it
-    ends (the backend's RPDOs of a cycle); a line another thread sends meanwhile is not held."""
-    import threading
-
-    bus, master, _ = bus_and_adapter
-    port = bus.serialPortOrig
-    writes = record_writes(monkeypatch, port)
-    with bus.batch():
-        for cob in (0x201, 0x301, 0x202):
-            bus.send(can.Message(arbitration_id=cob, data=b"\x0f\x00", is_extended_id=False))
-        other = threading.Thread(target=bus.send, args=(can.Message(arbitration_id=0x601, data=b"\x40",
-                                                                    is_extended_id=False),))
-        other.start()
-        other.join()
-        assert writes == [b"t601140\r"]  # the other thread's, at once; ours held
-    assert writes == [b"t601140\r", b"t20120F00\rt30120F00\rt20220F00\r"]
-    bus.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))  # after it: at once
-    assert writes[-1] == b"t0800\r"
-    out = b""
-    while out.count(b"\r") < 5:
-        out += os.read(master, 256)
-    assert out == b"t601140\rt20120F00\rt30120F00\rt20220F00\rt0800\r"
-
-
-def test_a_batch_split_by_a_full_output_buffer_lets_no_other_line_in(bus_and_adapter, monkeypatch):
-    """A batch is written outside canopen's send lock; when the tty takes only part of it (a full
-    output buffer) and the rest goes through port.write, another thread's line waits for the
-    whole batch: spliced into it, the adapter would send a frame nobody asked for."""
+def test_a_write_of_lines_split_by_a_full_output_buffer_lets_no_other_line_in(bus_and_adapter, monkeypatch):
+    """The cycle's lines (``send_lines``) are written outside canopen's send lock; when the tty
+    takes only part of them (a full output buffer) and the rest goes through port.write, another
+    thread's line waits for the whole write: spliced into it, the adapter would send a frame
+    nobody asked for."""
     import threading
 
     bus, master, _ = bus_and_adapter
@@ -217,11 +193,11 @@ def test_a_batch_split_by_a_full_output_buffer_lets_no_other_line_in(bus_and_ada
     in_rest, release = threading.Event(), threading.Event()
 
     def os_write(fd, data):
-        if fd == port.fd and len(data) > 20:  # the batch: the tty takes half of it
+        if fd == port.fd and len(data) > 20:  # the cycle's lines: the tty takes half of them
             return real_write(fd, bytes(data[:len(data) // 2]))
         return real_write(fd, data)
 
-    def port_write(data):  # the rest of the batch: slow, while another thread sends
+    def port_write(data):  # the rest of them: slow, while another thread sends
         in_rest.set()
         release.wait(5)
         return real_port_write(data)
@@ -233,9 +209,7 @@ def test_a_batch_split_by_a_full_output_buffer_lets_no_other_line_in(bus_and_ada
     other.start()
     releaser = threading.Timer(0.3, release.set)  # the other thread is inside send by then, or blocked
     releaser.start()
-    with bus.batch():
-        for cob in (0x201, 0x301, 0x202):
-            bus.send(can.Message(arbitration_id=cob, data=b"\x0f\x00", is_extended_id=False))
+    bus.send_lines(b"".join(SlcanBus.line(cob, b"\x0f\x00") for cob in (0x201, 0x301, 0x202)))
     other.join(10)
     releaser.join()
     out = b""
@@ -248,9 +222,8 @@ def test_a_batch_split_by_a_full_output_buffer_lets_no_other_line_in(bus_and_ada
 
 
 def test_the_backends_preformatted_lines_are_python_cans_bytes(bus_and_adapter, monkeypatch):
-    """``SlcanBus.line`` / ``send_lines`` (the backend's cycle frames, formatted once without a
-    Message each): the same bytes python-can's ``send`` writes for the same frame, held in a
-    batch like a ``send``."""
+    """``SlcanBus.line`` / ``head`` / ``send_lines`` (the backend's cycle frames, formatted once
+    without a Message each): the same bytes python-can's ``send`` writes for the same frame."""
     bus, master, _ = bus_and_adapter
     writes = record_writes(monkeypatch, bus.serialPortOrig)
     frames = [(0x080, b""), (0x201, b"\x0f\x00\x10\x27\x00\x00\x08"), (0x77F, b"\x05"), (0x7FF, bytes(range(250, 256)) + b"\xab\xcd")]
@@ -259,8 +232,4 @@ def test_the_backends_preformatted_lines_are_python_cans_bytes(bus_and_adapter, 
         bus.send_lines(SlcanBus.line(cob, data))
     assert len(writes) == 2 * len(frames)
     assert writes[0::2] == writes[1::2], writes
-    with bus.batch():
-        bus.send_lines(SlcanBus.line(0x201, b"\x06\x00"))
-        bus.send(can.Message(arbitration_id=0x301, data=b"\x00", is_extended_id=False))
-        assert len(writes) == 2 * len(frames)  # held
-    assert writes[-1] == b"t20120600\rt301100\r"
+    assert all(SlcanBus.line(cob, data).startswith(SlcanBus.head(cob, len(data))) for cob, data in frames)

@@ -207,8 +207,8 @@ def test_a_buggy_core_path_never_reaches_the_backend_and_faults_the_robot(monkey
     cycle(3)
     fill = motion.NamespaceMotion.fill
 
-    def buggy_fill(self, cmd, *block):  # (the controller passes its command block too)
-        fill(self, cmd, *block)
+    def buggy_fill(self, cmd, block):
+        fill(self, cmd, block)
         if self.name == ARM:
             cmd.position[self.idx[1]] = np.nan
 

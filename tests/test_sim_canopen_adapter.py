@@ -233,10 +233,9 @@ def test_python_can_slcan_client_in_process():
     assert not sim.running
 
 
-def test_the_frames_waiting_for_the_adapter_go_to_the_master_in_one_write(adapter, monkeypatch):
-    """What the bus brought while the adapter was busy goes up in ONE write, in order, as a USB
-    adapter's transfer carries several frames (a SYNC's TPDOs wake the master's reader once, not
-    once per frame). The adapter is held inside its first write while four frames arrive."""
+def _opened_and_held(adapter, monkeypatch):
+    """The adapter opened at 1 Mbit/s, its bus thread held inside its first write to the master
+    until ``gate`` is set. Returns (adapter, bus peer, master fd, the writes, gate)."""
     import threading
 
     a, peer, fd = adapter
@@ -251,6 +250,14 @@ def test_the_frames_waiting_for_the_adapter_go_to_the_master_in_one_write(adapte
         real(data)
 
     monkeypatch.setattr(a, "_write", held)
+    return a, peer, fd, writes, gate
+
+
+def test_the_frames_waiting_for_the_adapter_go_to_the_master_in_one_write(adapter, monkeypatch):
+    """What the bus brought while the adapter was busy goes up in ONE write, in order, as a USB
+    adapter's transfer carries several frames (a SYNC's TPDOs wake the master's reader once, not
+    once per frame). The adapter is held inside its first write while four frames arrive."""
+    a, peer, fd, writes, gate = _opened_and_held(adapter, monkeypatch)
     first = can.Message(arbitration_id=0x701, is_extended_id=False, data=b"\x05")
     peer.send(first)
     wait_until(lambda: writes, 5, what="the adapter writing the first frame")
@@ -306,20 +313,7 @@ def test_a_frame_from_while_the_adapter_was_closed_is_not_forwarded_after_it_reo
     bus thread gets to it: a frame sent while the channel was closed (or at the wrong bitrate,
     or bus-off) never reaches the master, even when the thread was busy until after the master
     opened the channel again (a race a loaded host hit in test_bus_off_and_a_wrong_bitrate_pass_nothing)."""
-    import threading
-
-    a, peer, fd = adapter
-    assert _ask(fd, b"S8") == b"\r" and _ask(fd, b"O") == b"\r"
-    writes, gate = [], threading.Event()
-    real = a._write
-
-    def held(data):
-        writes.append(data)
-        if len(writes) == 1:
-            gate.wait(5)  # the bus thread, busy with frame A
-        real(data)
-
-    monkeypatch.setattr(a, "_write", held)
+    a, peer, fd, writes, gate = _opened_and_held(adapter, monkeypatch)  # the bus thread, busy with frame A
     peer.send(can.Message(arbitration_id=0x701, is_extended_id=False, data=b"\x05"))  # A
     wait_until(lambda: writes, 5, what="the adapter writing frame A")
     os.write(fd, b"C\r")

@@ -684,10 +684,11 @@ class NamespaceMotion:
             return CommandMode.VELOCITY
         return CommandMode.POSITION
 
-    def fill(self, cmd: JointCommand, block: np.ndarray | None = None) -> None:
-        """Write this namespace's setpoints into the native command, in the hardware's terms.
-        ``block``: the command's position, velocity and effort as the rows of one (3, joints)
-        array (the controller's), written in one copy."""
+    def fill(self, cmd: JointCommand, block: np.ndarray) -> None:
+        """Write this namespace's setpoints into the native command, in the hardware's terms:
+        its modes into ``cmd``, its position, velocity and effort into ``block``, the rows of one
+        (3, joints) array that are ``cmd``'s position, velocity and effort (the controller's), in
+        one copy."""
         idx = self.idx
         mode = self.mode
         if mode is Mode.FREE:
@@ -707,9 +708,4 @@ class NamespaceMotion:
         # output's own guarantee, so no backend clamps to a profile limit
         _clip(self._vf, self._vf_min, self._vf_max, self._vf)
         self._filled[:] = self.setpoint_p
-        if block is not None:
-            block[:, self.cols] = self._pvf
-        else:
-            cmd.position[idx] = self.setpoint_p
-            cmd.velocity[idx] = self.setpoint_v
-            cmd.effort[idx] = self.setpoint_f
+        block[:, self.cols] = self._pvf

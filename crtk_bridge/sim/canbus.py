@@ -45,7 +45,8 @@ class _Channel:
     def __init__(self, name: str):
         self.name = name
         self.endpoints: list[LocalBus] = []
-        self.pending: collections.deque[tuple[LocalBus, can.Message]] = collections.deque()
+        #: (sender, the frame the others get, the sender's own echo or None), in bus order
+        self.pending: collections.deque[tuple[LocalBus, can.Message, Optional[can.Message]]] = collections.deque()
         self.delivering = threading.Lock()  # held by the thread handing frames out
 
     def pump(self) -> None:
@@ -109,10 +110,7 @@ class LocalBus(can.BusABC):
         (the adapter's bus thread takes every frame of the cycle through here)."""
         if self._filters is not None:
             return super().recv(timeout)
-        try:
-            return self._queue.get(timeout=timeout) if timeout != 0 else self._queue.get_nowait()
-        except queue.Empty:
-            return None
+        return self._recv_internal(timeout)[0]
 
     def _recv_internal(self, timeout: Optional[float]) -> tuple[Optional[can.Message], bool]:
         try:

@@ -672,7 +672,7 @@ class Canopen402Backend(Actuator):
                 for index in objects:
                     d.v[index] = pdo.add_variable(index)
                 d.layout[pdo] = _payload_struct(d, pdo)
-                d.head[pdo] = b"t%03X%d" % (pdo.cob_id, d.layout[pdo].size)
+                d.head[pdo] = SlcanBus.head(pdo.cob_id, d.layout[pdo].size)
             pdo.save()
         # Each TPDO frame straight to the backend's own handler (got, _add_node) rather than
         # through PdoMap.on_message, which save() subscribed: its Condition, notify_all and

@@ -21,10 +21,10 @@ waiting for it), about a third of the control process's CPU per cycle on a 2-dri
 (bench/bench_cpu.py); only a line the buffer did not take whole goes through it (it waits for
 room, as before).
 
-The cycle's RPDOs in one write: the backend formats its cycle frames itself (:meth:`SlcanBus.line`,
-python-can's bytes) and writes them with :meth:`SlcanBus.send_lines`; inside
-:meth:`SlcanBus.batch` the lines the calling thread sends (``send`` or ``send_lines``) are
-collected and written together when it ends (another thread's still go out at once). Each
+The cycle's RPDOs in one write: the backend formats its cycle frames itself (:meth:`SlcanBus.line`
+/ :meth:`SlcanBus.head`, python-can's bytes) and writes them together with
+:meth:`SlcanBus.send_lines`, one writer at a time (a line another thread sends waits for the
+whole write, even one the tty's full output buffer splits). Each
 write to the adapter is a system call here and, on the adapter's side, a wake-up and an
 acknowledgement burst back to the notifier; a 2-drive cycle sends four RPDOs, one write instead
 of four (issue 23). A real adapter receives them in one USB transfer and puts them on the bus in
@@ -44,8 +44,7 @@ import binascii
 import os
 import select
 import threading
-from contextlib import contextmanager
-from typing import Iterator, Optional
+from typing import Optional
 
 import serial
 from can.exceptions import CanOperationError, error_check
@@ -63,48 +62,32 @@ class SlcanBus(slcanBus):
     """``slcanBus`` whose receive reads what is waiting in one go (see the module docstring)."""
 
     def __init__(self, channel, *args, timeout: float = SERIAL_TIMEOUT_S, **kwargs):
-        self._batch: list[bytes] | None = None  # lines held by batch()
-        self._batch_owner = 0  # the thread inside batch()
-        # one writer at a time: a batch is written outside canopen's send lock, and a write the
+        # one writer at a time: send_lines writes outside canopen's send lock, and a write the
         # tty's full output buffer splits (os.write, then port.write for the rest) must not let
         # another thread's line in between: the adapter would send the spliced line as a frame
         self._write_lock = threading.Lock()
         super().__init__(channel, *args, timeout=timeout, **kwargs)
 
-    @contextmanager
-    def batch(self) -> Iterator[None]:
-        """Within it, the calling thread's sends are held and written in one go when it ends
-        (also when it ends with an exception: what was sent is sent). Not re-entrant."""
-        self._batch, self._batch_owner = [], threading.get_ident()
-        try:
-            yield
-        finally:
-            lines, self._batch, self._batch_owner = self._batch, None, 0
-            if lines:
-                self._send_bytes(b"".join(lines))
+    @staticmethod
+    def head(can_id: int, length: int) -> bytes:
+        """The start of python-can's line for a standard (11-bit) data frame of ``length`` bytes:
+        ``t``, the identifier, the length; the payload in upper-case hex and a CR follow."""
+        return b"t%03X%d" % (can_id, length)
 
     @staticmethod
     def line(can_id: int, data: bytes) -> bytes:
         """The line python-can's ``send`` writes for a standard (11-bit) data frame, CR included."""
-        return b"t%03X%d%s\r" % (can_id, len(data), binascii.hexlify(data).upper())
+        return SlcanBus.head(can_id, len(data)) + binascii.hexlify(data).upper() + b"\r"
 
     def send_lines(self, data: bytes) -> None:
-        """Frames already formatted (:meth:`line`), written as they are -- in a batch held like
-        ``send``'s. The backend's cycle (the SYNC, the master's heartbeat, the RPDOs) formats its
+        """Frames already formatted (:meth:`line`), written as they are, in one write. The backend's cycle (the SYNC, the master's heartbeat, the RPDOs) formats its
         frames here rather than through canopen's ``send_message`` and python-can's ``send`` (a
         ``Message``, a lock and a format per frame: a fifth of the control process's CPU per
         2-drive cycle, issue 23); same bytes, checked by tests/test_canopen_slcan_reads.py."""
-        if self._batch is not None and self._batch_owner == threading.get_ident():
-            self._batch.append(data)
-            return
         self._send_bytes(data)
 
     def _write(self, string: str) -> None:
-        data = string.encode() + self.LINE_TERMINATOR
-        if self._batch is not None and self._batch_owner == threading.get_ident():
-            self._batch.append(data)
-            return
-        self._send_bytes(data)
+        self._send_bytes(string.encode() + self.LINE_TERMINATOR)
 
     def _send_bytes(self, data: bytes) -> None:
         port = self.serialPortOrig
